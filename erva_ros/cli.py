@@ -1,0 +1,82 @@
+"""``erva`` — the ERVA NMPC command-line tool.
+
+Subcommands live in :mod:`erva_ros.commands`, one module each, and are
+discovered at start-up.  A command module defines ``COMMAND`` (its name),
+``HELP`` (one line), optionally ``DESCRIPTION``, ``add_arguments(parser)`` and
+``main(args) -> int``.  Modules keep heavy imports (rclpy, matplotlib) inside
+``main`` so ``erva --help`` stays fast.
+"""
+
+import argparse
+import importlib
+import os
+import pkgutil
+import sys
+import traceback
+from typing import List, Optional
+
+from erva_ros import __version__
+from erva_ros.errors import CLIError
+from erva_ros.params import ParamError
+
+# Order in `erva --help`: the main job first, then analysis, then tools.
+ORDER = ['run', 'sim', 'fr', 'table', 'pareto', 'bench', 'replay', 'report', 'bag', 'ecu-sim']
+
+
+def _command_modules():
+    import erva_ros.commands as pkg
+    mods = []
+    for info in pkgutil.iter_modules(pkg.__path__):
+        if info.name.startswith('_'):
+            continue
+        mod = importlib.import_module(f'erva_ros.commands.{info.name}')
+        if hasattr(mod, 'COMMAND') and hasattr(mod, 'main'):
+            mods.append(mod)
+    rank = {name: i for i, name in enumerate(ORDER)}
+    mods.sort(key=lambda m: (rank.get(m.COMMAND, len(ORDER)), m.COMMAND))
+    return mods
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog='erva',
+        description='Energy-regenerative vibration absorber (ERVA): NMPC on ROS 2, offline '
+                    'simulation, the paper\'s figures and table, bags and HIL tools.',
+        epilog='Run "erva COMMAND --help" for the options of a command. '
+               'Set ERVA_DEBUG=1 to see tracebacks of internal errors.')
+    parser.add_argument('--version', action='version', version=f'erva_ros {__version__}')
+    sub = parser.add_subparsers(dest='command', metavar='COMMAND')
+    sub.required = True
+    for mod in _command_modules():
+        p = sub.add_parser(mod.COMMAND, help=mod.HELP,
+                           description=getattr(mod, 'DESCRIPTION', mod.HELP),
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+        mod.add_arguments(p)
+        p.set_defaults(_main=mod.main, _name=mod.COMMAND)
+    return parser
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    name = f'erva {args._name}'
+    try:
+        return int(args._main(args) or 0)
+    except (CLIError, ParamError) as exc:
+        print(f'{name}: error: {exc}', file=sys.stderr)
+        return getattr(exc, 'exit_code', 2)
+    except KeyboardInterrupt:
+        print(f'{name}: interrupted', file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+    except Exception as exc:  # last resort: one line, traceback on demand
+        if os.environ.get('ERVA_DEBUG'):
+            traceback.print_exc()
+        print(f'{name}: internal error: {type(exc).__name__}: {exc} '
+              '(set ERVA_DEBUG=1 for the traceback)', file=sys.stderr)
+        return 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,87 @@
+"""Options and helpers shared by ``erva`` subcommands."""
+
+import argparse
+import json
+import os
+import sys
+from typing import Any, Optional
+
+from erva_ros.errors import CLIError
+
+
+def add_params_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('--params', metavar='FILE', default=None,
+                        help='ROS 2 parameter file with the ERVA parameters '
+                             '(default: the shipped config/erva_paper.yaml, paper Table I)')
+
+
+def add_json_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('--json', action='store_true',
+                        help='print the results as one JSON object on stdout')
+
+
+def add_out_option(parser: argparse.ArgumentParser, what: str) -> None:
+    parser.add_argument('--out', metavar='DIR', default=None,
+                        help=f'directory to write {what} into (created if missing)')
+
+
+def positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+    if not v > 0 or v != v or v == float('inf'):
+        raise argparse.ArgumentTypeError(f'{text!r} must be a positive, finite number')
+    return v
+
+
+def positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not an integer') from None
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f'{text!r} must be a positive integer')
+    return v
+
+
+def ensure_out_dir(path: Optional[str]) -> Optional[str]:
+    """Create ``path`` if needed; a clear error if it cannot be written."""
+    if path is None:
+        return None
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as exc:
+        raise CLIError(f'cannot create output directory {path!r}: {exc.strerror}') from None
+    if not os.access(path, os.W_OK):
+        raise CLIError(f'output directory {path!r} is not writable')
+    return path
+
+
+def print_json(obj: Any) -> None:
+    json.dump(obj, sys.stdout, indent=2, allow_nan=False)
+    sys.stdout.write('\n')
+    sys.stdout.flush()
+
+
+class Progress:
+    """Progress on stderr: a rewritten line on a terminal, a line per 10 % otherwise."""
+
+    def __init__(self, label: str, enabled: bool = True):
+        self.label = label
+        self.enabled = enabled
+        self.tty = sys.stderr.isatty()
+        self._last_decile = -1
+
+    def __call__(self, done: int, total: int) -> None:
+        if not self.enabled or total <= 0:
+            return
+        if self.tty:
+            end = '\n' if done == total else ''
+            sys.stderr.write(f'\r{self.label}: {done}/{total}{end}')
+            sys.stderr.flush()
+            return
+        decile = (10 * done) // total
+        if decile != self._last_decile:
+            self._last_decile = decile
+            print(f'{self.label}: {done}/{total}', file=sys.stderr, flush=True)

@@ -1,0 +1,1 @@
+"""Thin rclpy adapters around the plain-Python cores, one process per node."""

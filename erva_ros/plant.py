@@ -1,0 +1,71 @@
+"""Plant simulator core (no ROS): the ERVA or benchmark quarter car advanced one control period.
+
+Used by the offline closed loop (``erva sim``), the plant-simulator node and the
+simulated ECU, so every user integrates the same way:
+
+* the damping command u_k is held over [t_k, t_k + Ts) (zero-order hold),
+* the road moves linearly between its samples w(t_k) and w(t_k + Ts),
+* RK4 with sub-steps of at most :data:`~erva_ros.model.PLANT_SUBSTEP_S` (0.5 ms),
+* harvested energy is integrated exactly along (see ``QuarterCarModel.plant_step``).
+"""
+
+from dataclasses import dataclass
+import math
+from typing import Optional
+
+import numpy as np
+
+from erva_ros.model import get_model, PLANT_SUBSTEP_S
+from erva_ros.params import ERVAParams
+
+
+@dataclass
+class PlantSample:
+    """Measured outputs at one sample time t_k (SI units)."""
+
+    t: float                 # s
+    x: np.ndarray            # state at t_k
+    road_height: float       # m, w(t_k)
+    damping_cmd: float       # Ns/m, u applied from t_k on
+    sprung_accel: float      # m/s², z̈_s(t_k) with u_k applied (paper x_a = ẋ_2)
+    power_w: float           # W, instantaneous harvested power at t_k
+    harvested_j: float       # J, energy harvested since the start
+
+
+class PlantSimulator:
+    """Integrates the quarter car by whole control periods with the command held."""
+
+    def __init__(self, params: ERVAParams, kind: str = 'erva', ts: float = 0.02,
+                 substep: float = PLANT_SUBSTEP_S, x0: Optional[np.ndarray] = None):
+        if not ts > 0:
+            raise ValueError(f'sample time ts must be > 0, got {ts}')
+        self.model = get_model(params, kind)
+        self.params = params
+        self.ts = float(ts)
+        self.substeps = max(1, int(math.ceil(self.ts / substep - 1e-9)))
+        self._step = self.model.plant_step(self.ts, self.substeps)
+        self._outputs = self.model.outputs
+        self.reset(x0)
+
+    def reset(self, x0: Optional[np.ndarray] = None, t0: float = 0.0) -> None:
+        self.x = self.model.zero_state() if x0 is None else np.array(x0, dtype=float)
+        if self.x.shape != (self.model.nx,):
+            raise ValueError(f'x0 must have {self.model.nx} states, got shape {self.x.shape}')
+        self.t = float(t0)
+        self.k = 0
+        self.harvested_j = 0.0
+
+    def sample(self, u: float, w: float) -> PlantSample:
+        """Outputs at the current time if command ``u`` is applied with road height ``w``."""
+        acc, pw = self._outputs(self.x, u, w)
+        return PlantSample(self.t, self.x.copy(), float(w), float(u), float(acc), float(pw),
+                           self.harvested_j)
+
+    def step(self, u: float, w0: float, w1: float) -> np.ndarray:
+        """Advance one period Ts with u held and the road moving from w0 to w1."""
+        xn, e = self._step(self.x, u, w0, w1)
+        self.x = np.asarray(xn).ravel()
+        self.harvested_j += float(e)
+        self.k += 1
+        self.t = self.k * self.ts
+        return self.x
