@@ -63,7 +63,6 @@ setup(
     maintainer_email='erva-dev@example.com',
     description='Real-time NMPC for an energy-regenerative vibration absorber (ERVA), ROS 2 Jazzy',
     license='Apache-2.0',
-    tests_require=['pytest'],
     entry_points={
         'console_scripts': ['erva = erva_ros.cli:main'] + [
             f'{name} = erva_ros.nodes.{name}:main' for name in NODES],

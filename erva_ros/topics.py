@@ -4,25 +4,24 @@ Only common_interfaces types; every message is stamped where the type allows, so
 latencies can be measured from a recording alone.  Names are relative to the
 ``/erva`` namespace (remappable with ``--ros-args -r __ns:=/car1`` etc.).
 
-| topic                 | type                              | content (SI units)                      |
-|-----------------------|-----------------------------------|-----------------------------------------|
-| state                 | sensor_msgs/JointState            | name [z_s, z_us, z_d]: position (m),    |
-|                       |                                   | velocity (m/s); stamp = sample time t_k |
-| sprung_accel          | geometry_msgs/AccelStamped        | accel.linear.z = z̈_s (m/s²) at t_k      |
-| generator             | sensor_msgs/JointState            | name [generator]: position = z_d-(z_s-  |
-|                       |                                   | z_us) (m), velocity = v_gen (m/s),      |
-|                       |                                   | effort = u·v_gen (N); P = effort·vel (W)|
-| road/height           | geometry_msgs/PointStamped        | point.x = distance travelled (m),       |
-|                       |                                   | point.z = road height at the tyre (m)   |
-| road/preview          | trajectory_msgs/JointTrajectory   | joint [road_height]: points[k].positions|
-|                       |                                   | = [w(t0 + k·Ts)] (m), time_from_start   |
-|                       |                                   | = k·Ts; header.stamp = t0               |
-| damping_cmd           | trajectory_msgs/JointTrajectory   | joint [c_e]: points[0] = command to     |
-|                       |                                   | apply now (Ns/m), points[k] = plan at   |
-|                       |                                   | t0 + k·Ts; header.stamp = stamp of the  |
-|                       |                                   | state it was computed from              |
-| /diagnostics          | diagnostic_msgs/DiagnosticArray   | per-node status, counters, timings      |
-| /clock                | rosgraph_msgs/Clock               | lock-step mode only                     |
+topic          type                              content (SI units)
+-------------  --------------------------------  ---------------------------------------------
+state          sensor_msgs/JointState            joints [z_s, z_us, z_d]: position (m),
+                                                 velocity (m/s); stamp = sample time t_k
+sprung_accel   geometry_msgs/AccelStamped        accel.linear.z = z̈_s (m/s²) at t_k
+generator      sensor_msgs/JointState            joint [generator]: position = z_d - (z_s -
+                                                 z_us) (m), velocity = v_gen (m/s), effort =
+                                                 u·v_gen (N); harvested P = effort·velocity (W)
+road/height    geometry_msgs/PointStamped        point.x = distance travelled (m),
+                                                 point.z = road height at the tyre (m)
+road/preview   trajectory_msgs/JointTrajectory   joint [road_height]: points[k].positions =
+                                                 [w(t0 + k·Ts)] (m), time_from_start = k·Ts,
+                                                 header.stamp = t0
+damping_cmd    trajectory_msgs/JointTrajectory   joint [c_e]: points[0] = command to apply now
+                                                 (Ns/m), points[k] = plan at t0 + k·Ts;
+                                                 header.stamp = stamp of the state used
+/diagnostics   diagnostic_msgs/DiagnosticArray   per-node status, counters, timings
+/clock         rosgraph_msgs/Clock               lock-step mode only
 """
 
 NAMESPACE = '/erva'
