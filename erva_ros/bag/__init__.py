@@ -1,0 +1,24 @@
+"""Session recording in rosbag2-compatible MCAP bags, and what is built on the bags.
+
+Layout (do-mpc-like separation; no ROS needed except where noted):
+
+* :mod:`~erva_ros.bag.schemas`  -- ros2msg definitions and RIHS01 type hashes, as rosbag2
+  finds them (ament index share/<pkg>/msg);
+* :mod:`~erva_ros.bag.qos`      -- offered QoS profiles in rosbag2's YAML form;
+* :mod:`~erva_ros.bag.metadata` -- ``metadata.yaml`` (rosbag2 bag format version 9);
+* :mod:`~erva_ros.bag.writer`   -- the MCAP writer (profile ``ros2``, ``cdr`` messages);
+* :mod:`~erva_ros.bag.reader`   -- reading, ``erva bag info``;
+* :mod:`~erva_ros.bag.repair`   -- recovering a bag whose recorder was killed;
+* :mod:`~erva_ros.bag.session`  -- bag directory names and session metadata for ``erva run``;
+* :mod:`~erva_ros.bag.report`   -- comfort, power and timing figures from a bag alone;
+* :mod:`~erva_ros.bag.replay`   -- publishing a bag with its original timing (rclpy);
+* :mod:`~erva_ros.bag.offline`  -- writing an offline closed-loop run as a session bag.
+
+The recorder node itself is :mod:`erva_ros.nodes.recorder_node`.
+"""
+
+from erva_ros.errors import CLIError
+
+
+class BagError(CLIError):
+    """A bag cannot be read or written; the message is one line for the user."""

@@ -1,0 +1,193 @@
+"""Publish a bag's messages with their original timing, as ``ros2 bag play`` does (rclpy).
+
+Messages are published in log-time (receive-time) order; message i goes out when
+(log_i − log_0)/rate of wall time has passed since the start, as raw CDR bytes (no
+re-serialisation), from one publisher per topic that offers the QoS recorded for it
+(``erva_ros.bag.qos.playback_qos``).  ``clock_hz`` > 0 publishes the playback time
+(bag time) on /clock at that rate, like ``ros2 bag play --clock``; a /clock recorded
+in the bag is then not replayed.
+
+The what-if mode (:func:`drive_plant`) does not publish: the road recorded at the tyre
+drives a fresh offline closed loop with another controller, written as a new session.
+"""
+
+import dataclasses
+import time
+from typing import Callable, Dict, Iterable, List, Optional
+
+from erva_ros import topics as contract
+from erva_ros.bag import BagError
+from erva_ros.bag.reader import Bag
+from erva_ros.metrics import percentiles_ms
+
+SLEEP_SLICE_S = 0.05   # longest sleep between checks of the stop flag
+
+
+class Player:
+    """Replay ``bag`` through ``node``'s publishers (see module doc)."""
+
+    def __init__(self, node, bag: Bag, rate: float = 1.0, topics: Optional[Iterable[str]] = None,
+                 loop: bool = False, clock_hz: float = 0.0):
+        from erva_ros.bag.qos import playback_qos
+        from erva_ros.bag.schemas import message_class
+
+        if not rate > 0:
+            raise BagError(f'rate {rate} must be positive')
+        self.node, self.bag, self.rate, self.loop = node, bag, float(rate), bool(loop)
+        self.clock_hz = float(clock_hz or 0.0)
+        if topics:
+            missing = sorted(set(topics) - set(bag.topics))
+            if missing:
+                raise BagError(f'topic(s) {", ".join(missing)} not in the bag; it has '
+                               f'{", ".join(sorted(bag.topics))}')
+            self.topics = sorted(set(topics))
+        else:
+            self.topics = sorted(bag.topics)
+        if self.clock_hz > 0 and contract.CLOCK in self.topics:
+            self.topics.remove(contract.CLOCK)
+        if not self.topics:
+            raise BagError(f'{bag.path}: nothing to play')
+        self.publishers = {}
+        for name in self.topics:
+            info = bag.topics[name]
+            self.publishers[name] = node.create_publisher(
+                message_class(info.type), name, playback_qos(info.offered_qos))
+        self.clock_pub = None
+        if self.clock_hz > 0:
+            from rosgraph_msgs.msg import Clock
+            self.clock_pub = node.create_publisher(Clock, contract.CLOCK, contract.control_qos())
+        self.published: Dict[str, int] = {name: 0 for name in self.topics}
+        self.clock_ticks = 0
+        self.clock_ticks_this_pass = 0
+        self.lateness_s: List[float] = []
+
+    def wait_for_subscribers(self, timeout_s: float) -> bool:
+        """Wait until every publisher has a matched subscription (or ``timeout_s``)."""
+        end = time.monotonic() + timeout_s
+        pubs = list(self.publishers.values())
+        while time.monotonic() < end:
+            if all(p.get_subscription_count() > 0 for p in pubs):
+                return True
+            time.sleep(0.02)
+        return False
+
+    def _publish_clock(self, bag_ns: int) -> None:
+        from rosgraph_msgs.msg import Clock
+        msg = Clock()
+        msg.clock.sec, msg.clock.nanosec = bag_ns // 1_000_000_000, bag_ns % 1_000_000_000
+        self.clock_pub.publish(msg)
+        self.clock_ticks += 1
+
+    def _sleep_until(self, target: float, wall0: float, bag0: int,
+                     should_stop: Callable[[], bool]) -> bool:
+        """Sleep until monotonic ``target``, ticking /clock; return False if stopped."""
+        clock_period = 1.0 / self.clock_hz if self.clock_pub is not None else None
+        while True:
+            if should_stop():
+                return False
+            now = time.monotonic()
+            if clock_period is not None:
+                due = wall0 + self.clock_ticks_this_pass * clock_period
+                if due <= now:
+                    self._publish_clock(bag0 + int((now - wall0) * self.rate * 1e9))
+                    self.clock_ticks_this_pass += 1
+                    continue
+                wake = min(target, due)
+            else:
+                wake = target
+            if wake <= now:
+                return True
+            time.sleep(min(wake - now, SLEEP_SLICE_S))
+
+    def run(self, should_stop: Callable[[], bool] = lambda: False) -> Dict:
+        """Play (once, or until stopped with ``loop``); return what was published."""
+        passes = 0
+        started = time.monotonic()
+        while True:
+            passes += 1
+            wall0 = time.monotonic()
+            bag0: Optional[int] = None
+            self.clock_ticks_this_pass = 0
+            for m in self.bag.messages(self.topics):
+                if bag0 is None:
+                    bag0 = m.log_time_ns
+                target = wall0 + (m.log_time_ns - bag0) * 1e-9 / self.rate
+                if not self._sleep_until(target, wall0, bag0, should_stop):
+                    return self._stats(passes, started, stopped=True)
+                self.lateness_s.append(time.monotonic() - target)
+                self.publishers[m.topic].publish(m.data)
+                self.published[m.topic] += 1
+            if not self.loop or should_stop() or bag0 is None:
+                return self._stats(passes, started, stopped=should_stop())
+
+    def finish(self, timeout_s: float = 5.0) -> bool:
+        """Wait until subscribers acknowledged everything (reliable QoS); return success."""
+        from rclpy.duration import Duration
+        return all(p.wait_for_all_acked(Duration(seconds=timeout_s))
+                   for p in self.publishers.values())
+
+    def _stats(self, passes: int, started: float, stopped: bool) -> Dict:
+        return {'bag': self.bag.path, 'rate': self.rate, 'passes': passes,
+                'stopped': stopped, 'wall_s': time.monotonic() - started,
+                'published': dict(self.published), 'total': sum(self.published.values()),
+                'clock_ticks': self.clock_ticks,
+                'lateness_ms': percentiles_ms(self.lateness_s)}
+
+
+def recorded_road(bag: Bag, namespace: Optional[str] = None):
+    """Return (times s, heights m) of the road recorded at the tyre in ``bag``."""
+    import numpy as np
+
+    from erva_ros.bag.report import guess_namespace
+    ns = namespace or guess_namespace(bag)
+    topic = f'{ns}/{contract.ROAD_HEIGHT}'
+    if topic not in bag.topics:
+        raise BagError(f'{bag.path}: no {topic} in the bag, so no road to drive the plant')
+    stamps, heights = [], []
+    for _, msg in bag.decoded([topic]):
+        stamps.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+        heights.append(msg.point.z)
+    if len(stamps) < 2:
+        raise BagError(f'{bag.path}: {topic} has {len(stamps)} sample(s); need at least 2')
+    order = np.argsort(stamps, kind='stable')
+    t = (np.asarray(stamps, dtype=np.int64)[order] - stamps[order[0]]) * 1e-9
+    h = np.asarray(heights, dtype=float)[order]
+    keep = np.concatenate([[True], np.diff(t) > 0])   # drop repeated stamps
+    return t[keep], h[keep]
+
+
+def drive_plant(bag: Bag, out_bag_dir: str, controller_name: str, params, settings,
+                session_extra: Optional[Dict] = None, kind: str = 'erva',
+                duration_s: Optional[float] = None):
+    """Run ``controller_name`` on the road recorded in ``bag``; record it at ``out_bag_dir``.
+
+    Returns (ClosedLoopResult, metadata of the new bag).  The preview is the recorded
+    road itself (what the tyre met), so a preview controller sees the road perfectly.
+    The run ends at the last recorded road sample (one control period before the end
+    of the recorded session), since each step needs the road at both of its ends.
+    """
+    from erva_ros.bag.offline import run_and_record
+    from erva_ros.bag.session import session_metadata
+    from erva_ros.controllers import make_controller
+    from erva_ros.roads import make_road
+
+    times, heights = recorded_road(bag)
+    # A step from t_k needs w(t_k + Ts): the last recorded sample ends the run.
+    length = float(times[-1])
+    duration = length if duration_s is None else min(float(duration_s), length)
+    road = make_road('recorded', duration, ts=settings.ts, times=times, heights=heights,
+                     name=f'recorded({bag.path})')
+    controller = make_controller(controller_name, params, settings, kind=kind)
+    session = session_metadata(
+        f'what-if:{bag.session.get("scenario", "recorded")}',
+        parameters={'erva': dataclasses.asdict(params),
+                    'controller': dataclasses.asdict(settings)},
+        seed=bag.session.get('seed') or None, controller=controller_name,
+        extra={'source': 'offline closed loop (what-if replay)', 'based_on': bag.path,
+               'based_on_controller': bag.session.get('controller', ''),
+               **(session_extra or {})})
+    return run_and_record(out_bag_dir, params, controller, road, duration, kind=kind,
+                          session=session)
+
+
+__all__ = ['Player', 'recorded_road', 'drive_plant']

@@ -1,0 +1,178 @@
+"""``erva bag``: inspect, repair and benchmark session bags (rosbag2 directories with MCAP)."""
+
+import math
+
+from erva_ros.commands._common import (add_json_option, positive_float, positive_int,
+                                       print_json)
+from erva_ros.errors import CLIError
+
+COMMAND = 'bag'
+HELP = 'session bags: info (topics, counts, session), repair (after a crash), bench (recorder)'
+DESCRIPTION = """\
+Session bags are rosbag2 directories (metadata.yaml, bag format version 9) holding one
+MCAP file (profile ros2, ros2msg schemas, cdr messages), as ros2 bag record writes
+them: ros2 bag info/play and Foxglove open them directly.
+
+  erva bag info BAG      topics, types, counts, duration and the session metadata
+                         (scenario, parameters, seed, controller, version, host, ...)
+  erva bag repair BAG    after the recorder was killed: rebuild the MCAP summary and
+                         index from every flushed chunk and write metadata.yaml
+  erva bag bench         recorder throughput and the latency it adds to a 50 Hz loop
+
+BAG is a bag directory or its .mcap file."""
+
+#: Session values longer than this are shortened in the text output (see --json).
+LONG_VALUE = 100
+
+
+def add_arguments(parser):
+    sub = parser.add_subparsers(dest='bag_command', metavar='ACTION')
+    sub.required = True
+    p = sub.add_parser('info', help='topics, counts, duration and session metadata of a bag',
+                       description='Show what a bag holds, like "ros2 bag info", plus the '
+                                   'session metadata the recorder stored.')
+    p.add_argument('bag', metavar='BAG', help='bag directory or .mcap file')
+    add_json_option(p)
+    p = sub.add_parser('repair', help='make a bag whose recorder died complete again',
+                       description='Copy every readable record (all flushed chunks) of a '
+                                   'bag into a new, indexed MCAP file and write '
+                                   'metadata.yaml; the original file is kept as '
+                                   '<file>.orig unless --no-backup.')
+    p.add_argument('bag', metavar='BAG', help='bag directory or .mcap file')
+    p.add_argument('--no-backup', action='store_true',
+                   help='do not keep the damaged original as <file>.orig')
+    add_json_option(p)
+    p = sub.add_parser('bench', help='recorder throughput and added control-loop latency',
+                       description='Run a 50 Hz echo control loop (state -> command '
+                                   'latency p50/p99/max) while the recorder is started and '
+                                   'stopped in alternating windows, then flood the recorder '
+                                   'with states to measure the message rate it sustains.  '
+                                   'Uses $ROS_DOMAIN_ID, local discovery only.')
+    p.add_argument('--window', type=positive_float, default=10.0, metavar='S',
+                   help='seconds of each recorder-off / recorder-on window (default 10)')
+    p.add_argument('--pairs', type=positive_int, default=3,
+                   help='number of off/on window pairs (default 3)')
+    p.add_argument('--contract-rates', default='250,500,1000', metavar='HZ[,HZ...]',
+                   help='rates at which the whole contract (8 topics) is published '
+                        '(default 250,500,1000; live: 50)')
+    p.add_argument('--flood-rates', default='1000,0', metavar='HZ[,HZ...]',
+                   help='single-topic flood rates in msg/s, 0 = as fast as possible '
+                        '(default 1000,0)')
+    p.add_argument('--flood-duration', type=positive_float, default=4.0, metavar='S',
+                   help='seconds of each throughput run (default 4)')
+    add_json_option(p)
+
+
+def _size(n: int) -> str:
+    for unit in ('B', 'KiB', 'MiB', 'GiB'):
+        if n < 1024 or unit == 'GiB':
+            return f'{n:.1f} {unit}' if unit != 'B' else f'{n} B'
+        n /= 1024.0
+    return f'{n} B'
+
+
+def _info(args) -> int:
+    from erva_ros.bag.reader import open_bag
+    info = open_bag(args.bag).info()
+    if args.json:
+        print_json(info)
+        return 0
+    rows = [('Files', info['file']), ('Bag size', _size(info['size_bytes'])),
+            ('Storage id', f'mcap (profile {info["profile"]}, {info["library"]})'),
+            ('ROS Distro', info['ros_distro'] or '-'),
+            ('Duration', f'{info["duration_s"]:.9f}s'),
+            ('Start', f'{info["start"]} ({info["start_ns"]})' if info['start'] else '-'),
+            ('End', f'{info["end"]} ({info["end_ns"]})' if info['end'] else '-'),
+            ('Messages', str(info['message_count']))]
+    for key, value in rows:
+        print(f'{key + ":":<19}{value}')
+    for i, t in enumerate(info['topics']):
+        rate = f'{t["rate_hz"]:.2f} Hz' if t['rate_hz'] else '-'
+        print(f'{"Topic information:" if i == 0 else "":<19}Topic: {t["name"]} | Type: '
+              f'{t["type"]} | Count: {t["count"]} | Rate: {rate} | Serialization Format: '
+              f'{t["serialization_format"]}')
+    if not info['topics']:
+        print(f'{"Topic information:":<19}(none)')
+    for i, (key, value) in enumerate(sorted(info['session'].items())):
+        if len(value) > LONG_VALUE:
+            value = value[:LONG_VALUE] + f'... ({len(value)} chars; see --json)'
+        print(f'{"Session:" if i == 0 else "":<19}{key}: {value}')
+    for w in info['warnings']:
+        print(f'warning: {w}')
+    return 0
+
+
+def _repair(args) -> int:
+    from erva_ros.bag.repair import repair_bag
+    result = repair_bag(args.bag, keep_original=not args.no_backup)
+    if args.json:
+        print_json(result)
+        return 0
+    span = ''
+    if result['start_ns'] is not None:
+        span = f', {(result["end_ns"] - result["start_ns"]) * 1e-9:.3f} s'
+    print(f'{result["bag"]}: {result["action"]}')
+    print(f'recovered {result["messages"]} messages on {len(result["topics"])} topics{span}')
+    if result['stopped_at']:
+        print(f'the damaged file ended with: {result["stopped_at"]}')
+    if result['original']:
+        print(f'original kept as {result["original"]}')
+    return 0
+
+
+def _bench(args) -> int:
+    import sys
+
+    from erva_ros.bag import bench
+    def rates(text, option, zero_ok):
+        try:
+            values = [float(x) for x in text.split(',') if x.strip()]
+        except ValueError:
+            raise CLIError(f'{option} {text!r}: give numbers like 1000,0') from None
+        if any(not math.isfinite(r) or r < 0 or (r == 0 and not zero_ok) for r in values):
+            raise CLIError(f'{option} must be ' + ('>= 0 (0 = as fast as possible)'
+                                                   if zero_ok else 'positive'))
+        return values
+    result = bench.run(args.window, args.pairs, rates(args.flood_rates, '--flood-rates', True),
+                       args.flood_duration,
+                       rates(args.contract_rates, '--contract-rates', False),
+                       progress=lambda s: print(f'erva bag bench: {s}', file=sys.stderr,
+                                                flush=True))
+    if args.json:
+        from erva_ros.bag.report import json_safe
+        print_json(json_safe(result))
+        return 0
+
+    def row(name, p):
+        return (f'{name:<34}{p["p50"]:8.3f}{p["p99"]:9.3f}{p["max"]:9.3f}'
+                f'{p["samples"]:9d}')
+    print('50 Hz echo control loop, recorder off/on in alternating windows '
+          '(ms; shared 2-core machine)')
+    print(f'{"":<34}{"p50":>8}{"p99":>9}{"max":>9}{"samples":>9}')
+    for name, what in (('command', 'state stamp -> command published'),
+                       ('round_trip', 'state stamp -> command received')):
+        res = result[name]
+        print(f'{what}:')
+        print(row('  without recorder', res['without_recorder_ms']))
+        print(row('  with recorder', res['with_recorder_ms']))
+        a = res['added_ms']
+        print(f'{"  added by recording":<34}{a["p50"]:8.3f}{a["p99"]:9.3f}{a["max"]:9.3f}')
+    print('recording throughput, the whole contract (8 topics, keep-last 10 each)')
+    for c in result['contract']:
+        print(f'  at {c["rate_hz"]:>6g} Hz: published {c["published"]}, recorded '
+              f'{c["recorded"]} ({c["recorded_per_s"]:.0f}/s), lost {c["lost"]}')
+    print('recording throughput, one topic (sensor_msgs/JointState, keep-last 10)')
+    for f in result['flood']:
+        req = f'{f["requested_hz"]:g}/s' if f['requested_hz'] else 'max'
+        print(f'  requested {req:>8}: published {f["published"]} '
+              f'({f["published_per_s"]:.0f}/s), recorded {f["recorded"]} '
+              f'({f["recorded_per_s"]:.0f}/s), lost {f["lost"]}')
+    sustained = result['sustained_msgs_per_s']
+    print(f'sustained without loss: {sustained:.0f} msg/s' if sustained else
+          'sustained without loss: none of the rates')
+    return 0
+
+
+def main(args) -> int:
+    handler = {'info': _info, 'repair': _repair, 'bench': _bench}[args.bag_command]
+    return handler(args)

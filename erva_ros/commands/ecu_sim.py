@@ -1,0 +1,178 @@
+"""``erva ecu-sim``: a simulated generator ECU with the quarter car behind it, on a CAN bus."""
+
+import math
+import signal
+import sys
+
+from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
+                                       print_json)
+from erva_ros.errors import CLIError
+
+COMMAND = 'ecu-sim'
+HELP = 'simulated generator ECU on a CAN bus: applies damping frames to the plant, sends sensors'
+DESCRIPTION = """\
+Plays the vehicle side of the HIL loop (erva_ros/hil/ecu_sim.py): every Ts it
+applies the ERVA_CMD frames that arrived (E2E-checked, duty clamped to the
+hardware range, latched within latch_s of their arrival) to the quarter car
+(erva_ros.plant.PlantSimulator), falls back to the passive c_e0 when no valid
+command came for command_timeout_periods (the bridge's rule), and sends the
+chassis, generator and status frames of config/erva_ecu.dbc.
+
+Bus (--bus): socketcan:IFACE, udp:LOCAL_PORT:PEER_PORT (loopback only, the peer is
+ecu_bridge_node with the ports swapped) or virtual:NAME (same process only, useless
+here).  Example, with the bridge on udp:47001:47002:
+
+  erva ecu-sim --bus udp:47002:47001 --road paper --duration 10
+
+With --road ros the road height comes from /erva/road/height (road_preview_node),
+and --ros publishes the ground truth (sprung_accel, generator, ecu_sim/state and
+/diagnostics) like plant_sim_node; `erva run --ecu virtual` starts it that way.
+Stops after --duration, or on Ctrl-C / SIGTERM, and prints a summary."""
+
+ROADS = ('ros', 'flat', 'paper', 'sine', 'bump', 'iso8608')
+REJECTS = ('wrong_length', 'bad_crc', 'repeated', 'skipped', 'bad_counter')
+
+
+def add_arguments(parser):
+    parser.add_argument('--bus', required=True, metavar='SPEC',
+                        help='CAN bus: socketcan:IFACE | udp:LOCAL_PORT:PEER_PORT | '
+                             'virtual:NAME')
+    add_params_option(parser)
+    parser.add_argument('--hil-config', metavar='FILE', default=None,
+                        help='HIL params file (default: the shipped config/hil.yaml); the '
+                             'ecu_bridge_node section gives the hardware and timeout, the '
+                             'ecu_sim section the sensor noise')
+    parser.add_argument('--model', choices=('erva', 'benchmark'), default='erva',
+                        help='plant model (default erva, paper eq. (11))')
+    parser.add_argument('--ts', type=positive_float, default=0.02, metavar='S',
+                        help='ECU cycle Ts (s, default 0.02)')
+    parser.add_argument('--road', choices=ROADS, default='paper',
+                        help='road at the tyre: ros (/erva/road/height), flat, or a road of '
+                             'erva_ros.roads started with the ECU (default paper)')
+    parser.add_argument('--seed', type=int, default=0, help='road seed (default 0)')
+    parser.add_argument('--duration', type=float, default=0.0, metavar='S',
+                        help='stop after S seconds (default 0: until Ctrl-C / SIGTERM)')
+    parser.add_argument('--ros', action='store_true',
+                        help='publish the ground truth and /diagnostics on ROS 2 '
+                             '(implied by --road ros)')
+    parser.add_argument('--namespace', default='/erva', metavar='NS',
+                        help='ROS namespace of the topics (default /erva)')
+    parser.add_argument('--wait-road', type=positive_float, default=15.0, metavar='S',
+                        help='with --road ros: wait at most S s for the first road height')
+    parser.add_argument('--noise-free', action='store_true',
+                        help='sensors without noise (the DBC quantisation remains)')
+    add_json_option(parser)
+
+
+def _road_function(args):
+    """Return w(t) (m) at epoch time t for a road of erva_ros.roads started at the first call."""
+    from erva_ros.roads import make_road, RoadError
+    if args.road == 'flat':
+        return lambda t: 0.0
+    try:
+        profile = make_road(args.road, max(args.duration, 1.0), ts=args.ts, seed=args.seed)
+    except RoadError as exc:
+        raise CLIError(str(exc)) from None
+    start = []
+
+    def road(t):
+        if not start:
+            start.append(t)
+        return profile.height(t - start[0])
+    return road
+
+
+def main(args) -> int:
+    from erva_ros.hil.codec import EcuCodec
+    from erva_ros.hil.ecu_sim import EcuSimConfig, EcuSimCore, run_realtime, SensorNoise
+    from erva_ros.hil.settings import (hardware_of, load_bridge_section,
+                                       load_ecu_sim_section)
+    from erva_ros.hil.transport import open_bus, parse_spec
+    from erva_ros.metrics import comfort_power
+    from erva_ros.params import load_erva_params
+
+    if not (math.isfinite(args.duration) and args.duration >= 0):
+        raise CLIError(f'--duration must be >= 0, got {args.duration}')
+    try:
+        parse_spec(args.bus)
+    except ValueError as exc:
+        raise CLIError(str(exc)) from None
+    params = load_erva_params(args.params)
+    bridge = load_bridge_section(args.hil_config)
+    sim = load_ecu_sim_section(args.hil_config)
+    hw = hardware_of(bridge)
+    try:
+        cfg = EcuSimConfig(period_s=args.ts, latch_s=sim['latch_s'],
+                           command_timeout_s=bridge['command_timeout_periods'] * args.ts,
+                           c_e_safe=params.c_e0, max_delta_counter=bridge['max_delta_counter'])
+        codec = EcuCodec(bridge['dbc_file'] or None)
+    except (ValueError, FileNotFoundError) as exc:
+        raise CLIError(str(exc)) from None
+    noise = SensorNoise.none() if args.noise_free else SensorNoise(
+        sim['noise_sprung_accel'], sim['noise_deflection'], sim['noise_speed'],
+        sim['noise_current'], sim['noise_voltage'], sim['seed'])
+    use_ros = args.ros or args.road == 'ros'
+
+    stop = []
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    for s in handlers:
+        signal.signal(s, lambda signum, frame: stop.append(signum))
+
+    ros = None
+    try:
+        if use_ros:
+            from erva_ros.hil.ecu_sim_ros import EcuSimRos
+            ros = EcuSimRos(args.namespace, args.model, hw)
+            road = ros.road_height
+            if args.road == 'ros' and not ros.wait_for_road(args.wait_road, lambda: bool(stop)):
+                if stop:
+                    return 130
+                raise CLIError(f'no road height on {args.namespace}/road/height within '
+                               f'{args.wait_road:g} s (is road_preview_node running?)')
+        if args.road != 'ros':
+            road = _road_function(args)
+        try:
+            core = EcuSimCore(params, hw, codec, lambda: open_bus(args.bus), road, cfg, noise,
+                              args.model)
+        except ValueError as exc:
+            raise CLIError(str(exc)) from None
+        samples = []
+        on_cycle = samples.append if ros is None else (
+            lambda s: (samples.append(s), ros.publish(core, s)))
+        if ros is None:
+            print(f'erva ecu-sim: {args.bus}, Ts = {args.ts:g} s, road {args.road}',
+                  file=sys.stderr, flush=True)
+        run_realtime(core, args.duration, on_cycle, lambda: bool(stop),
+                     wait=None if ros is None else ros.spin_for)
+        if ros is not None:
+            ros.publish_final(core)
+        core.close()
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
+        if ros is not None:
+            ros.shutdown()
+
+    n = len(samples) - 1
+    duration = n * args.ts
+    result = core.summary()
+    result['bus'] = args.bus
+    result['bus_error'] = core.bus_error
+    if n > 0:
+        result.update(comfort_power([s.sprung_accel for s in samples[1:]],
+                                    samples[-1].harvested_j, duration))
+    result['duration_s'] = duration
+    if args.json:
+        print_json(result)
+        return 0
+    rejects = ', '.join(f'{k} {result["rx_" + k]}' for k in REJECTS)
+    print(f'ecu-sim: {n} cycles ({duration:.2f} s) on {args.bus}')
+    print(f'  commands applied {result["commands_applied"]}, rejected: {rejects}; '
+          f'duty out of range {result["duty_out_of_range"]}, timeouts '
+          f'{result["command_timeouts"]}, overruns {result["overruns"]}')
+    if n > 0:
+        print(f'  chassis acceleration RMS {result["acc_rms"]:.4g} m/s^2, harvested power '
+              f'{result["power_w"]:.4g} W')
+    if core.bus_error:
+        print(f'  bus: {core.bus_error}')
+    return 0

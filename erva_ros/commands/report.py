@@ -1,0 +1,91 @@
+"""``erva report``: comfort, power, timing, deadline misses and fallbacks from a bag alone."""
+
+from erva_ros.commands._common import (add_json_option, add_out_option, ensure_out_dir,
+                                       print_json)
+
+COMMAND = 'report'
+HELP = 'figures of a recorded session from its bag alone (metrics, timing, plots)'
+DESCRIPTION = """\
+Everything is computed from the bag (no parameters, no re-simulation):
+
+  comfort    chassis-acceleration 2-norm and RMS (paper §IV.B) on /erva/sprung_accel
+  power      average harvested power E_h/T: E_h from the plant's /diagnostics
+             (harvested_j) when present, else the sum of P = effort·velocity on
+             /erva/generator times Ts
+  timing     damping_cmd period and jitter |Δ - Ts| from publish times (publisher
+             clock) and log times (recorder clock); state -> command latency =
+             command publish/log time - stamp of the state it answers
+  solver     solve times, deadline misses and fallbacks as the controller reports
+             them on /diagnostics; late commands (> 1.5 Ts after the previous one)
+             and states that never got a command, from the messages themselves
+
+--out DIR writes acceleration.png, damping_cmd.png, power.png, road_preview.png
+and, for realtime sessions, timing.png (command period and latency histograms)."""
+
+
+def add_arguments(parser):
+    parser.add_argument('bag', metavar='BAG', help='bag directory or .mcap file')
+    parser.add_argument('--namespace', default=None, metavar='NS',
+                        help='namespace of the session topics (default: found in the bag)')
+    add_out_option(parser, 'the PNG plots')
+    add_json_option(parser)
+
+
+def _fmt(p, unit='ms'):
+    if not p or not p.get('samples'):
+        return '-'
+    return (f'p50 {p["p50"]:.3f} / p99 {p["p99"]:.3f} / max {p["max"]:.3f} {unit} '
+            f'({p["samples"]} samples)')
+
+
+def main(args) -> int:
+    from erva_ros.bag.reader import open_bag
+    from erva_ros.bag.report import compute_report, json_safe, load_session, write_plots
+
+    bag = open_bag(args.bag)
+    out = ensure_out_dir(args.out)
+    data = load_session(bag, args.namespace)
+    report = compute_report(data)
+    if out:
+        report['files'] = write_plots(data, out, report['timing']['clock'] == 'wall')
+    if args.json:
+        print_json(json_safe(report))
+        return 0
+    s = report['session']
+    print(f'session {bag.path}: scenario {s.get("scenario") or "-"}, controller '
+          f'{s.get("controller") or "-"}, seed {s.get("seed") or "-"}, '
+          f'{report["duration_s"]:.3f} s at Ts = '
+          f'{report["ts_s"] * 1e3:.1f} ms' if report['ts_s'] else f'session {bag.path}')
+    if not bag.complete:
+        print('warning: the bag was not closed properly; figures cover what is readable')
+    c, p = report['comfort'], report['power']
+    print(f'comfort:  acc 2-norm {c["acc_2norm"]:.4f} m/s², RMS {c["acc_rms"]:.4f} m/s² '
+          f'({report["samples"]["sprung_accel"]} samples)')
+    print(f'power:    {p["power_w"]:.4f} W average, {p["harvested_j"]:.4f} J harvested '
+          f'[{p["source"]}]; mean of P samples {p["power_mean_samples_w"]:.4f} W')
+    t = report['timing']
+    if t['clock'] == 'offline':
+        print('timing:   offline session (simulated, no transport): not measured')
+    elif t['clock'] == 'sim':
+        print('timing:   lock-step session (stamps in sim time); wall time per step: '
+              f'{_fmt(t["wall_per_step_ms"])}')
+    elif t['clock'] == 'wall':
+        print(f'command period (publish): {_fmt(t["publish"]["period_ms"])}')
+        print(f'command jitter (publish): {_fmt(t["publish"]["jitter_ms"])}')
+        print(f'command jitter (log):     {_fmt(t["log"]["jitter_ms"])}')
+        print(f'state -> command publish: {_fmt(t["latency_publish_ms"])}')
+        print(f'state -> command log:     {_fmt(t["latency_log_ms"])}')
+        print(f'late commands (> 1.5 Ts): {t["late_commands"]}, states without a command: '
+              f'{t["unanswered_states"]}')
+    for key, value in sorted(report['solve_ms'].items()):
+        print(f'solver:   {key} = {value:.4g}')
+    d, f = report['deadline_misses'], report['fallbacks']
+    print('deadline misses: ' + (', '.join(f'{k} = {v:g}' for k, v in
+                                           sorted(d['reported'].items())) or 'not reported'))
+    print('fallbacks:       ' + (', '.join(f'{k} = {v:g}' for k, v in
+                                           sorted(f['reported'].items())) or 'not reported'))
+    for e in report['diagnostics_errors']:
+        print(f'ERROR diagnostic: {e}')
+    for path in report.get('files', []):
+        print(f'wrote {path}')
+    return 0

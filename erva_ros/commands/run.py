@@ -1,0 +1,119 @@
+"""``erva run``: the live system -- plant, road-preview and NMPC nodes over ROS 2, one scenario."""
+
+import sys
+
+from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
+                                       print_json)
+
+COMMAND = 'run'
+HELP = 'run the live system (plant, road preview, NMPC nodes over ROS 2) and summarise it'
+DESCRIPTION = """\
+Start plant_sim_node, road_preview_node and nmpc_node as separate processes (and the
+session recorder), wait until they are connected, run one scenario, stop them cleanly
+and print a summary: comfort (chassis-acceleration 2-norm and RMS) and power metrics,
+command rate, command period jitter, sample-to-command latency, solve-time p50/p99,
+deadline misses, fallbacks, dropped and rejected messages.
+
+Default: the paper's scenario -- 4 s on the paper road, NMPC with preview, the
+nonlinear ERVA, real time at Ts = 0.02 s -- recorded to bags/<UTC time>_<road>/.
+Parameters come from config/erva_paper.yaml, config/nmpc.yaml and config/live.yaml;
+options override them.  Modes: realtime (wall clock, 50 Hz) or lockstep (the plant
+publishes /clock, deterministic, equal to `erva sim`).
+
+Exit status: 0 ok; 1 a node died, did not stop cleanly, or no command arrived;
+2 bad option or parameter; 130/143 interrupted by SIGINT/SIGTERM (the nodes are
+stopped and the summary printed first)."""
+
+# Kept literal so `erva --help` needs no numpy/casadi; test_run_cli checks they match.
+CONTROLLERS = ('passive', 'skyhook', 'no_preview', 'preview', 'preview_long')
+ROADS = ('paper', 'iso8608', 'bump', 'sine')
+MODES = ('realtime', 'lockstep')
+MODELS = ('erva', 'benchmark')
+
+
+def _weight(text: str) -> float:
+    import argparse
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+    if not 0 <= v < float('inf'):
+        raise argparse.ArgumentTypeError(f'{text!r} must be a finite number >= 0')
+    return v
+
+
+def _seed(text: str) -> int:
+    import argparse
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not an integer') from None
+    if not 0 <= v < 2 ** 31:
+        raise argparse.ArgumentTypeError(f'{text!r} must be in [0, 2^31)')
+    return v
+
+
+def add_scenario_arguments(parser, duration_default: str = 'config/live.yaml: 4 s') -> None:
+    """Add the scenario options shared by `erva run` and `erva bench --live`."""
+    parser.add_argument('--controller', choices=CONTROLLERS, default=None,
+                        help='control law (default: config/nmpc.yaml, preview)')
+    parser.add_argument('--alpha1', type=_weight, default=None, metavar='A1',
+                        help='comfort weight alpha1 (paper eq. (12); default nmpc.yaml: 1)')
+    parser.add_argument('--alpha2', type=_weight, default=None, metavar='A2',
+                        help='energy weight alpha2 (paper eq. (12); default nmpc.yaml: 0)')
+    parser.add_argument('--road', choices=ROADS, default=None,
+                        help='road profile (default: config/live.yaml, paper)')
+    parser.add_argument('--seed', type=_seed, default=None,
+                        help='road noise and preview error seed (default: live.yaml, 0)')
+    parser.add_argument('--mode', choices=MODES, default=None,
+                        help='realtime: wall clock at 1/Ts; lockstep: simulated time, '
+                             'deterministic (default: live.yaml, realtime)')
+    parser.add_argument('--model', choices=MODELS, default=None,
+                        help='plant and controller model: erva (nonlinear, eq. (11)) or '
+                             'benchmark (linear, eq. (15)) (default: erva)')
+    parser.add_argument('--duration', type=positive_float, default=None, metavar='S',
+                        help=f'scenario length in seconds (default: {duration_default})')
+    add_params_option(parser)
+    parser.add_argument('--nmpc', metavar='FILE', default=None,
+                        help='controller settings params file (default: config/nmpc.yaml)')
+    parser.add_argument('--live', metavar='FILE', default=None,
+                        help='live-system params file (default: config/live.yaml)')
+    parser.add_argument('--namespace', default='/erva', metavar='NS',
+                        help='ROS namespace of the nodes and topics (default: /erva)')
+
+
+def add_arguments(parser):
+    add_scenario_arguments(parser)
+    rec = parser.add_mutually_exclusive_group()
+    rec.add_argument('--record', metavar='DIR', default='bags',
+                     help='record the session to a bag under DIR/<UTC time>_<road>/ '
+                          '(default: bags)')
+    rec.add_argument('--no-record', action='store_true', help='do not record the session')
+    parser.add_argument('--ecu', choices=('none', 'virtual'), default='none',
+                        help='none: the plant simulator closes the loop; virtual: through the '
+                             'CAN bridge and a simulated ECU (hardware-in-the-loop)')
+    add_json_option(parser)
+
+
+def run_config(args, record_dir=None):
+    """Return the RunConfig of parsed scenario options."""
+    from erva_ros.live.orchestrator import RunConfig
+    return RunConfig(controller=args.controller, alpha1=args.alpha1, alpha2=args.alpha2,
+                     road=args.road, seed=args.seed, mode=args.mode, model=args.model,
+                     duration_s=args.duration, params_file=args.params, nmpc_file=args.nmpc,
+                     live_file=args.live, record_dir=record_dir, namespace=args.namespace)
+
+
+def main(args) -> int:
+    from erva_ros.live.orchestrator import ensure_ecu_available, run_session
+    from erva_ros.live.report import format_summary, jsonable
+
+    ensure_ecu_available(args.ecu)
+    cfg = run_config(args, None if args.no_record else args.record)
+    result = run_session(cfg, log=lambda line: print(f'erva run: {line}', file=sys.stderr,
+                                                     flush=True))
+    if args.json:
+        print_json(jsonable(result.summary))
+    else:
+        print(format_summary(result.summary), flush=True)
+    return result.exit_code

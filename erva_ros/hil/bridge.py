@@ -1,0 +1,390 @@
+"""ECU bridge core (no ROS): damping commands → protected CAN frames, ECU frames → values.
+
+ROS → CAN.  :meth:`BridgeCore.submit` takes the NMPC's plan (``damping_cmd``
+points: c_e now, then at t0 + k·Ts, Ns/m), rejects non-finite or empty plans,
+clamps every value to the hardware range (:class:`~erva_ros.hil.hardware.GeneratorHardware`)
+and sends points[0] at once as duty D = c_e / c_e,full.  :meth:`BridgeCore.tick`
+(called every Ts/4) is the watchdog that keeps the ECU fed at the command period Ts:
+
+* a command is *fresh* for ``command_timeout_s`` (default 3·Ts) after it arrived;
+* if no frame went out for 1.5·Ts while the command is fresh (the NMPC is late), the
+  plan's point for the elapsed time is sent (the NMPC's own plan, not a guess);
+* once the command is stale, the **safe passive command** (c_e0, CMD_MODE = SAFE_PASSIVE)
+  is sent every Ts and the command state is ERROR until a fresh command arrives;
+* before the first command the bridge sends the safe command too (state WARN).
+
+CAN → ROS.  :meth:`BridgeCore.receive` (called in a loop by a reader thread) reads
+one frame, checks it (:mod:`erva_ros.hil.e2e`: length, CRC, alive counter) and
+returns it decoded as a :class:`SensorFrame` at once (no waiting for the rest of the
+cycle, which would add latency).  Frames of one ECU cycle (status, chassis,
+generator, in any order) share one stamp: the receive time of the cycle's first
+frame; a cycle ends when all three arrived, when a kind repeats or after Ts/2.  A
+rejected frame is dropped and counted, and so is a cycle that misses a frame.
+
+Bus loss.  Any error of ``send``/``recv`` (interface down, socket closed) closes
+the bus, is counted and reported (state ERROR), and :meth:`tick` re-opens it through
+``bus_factory`` every ``bus_retry_s`` until it works; nothing raises to the caller.
+"""
+
+from dataclasses import dataclass, field
+import math
+import threading
+import time
+from typing import Any, Callable, Dict, List, Optional, Sequence
+
+import can
+
+from erva_ros.hil.codec import Command, CommandMode, E2EReceiver, EcuCodec, EcuMode, Kind
+from erva_ros.hil.hardware import GeneratorHardware
+
+# diagnostic_msgs/DiagnosticStatus levels.
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
+
+
+@dataclass(frozen=True)
+class BridgeConfig:
+    """Timing and safety settings of the bridge (SI units)."""
+
+    period_s: float = 0.02            # command period Ts (50 Hz)
+    command_timeout_s: float = 0.06   # fresh-command timeout (default 3 periods)
+    sensor_timeout_s: float = 0.06    # ECU silent after this long without a valid frame
+    c_e_safe: float = 10000.0         # Ns/m, safe passive command (paper c_e0)
+    bus_retry_s: float = 0.5          # s between attempts to re-open a lost bus
+    max_delta_counter: int = 1        # alive-counter step accepted (1: no frame may be lost)
+    send_timeout_s: float = 0.005     # s a send may block (full TX queue)
+
+
+@dataclass
+class SensorFrame:
+    """One accepted ECU frame, decoded; times are CAN receive times (epoch s)."""
+
+    kind: Kind
+    payload: Any                       # Status, Chassis or Generator
+    stamp: float                       # first frame of this ECU cycle: the cycle's stamp
+    rx_time: float                     # this frame
+
+
+@dataclass
+class _Cycle:
+    stamp: float
+    kinds: set = field(default_factory=set)
+
+
+@dataclass
+class DiagStatus:
+    """A ROS-free diagnostic_msgs/DiagnosticStatus."""
+
+    level: int
+    name: str
+    message: str
+    values: Dict[str, str] = field(default_factory=dict)
+
+
+ECU_KINDS = (Kind.STATUS, Kind.CHASSIS, Kind.GENERATOR)
+COUNTER_NAMES = (
+    'commands_received', 'commands_rejected', 'commands_clamped', 'frames_sent',
+    'safe_frames_sent', 'plan_frames_sent', 'command_timeouts', 'frames_not_sent',
+    'send_errors', 'bus_losses', 'bus_open_attempts', 'bus_open_failures', 'reconnects',
+    'ecu_cycles', 'incomplete_cycles', 'ecu_silences')
+
+
+class BridgeCore:
+    """The ECU bridge without ROS: thread-safe for one sender thread and one reader thread."""
+
+    def __init__(self, codec: EcuCodec, hardware: GeneratorHardware, config: BridgeConfig,
+                 bus_factory: Callable[[], can.BusABC],
+                 clock: Callable[[], float] = time.monotonic):
+        self.codec = codec
+        self.hw = hardware
+        self.cfg = config
+        self.c_e_safe, _ = hardware.clamp_c_e(config.c_e_safe)
+        self._factory = bus_factory
+        self._clock = clock
+        self._lock = threading.Lock()
+        self.counts: Dict[str, int] = dict.fromkeys(COUNTER_NAMES, 0)
+        # bus
+        self._bus: Optional[can.BusABC] = None
+        self._ever_open = False
+        self._next_retry = -math.inf
+        self.bus_error = ''
+        # ROS → CAN
+        self._tx = codec.sender(Kind.COMMAND)
+        self._plan: Optional[List[float]] = None
+        self._offsets: List[float] = []
+        self._plan_time = -math.inf
+        self._last_send = -math.inf
+        self.command_state = 'waiting'          # waiting | fresh | timeout
+        self.last_command: Optional[Command] = None
+        # CAN → ROS
+        self._rx = E2EReceiver(codec, ECU_KINDS, config.sensor_timeout_s,
+                               config.max_delta_counter)
+        self._rx_bus: Optional[can.BusABC] = None
+        self._cycle: Optional[_Cycle] = None
+        self._last_sensor = -math.inf
+        self._ecu_silent = True
+        self.last: Dict[Kind, Any] = {}          # newest payload of each ECU message
+
+    # ------------------------------------------------------------------ bus
+    @property
+    def bus_up(self) -> bool:
+        return self._bus is not None
+
+    @property
+    def bus(self) -> Optional[can.BusABC]:
+        """Return the CAN bus in use (None while it is lost)."""
+        return self._bus
+
+    def open(self, now: Optional[float] = None) -> bool:
+        """Try to open the bus now; return True if it is up."""
+        now = self._clock() if now is None else now
+        if self._bus is not None:
+            return True
+        self.counts['bus_open_attempts'] += 1
+        try:
+            bus = self._factory()
+        except Exception as exc:  # any open failure is reported and retried, never raised
+            self.counts['bus_open_failures'] += 1
+            self.bus_error = f'cannot open bus: {exc}'
+            self._next_retry = now + self.cfg.bus_retry_s
+            return False
+        with self._lock:
+            self._bus = bus
+            if self._ever_open:
+                self.counts['reconnects'] += 1
+            self._ever_open = True
+            self.bus_error = ''
+        return True
+
+    def _lost(self, bus: can.BusABC, exc: BaseException) -> None:
+        with self._lock:
+            if self._bus is not bus:
+                return                  # the other thread already handled it
+            self._bus = None
+            self.counts['bus_losses'] += 1
+            self.bus_error = f'bus lost: {exc}'
+            self._next_retry = -math.inf       # first retry at the next tick
+        try:
+            bus.shutdown()
+        except Exception:  # a dead interface may fail to close; it is dropped anyway
+            pass
+
+    def close(self) -> None:
+        """Shut the bus down (node shutdown)."""
+        with self._lock:
+            bus, self._bus = self._bus, None
+        if bus is not None:
+            bus.shutdown()
+
+    def _send(self, msg: can.Message) -> bool:
+        bus = self._bus
+        if bus is None:
+            self.counts['frames_not_sent'] += 1
+            return False
+        try:
+            bus.send(msg, timeout=self.cfg.send_timeout_s)
+        except (can.CanError, OSError, ValueError) as exc:
+            self.counts['send_errors'] += 1
+            self._lost(bus, exc)
+            return False
+        return True
+
+    # ------------------------------------------------------------ ROS → CAN
+    def submit(self, plan: Sequence[float], now: Optional[float] = None,
+               offsets: Optional[Sequence[float]] = None) -> str:
+        """Take a new damping plan (Ns/m; plan[0] = now) and send plan[0] at once.
+
+        ``offsets`` are the plan points' times after the command (s, the messages'
+        time_from_start; default k·Ts).  Returns 'sent', 'clamped' (sent after
+        clamping), 'not_sent' (bus down) or 'rejected' (empty or non-finite: ignored,
+        the previous command ages on).
+        """
+        now = self._clock() if now is None else now
+        values = [float(v) for v in plan]
+        if not values or not all(math.isfinite(v) for v in values):
+            self.counts['commands_rejected'] += 1
+            return 'rejected'
+        if offsets is None or len(offsets) != len(values):
+            offsets = [k * self.cfg.period_s for k in range(len(values))]
+        clamped = [self.hw.clamp_c_e(v) for v in values]
+        self._plan = [v for v, _ in clamped]
+        self._offsets = [float(o) for o in offsets]
+        self._plan_time = now
+        self.counts['commands_received'] += 1
+        if clamped[0][1]:
+            self.counts['commands_clamped'] += 1
+        self.command_state = 'fresh'
+        sent = self._send_c_e(self._plan[0], CommandMode.CONTROLLED, now)
+        if not sent:
+            return 'not_sent'
+        return 'clamped' if clamped[0][1] else 'sent'
+
+    def _send_c_e(self, c_e: float, mode: CommandMode, now: float) -> bool:
+        duty, _ = self.hw.clamp_duty(self.hw.duty_from_c_e(c_e))
+        cmd = Command(duty=duty, c_e=c_e, mode=mode)
+        ok = self._send(self.codec.encode(Kind.COMMAND, cmd, self._tx))
+        if ok:
+            self.last_command = cmd
+            self._last_send = now
+            self.counts['frames_sent'] += 1
+            if mode is CommandMode.SAFE_PASSIVE:
+                self.counts['safe_frames_sent'] += 1
+        return ok
+
+    def command_age(self, now: Optional[float] = None) -> float:
+        """Return the time since the last accepted command (s; inf before the first)."""
+        return (self._clock() if now is None else now) - self._plan_time
+
+    def tick(self, now: Optional[float] = None) -> None:
+        """Watchdog (call every Ts/4): re-open a lost bus, follow the plan, or send safe."""
+        now = self._clock() if now is None else now
+        if self._bus is None and now >= self._next_retry:
+            self.open(now)
+        period = self.cfg.period_s
+        since_send = now - self._last_send
+        if self.command_age(now) > self.cfg.command_timeout_s:
+            if self.command_state == 'fresh':
+                self.command_state = 'timeout'
+                self.counts['command_timeouts'] += 1
+                since_send = math.inf           # go safe now, not at the next period
+            if since_send >= period * 0.95:
+                self._send_c_e(self.c_e_safe, CommandMode.SAFE_PASSIVE, now)
+        elif since_send >= 1.5 * period:
+            age = self.command_age(now) + 1e-9
+            k = 0                               # the plan point due now
+            for i, offset in enumerate(self._offsets):
+                if offset <= age:
+                    k = i
+            if self._send_c_e(self._plan[k], CommandMode.CONTROLLED, now):
+                self.counts['plan_frames_sent'] += 1
+        if now - self._last_sensor > self.cfg.sensor_timeout_s and not self._ecu_silent:
+            self._ecu_silent = True
+            self.counts['ecu_silences'] += 1
+
+    # ------------------------------------------------------------ CAN → ROS
+    def receive(self, timeout: float = 0.05) -> Optional[SensorFrame]:
+        """Read at most one frame (waiting up to ``timeout`` s); return it if accepted."""
+        bus = self._bus
+        if bus is None:
+            time.sleep(timeout)
+            return None
+        if bus is not self._rx_bus:             # new or re-opened bus: new streams
+            self._rx_bus = bus
+            self._rx.reset()
+            self._cycle = None
+        try:
+            msg = bus.recv(timeout)
+        except (can.CanError, OSError, ValueError) as exc:
+            self._lost(bus, exc)
+            return None
+        if msg is None:
+            return None
+        now = self._clock()
+        kind, status, payload = self._rx.accept(msg, now)
+        if payload is None:
+            return None
+        self._last_sensor = now
+        self._ecu_silent = False
+        rx = msg.timestamp or time.time()
+        cyc = self._cycle
+        if cyc is None or kind in cyc.kinds or rx - cyc.stamp > 0.5 * self.cfg.period_s:
+            if cyc is not None:
+                self._close_cycle(cyc)
+            cyc = self._cycle = _Cycle(rx)
+        cyc.kinds.add(kind)
+        if len(cyc.kinds) == len(ECU_KINDS):
+            self._close_cycle(cyc)
+            self._cycle = None
+        self.last[kind] = payload
+        return SensorFrame(kind, payload, cyc.stamp, rx)
+
+    def _close_cycle(self, cyc: _Cycle) -> None:
+        self.counts['ecu_cycles'] += 1
+        if len(cyc.kinds) < len(ECU_KINDS):
+            self.counts['incomplete_cycles'] += 1
+
+    # ------------------------------------------------------------ reporting
+    def rx_counts(self) -> Dict[str, int]:
+        """Return the E2E receive counters (accepted, bad_crc, repeated, skipped, ...)."""
+        return self._rx.counts()
+
+    def ecu_silent(self, now: Optional[float] = None) -> bool:
+        now = self._clock() if now is None else now
+        return now - self._last_sensor > self.cfg.sensor_timeout_s
+
+    def diagnostics(self, now: Optional[float] = None, prefix: str = 'ecu_bridge') -> List[
+            DiagStatus]:
+        """Return the bridge's three statuses: command link, CAN bus, ECU heartbeat."""
+        now = self._clock() if now is None else now
+        c = self.counts
+        cmd = self.last_command
+        cmd_values = {k: str(c[k]) for k in (
+            'commands_received', 'commands_rejected', 'commands_clamped', 'command_timeouts',
+            'frames_sent', 'safe_frames_sent', 'plan_frames_sent', 'frames_not_sent')}
+        cmd_values.update({
+            'command_age_s': f'{self.command_age(now):.4f}',
+            'sent_c_e_ns_per_m': f'{cmd.c_e:.1f}' if cmd else '',
+            'sent_duty': f'{cmd.duty:.4f}' if cmd else '',
+            'sent_mode': cmd.mode.name if cmd else '',
+            'hardware_c_e_range_ns_per_m': '{:.1f}..{:.1f}'.format(*self.hw.c_e_range)})
+        if self.command_state == 'timeout':
+            cmd_diag = DiagStatus(ERROR, f'{prefix}: command', 'no fresh damping command for '
+                                  f'{self.command_age(now):.3f} s > '
+                                  f'{self.cfg.command_timeout_s:.3f} s: sending safe passive '
+                                  f'c_e = {self.c_e_safe:.0f} Ns/m', cmd_values)
+        elif self.command_state == 'waiting':
+            cmd_diag = DiagStatus(WARN, f'{prefix}: command', 'waiting for the first damping '
+                                  'command: sending safe passive', cmd_values)
+        else:
+            cmd_diag = DiagStatus(OK, f'{prefix}: command', 'forwarding damping commands',
+                                  cmd_values)
+        rx = self.rx_counts()
+        bus_values = {k: str(v) for k, v in rx.items()}
+        bus_values.update({k: str(c[k]) for k in (
+            'send_errors', 'bus_losses', 'bus_open_attempts', 'bus_open_failures',
+            'reconnects')})
+        bus_values['error'] = self.bus_error
+        if self._bus is None:
+            bus_diag = DiagStatus(ERROR, f'{prefix}: can bus',
+                                  self.bus_error or 'bus not open', bus_values)
+        else:
+            rejected = sum(rx[k] for k in ('wrong_length', 'bad_crc', 'repeated', 'skipped',
+                                           'bad_counter'))
+            msg = 'bus up' + (f', {rejected} frames rejected' if rejected else '')
+            bus_diag = DiagStatus(WARN if rejected else OK, f'{prefix}: can bus', msg,
+                                  bus_values)
+        ecu_diag = self._ecu_diag(now, prefix)
+        return [cmd_diag, bus_diag, ecu_diag]
+
+    def _ecu_diag(self, now: float, prefix: str) -> DiagStatus:
+        st = self.last.get(Kind.STATUS)
+        gen = self.last.get(Kind.GENERATOR)
+        values = {k: str(self.counts[k]) for k in ('ecu_cycles', 'incomplete_cycles',
+                                                   'ecu_silences')}
+        if st is not None:
+            values.update({'ecu_mode': st.mode.name, 'c_e_applied_ns_per_m': f'{st.c_e_applied:g}',
+                           'c_e_mean_ns_per_m': f'{st.c_e_mean:g}',
+                           'ecu_cmd_rejected_mod256': str(st.cmd_rejected),
+                           'ecu_cmd_timeouts_mod256': str(st.cmd_timeouts)})
+        if gen is not None:
+            values.update({'generator_speed_rad_s': f'{gen.speed:g}',
+                           'generator_current_a': f'{gen.current:g}',
+                           'generator_voltage_v': f'{gen.voltage:g}'})
+        name = f'{prefix}: ecu'
+        if self._last_sensor == -math.inf:
+            return DiagStatus(ERROR, name, 'ECU silent: no valid frame received yet', values)
+        if self.ecu_silent(now):
+            return DiagStatus(ERROR, name, 'ECU silent: no valid frame for '
+                              f'{now - self._last_sensor:.3f} s', values)
+        if st is None:
+            return DiagStatus(WARN, name, 'ECU sends sensors but no status yet', values)
+        if st.mode is EcuMode.FAULT:
+            return DiagStatus(ERROR, name, 'ECU reports FAULT', values)
+        if st.mode is not EcuMode.CONTROLLED:
+            return DiagStatus(WARN, name, f'ECU in {st.mode.name} (passive damping)', values)
+        return DiagStatus(OK, name, 'ECU controlled', values)
+
+
+def diag_dict(statuses: Sequence[DiagStatus]) -> Dict[str, Any]:
+    """Return statuses as plain data (for JSON output and tests)."""
+    return {s.name: {'level': s.level, 'message': s.message, 'values': dict(s.values)}
+            for s in statuses}

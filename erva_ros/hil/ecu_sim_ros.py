@@ -1,0 +1,119 @@
+"""ROS 2 side of ``erva ecu-sim`` (simulation only): the road in, the ground truth out.
+
+The simulated ECU itself speaks only CAN.  As a simulator of the *vehicle* it also
+needs the road at the tyre and, for evaluation, it exposes what a real vehicle
+cannot: the true outputs and state.  This node, spun between ECU cycles in the same
+process (single-threaded), subscribes ``road/height`` and publishes
+
+* ``sprung_accel`` and ``generator`` with the contract of erva_ros/topics.py (as
+  plant_sim_node does), so `erva run` computes comfort and power on the truth;
+* ``ecu_sim/state`` (the true state) and ``/diagnostics`` (ECU counters, and
+  ``finished: true`` when a run with a duration ends).
+"""
+
+import time
+from typing import Callable
+
+from erva_ros import topics
+from erva_ros.hil import topics as hil_topics
+from erva_ros.hil.ecu_sim import EcuSample, EcuSimCore
+from erva_ros.hil.hardware import GeneratorHardware
+from erva_ros.hil.road_buffer import RoadBuffer
+
+
+class EcuSimRos:
+    """The ``ecu_sim`` node with its own context and executor."""
+
+    def __init__(self, namespace: str, kind: str, hardware: GeneratorHardware,
+                 diagnostics_period_s: float = 0.5):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import AccelStamped, PointStamped
+        from sensor_msgs.msg import JointState
+
+        self.kind = kind
+        self.hw = hardware
+        self.context = rclpy.Context()
+        # Signals stay with `erva ecu-sim`, which stops the ECU loop cleanly.
+        rclpy.init(args=[], context=self.context, signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node('ecu_sim', namespace=namespace, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        qos = topics.control_qos()
+        self.road = RoadBuffer(max_extrapolation_s=0.02)
+        self.node.create_subscription(PointStamped, topics.ROAD_HEIGHT, self._on_road, qos)
+        self.pub_accel = self.node.create_publisher(AccelStamped, topics.SPRUNG_ACCEL, qos)
+        self.pub_gen = self.node.create_publisher(JointState, topics.GENERATOR, qos)
+        self.pub_state = self.node.create_publisher(JointState, hil_topics.TRUE_STATE, qos)
+        self.pub_diag = self.node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
+        self.diag_period = diagnostics_period_s
+        self._last_diag = 0.0
+        self.name = self.node.get_fully_qualified_name()
+
+    def _on_road(self, msg) -> None:
+        from erva_ros.live.msgs import NS, time_to_ns
+        w = float(msg.point.z)
+        if abs(w) <= 1.0:
+            self.road.add(time_to_ns(msg.header.stamp) / NS, w)
+
+    def road_height(self, t: float) -> float:
+        """Return w(t) (m) at epoch time t from the received road samples."""
+        return self.road.height(t)
+
+    def wait_for_road(self, timeout_s: float, stop: Callable[[], bool]) -> bool:
+        """Spin until the first road sample arrived; False on timeout or stop."""
+        end = time.monotonic() + timeout_s
+        while len(self.road) == 0 and time.monotonic() < end and not stop():
+            self.executor.spin_once(timeout_sec=0.05)
+        return len(self.road) > 0
+
+    def spin_for(self, seconds: float) -> None:
+        """Serve ROS callbacks for ``seconds`` (the ECU loop's wait between cycles)."""
+        end = time.monotonic() + seconds
+        while True:
+            left = end - time.monotonic()
+            if left <= 0:
+                return
+            self.executor.spin_once(timeout_sec=left)
+
+    def publish(self, core: EcuSimCore, s: EcuSample) -> None:
+        """Publish the ground truth of one ECU cycle (stamp = ECU sample time)."""
+        from erva_ros.live.msgs import accel_msg, generator_msg, state_msg
+        stamp = int(round((core.t0 + s.t) * 1e9))
+        x = s.x
+        rel = x[4] - (x[0] - x[2]) if self.kind == 'erva' else x[0] - x[2]
+        self.pub_accel.publish(accel_msg(stamp, s.sprung_accel))
+        self.pub_gen.publish(generator_msg(stamp, rel, s.v_gen, s.c_e))
+        self.pub_state.publish(state_msg(stamp, x, self.kind))
+        now = time.monotonic()
+        if now - self._last_diag >= self.diag_period:
+            self._last_diag = now
+            self._diag(core, s, finished=False)
+
+    def publish_final(self, core: EcuSimCore) -> None:
+        """Publish the last status with ``finished: true`` and let it go out."""
+        self._diag(core, None, finished=True)
+        self.spin_for(0.1)
+
+    def _diag(self, core: EcuSimCore, s, finished: bool) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from erva_ros.live import diagnostics as diag
+        values = dict(core.summary())
+        values['finished'] = finished
+        values['ecu_mode'] = core.mode.name
+        values['harvested_j'] = core.plant.harvested_j
+        level = diag.ERROR if core.bus is None else (
+            diag.OK if core.mode.name == 'CONTROLLED' else diag.WARN)
+        text = core.bus_error or f'ECU {core.mode.name}'
+        arr = DiagnosticArray()
+        arr.header.stamp = self.node.get_clock().now().to_msg()
+        arr.status = [diag.status_msg(self.name, level, text, values, 'ecu_sim')]
+        self.pub_diag.publish(arr)
+
+    def shutdown(self) -> None:
+        import rclpy
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)

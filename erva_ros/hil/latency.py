@@ -1,0 +1,21 @@
+"""Latency statistics of the HIL nodes, without the start-up transient."""
+
+from erva_ros.live.timing import DurationStats
+
+#: Samples ignored after start-up (DDS discovery, first-call allocations): 0.5 s at 50 Hz.
+WARMUP_SAMPLES = 25
+
+
+class LatencyStats(DurationStats):
+    """:class:`~erva_ros.live.timing.DurationStats` that ignores the first ``warmup`` samples."""
+
+    def __init__(self, warmup: int = WARMUP_SAMPLES, maxlen: int = 200_000):
+        super().__init__(maxlen)
+        self._skip = int(warmup)
+
+    def add(self, seconds: float) -> None:
+        """Add one duration (s), unless still warming up."""
+        if self._skip > 0:
+            self._skip -= 1
+            return
+        super().add(seconds)

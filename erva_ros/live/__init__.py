@@ -1,0 +1,17 @@
+"""The live system's ROS 2 plumbing, shared by the nodes, `erva run` and `erva bench --live`.
+
+Plain helpers around rclpy, kept out of the node files so the nodes stay thin:
+
+* :mod:`~erva_ros.live.msgs` -- numpy <-> common_interfaces messages (topics.py contract);
+* :mod:`~erva_ros.live.validation` -- NaN/inf/absurd values rejected, counted, logged at a
+  limited rate, before anything reaches a controller or the plant;
+* :mod:`~erva_ros.live.diagnostics` -- diagnostic_msgs/DiagnosticArray of a node's status;
+* :mod:`~erva_ros.live.parameters` -- parameters declared with descriptors and ranges from
+  the Spec tables, one-line errors on bad values;
+* :mod:`~erva_ros.live.command_hold` -- the plant's command/plan/passive hold (no ROS);
+* :mod:`~erva_ros.live.timing` -- grid alignment and timing statistics;
+* :mod:`~erva_ros.live.runtime` -- the main() idiom of every node;
+* :mod:`~erva_ros.live.monitor` -- the in-process monitor node of `erva run`;
+* :mod:`~erva_ros.live.orchestrator` -- `erva run`: processes, start, stop, summary;
+* :mod:`~erva_ros.live.benchmark` -- `erva bench --live`.
+"""

@@ -1,0 +1,244 @@
+"""The session monitor: an in-process node of `erva run` that observes every topic of the run.
+
+It subscribes to the live topics and ``/diagnostics`` exactly as any other
+subscriber would (same QoS), keeps what arrives with the wall time of arrival, and
+turns it into the run's summary: comfort and power metrics from the plant's
+samples, command rate and period jitter measured on the receiving side, the
+latency from a state's arrival to the arrival of the command computed from it
+(state-to-command) and from the sample time t_k (sample-to-command),
+the nodes' own counters and timings from their last diagnostics, and the messages
+each node published but the monitor did not receive (dropped).
+"""
+
+import math
+import time
+from typing import Any, Dict, List, Optional, Tuple
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import AccelStamped, PointStamped
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory
+
+from erva_ros import topics
+from erva_ros.live.diagnostics import parse_status
+from erva_ros.live.msgs import time_to_ns
+from erva_ros.metrics import comfort_power, percentiles_ms
+
+#: Fully qualified node names in the namespace.
+NODE_NAMES = ('plant_sim_node', 'road_preview_node', 'nmpc_node')
+
+
+class Monitor(Node):
+    """Record every message of a session with its arrival time (wall clock, ns)."""
+
+    def __init__(self, namespace: str = topics.NAMESPACE, name: str = 'erva_run_monitor',
+                 context=None):
+        super().__init__(name, namespace=namespace, context=context,
+                         start_parameter_services=False)
+        self.ns = namespace.rstrip('/')
+        qos = topics.control_qos(depth=100)
+        self.states: Dict[int, np.ndarray] = {}
+        self.accel: Dict[int, float] = {}
+        self.power: Dict[int, float] = {}
+        self.heights: Dict[int, float] = {}
+        self.previews: Dict[int, np.ndarray] = {}
+        self.commands: List[Tuple[int, int, np.ndarray]] = []   # (stamp, rx_ns, plan)
+        self.diag: Dict[str, Tuple[int, str, Dict[str, str], int]] = {}
+        self.diag_events: List[Tuple[int, str, int, str]] = []  # (rx_ns, node, level, msg)
+        self.received = {t: 0 for t in (topics.STATE, topics.SPRUNG_ACCEL, topics.GENERATOR,
+                                        topics.ROAD_HEIGHT, topics.ROAD_PREVIEW,
+                                        topics.DAMPING_CMD, topics.DIAGNOSTICS)}
+        self.state_rx: Dict[int, int] = {}
+        self.last_rx = time.monotonic()
+        self.create_subscription(JointState, topics.STATE, self._on_state, qos)
+        self.create_subscription(AccelStamped, topics.SPRUNG_ACCEL, self._on_accel, qos)
+        self.create_subscription(JointState, topics.GENERATOR, self._on_generator, qos)
+        self.create_subscription(PointStamped, topics.ROAD_HEIGHT, self._on_height, qos)
+        self.create_subscription(JointTrajectory, topics.ROAD_PREVIEW, self._on_preview, qos)
+        self.create_subscription(JointTrajectory, topics.DAMPING_CMD, self._on_command, qos)
+        self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diag, qos)
+
+    # -- callbacks ---------------------------------------------------------------------
+    def _count(self, topic: str) -> None:
+        self.received[topic] += 1
+        self.last_rx = time.monotonic()
+
+    def _on_state(self, msg: JointState) -> None:
+        rx = time.time_ns()
+        self._count(topics.STATE)
+        x = np.empty(2 * len(msg.position))
+        x[0::2], x[1::2] = msg.position, msg.velocity
+        stamp = time_to_ns(msg.header.stamp)
+        self.states[stamp] = x
+        self.state_rx[stamp] = rx
+
+    def _on_accel(self, msg: AccelStamped) -> None:
+        self._count(topics.SPRUNG_ACCEL)
+        self.accel[time_to_ns(msg.header.stamp)] = msg.accel.linear.z
+
+    def _on_generator(self, msg: JointState) -> None:
+        self._count(topics.GENERATOR)
+        self.power[time_to_ns(msg.header.stamp)] = msg.effort[0] * msg.velocity[0]
+
+    def _on_height(self, msg: PointStamped) -> None:
+        self._count(topics.ROAD_HEIGHT)
+        self.heights[time_to_ns(msg.header.stamp)] = msg.point.z
+
+    def _on_preview(self, msg: JointTrajectory) -> None:
+        self._count(topics.ROAD_PREVIEW)
+        self.previews[time_to_ns(msg.header.stamp)] = np.array(
+            [p.positions[0] for p in msg.points])
+
+    def _on_command(self, msg: JointTrajectory) -> None:
+        rx = time.time_ns()
+        self._count(topics.DAMPING_CMD)
+        self.commands.append((time_to_ns(msg.header.stamp), rx,
+                              np.array([p.positions[0] for p in msg.points])))
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        rx = time.time_ns()
+        self._count(topics.DIAGNOSTICS)
+        for status in msg.status:
+            name, level, text, values = parse_status(status)
+            node = name.rsplit('/', 1)[-1]
+            old = self.diag.get(node)
+            if old is None or (old[0], old[1]) != (level, text):
+                self.diag_events.append((rx, node, level, text))
+            self.diag[node] = (level, text, values, rx)
+
+    # -- queries -----------------------------------------------------------------------
+    def graph_ready(self, extra_subscribers: int = 0) -> bool:
+        """Return True when every node's publishers and subscriptions are in the graph."""
+        def pubs(t):
+            return self.count_publishers(self._fq(t))
+
+        def subs(t):
+            return self.count_subscribers(self._fq(t))
+
+        mine = 1 + extra_subscribers   # this monitor (+ the recorder) on every topic
+        return (pubs(topics.STATE) >= 1 and subs(topics.STATE) >= 1 + mine
+                and pubs(topics.SPRUNG_ACCEL) >= 1 and pubs(topics.GENERATOR) >= 1
+                and pubs(topics.ROAD_HEIGHT) >= 1 and subs(topics.ROAD_HEIGHT) >= 1 + mine
+                and pubs(topics.ROAD_PREVIEW) >= 1 and subs(topics.ROAD_PREVIEW) >= 1 + mine
+                and pubs(topics.DAMPING_CMD) >= 1 and subs(topics.DAMPING_CMD) >= 1 + mine)
+
+    def _fq(self, topic: str) -> str:
+        return topic if topic.startswith('/') else f'{self.ns}/{topic}'
+
+    def diag_values(self, node: str) -> Dict[str, str]:
+        """Return the newest diagnostic values of ``node`` (empty if none arrived)."""
+        entry = self.diag.get(node)
+        return {} if entry is None else entry[2]
+
+    def diag_rx(self, node: str) -> int:
+        """Return the arrival time (ns) of the newest diagnostics of ``node`` (0 if none)."""
+        entry = self.diag.get(node)
+        return 0 if entry is None else entry[3]
+
+    def finished(self) -> bool:
+        """Return True once the plant reported the end of the scenario."""
+        return self.diag_values('plant_sim_node').get('finished') == 'true'
+
+    # -- summary -----------------------------------------------------------------------
+    def trajectory(self, n_steps: Optional[int] = None) -> Dict[str, np.ndarray]:
+        """Return the time series by sample (t from the first state, x, u, w, accel, power)."""
+        stamps = sorted(self.accel)
+        if n_steps is not None:
+            stamps = stamps[:n_steps]
+        t0 = min(self.states) if self.states else 0
+        cmd = {}
+        for stamp, _, plan in self.commands:
+            cmd.setdefault(stamp, plan[0])
+        return {
+            't': np.array([(s - t0) * 1e-9 for s in stamps]),
+            'x': np.array([self.states.get(s, np.full(6, np.nan)) for s in stamps]),
+            'u': np.array([cmd.get(s, np.nan) for s in stamps]),
+            'w': np.array([self.heights.get(s, np.nan) for s in stamps]),
+            'sprung_accel': np.array([self.accel[s] for s in stamps]),
+            'power': np.array([self.power.get(s, np.nan) for s in stamps]),
+        }
+
+    def summary(self, ts: float, n_steps: int, realtime: bool) -> Dict[str, Any]:
+        """Return the run's figures (see module doc) for a run of ``n_steps`` periods ``ts``."""
+        plant = self.diag_values('plant_sim_node')
+        nmpc = self.diag_values('nmpc_node')
+        road = self.diag_values('road_preview_node')
+        accel = [self.accel[s] for s in sorted(self.accel)][:n_steps]
+        harvested = _num(plant.get('harvested_j'))
+        duration = len(accel) * ts
+        metrics = comfort_power(accel, harvested, duration) if accel else {}
+        metrics.update({'harvested_j': harvested, 'samples': len(accel)})
+
+        cmds = self.commands
+        scheduled = [c for c in cmds if c[0] in self.states]   # not the safe commands
+        out: Dict[str, Any] = {'metrics': metrics}
+        cmd: Dict[str, Any] = {'received': len(cmds), 'for_samples': len(scheduled)}
+        if realtime and len(scheduled) > 1:
+            rx = np.array([c[1] for c in scheduled], dtype=float) * 1e-9
+            periods = np.diff(rx)
+            cmd['rate_hz'] = float((len(rx) - 1) / (rx[-1] - rx[0]))
+            cmd['period_jitter_ms'] = percentiles_ms(np.abs(periods - ts))
+            cmd['state_to_command_ms'] = percentiles_ms(
+                [(c[1] - self.state_rx[c[0]]) * 1e-9 for c in scheduled])
+            cmd['sample_to_command_ms'] = percentiles_ms(
+                [(c[1] - c[0]) * 1e-9 for c in scheduled])
+        out['commands'] = cmd
+        out['nmpc'] = {
+            'controller': nmpc.get('controller'),
+            'solve_ms': _stats(nmpc, 'solve_ms'),
+            'latency_ms': _stats(nmpc, 'latency_ms'),
+            'cmd_jitter_ms': _stats(nmpc, 'cmd_jitter_ms'),
+            'tick_jitter_ms': _stats(nmpc, 'tick_jitter_ms'),
+            **{k: _int(nmpc.get(k)) for k in (
+                'solves', 'commands', 'deadline_misses', 'state_timeouts', 'safe_commands',
+                'missed_samples', 'stale_previews', 'no_preview', 'rejected_state',
+                'rejected_preview', 'controller_fallback_plan', 'controller_fallback_passive',
+                'controller_failures', 'controller_over_budget')}}
+        out['plant'] = {k: _int(plant.get(k)) for k in (
+            'steps', 'u_from_command', 'u_from_plan', 'u_from_passive', 'late_commands',
+            'road_gaps', 'lockstep_timeouts', 'rejected_road_height', 'rejected_damping_cmd')}
+        published = {
+            topics.STATE: _int(plant.get('states')),
+            topics.SPRUNG_ACCEL: _int(plant.get('steps')),
+            topics.GENERATOR: _int(plant.get('steps')),
+            topics.ROAD_HEIGHT: _int(road.get('samples_published')),
+            topics.ROAD_PREVIEW: _int(road.get('samples_published')),
+            topics.DAMPING_CMD: (None if not nmpc else (_int(nmpc.get('commands')) or 0)
+                                 + (_int(nmpc.get('safe_commands')) or 0)),
+        }
+        dropped = {t: (max(0, n - self.received[t]) if n is not None else None)
+                   for t, n in published.items()}
+        rejected = {'state': _int(nmpc.get('rejected_state')),
+                    'road/preview': _int(nmpc.get('rejected_preview')),
+                    'road/height': _int(plant.get('rejected_road_height')),
+                    'damping_cmd': _int(plant.get('rejected_damping_cmd')),
+                    '/clock': _int(road.get('rejected_clock'))}
+        out['messages'] = {'published': published, 'received': dict(self.received),
+                           'dropped': dropped,
+                           'dropped_total': sum(v for v in dropped.values() if v),
+                           'rejected': rejected,
+                           'rejected_total': sum(v for v in rejected.values() if v)}
+        return out
+
+
+def _num(text: Optional[str]) -> float:
+    try:
+        return float(text)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _int(text: Optional[str]) -> Optional[int]:
+    value = _num(text)
+    return int(value) if math.isfinite(value) else None
+
+
+def _stats(values: Dict[str, str], prefix: str) -> Dict[str, Any]:
+    out = {k: _num(values.get(f'{prefix}_{k}')) for k in ('p50', 'p99', 'max')}
+    out['samples'] = _int(values.get(f'{prefix}_samples'))
+    return out
+
+
+__all__ = ['NODE_NAMES', 'Monitor']

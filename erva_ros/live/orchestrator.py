@@ -1,0 +1,474 @@
+"""`erva run`: start the live system as separate processes, run one scenario, stop, summarise.
+
+:func:`run_session` does, in order:
+
+1. validates every value in-process first (physical parameters, controller settings,
+   live parameters, the road), so a bad option fails with one line before any
+   process starts;
+2. writes the session's effective parameters to one ROS 2 params file (``/**``
+   for what all nodes share, ``/**/<node>`` for each node) in a session directory;
+3. starts an in-process monitor node (:class:`~erva_ros.live.monitor.Monitor`), the
+   recorder (when recording), nmpc_node, plant_sim_node and road_preview_node, each as
+   ``python -m erva_ros.nodes.<name> --ros-args -r __ns:=<ns> --params-file F`` in its
+   own process group (and with a parent-death signal, so no node outlives `erva run`);
+4. waits until the graph is connected, runs the scenario until every node reports
+   it finished (or a node dies, or SIGINT/SIGTERM arrives), lets the last
+   diagnostics arrive, then stops the nodes with SIGINT (SIGTERM, SIGKILL after a
+   grace period) and the recorder last, so the bag is finished;
+5. returns the summary (comfort and power, command rate, jitter and latency,
+   solve times, deadline misses, fallbacks, dropped and rejected messages).
+"""
+
+import ctypes
+from dataclasses import dataclass, field
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from typing import Any, Callable, Dict, List, Optional
+
+import yaml
+
+from erva_ros.controllers.settings import load_controller_settings
+from erva_ros.errors import CLIError
+from erva_ros.live.parameters import (LIVE_CHOICES, LIVE_DEFAULTS, LIVE_INTEGERS,
+                                      LIVE_NUMERIC, LIVE_OTHER)
+from erva_ros.live.scenario import build_road, required_preview_steps
+from erva_ros.params import check_number, load_erva_params, ParamError
+
+#: The live nodes in start order (the slowest to start first).
+NODES = ('nmpc_node', 'plant_sim_node', 'road_preview_node')
+#: Live parameters that belong to one node's section of the session params file.
+NODE_PARAMETERS = {
+    'road_preview_node': ('road', 'road_file', 'seed', 'road_class', 'speed_mps',
+                          'bump_height_m', 'bump_length_m', 'bump_start_s', 'preview_steps',
+                          'preview_noise', 'preview_snr_db', 'preview_delay_s'),
+    'plant_sim_node': ('command_timeout_s', 'lockstep_timeout_s'),
+    'nmpc_node': ('state_timeout_periods',),
+}
+#: Grace period (s) between SIGINT, SIGTERM and SIGKILL when stopping a process.
+STOP_GRACE_S = 5.0
+#: Exit status of a run stopped by SIGINT / SIGTERM (shell convention 128 + signal).
+SIGNAL_EXIT = {signal.SIGINT: 130, signal.SIGTERM: 143}
+
+
+def default_config_file(name: str) -> str:
+    """Return the path of a shipped config file (source tree or installed share)."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    candidates = [os.path.join(here, '..', '..', 'config', name)]
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        candidates.append(os.path.join(get_package_share_directory('erva_ros'), 'config', name))
+    except Exception:  # ament index absent or package not installed: source tree only
+        pass
+    for cand in candidates:
+        if os.path.isfile(cand):
+            return os.path.normpath(cand)
+    raise ParamError(f'cannot find config/{name}')
+
+
+def read_live_file(path: Optional[str]) -> Dict[str, Any]:
+    """Return the live parameters of a params file: ``/**`` merged with each node's section."""
+    path = path or default_config_file('live.yaml')
+    if not os.path.isfile(path):
+        raise ParamError(f'live parameter file {path!r} does not exist')
+    try:
+        with open(path, encoding='utf-8') as fh:
+            doc = yaml.safe_load(fh) or {}
+    except yaml.YAMLError:
+        raise ParamError(f'{path}: not valid YAML') from None
+    if not isinstance(doc, dict):
+        raise ParamError(f'{path}: expected a mapping of node names to ros__parameters')
+    out: Dict[str, Any] = {}
+    for section in ('/**', *(f'/**/{n}' for n in NODES)):
+        params = (doc.get(section) or {}).get('ros__parameters') or {}
+        unknown = sorted(set(params) - set(LIVE_DEFAULTS) - {'use_sim_time'})
+        if unknown:
+            raise ParamError(f'{path}: unknown live parameter(s) {", ".join(unknown)} '
+                             f'in {section}')
+        out.update(params)
+    return out
+
+
+def validate_live(values: Dict[str, Any], source: str = '') -> Dict[str, Any]:
+    """Return the live parameters (defaults filled in) checked against the tables."""
+    where = f'{source}: ' if source else ''
+    out = dict(LIVE_DEFAULTS)
+    out.update({k: v for k, v in values.items() if k != 'use_sim_time'})
+    for key, value in out.items():
+        if key in LIVE_NUMERIC:
+            spec = LIVE_NUMERIC[key]
+            if key in LIVE_INTEGERS and (isinstance(value, bool) or not isinstance(value, int)):
+                raise ParamError(f'{where}parameter {key!r} must be an integer in '
+                                 f'{spec.describe()}, got {value!r}')
+            out[key] = check_number(key, value, spec, source)
+            if key in LIVE_INTEGERS:
+                out[key] = int(out[key])
+        elif key in LIVE_CHOICES:
+            choices, doc = LIVE_CHOICES[key]
+            if value not in choices:
+                raise ParamError(f'{where}parameter {key!r} = {value!r} is not allowed; '
+                                 f'choose one of {", ".join(choices)} ({doc})')
+        elif isinstance(LIVE_DEFAULTS[key], bool) and not isinstance(value, bool):
+            raise ParamError(f'{where}parameter {key!r} must be true or false '
+                             f'({LIVE_OTHER[key]}), got {value!r}')
+        elif isinstance(LIVE_DEFAULTS[key], str) and not isinstance(value, str):
+            raise ParamError(f'{where}parameter {key!r} must be a string, got {value!r}')
+    return out
+
+
+@dataclass
+class RunConfig:
+    """What `erva run` runs; ``None`` means "as in the config files"."""
+
+    controller: Optional[str] = None
+    alpha1: Optional[float] = None
+    alpha2: Optional[float] = None
+    road: Optional[str] = None
+    seed: Optional[int] = None
+    mode: Optional[str] = None
+    model: Optional[str] = None
+    duration_s: Optional[float] = None
+    params_file: Optional[str] = None      # physical parameters (config/erva_paper.yaml)
+    nmpc_file: Optional[str] = None        # controller settings (config/nmpc.yaml)
+    live_file: Optional[str] = None        # live parameters (config/live.yaml)
+    record_dir: Optional[str] = None       # parent of the session bag; None: no recording
+    namespace: str = '/erva'
+    startup_timeout_s: float = 90.0
+    live_overrides: Dict[str, Any] = field(default_factory=dict)
+    settings_overrides: Dict[str, Any] = field(default_factory=dict)
+    session_dir: Optional[str] = None      # where the params file and node logs go
+
+
+@dataclass
+class Session:
+    """A validated scenario: effective parameters and the params file the nodes read."""
+
+    erva: Dict[str, float]
+    settings: Any
+    live: Dict[str, Any]
+    directory: str
+    params_file: str
+    scenario: str
+
+    @property
+    def realtime(self) -> bool:
+        """Return True for a wall-clock run."""
+        return self.live['mode'] == 'realtime'
+
+    @property
+    def n_steps(self) -> int:
+        """Return the number of control periods of the scenario."""
+        return int(round(self.live['duration_s'] / self.live['ts']))
+
+
+def prepare_session(cfg: RunConfig, recording: bool) -> Session:
+    """Validate everything and write the session params file; raise ParamError (one line)."""
+    erva = load_erva_params(cfg.params_file)
+    overrides = {'controller': cfg.controller, 'alpha1': cfg.alpha1, 'alpha2': cfg.alpha2}
+    overrides.update(cfg.settings_overrides)
+    settings = load_controller_settings(cfg.nmpc_file, overrides)
+    live_path = cfg.live_file or default_config_file('live.yaml')
+    values = read_live_file(live_path)
+    if 'ts' in values and abs(float(values['ts']) - settings.ts) > 1e-12:
+        raise ParamError(f'{live_path}: ts = {values["ts"]} s differs from the controller\'s '
+                         f'ts = {settings.ts:g} s; set both to the same sample time')
+    values['ts'] = settings.ts
+    for key, value in (('mode', cfg.mode), ('model', cfg.model), ('road', cfg.road),
+                       ('seed', cfg.seed), ('duration_s', cfg.duration_s)):
+        if value is not None:
+            values[key] = value
+    values.update(cfg.live_overrides)
+    live = validate_live(values, source=live_path)
+    live['preview_steps'] = max(live['preview_steps'], required_preview_steps(settings))
+    # The time master starts when each of its topics has the other loop node, this
+    # process's monitor and (when recording) the recorder as subscribers.
+    live['wait_for_subscribers'] = 2 + (1 if recording else 0)
+    build_road(live)   # a bad road option fails here, not in a node
+    directory = cfg.session_dir or tempfile.mkdtemp(prefix='erva_run_')
+    os.makedirs(directory, exist_ok=True)
+    scenario = live['road'] if not live['road_file'] else 'recorded'
+    shared = {k: v for k, v in live.items()
+              if not any(k in names for names in NODE_PARAMETERS.values())}
+    shared.update(erva.as_dict())
+    if live['mode'] == 'lockstep':
+        shared['use_sim_time'] = True
+    doc = {'/**': {'ros__parameters': shared}}
+    for node, names in NODE_PARAMETERS.items():
+        doc[f'/**/{node}'] = {'ros__parameters': {k: live[k] for k in names}}
+    doc['/**/nmpc_node']['ros__parameters'].update(settings.as_dict())
+    path = os.path.join(directory, 'session_params.yaml')
+    with open(path, 'w', encoding='utf-8') as fh:
+        fh.write('# Effective parameters of an `erva run` session (ROS 2 params file).\n')
+        yaml.safe_dump(doc, fh, sort_keys=False)
+    return Session(erva.as_dict(), settings, live, directory, path, scenario)
+
+
+def _die_with_parent() -> None:
+    """Ask the kernel to SIGTERM this child when `erva run` dies (Linux prctl)."""
+    try:
+        libc = ctypes.CDLL('libc.so.6', use_errno=True)
+        libc.prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+class NodeProcess:
+    """One node process in its own process group, its output in a log file."""
+
+    def __init__(self, name: str, argv: List[str], log_path: str, env: Dict[str, str]):
+        self.name = name
+        self.log_path = log_path
+        self._log = open(log_path, 'w', encoding='utf-8')
+        self.popen = subprocess.Popen(argv, stdout=self._log, stderr=subprocess.STDOUT,
+                                      stdin=subprocess.DEVNULL, env=env,
+                                      start_new_session=True, preexec_fn=_die_with_parent)
+        self.pid = self.popen.pid
+        self.stopped_by_us = False
+
+    def poll(self) -> Optional[int]:
+        """Return the exit status, or None while running."""
+        return self.popen.poll()
+
+    def signal(self, sig: int) -> None:
+        """Send ``sig`` to the process group (the node and anything it started)."""
+        try:
+            os.killpg(self.pid, sig)
+        except ProcessLookupError:
+            pass
+
+    def tail(self, lines: int = 5) -> str:
+        """Return the last lines of the node's output."""
+        self._log.flush()
+        try:
+            with open(self.log_path, encoding='utf-8', errors='replace') as fh:
+                return ''.join(fh.readlines()[-lines:]).rstrip()
+        except OSError:
+            return ''
+
+    def close(self) -> None:
+        """Close the log file."""
+        self._log.close()
+
+
+def stop_processes(procs: List[NodeProcess], grace_s: float = STOP_GRACE_S) -> None:
+    """Stop processes with SIGINT, then SIGTERM, then SIGKILL; reap them all."""
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+        alive = [p for p in procs if p.poll() is None]
+        if not alive:
+            break
+        for p in alive:
+            p.stopped_by_us = True
+            p.signal(sig)
+        deadline = time.monotonic() + grace_s
+        while time.monotonic() < deadline and any(p.poll() is None for p in alive):
+            time.sleep(0.02)
+    for p in procs:
+        try:
+            p.popen.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            pass
+        p.close()
+
+
+@dataclass
+class RunResult:
+    """What a session produced: the summary, the exit status and the sampled trajectory."""
+
+    summary: Dict[str, Any]
+    exit_code: int
+    trajectory: Dict[str, Any]
+    session: Optional[Session] = None
+
+
+def _recorder(cfg: RunConfig, session: Session, bag_parent: str, env, log) -> NodeProcess:
+    from erva_ros.bag import session as bag_session
+    bag_dir = bag_session.new_bag_dir(bag_parent, session.scenario)
+    params = {'erva': session.erva, 'controller': session.settings.as_dict(),
+              'live': session.live}
+    meta = bag_session.session_metadata(
+        session.scenario, parameters=params, seed=session.live['seed'],
+        controller=session.settings.controller,
+        extra={'mode': session.live['mode'], 'model': session.live['model'],
+               'duration_s': session.live['duration_s'],
+               'params_file': session.params_file})
+    argv = [sys.executable, '-m', 'erva_ros.nodes.recorder_node',
+            *bag_session.recorder_ros_args(bag_dir, meta, namespace=cfg.namespace,
+                                           use_sim_time=not session.realtime)]
+    proc = NodeProcess('recorder_node', argv,
+                       os.path.join(session.directory, 'recorder_node.log'), env)
+    proc.bag_dir = bag_dir
+    log(f'recording to {bag_dir}')
+    return proc
+
+
+def recorder_available() -> bool:
+    """Return True when the recorder (erva_ros.bag, recorder_node) is installed."""
+    import importlib.util
+    return all(importlib.util.find_spec(m) is not None
+               for m in ('erva_ros.bag.session', 'erva_ros.nodes.recorder_node'))
+
+
+def run_session(cfg: RunConfig, log: Callable[[str], None] = lambda s: None,
+                on_started: Optional[Callable[[Dict[str, NodeProcess]], None]] = None
+                ) -> RunResult:
+    """Run one scenario (see module doc); ``log`` gets progress lines for stderr."""
+    recording = cfg.record_dir is not None and recorder_available()
+    if cfg.record_dir is not None and not recording:
+        log('recorder not available yet: summary only')
+    session = prepare_session(cfg, recording)
+    env = dict(os.environ)
+    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    env['PYTHONUNBUFFERED'] = '1'
+
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+    from erva_ros.live.monitor import Monitor
+
+    context = rclpy.Context()
+    rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
+    monitor = Monitor(cfg.namespace, context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(monitor)
+
+    caught: List[int] = []
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig in handlers:
+        signal.signal(sig, lambda signum, frame: caught.append(signum))
+
+    procs: Dict[str, NodeProcess] = {}
+    errors: List[str] = []
+    t_start = time.monotonic()
+    phase = 'starting'
+    dead: set = set()
+    try:
+        if recording:
+            procs['recorder_node'] = _recorder(cfg, session, cfg.record_dir, env, log)
+        for name in NODES:
+            argv = [sys.executable, '-m', f'erva_ros.nodes.{name}', '--ros-args',
+                    '-r', f'__ns:={cfg.namespace}', '--params-file', session.params_file]
+            procs[name] = NodeProcess(name, argv, os.path.join(session.directory,
+                                                               f'{name}.log'), env)
+        log('started ' + ', '.join(f'{n} (pid {p.pid})' for n, p in procs.items()))
+        if on_started is not None:
+            on_started(procs)
+        phase = 'connecting'
+        last_progress = time.monotonic()
+        last_states = 0
+        finish_seen = None
+        while True:
+            executor.spin_once(timeout_sec=0.02)
+            if caught:
+                errors.append(f'interrupted by {signal.Signals(caught[0]).name} while '
+                              f'{phase}')
+                break
+            newly_dead = [p for n, p in procs.items() if n not in dead and p.poll() is not None]
+            for p in newly_dead:
+                dead.add(p.name)
+                where = (f'at t = {monitor.received["state"] * session.live["ts"]:.2f} s'
+                         if phase == 'running' else f'while {phase}')
+                errors.append(f'{p.name} died (exit status {p.poll()}) {where}'
+                              + (f': {p.tail(1)}' if p.tail(1) else ''))
+                goes_on = phase == 'running' and p.name in ('nmpc_node', 'recorder_node')
+                log(errors[-1] + ('; the run goes on without it' if goes_on else ''))
+            # Without the plant or the road nothing moves.  Without the controller the
+            # plant falls back to the plan, then passive damping, which is worth seeing;
+            # without the recorder the loop runs on unrecorded.
+            if dead and (phase != 'running'
+                         or dead & {'plant_sim_node', 'road_preview_node'}):
+                break
+            now = time.monotonic()
+            if phase == 'connecting':
+                if monitor.graph_ready(extra_subscribers=1 if recording else 0):
+                    phase = 'running'
+                    log(f'connected in {now - t_start:.1f} s; running '
+                        f'{session.live["duration_s"]:g} s ({session.live["mode"]})')
+                elif now - t_start > cfg.startup_timeout_s:
+                    errors.append(f'the nodes did not connect within '
+                                  f'{cfg.startup_timeout_s:g} s')
+                    break
+                continue
+            if phase == 'running':
+                states = monitor.received['state']
+                if states != last_states:
+                    last_states, last_progress = states, now
+                if all(monitor.diag_values(n).get('finished') == 'true'
+                       for n in NODES if n not in dead):
+                    phase = 'draining'
+                    finish_seen = now
+                    continue
+                limit = 10.0 + (5.0 if last_states == 0 else 0.0)
+                if now - last_progress > limit + session.live['start_delay_s']:
+                    errors.append(f'no progress for {now - last_progress:.0f} s '
+                                  f'({last_states} states received)')
+                    break
+                continue
+            # draining: let the final diagnostics and any message in flight arrive
+            if now - finish_seen > 1.0 or _all_received(monitor):
+                break
+    finally:
+        stop_processes([p for n, p in procs.items() if n != 'recorder_node'])
+        if 'recorder_node' in procs:
+            stop_processes([procs['recorder_node']], grace_s=10.0)
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+        executor.shutdown()
+        monitor.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+    summary = monitor.summary(session.live['ts'], session.n_steps, session.realtime)
+    nodes = {}
+    for name, p in procs.items():
+        status = p.poll()
+        nodes[name] = {'pid': p.pid, 'exit_status': status, 'died': name in dead,
+                       'stopped_cleanly': p.stopped_by_us and status == 0, 'log': p.log_path}
+        if name not in dead and status != 0:
+            errors.append(f'{name} did not stop cleanly (exit status {status})'
+                          + (f': {p.tail(1)}' if p.tail(1) else ''))
+    if 'recorder_node' in procs:
+        summary['bag'] = procs['recorder_node'].bag_dir
+    if summary['commands']['received'] == 0 and not caught:
+        errors.append('no damping commands were received')
+    summary.update({
+        'scenario': {'controller': session.settings.controller,
+                     'weights': list(session.settings.weights), 'road': session.scenario,
+                     'seed': session.live['seed'], 'mode': session.live['mode'],
+                     'model': session.live['model'], 'duration_s': session.live['duration_s'],
+                     'ts': session.live['ts'], 'namespace': cfg.namespace},
+        'nodes': nodes, 'errors': errors, 'ok': not errors,
+        'wall_time_s': round(time.monotonic() - t_start, 3),
+        'session_dir': session.directory,
+    })
+    if caught:
+        code = SIGNAL_EXIT.get(caught[0], 1)
+    else:
+        code = 0 if not errors else 1
+    return RunResult(summary, code, monitor.trajectory(session.n_steps), session)
+
+
+def _all_received(monitor) -> bool:
+    """Return True once every node's final counters arrived and nothing is missing."""
+    s = monitor.summary(1.0, 0, False)
+    published = s['messages']['published']
+    return (all(v is not None for v in published.values())
+            and s['messages']['dropped_total'] == 0)
+
+
+def ensure_ecu_available(ecu: str) -> None:
+    """Raise CLIError unless the HIL loop for ``--ecu`` can run (issue 6)."""
+    if ecu == 'none':
+        return
+    import importlib.util
+    if importlib.util.find_spec('erva_ros.hil') is None:
+        raise CLIError(f'--ecu {ecu} is not available yet: the HIL modules (erva_ros.hil) '
+                       'are not installed')
+    raise CLIError(f'--ecu {ecu} is not available yet: the HIL loop is not wired into '
+                   '`erva run`')
+
+
+__all__ = ['NODES', 'RunConfig', 'Session', 'RunResult', 'prepare_session', 'run_session',
+           'read_live_file', 'validate_live', 'stop_processes', 'NodeProcess',
+           'recorder_available', 'ensure_ecu_available', 'default_config_file']

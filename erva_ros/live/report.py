@@ -1,0 +1,80 @@
+"""Text and JSON forms of a live run's summary (`erva run`, `erva bench --live`)."""
+
+import math
+from typing import Any, Dict, List
+
+#: Targets of the live system (issue 4), checked by `erva bench --live`.
+TARGETS = {
+    'command_rate_hz': 50.0,          # = 1 / Ts, within 1 %
+    'period_jitter_p99_ms': 2.0,
+    'latency_p99_ms': 5.0,
+    'deadline_misses': 0,
+    'dropped_messages': 0,
+}
+
+
+def jsonable(obj: Any) -> Any:
+    """Return ``obj`` with NaN/inf replaced by None and numpy scalars by Python numbers."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if hasattr(obj, 'item') and not isinstance(obj, (str, bytes)):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def _ms(stats: Dict[str, Any]) -> str:
+    if not stats or not stats.get('samples'):
+        return 'n/a'
+    return (f'p50 {stats["p50"]:.2f} / p99 {stats["p99"]:.2f} / max {stats["max"]:.2f} ms '
+            f'({stats["samples"]} samples)')
+
+
+def format_summary(s: Dict[str, Any]) -> str:
+    """Return the human-readable summary of one run."""
+    sc = s['scenario']
+    m = s['metrics']
+    cmd = s['commands']
+    nm = s['nmpc']
+    pl = s['plant']
+    msg = s['messages']
+    lines: List[str] = [
+        f'erva run: {sc["controller"]} (alpha1 = {sc["weights"][0]:g}, alpha2 = '
+        f'{sc["weights"][1]:g}), {sc["road"]} road seed {sc["seed"]}, {sc["model"]} model, '
+        f'{sc["mode"]}, {sc["duration_s"]:g} s at Ts = {sc["ts"]:g} s',
+    ]
+    if m.get('samples'):
+        lines.append(f'  comfort   chassis acceleration 2-norm {m["acc_2norm"]:.4g} m/s², '
+                     f'RMS {m["acc_rms"]:.4g} m/s² ({m["samples"]} samples)')
+        lines.append(f'  energy    average harvested power {m["power_w"]:.4g} W '
+                     f'({m["harvested_j"]:.4g} J)')
+    rate = f'{cmd["rate_hz"]:.2f} Hz' if cmd.get('rate_hz') else 'n/a (lock-step)'
+    lines.append(f'  commands  {cmd["received"]} received, rate {rate}')
+    if 'period_jitter_ms' in cmd:
+        lines.append(f'  jitter    command period |Δt - Ts| {_ms(cmd["period_jitter_ms"])}')
+        lines.append(f'  latency   state -> command {_ms(cmd["state_to_command_ms"])}')
+        lines.append(f'            sample time -> command {_ms(cmd["sample_to_command_ms"])}')
+    lines.append(f'  solve     {_ms(nm.get("solve_ms"))}')
+    lines.append(f'  deadlines {nm.get("deadline_misses")} missed; controller fallbacks: plan '
+                 f'{nm.get("controller_fallback_plan")}, passive '
+                 f'{nm.get("controller_fallback_passive")}; state timeouts '
+                 f'{nm.get("state_timeouts")}')
+    lines.append(f'  plant     u from command {pl.get("u_from_command")}, from plan '
+                 f'{pl.get("u_from_plan")}, passive {pl.get("u_from_passive")}; '
+                 f'late commands {pl.get("late_commands")}')
+    lines.append(f'  messages  dropped {msg["dropped_total"]}, rejected {msg["rejected_total"]}')
+    if s.get('bag'):
+        lines.append(f'  bag       {s["bag"]}')
+    if s['errors']:
+        for e in s['errors']:
+            lines.append(f'  ERROR     {e}')
+    else:
+        lines.append(f'  ok        all nodes ran and stopped cleanly ({s["wall_time_s"]:.1f} s '
+                     'wall)')
+    return '\n'.join(lines)
+
+
+__all__ = ['TARGETS', 'jsonable', 'format_summary']

@@ -1,0 +1,228 @@
+"""ecu_bridge_node: the NMPC's damping command onto the vehicle CAN bus, the ECU's sensors back.
+
+A thin rclpy adapter around :class:`erva_ros.hil.bridge.BridgeCore` (no ROS inside):
+
+* ``damping_cmd`` (JointTrajectory, joint c_e) → clamped to the generator's range,
+  converted to a PWM duty (c_e = κ²/R, erva_ros/hil/hardware.py) and sent at once in
+  an E2E-protected ERVA_CMD frame; a 4·Ts watchdog timer keeps the frames at Ts,
+  follows the NMPC's plan while a command is late, and sends the safe passive c_e0
+  with an ERROR diagnostic once no fresh command came for ``command_timeout_periods``.
+* ECU frames (reader thread, E2E-checked) → ``ecu/damping_applied``,
+  ``ecu/sprung_accel``, ``ecu/suspension``, ``ecu/generator`` (erva_ros/hil/topics.py),
+  each published as soon as its frame arrived, all stamped with the CAN receive time
+  of the ECU cycle's first frame.
+* ``/diagnostics``: command link, CAN bus (E2E counters, losses, reconnects) and ECU
+  heartbeat, with the bridge's added latency (p50/p99/max in ms).
+
+Bus loss never ends the node: it is reported and the bus re-opened every ``bus_retry_s``.
+"""
+
+import gc
+import sys
+import threading
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import AccelStamped
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory
+
+from erva_ros import topics
+from erva_ros.hil import topics as hil_topics
+from erva_ros.hil.bridge import BridgeConfig, BridgeCore, SensorFrame
+from erva_ros.hil.codec import EcuCodec, Kind
+from erva_ros.hil.settings import (BRIDGE_DEFAULTS, BRIDGE_NUMERIC, BRIDGE_STRINGS,
+                                   hardware_of, INTEGER_KEYS, TS_SPEC)
+from erva_ros.hil.transport import open_bus, parse_spec
+from erva_ros.live import diagnostics as diag
+from erva_ros.live.msgs import ns_to_time, time_to_ns
+from erva_ros.live.parameters import declare_erva_params, declare_number, declare_string
+from erva_ros.live.runtime import run_node
+from erva_ros.hil.latency import LatencyStats
+from erva_ros.params import ParamError
+
+#: Commands beyond this magnitude (Ns/m) are absurd (a unit error), not just out of range.
+ABSURD_C_E = 1e6
+
+
+class EcuBridgeNode(Node):
+    """Forward damping commands to the ECU over CAN and publish its sensor frames."""
+
+    def __init__(self):
+        super().__init__('ecu_bridge_node')
+        self.params = declare_erva_params(self)
+        self.ts = declare_number(self, 'ts', 0.02, TS_SPEC)
+        cfg = {}
+        for key, default in BRIDGE_DEFAULTS.items():
+            if key in BRIDGE_STRINGS:
+                cfg[key] = declare_string(self, key, default, BRIDGE_STRINGS[key])
+            else:
+                cfg[key] = declare_number(self, key, default, BRIDGE_NUMERIC[key],
+                                          integer=key in INTEGER_KEYS)
+        try:
+            parse_spec(cfg['bus'])
+            codec = EcuCodec(cfg['dbc_file'] or None)
+        except (ValueError, FileNotFoundError) as exc:
+            raise ParamError(str(exc)) from None
+        self.hw = hardware_of(cfg)
+        self.cfg = cfg
+        self.core = BridgeCore(
+            codec, self.hw,
+            BridgeConfig(period_s=self.ts,
+                         command_timeout_s=cfg['command_timeout_periods'] * self.ts,
+                         sensor_timeout_s=cfg['sensor_timeout_periods'] * self.ts,
+                         c_e_safe=self.params.c_e0, bus_retry_s=cfg['bus_retry_s'],
+                         max_delta_counter=cfg['max_delta_counter']),
+            lambda: open_bus(cfg['bus']))
+        # Added latency (DDS / kernel receive time -> done) and, inside it, the node's own
+        # processing (callback entry -> done): the rest is waiting to be scheduled.
+        self.lat_cmd = LatencyStats()       # damping_cmd received -> CAN frame sent
+        self.proc_cmd = LatencyStats()
+        self.lat_sensor = LatencyStats()    # CAN frame received -> its topic published
+        self.proc_sensor = LatencyStats()
+        self.rejected_msgs = 0
+
+        qos = topics.control_qos()
+        self.pub_accel = self.create_publisher(AccelStamped, hil_topics.ECU_SPRUNG_ACCEL, qos)
+        self.pub_susp = self.create_publisher(JointState, hil_topics.ECU_SUSPENSION, qos)
+        self.pub_gen = self.create_publisher(JointState, hil_topics.ECU_GENERATOR, qos)
+        self.pub_applied = self.create_publisher(JointState, hil_topics.ECU_DAMPING_APPLIED,
+                                                 qos)
+        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
+        self.create_subscription(JointTrajectory, topics.DAMPING_CMD, self._on_command, qos)
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(self.ts / 4, self._on_tick, clock=steady)
+        self.create_timer(cfg['diagnostics_period_s'], self._publish_diagnostics, clock=steady)
+        self._last_levels = None
+        self._last_state = None
+
+        if not self.core.open():
+            self.get_logger().error(f'{cfg["bus"]}: {self.core.bus_error}; retrying every '
+                                    f'{cfg["bus_retry_s"]:g} s')
+        self._stop = threading.Event()
+        self._reader = threading.Thread(target=self._read_loop, name='can_reader', daemon=True)
+        self._reader.start()
+        # Start-up objects (CasADi functions, messages, rclpy) are never garbage: keep the
+        # collector from scanning them, so a collection cannot stall a cycle for ms.
+        gc.freeze()
+        lo, hi = self.hw.c_e_range
+        self.get_logger().info(
+            f'bus {cfg["bus"]}, Ts = {self.ts:g} s, c_e in [{lo:.0f}, {hi:.0f}] Ns/m, '
+            f'safe c_e0 = {self.params.c_e0:g} Ns/m (duty '
+            f'{self.hw.duty_from_c_e(self.params.c_e0):.3f}), timeout '
+            f'{cfg["command_timeout_periods"]} periods')
+
+    # -- ROS -> CAN --------------------------------------------------------------------
+    def _on_command(self, msg: JointTrajectory, info) -> None:
+        t0 = time.perf_counter()
+        plan, offsets = self._parse_command(msg)
+        if plan is None:
+            self.rejected_msgs += 1
+            self.core.counts['commands_rejected'] += 1
+            return
+        result = self.core.submit(plan, offsets=offsets)
+        if result in ('sent', 'clamped'):
+            self.lat_cmd.add((time.time_ns() - info['received_timestamp']) * 1e-9)
+            self.proc_cmd.add(time.perf_counter() - t0)
+
+    def _parse_command(self, msg: JointTrajectory):
+        """Return (plan Ns/m, time offsets s) or (None, None) for a malformed or absurd one."""
+        if list(msg.joint_names) != [topics.DAMPING_JOINT] or not msg.points:
+            return None, None
+        plan, offsets = [], []
+        for p in msg.points:
+            if len(p.positions) != 1:
+                return None, None
+            v = float(p.positions[0])
+            if not abs(v) <= ABSURD_C_E:           # also catches NaN
+                return None, None
+            plan.append(v)
+            offsets.append(time_to_ns(p.time_from_start) * 1e-9)
+        return plan, offsets
+
+    def _on_tick(self) -> None:
+        self.core.tick()
+        # An ERROR (or its end) is published at once, not at the next period.
+        state = (self.core.command_state, self.core.bus_up, self.core.ecu_silent())
+        if state != self._last_state:
+            self._last_state = state
+            self._publish_diagnostics()
+
+    # -- CAN -> ROS --------------------------------------------------------------------
+    def _read_loop(self) -> None:
+        while not self._stop.is_set():
+            f = self.core.receive(timeout=0.05)
+            if f is not None:
+                self._publish_frame(f)
+
+    def _publish_frame(self, f: SensorFrame) -> None:
+        """Publish one ECU frame at once, stamped with its ECU cycle's stamp."""
+        t0 = time.perf_counter()
+        stamp = ns_to_time(int(round(f.stamp * 1e9)))
+        p = f.payload
+        if f.kind is Kind.STATUS:
+            m = JointState(name=list(hil_topics.APPLIED_JOINTS),
+                           position=[float(p.c_e_applied), float(p.c_e_mean)])
+            m.header.stamp = stamp
+            self.pub_applied.publish(m)
+        elif f.kind is Kind.CHASSIS:
+            a = AccelStamped()
+            a.header.stamp = stamp
+            a.accel.linear.z = float(p.sprung_accel)
+            self.pub_accel.publish(a)
+            m = JointState(name=[hil_topics.SUSPENSION_JOINT], position=[float(p.deflection)])
+            m.header.stamp = stamp
+            self.pub_susp.publish(m)
+        else:
+            m = JointState(name=[topics.GENERATOR_JOINT],
+                           velocity=[float(p.speed * self.params.l)],
+                           effort=[float(self.hw.force_from_current(p.current))])
+            m.header.stamp = stamp
+            self.pub_gen.publish(m)
+        self.lat_sensor.add(time.time() - f.rx_time)
+        self.proc_sensor.add(time.perf_counter() - t0)
+
+    # -- diagnostics -------------------------------------------------------------------
+    def _publish_diagnostics(self) -> None:
+        statuses = self.core.diagnostics(prefix=self.get_fully_qualified_name())
+        lat = {}
+        for name, stats in (('ros_to_can_ms', self.lat_cmd), ('can_to_ros_ms', self.lat_sensor),
+                            ('ros_to_can_proc_ms', self.proc_cmd),
+                            ('can_to_ros_proc_ms', self.proc_sensor)):
+            lat.update(diag.flatten(name, stats.summary()))
+        statuses[0].values.update({k: diag.format_value(v) for k, v in lat.items()
+                                   if k.startswith('ros_to_can')})
+        statuses[0].values['messages_rejected'] = str(self.rejected_msgs)
+        statuses[2].values.update({k: diag.format_value(v) for k, v in lat.items()
+                                   if k.startswith('can_to_ros')})
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [diag.status_msg(s.name, s.level, s.message, s.values, self.cfg['bus'])
+                      for s in statuses]
+        self.pub_diag.publish(arr)
+        levels = [(s.level, s.message.split(':')[0]) for s in statuses]
+        if levels != self._last_levels:
+            for s in statuses:
+                if s.level >= diag.ERROR:
+                    self.get_logger().error(f'{s.name}: {s.message}')
+            self._last_levels = levels
+
+    def destroy_node(self):
+        self._stop.set()
+        if self._reader.is_alive():
+            self._reader.join(timeout=1.0)
+        self.core.close()
+        return super().destroy_node()
+
+
+def main(args=None):
+    # The CAN reader thread must not wait up to the default 5 ms for the GIL while the
+    # executor thread runs a callback.
+    sys.setswitchinterval(5e-4)
+    return run_node('ecu_bridge_node', EcuBridgeNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,310 @@
+"""nmpc_node: the damping controller at 1/Ts (paper §III.A), publishing each command with its plan.
+
+A thin adapter around :func:`erva_ros.controllers.make_controller` (parameter
+``controller``: preview, no_preview, preview_long, skyhook, passive; settings from
+config/nmpc.yaml).  For the newest state x(t_k) and the preview stamped t_k it calls
+``Controller.compute`` and publishes ``damping_cmd``: points[0] = u_k, points[j] =
+the planned u_{k+j} (Ns/m), header.stamp = t_k, so the plant can fall back to the
+plan if a later command is late.
+
+Modes:
+
+* ``realtime``: a wall-clock timer at 1/Ts, phase-aligned to the state stamps (it
+  ticks at t_k + m·Ts).  Each tick takes the newest state and preview; if the state
+  of this period has not arrived yet, it is solved the moment it does, so the
+  state-to-command latency is the solve time plus message transport.  A solve over
+  ``time_budget_s`` is replaced by the controller's fallback (shifted plan, then
+  passive) and counted as a deadline miss, as is a command published later than
+  t_k + Ts.  After ``state_timeout_periods`` periods without a state, each tick
+  publishes the safe passive command c_e0 and the status is ERROR until states
+  return.
+* ``lockstep``: solves each state as soon as the preview with the same stamp is
+  there; the wall-clock budget is disabled (time is simulated) so the run is
+  deterministic.
+
+Incoming states and previews are validated (erva_ros.live.validation): a non-finite
+or absurd value is rejected, counted and logged at a limited rate, and never reaches
+the controller.  Timings and counters are published on ``/diagnostics``.
+"""
+
+from collections import deque
+import time
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory
+
+from erva_ros import topics
+from erva_ros.controllers import make_controller
+from erva_ros.controllers.settings import NUMERIC_SPECS
+from erva_ros.live import diagnostics as diag
+from erva_ros.live.msgs import damping_msg, parse_preview, parse_state, s_to_ns
+from erva_ros.live.parameters import (declare_controller_settings, declare_erva_params,
+                                      declare_live)
+from erva_ros.live.runtime import run_node
+from erva_ros.live.timing import DurationStats, next_grid_delay_ns, PeriodStats
+from erva_ros.live.validation import MessageRejected, Rejections
+
+LIVE_PARAMETERS = ('mode', 'model', 'duration_s', 'state_timeout_periods',
+                   'diagnostics_period_s', 'reject_log_period_s')
+#: A preview at most this many samples older than the state is shifted and used.
+MAX_PREVIEW_AGE = 3
+#: How long (s) a deadline miss or fallback keeps the status at WARN.
+WARN_HOLD_S = 1.0
+
+
+class NMPCNode(Node):
+    """Compute the damping command of each sample and publish it with its plan."""
+
+    def __init__(self):
+        super().__init__('nmpc_node')
+        params = declare_erva_params(self)
+        settings = declare_controller_settings(self)
+        cfg = declare_live(self, LIVE_PARAMETERS)
+        self.cfg = cfg
+        self.kind = cfg['model']
+        self.lockstep = cfg['mode'] == 'lockstep'
+        if self.lockstep:
+            settings = settings.with_(time_budget_s=NUMERIC_SPECS['time_budget_s'].hi)
+        self.settings = settings
+        self.ts = settings.ts
+        self.ts_ns = s_to_ns(settings.ts)
+        self.controller = make_controller(settings.controller, params, settings, self.kind)
+        self.n_preview = self.controller.horizon + 1
+        self.passive_plan = np.full(self.controller.horizon, self.controller.c_e0)
+        self._warm_up()
+
+        self.state = None            # (stamp_ns, x) of the newest valid state
+        self.state_rx_ns = 0         # wall time it arrived
+        self.last_state_mono = None
+        self.previews = deque(maxlen=2 * MAX_PREVIEW_AGE + 2)  # (stamp_ns, heights)
+        self.last_solved = -1
+        self.first_stamp = None
+        self.n_samples = int(round(cfg['duration_s'] / self.ts)) + 1
+        self.finished = False
+        self._last_solve_mono = 0.0
+        self._awaiting_preview = None   # stamp of a state waiting for its preview
+        self.timed_out = False
+        self._warn_until = 0.0
+        self._tick_timer = None
+        self._align_timer = None
+        self.count = {'commands': 0, 'solves': 0, 'deadline_misses': 0, 'state_timeouts': 0,
+                      'safe_commands': 0, 'missed_samples': 0, 'stale_previews': 0,
+                      'no_preview': 0, 'out_of_order': 0}
+        self.solve = DurationStats()
+        self.latency = DurationStats()      # sample time t_k -> command published
+        self.rx_latency = DurationStats()   # state received -> command published
+        self.cmd_period = PeriodStats(self.ts)
+        self.tick_period = PeriodStats(self.ts)
+        self.tick_phase = DurationStats()   # tick time after the sample grid t_k
+        self.rejections = Rejections(self.get_logger().warning, time.monotonic,
+                                     cfg['reject_log_period_s'])
+        self.steady = Clock(clock_type=ClockType.STEADY_TIME)
+
+        qos = topics.control_qos()
+        self.pub_cmd = self.create_publisher(JointTrajectory, topics.DAMPING_CMD, qos)
+        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
+        self.status = diag.StatusReporter(
+            self.get_fully_qualified_name(), f'controller:{self.controller.name}',
+            self.pub_diag.publish, lambda: self.get_clock().now().nanoseconds,
+            self._diag_values)
+        # Subscribed last: a subscriber seen by the road node means the controller is built.
+        self.create_subscription(JointTrajectory, topics.ROAD_PREVIEW, self._on_preview, qos)
+        self.create_subscription(JointState, topics.STATE, self._on_state, qos)
+        self.create_timer(cfg['diagnostics_period_s'], self._on_diag_timer, clock=self.steady)
+        self.status.set(diag.OK, 'waiting for the first state')
+        self.get_logger().info(
+            f'{self.controller.name} on the {self.kind} model, {cfg["mode"]}, Ts = '
+            f'{self.ts:g} s, horizon {self.controller.horizon}, weights '
+            f'({settings.alpha1:g}, {settings.alpha2:g}), budget {settings.time_budget_s:g} s')
+
+    def _warm_up(self) -> None:
+        """Solve once at rest so the first real sample does not pay for first-call set-up."""
+        self.controller.compute(np.zeros(4 if self.kind == 'benchmark' else 6),
+                                np.zeros(self.n_preview), 0.0)
+        self.controller.reset()
+
+    # -- inputs ------------------------------------------------------------------------
+    def _on_state(self, msg: JointState) -> None:
+        rx_ns = time.time_ns()
+        if self.finished:
+            return
+        try:
+            stamp, x = parse_state(msg, self.kind)
+        except MessageRejected as exc:
+            self.rejections.reject(topics.STATE, str(exc))
+            return
+        if self.state is not None and stamp <= self.state[0]:
+            self.count['out_of_order'] += 1
+            return
+        self.state, self.state_rx_ns = (stamp, x), rx_ns
+        if self.first_stamp is None:
+            self.first_stamp = stamp
+        self.last_state_mono = time.monotonic()
+        if self.timed_out:
+            self.timed_out = False
+            self.cmd_period.restart()
+            self.get_logger().info('states are back: controller running again')
+        if self.lockstep:
+            self._solve_if_ready()
+        elif self._tick_timer is None and self._align_timer is None:
+            self._align(stamp)
+            self._awaiting_preview = stamp
+            self._solve_if_ready()
+        elif time.monotonic() - self._last_solve_mono >= 0.5 * self.ts:
+            # This period's tick came first: solve on arrival (once its preview is here).
+            self._awaiting_preview = stamp
+            self._solve_if_ready()
+
+    def _on_preview(self, msg: JointTrajectory) -> None:
+        try:
+            stamp, heights = parse_preview(msg, self.ts_ns, self.n_preview)
+        except MessageRejected as exc:
+            self.rejections.reject(topics.ROAD_PREVIEW, str(exc))
+            return
+        if self.previews and stamp <= self.previews[-1][0]:
+            self.count['out_of_order'] += 1
+            return
+        self.previews.append((stamp, heights[:self.n_preview]))
+        if self.lockstep or self._awaiting_preview == stamp:
+            self._solve_if_ready()
+
+    def _preview_for(self, stamp: int):
+        """Return the preview for sample ``stamp``: exact, else a recent one shifted, else None."""
+        for p_stamp, heights in reversed(self.previews):
+            if p_stamp == stamp:
+                return heights
+            if p_stamp < stamp:
+                age, rest = divmod(stamp - p_stamp, self.ts_ns)
+                if rest or age > MAX_PREVIEW_AGE:
+                    return None
+                self.count['stale_previews'] += 1
+                return np.r_[heights[age:], np.full(age, heights[-1])]
+        return None
+
+    # -- realtime scheduling -----------------------------------------------------------
+    def _align(self, stamp: int) -> None:
+        """Start the 1/Ts tick timer in phase with the state stamps (ticks at t_k + m·Ts)."""
+        delay = next_grid_delay_ns(time.time_ns(), stamp, self.ts_ns)
+        self._align_timer = self.create_timer(delay * 1e-9, self._start_ticks)
+
+    def _start_ticks(self) -> None:
+        self._align_timer.cancel()
+        self.destroy_timer(self._align_timer)
+        self._tick_timer = self.create_timer(self.ts, self._on_tick)
+
+    def _on_tick(self) -> None:
+        now_ns = time.time_ns()
+        self.tick_period.mark(now_ns * 1e-9)
+        self.tick_phase.add(((now_ns - self.first_stamp) % self.ts_ns) * 1e-9)
+        if self.state is not None and self.state[0] > self.last_solved:
+            # Arrived within half a period of the last solve, or its preview never came
+            # (then the newest preview, shifted, is used).
+            self._solve_newest()
+        silent = time.monotonic() - self.last_state_mono
+        if silent > self.cfg['state_timeout_periods'] * self.ts:
+            self._publish_safe(silent)
+
+    def _publish_safe(self, silent_s: float) -> None:
+        """Publish the passive command c_e0 (and its plan) with ERROR: no state is coming."""
+        if not self.timed_out:
+            self.timed_out = True
+            self.count['state_timeouts'] += 1
+            self.get_logger().error(f'no state for {silent_s * 1e3:.0f} ms: publishing the '
+                                    f'passive command {self.controller.c_e0:g} Ns/m')
+        self.pub_cmd.publish(damping_msg(time.time_ns(), self.passive_plan, self.ts_ns))
+        self.count['safe_commands'] += 1
+        self.status.set(diag.ERROR, f'no state for more than '
+                        f'{self.cfg["state_timeout_periods"]} periods: passive command')
+
+    # -- solving -----------------------------------------------------------------------
+    def _solve_if_ready(self) -> None:
+        """Solve the newest state once the preview of the same sample is here too."""
+        if self.state is None or self.state[0] <= self.last_solved:
+            return
+        if any(p_stamp == self.state[0] for p_stamp, _ in self.previews):
+            self._solve_newest()
+
+    def _solve_newest(self) -> None:
+        stamp, x = self.state
+        self._awaiting_preview = None
+        if self.last_solved >= 0 and stamp - self.last_solved > self.ts_ns:
+            self.count['missed_samples'] += (stamp - self.last_solved) // self.ts_ns - 1
+        self.last_solved = stamp
+        self._last_solve_mono = time.monotonic()
+        preview = self._preview_for(stamp)
+        over_before = self.controller.counters.get('over_budget', 0)
+        if preview is None:
+            self.count['no_preview'] += 1
+            plan, status, solve_s = self.passive_plan, 'no_preview', 0.0
+        else:
+            t = (stamp // self.ts_ns) * self.ts if self.lockstep else stamp * 1e-9
+            res = self.controller.compute(x, preview, t)
+            plan, status, solve_s = res.plan, res.status, res.solve_time_s
+            self.count['solves'] += 1
+        self.pub_cmd.publish(damping_msg(stamp, plan, self.ts_ns))
+        pub_ns = time.time_ns()
+        self.count['commands'] += 1
+        self.solve.add(solve_s)
+        missed = self.controller.counters.get('over_budget', 0) > over_before
+        if not self.lockstep:
+            self.cmd_period.mark(pub_ns * 1e-9)
+            self.latency.add((pub_ns - stamp) * 1e-9)
+            self.rx_latency.add((pub_ns - self.state_rx_ns) * 1e-9)
+            missed = missed or pub_ns - stamp > self.ts_ns
+        if missed:
+            self.count['deadline_misses'] += 1
+        if missed or status != 'ok':
+            self._warn_until = time.monotonic() + WARN_HOLD_S
+            self.status.set(diag.WARN, f'last {status}' + (', deadline missed' if missed
+                                                            else ''))
+        elif not self.timed_out and time.monotonic() > self._warn_until:
+            self.status.set(diag.OK, 'running')
+        if stamp >= self.first_stamp + (self.n_samples - 1) * self.ts_ns:
+            self._finish()
+        self.status.after_sample()
+
+    def _finish(self) -> None:
+        """Stop after the scenario's last sample (duration_s): no timeout at the road's end."""
+        self.finished = True
+        if self._tick_timer is not None:
+            self._tick_timer.cancel()
+        self.status.set(diag.OK, f'finished: {self.count["commands"]} commands')
+        self.status.publish()
+
+    # -- diagnostics -------------------------------------------------------------------
+    def _on_diag_timer(self) -> None:
+        if (not self.timed_out and not self.finished and self.state is not None
+                and time.monotonic() > self._warn_until):
+            self.status.set(diag.OK, 'running')
+        self.status.on_timer(2 * self.ts)
+
+    def _diag_values(self):
+        vals = {'mode': self.cfg['mode'], 'controller': self.controller.name,
+                'finished': self.finished,
+                'model': self.kind, 'horizon': self.controller.horizon,
+                'time_budget_s': self.settings.time_budget_s}
+        vals.update(self.count)
+        vals.update(diag.flatten('solve_ms', self.solve.summary()))
+        vals.update(diag.flatten('latency_ms', self.latency.summary()))
+        vals.update(diag.flatten('rx_latency_ms', self.rx_latency.summary()))
+        vals.update(diag.flatten('cmd_jitter_ms', self.cmd_period.jitter.summary()))
+        vals.update(diag.flatten('tick_jitter_ms', self.tick_period.jitter.summary()))
+        vals.update(diag.flatten('tick_phase_ms', self.tick_phase.summary()))
+        vals.update({f'controller_{k}': v for k, v in self.controller.counters.items()})
+        vals['rejected_state'] = self.rejections.counts.get(topics.STATE, 0)
+        vals['rejected_preview'] = self.rejections.counts.get(topics.ROAD_PREVIEW, 0)
+        return vals
+
+
+def main(args=None) -> int:
+    """Run nmpc_node until shutdown."""
+    return run_node('nmpc_node', NMPCNode, args)
+
+
+if __name__ == '__main__':
+    import sys
+    sys.exit(main())

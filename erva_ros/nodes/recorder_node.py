@@ -1,0 +1,320 @@
+"""recorder_node: record the session's topics into a rosbag2-compatible MCAP bag.
+
+Subscribes (QoS ``topics.control_qos``: reliable, volatile, keep-last 10) to every
+topic of the live contract -- the ``/erva`` topics resolved against this node's
+namespace, ``/diagnostics`` and ``/clock`` -- and writes each message's CDR bytes as
+received (raw subscription, no re-serialisation) with the times rosbag2 Jazzy records:
+log time = reception time (the middleware's ``received_timestamp``; node time under
+``use_sim_time``), publish time = the publisher's ``source_timestamp``.  A topic's
+channel is created when its first publisher is discovered (or its first message
+arrives), with the QoS its publishers offer and their RIHS01 type hash, as
+``ros2 bag record`` does.
+
+Parameters (read at start-up):
+
+==================  ============  =========================================================
+``bag_dir``         string        bag directory to create (must not exist), e.g.
+                                  ``bags/20261122T101500Z_paper``
+``topics``          string[]      topics to record; relative names resolve against the
+                                  node namespace (default: the whole contract)
+``session_metadata`` string       JSON object stored as the ``erva_session`` MCAP record;
+                                  version, git commit, host and start time are added
+``chunk_size``      int (B)       close a chunk at this size (default 786432, libmcap's)
+``flush_period_s``  double (s)    close and hand the chunk to the OS at least this often:
+                                  at most this much is lost if the process is killed
+``compression``     string        MCAP chunk compression: none (rosbag2 default), zstd, lz4
+``fsync``           bool          also fsync at each flush (survives power loss)
+``diagnostics_period_s`` double   period of the recorder's own /diagnostics status
+==================  ============  =========================================================
+
+SIGINT/SIGTERM: pending messages are taken, the file is finished (summary, indexes,
+metadata.yaml) and the node exits 0.  A bag that cannot be written (directory exists
+or is not writable, disk full) is reported as one log line and an ERROR status on
+``/diagnostics``; the node keeps running without recording and exits 1.  Being its
+own process, the recorder cannot stall or stop the control loop.
+"""
+
+import functools
+import json
+import signal
+import sys
+import threading
+import time
+from typing import Dict, List, Optional
+
+import rclpy
+from rclpy.exceptions import NameValidationException, ParameterException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                ParameterType)
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+from erva_ros import topics as contract
+from erva_ros.bag import BagError
+from erva_ros.bag.qos import profile_to_dict
+from erva_ros.bag.schemas import message_class
+from erva_ros.bag.session import session_metadata
+from erva_ros.bag.writer import BagWriter, COMPRESSIONS, DEFAULT_CHUNK_SIZE
+
+#: Default topics: relative names resolve against the node namespace (default /erva).
+DEFAULT_TOPICS = [contract.STATE, contract.SPRUNG_ACCEL, contract.GENERATOR,
+                  contract.ROAD_HEIGHT, contract.ROAD_PREVIEW, contract.DAMPING_CMD,
+                  contract.DIAGNOSTICS, contract.CLOCK]
+#: Type of each contract topic by its name as written in topics.py.
+CONTRACT_TYPES = {name: contract.TOPIC_TYPES[f'{contract.NAMESPACE}/{name}']
+                  for name in DEFAULT_TOPICS if not name.startswith('/')}
+CONTRACT_TYPES.update({name: contract.TOPIC_TYPES[name]
+                       for name in DEFAULT_TOPICS if name.startswith('/')})
+DISCOVERY_PERIOD_S = 0.1   # rosbag2's default topic polling interval
+
+
+class RecorderNode(Node):
+    """Record topics into one bag; see the module doc for parameters and behaviour."""
+
+    def __init__(self):
+        super().__init__('recorder', namespace=contract.NAMESPACE)
+        self.bag_dir = self._declare(
+            'bag_dir', '', ParameterType.PARAMETER_STRING,
+            'bag directory to create (must not exist)')
+        requested = self._declare(
+            'topics', list(DEFAULT_TOPICS), ParameterType.PARAMETER_STRING_ARRAY,
+            'topics to record; relative names resolve against the node namespace')
+        meta_text = self._declare(
+            'session_metadata', '{}', ParameterType.PARAMETER_STRING,
+            'JSON object stored as the erva_session MCAP metadata record')
+        chunk_size = self._declare(
+            'chunk_size', DEFAULT_CHUNK_SIZE, ParameterType.PARAMETER_INTEGER,
+            'close an MCAP chunk at this size (bytes)',
+            integer_range=[IntegerRange(from_value=1024, to_value=64 * 1024 * 1024, step=1)])
+        flush_period = self._declare(
+            'flush_period_s', 0.5, ParameterType.PARAMETER_DOUBLE,
+            'close the chunk and hand it to the OS at least this often (s)',
+            floating_point_range=[FloatingPointRange(from_value=0.01, to_value=60.0)])
+        compression = self._declare(
+            'compression', 'none', ParameterType.PARAMETER_STRING,
+            'MCAP chunk compression: ' + ', '.join(COMPRESSIONS))
+        fsync = self._declare(
+            'fsync', False, ParameterType.PARAMETER_BOOL, 'fsync the file at every flush')
+        diag_period = self._declare(
+            'diagnostics_period_s', 1.0, ParameterType.PARAMETER_DOUBLE,
+            'period of the recorder status on /diagnostics (s)',
+            floating_point_range=[FloatingPointRange(from_value=0.1, to_value=60.0)])
+        if not self.bag_dir:
+            raise ValueError('parameter bag_dir is required (the bag directory to create)')
+        if compression not in COMPRESSIONS:
+            raise ValueError(f'parameter compression={compression!r}: choose from '
+                             f'{", ".join(COMPRESSIONS)}')
+        session = self._session(meta_text)
+        self._use_sim_time = bool(self.get_parameter('use_sim_time').value)
+
+        self.error: Optional[str] = None
+        self.received = 0
+        self.lost = 0            # taken but not written (after a write error)
+        self.lost_in_transport = 0
+        self.writer: Optional[BagWriter] = None
+        self._subs: Dict[str, object] = {}
+        self._pending: Dict[str, Optional[str]] = {}   # topic -> type (None: from graph)
+        self._status_pub = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS,
+                                                 contract.control_qos())
+        try:
+            self.writer = BagWriter(self.bag_dir, chunk_size=chunk_size,
+                                    compression=compression, flush_period_s=flush_period,
+                                    fsync=fsync, session=session, custom_data=session)
+        except BagError as exc:
+            self._fail(str(exc))
+        if self.writer is not None:
+            for name in requested:
+                topic = self.resolve_topic_name(name)
+                self._pending[topic] = CONTRACT_TYPES.get(name) or contract.TOPIC_TYPES.get(
+                    topic)
+                if self._pending[topic] is not None:
+                    self._subscribe(topic, self._pending[topic])
+            self._discovery_timer = self.create_timer(DISCOVERY_PERIOD_S, self._discover)
+            self.create_timer(flush_period, self._flush)
+            self.get_logger().info(f'recording {len(self._pending)} topics to '
+                                   f'{self.writer.file_path}')
+        self.create_timer(diag_period, self._publish_status)
+
+    # -- parameters ------------------------------------------------------------------------
+    def _declare(self, name, default, ptype, description, **ranges):
+        descriptor = ParameterDescriptor(name=name, type=ptype, description=description,
+                                         read_only=True, **ranges)
+        return self.declare_parameter(name, default, descriptor).value
+
+    def _session(self, text: str) -> Dict[str, str]:
+        try:
+            given = json.loads(text) if text.strip() else {}
+        except ValueError as exc:
+            raise ValueError(f'parameter session_metadata is not JSON ({exc})') from None
+        if not isinstance(given, dict):
+            raise ValueError('parameter session_metadata must be a JSON object')
+        base = session_metadata(str(given.get('scenario', '')),
+                                extra={'recorder': self.get_fully_qualified_name(),
+                                       'bag_dir': self.bag_dir})
+        for key in ('parameters', 'controller', 'seed', 'command'):
+            base.pop(key, None)  # only the caller knows these
+        base.update({str(k): v if isinstance(v, str) else json.dumps(v, sort_keys=True)
+                     for k, v in given.items()})
+        return base
+
+    # -- subscriptions -----------------------------------------------------------------------
+    def _subscribe(self, topic: str, type_name: str) -> None:
+        cls = message_class(type_name)
+        events = SubscriptionEventCallbacks(message_lost=self._on_lost)
+        self._subs[topic] = self.create_subscription(
+            cls, topic, functools.partial(self._on_message, topic, type_name),
+            contract.control_qos(), raw=True, event_callbacks=events)
+
+    def _on_lost(self, info) -> None:
+        """Count messages the middleware reports lost before this node took them."""
+        self.lost_in_transport += int(info.total_count_change)
+
+    def _discover(self) -> None:
+        """Create channels as publishers appear; subscribe to topics typed by the graph."""
+        if self.writer is None or self.error:
+            return
+        missing = [t for t in self._pending if not self.writer.has_topic(t)]
+        if not missing:
+            self._discovery_timer.cancel()
+            return
+        graph = None
+        for topic in missing:
+            type_name = self._pending[topic]
+            if type_name is None:
+                graph = dict(self.get_topic_names_and_types()) if graph is None else graph
+                if topic not in graph:
+                    continue
+                type_name = self._pending[topic] = graph[topic][0]
+                try:
+                    self._subscribe(topic, type_name)
+                except BagError as exc:
+                    self.get_logger().warning(f'not recording {topic}: {exc}')
+                    del self._pending[topic]
+                    continue
+            if self.get_publishers_info_by_topic(topic):
+                self._create_channel(topic, type_name)
+
+    def _create_channel(self, topic: str, type_name: str) -> None:
+        infos = self.get_publishers_info_by_topic(topic)
+        offered = [profile_to_dict(i.qos_profile) for i in infos]
+        hashes = {str(i.topic_type_hash) for i in infos if i.topic_type_hash.version > 0}
+        type_hash = hashes.pop() if len(hashes) == 1 else None  # None: the share .json one
+        try:
+            self.writer.add_topic(topic, type_name, offered, type_hash)
+        except BagError as exc:
+            self._fail(str(exc))
+
+    def _on_message(self, topic: str, type_name: str, data: bytes, info: dict) -> None:
+        self.received += 1
+        if self.error or self.writer is None:
+            self.lost += 1
+            return
+        if self._use_sim_time:
+            log_time = self.get_clock().now().nanoseconds
+        else:
+            log_time = info.get('received_timestamp') or time.time_ns()
+        publish_time = info.get('source_timestamp') or log_time
+        try:
+            if not self.writer.has_topic(topic):
+                self._create_channel(topic, type_name)
+            self.writer.write(topic, data, log_time, publish_time,
+                              info.get('publication_sequence_number') or 0)
+        except BagError as exc:
+            self.lost += 1
+            self._fail(str(exc))
+
+    def _flush(self) -> None:
+        if self.writer is not None and not self.error:
+            try:
+                self.writer.maybe_flush()
+            except BagError as exc:
+                self._fail(str(exc))
+
+    # -- health --------------------------------------------------------------------------
+    def _fail(self, message: str) -> None:
+        if self.error is None:
+            self.error = message
+            self.get_logger().error(f'recording failed: {message}; the control loop is not '
+                                    'affected (the recorder is a separate process)')
+            self._publish_status()
+
+    def _publish_status(self) -> None:
+        status = DiagnosticStatus(name=f'{self.get_name()}: bag recorder', hardware_id='erva')
+        values: List[KeyValue] = [KeyValue(key='bag_dir', value=str(self.bag_dir)),
+                                  KeyValue(key='received', value=str(self.received)),
+                                  KeyValue(key='lost', value=str(self.lost)),
+                                  KeyValue(key='lost_in_transport',
+                                           value=str(self.lost_in_transport))]
+        if self.writer is not None:
+            values += [KeyValue(key='written', value=str(self.writer.message_count)),
+                       KeyValue(key='bytes', value=str(self.writer.bytes_written)),
+                       KeyValue(key='flushes', value=str(self.writer.flushes)),
+                       KeyValue(key='topics', value=str(len(self.writer.counts)))]
+        if self.error:
+            status.level, status.message = DiagnosticStatus.ERROR, self.error
+        else:
+            status.level = DiagnosticStatus.OK
+            status.message = f'recording to {self.bag_dir}'
+        status.values = values
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._status_pub.publish(msg)
+
+    # -- shutdown --------------------------------------------------------------------------
+    def drain(self, executor, quiet_s: float = 0.1, limit_s: float = 2.0) -> None:
+        """Take messages already delivered to this process before the file is closed."""
+        end = time.monotonic() + limit_s
+        last, quiet_since = self.received, time.monotonic()
+        while time.monotonic() < end and time.monotonic() - quiet_since < quiet_s:
+            executor.spin_once(timeout_sec=0.02)
+            if self.received != last:
+                last, quiet_since = self.received, time.monotonic()
+
+    def finish(self) -> int:
+        """Close the bag (summary, indexes, metadata.yaml); return the exit code."""
+        if self.writer is not None and not self.error:
+            try:
+                meta = self.writer.close()
+                lost = (f'; the middleware reported {self.lost_in_transport} messages lost'
+                        if self.lost_in_transport else '')
+                self.get_logger().info(f'wrote {meta["message_count"]} messages to '
+                                       f'{self.writer.bag_dir}{lost}')
+            except BagError as exc:
+                self._fail(str(exc))
+        return 1 if self.error else 0
+
+
+def main(args=None) -> int:
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    node = None
+    rc = 0
+    try:
+        try:
+            node = RecorderNode()
+        except (ValueError, ParameterException, NameValidationException) as exc:
+            print(f'recorder_node: error: {exc}', file=sys.stderr)
+            return 2
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
+        node.drain(executor)
+        rc = node.finish()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        rc = node.finish() if node is not None else 0
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return rc
+
+
+if __name__ == '__main__':
+    sys.exit(main())

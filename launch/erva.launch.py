@@ -1,0 +1,78 @@
+"""Launch the live ERVA system on ROS 2 Jazzy: plant_sim_node, road_preview_node, nmpc_node.
+
+    ros2 launch erva_ros erva.launch.py
+    ros2 launch erva_ros erva.launch.py mode:=lockstep controller:=no_preview seed:=3
+
+The same system `erva run` starts (without its monitor and recorder; record with
+``ros2 bag record -s mcap /erva/state ...`` or ``ros2 run erva_ros recorder_node``).
+Parameters: config/erva_paper.yaml (physical, ``/**``), config/nmpc.yaml (the
+``nmpc_node`` section) and config/live.yaml, then the launch arguments below.
+In lock-step mode every node runs on the plant's ``/clock`` (use_sim_time).
+
+Importing this file needs no ROS: the launch imports are inside
+:func:`generate_launch_description`.
+"""
+
+import os
+
+#: Executables started (console scripts of setup.py), in start order.
+NODES = ('nmpc_node', 'plant_sim_node', 'road_preview_node')
+#: Parameter files of the package's config/ directory.
+CONFIG_FILES = ('erva_paper.yaml', 'nmpc.yaml', 'live.yaml')
+#: Launch arguments: (name, default, ROS parameter type, description).
+ARGUMENTS = (
+    ('namespace', 'erva', str, 'namespace of the nodes and topics'),
+    ('mode', 'realtime', str, 'realtime (wall clock) or lockstep (plant publishes /clock)'),
+    ('model', 'erva', str, 'plant and controller model: erva or benchmark'),
+    ('controller', 'preview', str, 'passive, skyhook, no_preview, preview, preview_long'),
+    ('alpha1', '1.0', float, 'comfort weight alpha1 (paper eq. (12))'),
+    ('alpha2', '0.0', float, 'energy weight alpha2 (paper eq. (12))'),
+    ('road', 'paper', str, 'road profile: paper, iso8608, bump, sine'),
+    ('seed', '0', int, 'road noise and preview error seed'),
+    ('duration_s', '4.0', float, 'scenario length (s)'),
+)
+
+
+def node_section(path: str, node: str) -> dict:
+    """Return the ros__parameters of ``node`` in a params file, whatever its key form.
+
+    ``nmpc_node:`` only matches a node in the root namespace; reading the section
+    here applies it to the namespaced node too.
+    """
+    import yaml
+    with open(path, encoding='utf-8') as fh:
+        doc = yaml.safe_load(fh) or {}
+    for key, section in doc.items():
+        if str(key).rstrip('/').split('/')[-1] == node and isinstance(section, dict):
+            return dict(section.get('ros__parameters') or {})
+    return {}
+
+
+def generate_launch_description():
+    """Return the launch description of the live system."""
+    from ament_index_python.packages import get_package_share_directory
+    from launch import LaunchDescription
+    from launch.actions import DeclareLaunchArgument
+    from launch.substitutions import LaunchConfiguration, PythonExpression
+    from launch_ros.actions import Node
+    from launch_ros.parameter_descriptions import ParameterValue
+
+    config = os.path.join(get_package_share_directory('erva_ros'), 'config')
+    paper, nmpc, live = (os.path.join(config, name) for name in CONFIG_FILES)
+    declared = [DeclareLaunchArgument(name, default_value=default, description=doc)
+                for name, default, _, doc in ARGUMENTS]
+    overrides = {name: ParameterValue(LaunchConfiguration(name), value_type=kind)
+                 for name, _, kind, _ in ARGUMENTS if name != 'namespace'}
+    overrides['use_sim_time'] = ParameterValue(
+        PythonExpression(["'", LaunchConfiguration('mode'), "' == 'lockstep'"]),
+        value_type=bool)
+    nodes = []
+    for name in NODES:
+        params = [paper, live]
+        if name == 'nmpc_node':
+            params.append(node_section(nmpc, 'nmpc_node'))
+        params.append(overrides)
+        nodes.append(Node(package='erva_ros', executable=name, name=name,
+                          namespace=LaunchConfiguration('namespace'), parameters=params,
+                          output='screen', emulate_tty=True))
+    return LaunchDescription(declared + nodes)

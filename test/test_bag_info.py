@@ -1,0 +1,119 @@
+"""``erva bag info`` and the reader; corrupt, truncated and non-bag inputs to every command."""
+
+import json
+import os
+import shutil
+
+import pytest
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+
+from erva_ros.bag.reader import open_bag
+from erva_ros.bag.writer import BagWriter
+
+T0 = 1_800_000_000 * 10 ** 9
+
+
+def _write(bag_dir, n=400, flush_every=None):
+    """Write n states and n clocks (chunks of ~50 messages); return the writer."""
+    w = BagWriter(bag_dir, chunk_size=4096, session={'scenario': 'info-test',
+                                                     'parameters': json.dumps({'M_s': 250})})
+    w.add_topic('/erva/state', 'sensor_msgs/msg/JointState')
+    w.add_topic('/clock', 'rosgraph_msgs/msg/Clock')
+    for k in range(n):
+        t = T0 + k * 20_000_000
+        w.write_message('/erva/state', JointState(name=['z_s'], position=[k * 1.0]), t)
+        w.write_message('/clock', Clock(), t + 1)
+    return w
+
+
+@pytest.fixture
+def good_bag(tmp_path):
+    path = str(tmp_path / 'good')
+    _write(path).close()
+    return path
+
+
+def test_info_lists_topics_counts_duration_and_session(erva, good_bag):
+    proc = erva('bag', 'info', good_bag, check=True)
+    out = proc.stdout
+    assert 'Topic: /erva/state | Type: sensor_msgs/msg/JointState | Count: 400' in out
+    assert 'Duration:          7.980000001s' in out
+    assert 'scenario: info-test' in out and 'parameters: {"M_s": 250}' in out
+    info = json.loads(erva('bag', 'info', good_bag, '--json', check=True).stdout)
+    assert info['message_count'] == 800 and info['complete'] and info['metadata_yaml']
+    assert {t['name']: t['count'] for t in info['topics']} == {'/clock': 400,
+                                                               '/erva/state': 400}
+    assert info['topics'][1]['rate_hz'] == pytest.approx(50.0, rel=1e-6)
+    assert info['session']['scenario'] == 'info-test' and info['warnings'] == []
+    # The .mcap file alone opens too.
+    assert open_bag(os.path.join(good_bag, 'good_0.mcap')).message_count == 800
+
+
+def test_a_torn_file_is_read_up_to_its_last_chunk(tmp_path):
+    path = str(tmp_path / 'torn')
+    w = _write(path)
+    w.flush()
+    flushed = w.message_count
+    w.write_message('/clock', Clock(), T0 + 10 ** 12)   # in the open chunk: lost
+    w.abort()
+    with open(w.file_path, 'ab') as fh:
+        fh.write(b'\x06' + b'\xff' * 20)  # a record torn mid-write
+    bag = open_bag(path)
+    assert not bag.complete and bag.message_count == flushed
+    assert [m.data for m in bag.messages(['/erva/state'])][-1] == \
+        [m.data for m in open_bag(path).messages(['/erva/state'])][-1]
+    assert any('erva bag repair' in w for w in bag.warnings())
+
+
+def _cases(tmp_path, good_bag):
+    """Yield (name, path) of inputs that are not readable bags."""
+    d = tmp_path / 'cases'
+    d.mkdir(parents=True)
+    yield 'missing', str(d / 'nope')
+    (d / 'empty').mkdir()
+    yield 'empty directory', str(d / 'empty')
+    (d / 'text.txt').write_text('hello, I am not a bag\n')
+    yield 'text file', str(d / 'text.txt')
+    (d / 'empty.mcap').write_bytes(b'')
+    yield 'empty mcap', str(d / 'empty.mcap')
+    (d / 'random.mcap').write_bytes(os.urandom(5000))
+    yield 'random bytes', str(d / 'random.mcap')
+    (d / 'magic.mcap').write_bytes(b'\x89MCAP0\r\n' + os.urandom(3000))
+    yield 'magic then garbage', str(d / 'magic.mcap')
+    for name, text in [('yaml garbage', 'rosbag2_bagfile_information: [\n  : :'),
+                       ('wrong yaml', 'just: a mapping\n'),
+                       ('sqlite3', 'rosbag2_bagfile_information:\n  version: 9\n'
+                                   '  storage_identifier: sqlite3\n'
+                                   '  relative_file_paths: [x_0.db3]\n'),
+                       ('future version', 'rosbag2_bagfile_information:\n  version: 10\n')]:
+        bag = d / name.replace(' ', '_')
+        shutil.copytree(good_bag, bag)
+        (bag / 'metadata.yaml').write_text(text)
+        yield name, str(bag)
+    bag = d / 'missing_file'
+    shutil.copytree(good_bag, bag)
+    os.remove(bag / 'good_0.mcap')
+    yield 'metadata names a missing file', str(bag)
+
+
+@pytest.mark.parametrize('command', [['bag', 'info'], ['report'], ['replay']])
+def test_bad_inputs_give_one_line_not_a_traceback(erva, tmp_path, good_bag, command):
+    for name, path in _cases(tmp_path / command[0], good_bag):
+        proc = erva(*command, path)
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 2, (name, proc.stdout, proc.stderr)
+        assert len(lines) == 1 and 'Traceback' not in proc.stderr, (name, proc.stderr)
+        assert lines[0].startswith(f'erva {command[0]}: error: '), (name, lines)
+
+
+def test_damaged_chunk_with_intact_summary_is_one_line(erva, tmp_path, good_bag):
+    path = os.path.join(good_bag, 'good_0.mcap')
+    data = bytearray(open(path, 'rb').read())
+    middle = len(data) // 3
+    data[middle:middle + 64] = os.urandom(64)
+    open(path, 'wb').write(bytes(data))
+    for command in (['report', good_bag], ['bag', 'info', good_bag]):
+        proc = erva(*command)
+        assert proc.returncode in (0, 2), proc.stderr
+        assert 'Traceback' not in proc.stderr and len(proc.stderr.strip().splitlines()) <= 1

@@ -1,0 +1,360 @@
+"""Bridge and simulated ECU on real python-can buses with real frames: round trip and faults.
+
+Every test uses python-can's ``virtual`` bus (in this process) or the loopback UDP
+bus, real E2E-protected frames and the real cores; time is passed explicitly where
+the test checks timing rules, so nothing depends on this machine's load.
+"""
+
+import itertools
+import math
+import socket
+import threading
+import time
+
+import can
+import pytest
+
+from erva_ros.hil.bridge import BridgeConfig, BridgeCore, ERROR, OK, WARN
+from erva_ros.hil.codec import (Chassis, Command, CommandMode, E2EReceiver, EcuCodec, EcuMode,
+                                Kind, Status)
+from erva_ros.hil.ecu_sim import EcuSimConfig, EcuSimCore, run_realtime, SensorNoise
+from erva_ros.hil.hardware import GeneratorHardware
+from erva_ros.hil.transport import free_udp_ports, open_bus
+from erva_ros.params import paper_params
+
+_channels = itertools.count()
+HW = GeneratorHardware()
+C_E0 = paper_params().c_e0
+
+
+@pytest.fixture(scope='module')
+def codec():
+    return EcuCodec()
+
+
+@pytest.fixture
+def channel():
+    return f'virtual:erva_test_{next(_channels)}'
+
+
+def _bus(spec):
+    return open_bus(spec)
+
+
+def _drain(bus, codec, kinds=(Kind.COMMAND,)):
+    """Return the decoded frames waiting on ``bus`` (real E2E checks)."""
+    rx = E2EReceiver(codec, kinds, timeout_s=10.0)
+    out = []
+    while True:
+        msg = bus.recv(0.05)
+        if msg is None:
+            return out, rx
+        kind, status, payload = rx.accept(msg, time.monotonic())
+        out.append((kind, status, payload))
+
+
+def _bridge(codec, spec, **cfg):
+    core = BridgeCore(codec, HW, BridgeConfig(c_e_safe=C_E0, **cfg), lambda: open_bus(spec))
+    assert core.open()
+    return core
+
+
+def test_round_trip_bridge_to_simulated_ecu_and_back(codec, channel):
+    ecu = EcuSimCore(paper_params(), HW, codec, lambda: open_bus(channel),
+                     lambda t: 1e-3 * math.sin(2 * math.pi * 1.7 * t),
+                     EcuSimConfig(c_e_safe=C_E0), SensorNoise.none())
+    bridge = _bridge(codec, channel)
+    samples, frames, stop = [], [], threading.Event()
+    ecu_thread = threading.Thread(target=run_realtime, args=(ecu, 0.8, samples.append))
+
+    def reader():
+        while not stop.is_set():
+            f = bridge.receive(0.01)
+            if f is not None:
+                frames.append(f)
+
+    rx_thread = threading.Thread(target=reader)
+    ecu_thread.start()
+    rx_thread.start()
+    while ecu_thread.is_alive():                  # the NMPC's role: a command every Ts
+        bridge.submit([15000.0] * 10)
+        bridge.tick()
+        time.sleep(0.02)
+    ecu_thread.join()
+    time.sleep(0.05)
+    stop.set()
+    rx_thread.join()
+    try:
+        summary = ecu.summary()
+        assert summary['commands_applied'] > 20
+        rejected = ('bad_crc', 'repeated', 'skipped', 'wrong_length')
+        assert sum(summary[f'rx_{k}'] for k in rejected) == 0
+        assert ecu.mode is EcuMode.CONTROLLED
+        # The ECU applies the duty the bridge computed: c_e within the duty resolution.
+        assert HW.c_e_from_duty(ecu.duty) == pytest.approx(15000.0, abs=HW.c_e_full * 1e-4)
+        kinds = {f.kind for f in frames}
+        assert kinds == {Kind.STATUS, Kind.CHASSIS, Kind.GENERATOR}
+        assert bridge.rx_counts()['bad_crc'] == 0
+        # Every chassis frame carries a true ECU sample (noise-free: DBC resolution only).
+        truth = [(s.sprung_accel, s.x[0] - s.x[2]) for s in samples]
+        chassis = [f.payload for f in frames if f.kind is Kind.CHASSIS]
+        assert len(chassis) >= len(samples) - 3
+        for c in chassis:
+            assert any(abs(c.sprung_accel - a) <= 6e-4 and abs(c.deflection - d) <= 6e-6
+                       for a, d in truth)
+        # One stamp per ECU cycle shared by its three frames.
+        by_stamp = {}
+        for f in frames:
+            by_stamp.setdefault(f.stamp, set()).add(f.kind)
+        complete = [k for k in by_stamp.values() if len(k) == 3]
+        assert len(complete) >= len(by_stamp) - 2
+        status = [f.payload for f in frames if f.kind is Kind.STATUS][-1]
+        assert status.mode is EcuMode.CONTROLLED
+        assert status.c_e_applied == pytest.approx(15000.0, abs=4.0)
+    finally:
+        bridge.close()
+        ecu.close()
+
+
+def test_stale_command_sends_safe_passive_and_raises_error(codec, channel):
+    ecu_bus = _bus(channel)
+    bridge = _bridge(codec, channel)
+    try:
+        bridge.tick(now=0.0)                                # no command yet
+        assert bridge.diagnostics(now=0.0)[0].level == WARN
+        plan = [12000.0, 13000.0, 14000.0, 15000.0]
+        assert bridge.submit(plan, now=0.1) == 'sent'
+        bridge.tick(now=0.12)                               # frame sent 20 ms ago: fine
+        bridge.tick(now=0.131)                              # NMPC late: plan point k = 1
+        assert bridge.diagnostics(now=0.131)[0].level == OK
+        bridge.tick(now=0.165)                              # 65 ms > 3 periods: stale
+        diag = bridge.diagnostics(now=0.165)[0]
+        assert diag.level == ERROR and 'safe passive' in diag.message
+        bridge.tick(now=0.175)                              # 10 ms after the last: wait
+        bridge.tick(now=0.185)                              # one period later: safe again
+        assert bridge.submit([11000.0], now=0.2) == 'sent'  # the NMPC is back
+        assert bridge.diagnostics(now=0.2)[0].level == OK
+        frames, rx = _drain(ecu_bus, codec)
+        sent = [(p.mode, round(p.c_e)) for _, _, p in frames]
+        assert sent == [(CommandMode.SAFE_PASSIVE, C_E0), (CommandMode.CONTROLLED, 12000),
+                        (CommandMode.CONTROLLED, 13000), (CommandMode.SAFE_PASSIVE, C_E0),
+                        (CommandMode.SAFE_PASSIVE, C_E0), (CommandMode.CONTROLLED, 11000)]
+        assert all(status.accepted for _, status, _ in frames)   # counters in sequence
+        duty0 = frames[0][2].duty
+        assert duty0 == pytest.approx(HW.duty_from_c_e(C_E0), abs=1e-4)
+        c = bridge.counts
+        assert (c['command_timeouts'], c['safe_frames_sent'], c['plan_frames_sent']) == (1, 3, 1)
+    finally:
+        bridge.close()
+        ecu_bus.shutdown()
+
+
+def test_out_of_range_commands_are_clamped_and_nonfinite_rejected(codec, channel):
+    ecu_bus = _bus(channel)
+    bridge = _bridge(codec, channel)
+    try:
+        assert bridge.submit([1e5], now=0.0) == 'clamped'
+        assert bridge.submit([-3000.0], now=0.02) == 'clamped'
+        assert bridge.submit([math.nan], now=0.04) == 'rejected'
+        assert bridge.submit([], now=0.05) == 'rejected'
+        assert bridge.submit([math.inf, 1.0], now=0.06) == 'rejected'
+        frames, _ = _drain(ecu_bus, codec)
+        got = [(round(p.c_e), round(p.duty, 4)) for _, _, p in frames]
+        assert got == [(22800, 0.95), (0, 0.0)]
+        assert bridge.counts['commands_clamped'] == 2
+        assert bridge.counts['commands_rejected'] == 3
+        assert bridge.command_age(now=0.06) == pytest.approx(0.04)  # rejected: not fresh
+    finally:
+        bridge.close()
+        ecu_bus.shutdown()
+
+
+def test_bad_sensor_frames_are_dropped_and_counted(codec, channel):
+    ecu_bus = _bus(channel)
+    bridge = _bridge(codec, channel)
+    tx = codec.sender(Kind.CHASSIS)
+    try:
+        def send(msg):
+            ecu_bus.send(msg)
+            return bridge.receive(0.5)
+
+        good = codec.encode(Kind.CHASSIS, Chassis(0.25, 0.002), tx)
+        assert send(good).payload.sprung_accel == pytest.approx(0.25)
+        assert send(good) is None                                   # repeated counter
+        corrupt = codec.encode(Kind.CHASSIS, Chassis(0.3, 0.002), tx)
+        data = bytearray(corrupt.data)
+        data[2] ^= 0x01
+        assert send(can.Message(arbitration_id=corrupt.arbitration_id, data=data,
+                                is_extended_id=False)) is None    # bad CRC
+        short = codec.encode(Kind.CHASSIS, Chassis(0.3, 0.002), tx)
+        assert send(can.Message(arbitration_id=short.arbitration_id, data=short.data[:6],
+                                is_extended_id=False)) is None    # wrong length
+        codec.encode(Kind.CHASSIS, Chassis(0.3, 0.002), tx)       # lost on the bus
+        jump = codec.encode(Kind.CHASSIS, Chassis(0.35, 0.002), tx)
+        assert send(jump) is None                                  # counter skipped
+        ok = send(codec.encode(Kind.CHASSIS, Chassis(0.4, 0.002), tx))
+        assert ok is not None and ok.payload.sprung_accel == pytest.approx(0.4)
+        assert send(can.Message(arbitration_id=0x7FF, data=bytes(8),
+                                is_extended_id=False)) is None    # not ours
+        c = bridge.rx_counts()
+        assert {k: c[k] for k in ('accepted', 'repeated', 'bad_crc', 'wrong_length',
+                                  'skipped', 'unknown_id')} == {
+            'accepted': 2, 'repeated': 1, 'bad_crc': 1, 'wrong_length': 1, 'skipped': 1,
+            'unknown_id': 1}
+        bus_diag = bridge.diagnostics()[1]
+        assert bus_diag.level == WARN and '4 frames rejected' in bus_diag.message
+    finally:
+        bridge.close()
+        ecu_bus.shutdown()
+
+
+def _ecu(codec, channel, **cfg):
+    return EcuSimCore(paper_params(), HW, codec, lambda: open_bus(channel), lambda t: 0.0,
+                      EcuSimConfig(c_e_safe=C_E0, **cfg), SensorNoise.none())
+
+
+def _command(codec, tx, at, c_e=None, duty=None, mode=CommandMode.CONTROLLED, saturate=True):
+    """Return a command frame received at time ``at`` (s, on the ECU's clock)."""
+    duty = HW.duty_from_c_e(c_e) if duty is None else duty
+    msg = codec.encode(Kind.COMMAND, Command(duty, c_e or 0.0, mode), tx, saturate=saturate)
+    msg.timestamp = at
+    return msg
+
+
+# The bridge side of these tests keeps the frames' timestamps (preserve_timestamps), so
+# the ECU's latch and timeout rules run on an exact, made-up clock starting at T0.
+T0 = 1000.0
+
+
+def test_ecu_applies_valid_commands_and_falls_back_after_the_timeout(codec, channel):
+    bridge_bus = can.Bus(interface='virtual', channel=channel.split(':', 1)[1],
+                         preserve_timestamps=True)
+    ecu = _ecu(codec, channel)
+    ecu.start(T0)
+    tx = codec.sender(Kind.COMMAND)
+    try:
+        bridge_bus.send(_command(codec, tx, T0 + 0.0105, 20000.0))
+        ecu.run_cycle()                                   # applied at the 11 ms latch
+        ecu.run_cycle()
+        assert ecu.mode is EcuMode.CONTROLLED
+        assert HW.c_e_from_duty(ecu.duty) == pytest.approx(20000.0, abs=3.0)
+        ecu.run_cycle()                                   # 60 ms: 49.5 ms after it
+        assert ecu.mode is EcuMode.CONTROLLED
+        ecu.run_cycle()                                   # 71 ms latch: 60.5 ms > 60 ms
+        assert ecu.mode is EcuMode.SAFE_TIMEOUT
+        assert HW.c_e_from_duty(ecu.duty) == pytest.approx(C_E0)
+        assert ecu.counts['command_timeouts'] == 1
+        frames, _ = _drain(bridge_bus, codec, (Kind.STATUS,))
+        status = [p for k, _, p in frames if k is Kind.STATUS]
+        assert [s.mode for s in status] == [
+            EcuMode.INIT, EcuMode.CONTROLLED, EcuMode.CONTROLLED, EcuMode.CONTROLLED,
+            EcuMode.SAFE_TIMEOUT]
+        assert status[-1].cmd_timeouts == 1
+        # The cycle's mean damping tells the estimator what really acted:
+        # 11 ms of c_e0 then 9 ms of 20 kNs/m; in the last cycle 11 ms then c_e0.
+        assert status[1].c_e_mean == pytest.approx((11 * C_E0 + 9 * 20000.0) / 20, abs=4)
+        assert status[4].c_e_mean == pytest.approx((11 * 20000.0 + 9 * C_E0) / 20, abs=4)
+    finally:
+        ecu.close()
+        bridge_bus.shutdown()
+
+
+def test_ecu_drops_corrupt_and_out_of_sequence_commands_and_clamps_duty(codec, channel):
+    bridge_bus = can.Bus(interface='virtual', channel=channel.split(':', 1)[1],
+                         preserve_timestamps=True)
+    ecu = _ecu(codec, channel)
+    ecu.start(T0)
+    tx = codec.sender(Kind.COMMAND)
+    try:
+        corrupt = _command(codec, tx, T0 + 0.005, 15000.0)
+        data = bytearray(corrupt.data)
+        data[3] ^= 0x40
+        bridge_bus.send(can.Message(timestamp=T0 + 0.005, arbitration_id=0x100, data=data,
+                                    is_extended_id=False))
+        ecu.run_cycle()
+        assert ecu.mode is EcuMode.INIT and ecu.counts['commands_applied'] == 0
+        bridge_bus.send(_command(codec, tx, T0 + 0.025, duty=1.5, saturate=False))  # good CRC
+        ecu.run_cycle()
+        assert ecu.duty == HW.duty_max and ecu.counts['duty_out_of_range'] == 1
+        tx.counter = (tx.counter + 3) % 15                                   # counter jump
+        bridge_bus.send(_command(codec, tx, T0 + 0.045, 5000.0))
+        ecu.run_cycle()
+        assert ecu.duty == HW.duty_max                   # the jumped frame was not applied
+        bridge_bus.send(_command(codec, tx, T0 + 0.065, 5000.0))   # next in sequence
+        ecu.run_cycle()
+        assert HW.c_e_from_duty(ecu.duty) == pytest.approx(5000.0, abs=3.0)
+        summary = ecu.summary()
+        assert (summary['rx_bad_crc'], summary['rx_skipped']) == (1, 1)
+        frames, _ = _drain(bridge_bus, codec, (Kind.STATUS,))
+        status = [p for k, _, p in frames if k is Kind.STATUS]
+        assert status[-1].cmd_rejected == 2                # reported to the bridge
+    finally:
+        ecu.close()
+        bridge_bus.shutdown()
+
+
+def test_bus_loss_is_reported_and_retried_without_crashing(codec):
+    bridge_port, ecu_port = free_udp_ports(2)
+    ecu_bus = open_bus(f'udp:{ecu_port}:{bridge_port}')
+    bridge = _bridge(codec, f'udp:{bridge_port}:{ecu_port}', bus_retry_s=0.5)
+    blocker = None
+    try:
+        assert bridge.submit([12000.0], now=0.0) == 'sent'
+        assert ecu_bus.recv(1.0) is not None
+        # The interface goes away: the bus is closed under the bridge and its address is
+        # taken, so re-opening fails until it is released.
+        bridge.bus.shutdown()
+        blocker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        blocker.bind(('127.0.0.1', bridge_port))
+        assert bridge.submit([12000.0], now=0.01) == 'not_sent'
+        assert bridge.receive(0.01) is None
+        c = bridge.counts
+        assert (c['send_errors'], c['bus_losses']) == (1, 1)
+        diag = bridge.diagnostics(now=0.01)[1]
+        assert diag.level == ERROR and 'bus lost' in diag.message
+        bridge.tick(now=0.02)                                # retry at once: fails
+        bridge.tick(now=0.1)                                 # not yet: bus_retry_s
+        bridge.tick(now=0.6)                                 # second attempt: fails
+        assert (c['bus_open_attempts'], c['bus_open_failures']) == (3, 2)
+        assert 'cannot open bus' in bridge.diagnostics(now=0.6)[1].message
+        assert bridge.submit([12000.0], now=0.7) == 'not_sent'
+        assert c['frames_not_sent'] >= 2
+        blocker.close()
+        blocker = None
+        bridge.tick(now=1.2)                                 # the interface is back
+        assert bridge.bus_up and c['reconnects'] == 1
+        assert bridge.diagnostics(now=1.2)[1].level == OK
+        assert bridge.submit([13000.0], now=1.21) == 'sent'
+        frames, _ = _drain(ecu_bus, codec)
+        assert frames and round(frames[-1][2].c_e) == 13000
+        # A loss seen by the reader thread (recv fails) is handled the same way.
+        bridge.bus.shutdown()
+        assert bridge.receive(0.01) is None
+        assert c['bus_losses'] == 2 and not bridge.bus_up
+    finally:
+        if blocker is not None:
+            blocker.close()
+        bridge.close()
+        ecu_bus.shutdown()
+
+
+def test_ecu_status_heartbeat_and_silence(codec, channel):
+    ecu_bus = _bus(channel)
+    bridge = _bridge(codec, channel, sensor_timeout_s=0.06)
+    try:
+        assert bridge.diagnostics()[2].level == ERROR             # nothing heard yet
+        tx = codec.sender(Kind.STATUS)
+        ecu_bus.send(codec.encode(Kind.STATUS, Status(EcuMode.SAFE_TIMEOUT, C_E0, C_E0, 0, 4),
+                                  tx))
+        assert bridge.receive(0.5).kind is Kind.STATUS
+        d = bridge.diagnostics()[2]
+        assert d.level == WARN and 'SAFE_TIMEOUT' in d.message
+        assert d.values['ecu_cmd_timeouts_mod256'] == '4'
+        time.sleep(0.08)
+        bridge.tick()
+        d = bridge.diagnostics()[2]
+        assert d.level == ERROR and 'ECU silent' in d.message
+        assert bridge.counts['ecu_silences'] == 1
+    finally:
+        bridge.close()
+        ecu_bus.shutdown()

@@ -1,0 +1,253 @@
+"""The HIL loop with real processes: `erva ecu-sim`, ecu_bridge_node, state_estimator_node.
+
+The test process plays road_preview_node and the NMPC (a skyhook law answering every
+/erva/state at once) over real DDS (local discovery, this run's domain); the ECU and
+the bridge talk CAN over loopback UDP.
+"""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from conftest import REPO, ros_env
+
+pytestmark = pytest.mark.ros
+
+PARAMS = os.path.join(REPO, 'config', 'erva_paper.yaml')
+
+
+class Driver:
+    """Road source, stand-in NMPC and observer, in this process."""
+
+    def __init__(self, namespace='/erva'):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PointStamped
+        from sensor_msgs.msg import JointState
+        from trajectory_msgs.msg import JointTrajectory
+
+        from erva_ros import topics
+        from erva_ros.hil import topics as hil_topics
+        from erva_ros.roads import make_road
+
+        self.rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(args=[], context=self.context,
+                   signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node('hil_test_driver', namespace=namespace,
+                                      context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        qos = topics.control_qos()
+        self.road = make_road('paper', 60.0, seed=0)
+        self.pub_road = self.node.create_publisher(PointStamped, topics.ROAD_HEIGHT, qos)
+        self.pub_cmd = self.node.create_publisher(JointTrajectory, topics.DAMPING_CMD, qos)
+        self.node.create_subscription(JointState, topics.STATE, self._on_state, qos)
+        self.node.create_subscription(JointState, hil_topics.TRUE_STATE, self._on_truth, qos)
+        self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diag, qos)
+        self.node.create_timer(0.02, self._on_road)
+        self.t0 = time.time()
+        self.answer = True
+        self.est, self.truth = {}, {}
+        self.diag_log = []            # (time, name, level, message, values)
+
+    def _on_road(self):
+        from erva_ros.live.msgs import road_height_msg
+        t = time.time()
+        self.pub_road.publish(road_height_msg(int(t * 1e9), 0.0, self.road.height(t - self.t0)))
+
+    def _on_state(self, msg):
+        from erva_ros.live.msgs import damping_msg, parse_state
+        stamp, x = parse_state(msg, 'erva')
+        self.est[stamp] = x
+        if self.answer:
+            u = 20000.0 if x[1] * (x[1] - x[3]) > 0 else 0.0
+            self.pub_cmd.publish(damping_msg(stamp, [u] * 10, 20_000_000))
+
+    def _on_truth(self, msg):
+        from erva_ros.live.msgs import parse_state
+        stamp, x = parse_state(msg, 'erva')
+        self.truth[stamp] = x
+
+    def _on_diag(self, arr):
+        from erva_ros.live.diagnostics import parse_status
+        for st in arr.status:
+            name, level, message, values = parse_status(st)
+            self.diag_log.append((time.monotonic(), name, level, message, values))
+
+    def spin(self, seconds, until=lambda: False):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end and not until():
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def last(self, suffix):
+        for entry in reversed(self.diag_log):
+            if entry[1].endswith(suffix):
+                return entry
+        return (0.0, suffix, -1, '', {})
+
+    def level(self, suffix):
+        return self.last(suffix)[2]
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.rclpy.try_shutdown(context=self.context)
+
+
+def _start(specs, tmp_path):
+    procs = []
+    for s in specs:
+        env = ros_env()
+        env.update({k: v for k, v in s.env.items() if k not in ('ROS_DOMAIN_ID',)})
+        env['ROS_DOMAIN_ID'] = ros_env()['ROS_DOMAIN_ID']
+        out = open(tmp_path / f'{s.name}.log', 'w')
+        procs.append(subprocess.Popen(s.argv, env=env, stdout=out, stderr=subprocess.STDOUT,
+                                      cwd=REPO))
+    return procs
+
+
+def _stop(procs):
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    for p in procs:
+        try:
+            p.wait(15)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+def test_hil_loop_estimates_the_state_and_goes_safe_when_the_nmpc_stops(tmp_path):
+    from erva_ros.hil.processes import hil_process_specs
+
+    specs = hil_process_specs(PARAMS, duration_s=7.0, env=ros_env())
+    driver = Driver()
+    procs = _start(specs, tmp_path)
+    logs = {s.name: tmp_path / f'{s.name}.log' for s in specs}
+    try:
+        driver.spin(30.0, until=lambda: len(driver.est) > 100)
+        assert len(driver.est) > 100, {n: p.read_text()[-500:] for n, p in logs.items()}
+        driver.spin(2.0, until=lambda: driver.level('ecu_bridge_node: command') == 0)
+        assert driver.level('ecu_bridge_node: command') == 0          # OK: forwarding
+        # The NMPC stops answering: within 3 periods the bridge sends the safe passive
+        # command and raises an ERROR; the ECU reports it applies the passive damping.
+        driver.answer = False
+        t_stop = time.monotonic()
+        driver.spin(1.0, until=lambda: driver.level('ecu_bridge_node: command') == 2)
+        cmd = driver.last('ecu_bridge_node: command')
+        assert cmd[2] == 2 and 'safe passive' in cmd[3], cmd
+        assert cmd[0] - t_stop < 0.5          # published at once, not at the next period
+        driver.spin(1.5, until=lambda: driver.last('ecu_bridge_node: ecu')[4].get(
+            'ecu_mode') == 'SAFE_REQUESTED')
+        ecu = driver.last('ecu_bridge_node: ecu')
+        assert ecu[4]['ecu_mode'] == 'SAFE_REQUESTED', ecu
+        assert float(ecu[4]['c_e_applied_ns_per_m']) == pytest.approx(10000.0, abs=2.0)
+        driver.answer = True                  # the NMPC is back (it answers the next state)
+        driver.spin(1.0, until=lambda: driver.level('ecu_bridge_node: command') == 0)
+        assert driver.level('ecu_bridge_node: command') == 0
+        driver.spin(15.0, until=lambda: procs[0].poll() is not None)
+        driver.spin(1.2)                      # the nodes' last diagnostics
+    finally:
+        _stop(procs)
+        driver.close()
+    assert [p.returncode for p in procs] == [0, 0, 0], {n: p.read_text()[-800:]
+                                                        for n, p in logs.items()}
+    summary = json.loads(logs['ecu_sim'].read_text()[logs['ecu_sim'].read_text().index('{'):])
+    assert summary['commands_applied'] > 200
+    rejected = ('bad_crc', 'repeated', 'skipped', 'wrong_length')
+    assert sum(summary[f'rx_{k}'] for k in rejected) == 0
+    bus = driver.last('ecu_bridge_node: can bus')[4]
+    assert (bus['bad_crc'], bus['skipped'], bus['repeated']) == ('0', '0', '0')
+    cmd = driver.last('ecu_bridge_node: command')[4]
+    assert int(cmd['command_timeouts']) >= 1 and int(cmd['safe_frames_sent']) >= 3
+    assert float(cmd['ros_to_can_ms_samples']) > 100
+    est = driver.last('state_estimator_node')
+    assert int(est[4]['updates']) > 300 and float(est[4]['latency_ms_samples']) > 100
+    # Estimated vs true state: the estimate's stamp is the CAN receive time of the cycle,
+    # after the ECU's sample time and less than a period later.
+    ts = np.array(sorted(driver.truth))
+    errs, truth = [], []
+    for stamp, x in sorted(driver.est.items())[25:]:
+        i = int(np.searchsorted(ts, stamp, side='right')) - 1
+        if i >= 0 and stamp - ts[i] < 20_000_000:
+            errs.append(x - driver.truth[ts[i]])
+            truth.append(driver.truth[ts[i]])
+    assert len(errs) > 100
+    rel = np.sqrt(np.mean(np.square(errs), 0)) / np.sqrt(np.mean(np.square(truth), 0))
+    assert np.all(rel < 0.3), rel
+    assert driver.last('ecu_sim')[4]['finished'] == 'true'
+
+
+def _node(name, *ros_args, timeout=60):
+    return subprocess.run([sys.executable, '-m', f'erva_ros.nodes.{name}', '--ros-args',
+                           '--params-file', PARAMS, *ros_args],
+                          capture_output=True, text=True, env=ros_env(), cwd=REPO,
+                          timeout=timeout)
+
+
+@pytest.mark.parametrize('name, arg, message', [
+    ('ecu_bridge_node', 'bus:=can0', "bus 'can0': expected socketcan:IFACE"),
+    ('ecu_bridge_node', 'duty_max:=1.5', "'duty_max' = 1.5 is out of range"),
+    ('ecu_bridge_node', 'command_timeout_periods:=0', "'command_timeout_periods' = 0"),
+    ('state_estimator_node', 'r_speed:=0.0', "'r_speed' = 0.0 is out of range"),
+])
+def test_bad_parameters_stop_the_node_with_one_line(name, arg, message):
+    proc = _node(name, '-p', arg)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], proc.stderr
+
+
+def test_bridge_survives_an_unopenable_bus_and_stops_cleanly():
+    env = ros_env()
+    p = subprocess.Popen([sys.executable, '-m', 'erva_ros.nodes.ecu_bridge_node', '--ros-args',
+                          '--params-file', PARAMS, '-p', 'bus:=socketcan:erva_no_such_if'],
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+                         cwd=REPO)
+    try:
+        time.sleep(4.0)
+        assert p.poll() is None                       # still running, retrying
+    finally:
+        p.send_signal(signal.SIGINT)
+        out, _ = p.communicate(timeout=15)
+    assert p.returncode == 0, out
+    assert 'cannot open bus' in out and 'Traceback' not in out
+
+
+def test_ecu_sim_cli(erva):
+    from erva_ros.hil.transport import free_udp_ports
+
+    bad = erva('ecu-sim', '--bus', 'can0', timeout=60)
+    assert bad.returncode == 2
+    assert bad.stderr.strip().splitlines() == [
+        "erva ecu-sim: error: bus 'can0': expected socketcan:IFACE, virtual:NAME or "
+        'udp:LOCAL_PORT:PEER_PORT']
+    a, b = free_udp_ports(2)
+    run = erva('ecu-sim', '--bus', f'udp:{a}:{b}', '--road', 'sine', '--duration', '0.5',
+               '--json', timeout=60)
+    assert run.returncode == 0, run.stderr
+    out = json.loads(run.stdout)
+    # No bridge: the ECU stays in its start-up mode with the passive damping.
+    assert out['cycles'] == 25 and out['commands_applied'] == 0
+    assert out['frames_sent'] == 3 * 26 and out['power_w'] > 0
+
+
+@pytest.mark.slow
+def test_bench_hil_reports_every_latency(erva):
+    run = erva('bench-hil', '--duration', '3', '--json', timeout=120)
+    assert run.returncode == 0, run.stdout + run.stderr
+    out = json.loads(run.stdout)
+    for key in ('bridge_ros_to_can', 'bridge_can_to_ros', 'estimator', 'sensor_to_state'):
+        stats = out['latency_ms'][key]
+        assert stats['samples'] > 50 and 0 < stats['p50'] <= stats['p99'] <= stats['max'], key
+    assert out['errors'] == [] and out['matched'] > 100

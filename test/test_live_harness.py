@@ -1,0 +1,156 @@
+"""Test helpers (no tests here): start one real node process; play the rest of the loop.
+
+:class:`Harness` is an ordinary rclpy node (own context, same QoS as the nodes) that
+publishes what the node under test subscribes to, on the Ts grid of wall time, and
+records everything the node publishes with its arrival time.
+"""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import AccelStamped, PointStamped
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory
+
+from erva_ros import topics
+from erva_ros.live.diagnostics import parse_status
+from erva_ros.live.msgs import time_to_ns
+
+from conftest import REPO, ros_env
+
+TS = 0.02
+TS_NS = 20_000_000
+PAPER = os.path.join(REPO, 'config', 'erva_paper.yaml')
+
+
+def start_node(name, namespace, log_path, *params):
+    """Start erva_ros.nodes.<name> in ``namespace`` with ``-p`` params; output to a file."""
+    argv = [sys.executable, '-m', f'erva_ros.nodes.{name}', '--ros-args',
+            '-r', f'__ns:={namespace}', '--params-file', PAPER]
+    for p in params:
+        argv += ['-p', p]
+    log = open(log_path, 'w')
+    proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, env=ros_env(),
+                            cwd=REPO, start_new_session=True)
+    proc.log_path = log_path
+    proc.log_file = log
+    return proc
+
+
+def stop_node(proc, sig=signal.SIGINT, timeout=10.0):
+    """Stop a node process with ``sig``; return its exit status (killed if it hangs)."""
+    if proc.poll() is None:
+        os.killpg(proc.pid, sig)
+    try:
+        return proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        return None
+    finally:
+        proc.log_file.close()
+
+
+class Harness:
+    """An in-process node that plays the road, the plant or the controller for a test."""
+
+    def __init__(self, namespace):
+        self.ctx = rclpy.Context()
+        rclpy.init(args=[], context=self.ctx)
+        self.node = Node('test_harness', namespace=namespace, context=self.ctx)
+        self.ns = namespace
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        qos = topics.control_qos(depth=100)
+        n = self.node
+        self.pub_state = n.create_publisher(JointState, topics.STATE, qos)
+        self.pub_preview = n.create_publisher(JointTrajectory, topics.ROAD_PREVIEW, qos)
+        self.pub_height = n.create_publisher(PointStamped, topics.ROAD_HEIGHT, qos)
+        self.pub_cmd = n.create_publisher(JointTrajectory, topics.DAMPING_CMD, qos)
+        self.commands = []     # (stamp_ns, rx_ns, plan)
+        self.states = []       # (stamp_ns, x)
+        self.generator = []    # (stamp_ns, displacement, velocity, effort)
+        self.accel = []        # (stamp_ns, accel)
+        self.diag = []         # (rx_ns, node, level, message, values)
+        self.on_state = None
+        self.sub_cmd = n.create_subscription(JointTrajectory, topics.DAMPING_CMD, self._cmd, qos)
+        self.sub_state = n.create_subscription(JointState, topics.STATE, self._state, qos)
+        self.sub_gen = n.create_subscription(JointState, topics.GENERATOR, self._gen, qos)
+        n.create_subscription(AccelStamped, topics.SPRUNG_ACCEL, self._accel, qos)
+        n.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._diag, qos)
+
+    def _cmd(self, msg):
+        self.commands.append((time_to_ns(msg.header.stamp), time.time_ns(),
+                              np.array([p.positions[0] for p in msg.points])))
+
+    def _state(self, msg):
+        x = np.empty(2 * len(msg.position))
+        x[0::2], x[1::2] = msg.position, msg.velocity
+        self.states.append((time_to_ns(msg.header.stamp), x))
+        if self.on_state is not None:
+            self.on_state(self.states[-1][0], x)
+
+    def _gen(self, msg):
+        self.generator.append((time_to_ns(msg.header.stamp), msg.position[0],
+                               msg.velocity[0], msg.effort[0]))
+
+    def _accel(self, msg):
+        self.accel.append((time_to_ns(msg.header.stamp), msg.accel.linear.z))
+
+    def _diag(self, msg):
+        for status in msg.status:
+            name, level, text, values = parse_status(status)
+            if name.startswith(self.ns + '/'):
+                self.diag.append((time.time_ns(), name.rsplit('/', 1)[-1], level, text, values))
+
+    def spin_until(self, condition, timeout):
+        """Spin until ``condition()`` holds; return whether it did within ``timeout`` s."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if condition():
+                return True
+            self.executor.spin_once(timeout_sec=0.01)
+        return condition()
+
+    def run_ticks(self, start_ns, k0, k1, on_tick):
+        """Call ``on_tick(k, stamp_ns)`` at wall time start + k·Ts for k in [k0, k1), spinning."""
+        for k in range(k0, k1):
+            due = start_ns + k * TS_NS
+            while time.time_ns() < due:
+                self.executor.spin_once(timeout_sec=max(0.0, min(0.002,
+                                                                (due - time.time_ns()) * 1e-9)))
+            on_tick(k, due)
+        return start_ns + k1 * TS_NS
+
+    def wait_matched(self, pubs, subs, timeout=60.0, settle=0.5):
+        """Spin until each publisher and subscription is matched, then ``settle`` s more."""
+        ok = self.spin_until(lambda: all(p.get_subscription_count() >= 1 for p in pubs)
+                             and all(s.get_publisher_count() >= 1 for s in subs), timeout)
+        assert ok, 'the node under test did not come up'
+        self.spin_for(settle)
+
+    def spin_for(self, seconds):
+        """Spin for ``seconds`` of wall time."""
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.005)
+
+    def last_diag(self, node):
+        """Return the values of the newest diagnostics of ``node``."""
+        for entry in reversed(self.diag):
+            if entry[1] == node:
+                return entry[4]
+        return {}
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.ctx)

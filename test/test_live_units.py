@@ -1,0 +1,245 @@
+"""Live-system helpers without processes: messages, validation, command hold, parameters."""
+
+import math
+import os
+
+import numpy as np
+import pytest
+import rclpy
+import yaml
+
+from erva_ros import topics
+from erva_ros.live import msgs
+from erva_ros.live.command_hold import CommandHold
+from erva_ros.live.diagnostics import ERROR, parse_status, StatusReporter
+from erva_ros.live.orchestrator import (prepare_session, read_live_file, RunConfig,
+                                        validate_live)
+from erva_ros.live.parameters import (declare_controller_settings, declare_erva_params,
+                                      declare_live, LIVE_CHOICES, LIVE_DEFAULTS, LIVE_NUMERIC)
+from erva_ros.live.report import format_summary, jsonable
+from erva_ros.live.scenario import build_road, load_road_file
+from erva_ros.live.timing import next_grid_delay_ns, PeriodStats
+from erva_ros.live.validation import MessageRejected, Rejections
+from erva_ros.params import ParamError, PAPER_VALUES
+
+from conftest import REPO
+
+TS_NS = 20_000_000
+X = np.array([0.01, -0.2, 0.002, 0.3, 0.004, -0.5])
+
+
+# -- messages ----------------------------------------------------------------------------
+def test_state_round_trip_keeps_every_bit_and_the_stamp():
+    stamp = 1_700_000_000_123_456_789
+    msg = msgs.state_msg(stamp, X, 'erva')
+    assert list(msg.name) == list(topics.STATE_JOINTS)
+    got_stamp, x = msgs.parse_state(msg, 'erva')
+    assert got_stamp == stamp and np.array_equal(x, X)
+    bench = msgs.state_msg(stamp, X[:4], 'benchmark')
+    assert list(bench.name) == ['z_s', 'z_us']
+    assert np.array_equal(msgs.parse_state(bench, 'benchmark')[1], X[:4])
+
+
+def test_trajectories_round_trip_on_the_ts_grid():
+    plan = np.array([1e4, 2e4, 0.0, 5e3])
+    msg = msgs.damping_msg(5 * TS_NS, plan, TS_NS)
+    assert msg.joint_names == [topics.DAMPING_JOINT]
+    assert msgs.time_to_ns(msg.points[3].time_from_start) == 3 * TS_NS
+    stamp, got = msgs.parse_damping(msg, TS_NS)
+    assert stamp == 5 * TS_NS and np.array_equal(got, plan)
+    heights = np.linspace(-1e-3, 1e-3, 11)
+    stamp, got = msgs.parse_preview(msgs.preview_msg(0, heights, TS_NS), TS_NS, 11)
+    assert stamp == 0 and np.array_equal(got, heights)
+
+
+@pytest.mark.parametrize('bad', [math.nan, math.inf, -math.inf, 5.0])
+def test_non_finite_or_absurd_state_is_rejected(bad):
+    x = X.copy()
+    x[3] = bad if bad != 5.0 else 50.0    # 50 m/s suspension velocity is absurd
+    with pytest.raises(MessageRejected):
+        msgs.parse_state(msgs.state_msg(0, x, 'erva'), 'erva')
+
+
+def test_malformed_messages_are_rejected_with_a_reason():
+    msg = msgs.state_msg(0, X, 'erva')
+    msg.name = ['z_s', 'z_us', 'zd']
+    with pytest.raises(MessageRejected, match='joint names'):
+        msgs.parse_state(msg, 'erva')
+    with pytest.raises(MessageRejected, match='joint names'):
+        msgs.parse_state(msgs.state_msg(0, X, 'erva'), 'benchmark')
+    with pytest.raises(MessageRejected, match='absurd'):
+        msgs.parse_damping(msgs.damping_msg(0, [-1.0, 1e4], TS_NS), TS_NS)
+    with pytest.raises(MessageRejected, match='not finite'):
+        msgs.parse_damping(msgs.damping_msg(0, [1e4, math.nan], TS_NS), TS_NS)
+    with pytest.raises(MessageRejected, match='time_from_start'):
+        msgs.parse_damping(msgs.damping_msg(0, [1e4, 1e4], TS_NS // 2), TS_NS)
+    with pytest.raises(MessageRejected, match='at least 11'):
+        msgs.parse_preview(msgs.preview_msg(0, np.zeros(5), TS_NS), TS_NS, 11)
+    with pytest.raises(MessageRejected, match='absurd'):
+        msgs.parse_road_height(msgs.road_height_msg(0, 0.0, 2.0))
+
+
+def test_rejections_are_counted_and_logged_at_a_limited_rate():
+    lines, now = [], [0.0]
+    rej = Rejections(lines.append, lambda: now[0], log_period_s=1.0)
+    for i in range(50):
+        now[0] = i * 0.1
+        rej.reject('state', 'x is nan')
+    assert rej.counts == {'state': 50} and rej.total == 50
+    assert len(lines) == 5                    # t = 0, 1, 2, 3, 4 s
+    assert '9 more not logged' in lines[1]
+
+
+# -- the plant's command hold ----------------------------------------------------------------
+def test_command_hold_uses_command_then_plan_then_passive():
+    hold = CommandHold(TS_NS, c_e0=1e4, timeout_ns=10 * TS_NS)
+    assert hold.select(0) == (1e4, 'passive')
+    hold.update(TS_NS, np.array([100.0, 200.0, 300.0]))
+    assert hold.select(TS_NS) == (100.0, 'command')
+    assert hold.select(2 * TS_NS) == (200.0, 'plan')
+    assert hold.select(3 * TS_NS) == (300.0, 'plan')
+    assert hold.select(4 * TS_NS) == (1e4, 'passive')      # plan used up
+    assert not hold.update(0, np.array([1.0]))               # older than the held one
+    assert hold.out_of_order == 1
+    short = CommandHold(TS_NS, c_e0=1e4, timeout_ns=TS_NS)
+    short.update(0, np.full(10, 5.0))
+    assert short.select(2 * TS_NS) == (1e4, 'passive')      # plan too old: timeout
+    assert hold.counts == {'command': 1, 'plan': 2, 'passive': 2}
+
+
+def test_grid_delay_and_period_jitter():
+    assert next_grid_delay_ns(105, 0, 20) == 15
+    assert next_grid_delay_ns(120, 0, 20) == 20
+    assert next_grid_delay_ns(121, 1, 20) == 20
+    p = PeriodStats(0.02)
+    for t in (0.0, 0.021, 0.040, 0.062):
+        p.mark(t)
+    s = p.jitter.summary()
+    assert s['samples'] == 3 and s['max'] == pytest.approx(2.0)
+
+
+# -- parameters ------------------------------------------------------------------------------
+@pytest.fixture
+def ros_context():
+    ctx = rclpy.Context()
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+def _node(ctx, *ros_args):
+    from rclpy.node import Node
+    rclpy.init(args=['x', '--ros-args', *ros_args], context=ctx)
+    return Node('nmpc_node', context=ctx)
+
+
+def test_parameters_get_descriptors_with_ranges(ros_context):
+    node = _node(ros_context, '-p', 'alpha2:=1', '-p', 'seed:=7')
+    params = declare_erva_params(node)
+    settings = declare_controller_settings(node)
+    live = declare_live(node, ['seed', 'mode', 'preview_noise'])
+    assert params.M_s == PAPER_VALUES['M_s']
+    assert settings.alpha2 == 1.0                     # a whole number for a double
+    assert live == {'seed': 7, 'mode': 'realtime', 'preview_noise': False}
+    desc = node.describe_parameter('M_s')
+    assert desc.read_only and desc.floating_point_range[0].to_value == 5000.0
+    assert node.describe_parameter('seed').integer_range[0].from_value == 0
+    assert 'realtime' in node.describe_parameter('mode').additional_constraints
+    node.destroy_node()
+
+
+@pytest.mark.parametrize('arg, match', [
+    ('M_s:=-3.0', r"'M_s' = -3.0 is out of range; allowed \[1, 5000\] kg"),
+    ('horizon:=0', r"'horizon' = 0 is out of range"),
+    ('mode:=fast', r"'mode' = 'fast' is not allowed; choose one of realtime, lockstep"),
+    ('seed:=1.5', r"'seed' must be an integer"),
+])
+def test_a_bad_parameter_is_one_line(ros_context, arg, match):
+    node = _node(ros_context, '-p', arg)
+    with pytest.raises(ParamError, match=match) as info:
+        declare_erva_params(node)
+        declare_controller_settings(node)
+        declare_live(node, ['mode', 'seed'])
+    assert '\n' not in str(info.value)
+    node.destroy_node()
+
+
+def test_live_tables_cover_the_defaults_and_live_yaml():
+    for key, value in LIVE_DEFAULTS.items():
+        if key in LIVE_NUMERIC:
+            assert LIVE_NUMERIC[key].lo <= value <= LIVE_NUMERIC[key].hi, key
+        elif key in LIVE_CHOICES:
+            assert value in LIVE_CHOICES[key][0], key
+    values = read_live_file(os.path.join(REPO, 'config', 'live.yaml'))
+    assert validate_live(values) == validate_live({})     # the file states the defaults
+
+
+def test_validate_live_and_live_file_errors(tmp_path):
+    with pytest.raises(ParamError, match="'duration_s' = -1"):
+        validate_live({'duration_s': -1.0})
+    with pytest.raises(ParamError, match="'road' = 'moon'"):
+        validate_live({'road': 'moon'})
+    bad = tmp_path / 'live.yaml'
+    bad.write_text('/**:\n  ros__parameters:\n    durration_s: 3.0\n')
+    with pytest.raises(ParamError, match='unknown live parameter'):
+        read_live_file(str(bad))
+
+
+def test_session_params_file_is_what_rclpy_gives_each_node(tmp_path, ros_context):
+    cfg = RunConfig(controller='no_preview', alpha2=0.5, mode='lockstep', seed=3,
+                    duration_s=1.0, session_dir=str(tmp_path),
+                    live_overrides={'preview_noise': True})
+    session = prepare_session(cfg, recording=False)
+    doc = yaml.safe_load(open(session.params_file))
+    assert doc['/**']['ros__parameters']['use_sim_time'] is True
+    node = _node(ros_context, '-r', '__ns:=/erva', '--params-file', session.params_file)
+    settings = declare_controller_settings(node)
+    live = declare_live(node, ['mode', 'duration_s', 'state_timeout_periods'])
+    assert settings.controller == 'no_preview' and settings.alpha2 == 0.5
+    assert live == {'mode': 'lockstep', 'duration_s': 1.0, 'state_timeout_periods': 3}
+    assert declare_erva_params(node).c_e0 == PAPER_VALUES['c_e0']
+    node.destroy_node()
+    road = doc['/**/road_preview_node']['ros__parameters']
+    assert road['seed'] == 3 and road['preview_noise'] is True
+
+
+def test_road_file_is_read_and_bad_rows_are_one_line(tmp_path):
+    good = tmp_path / 'road.csv'
+    good.write_text('time_s, height_m\n0.0, 0.0\n1.0, 0.002\n2.0, 0.0\n')
+    rows = load_road_file(str(good))
+    assert rows.shape == (3, 2)
+    cfg = validate_live({'road_file': str(good), 'duration_s': 2.0})
+    assert build_road(cfg).height(0.5) == pytest.approx(0.001)
+    bad = tmp_path / 'bad.csv'
+    bad.write_text('0.0, 0.0\n1.0, x\n')
+    with pytest.raises(ParamError, match='bad.csv:2'):
+        load_road_file(str(bad))
+
+
+# -- diagnostics and report -------------------------------------------------------------------
+def test_status_reporter_publishes_on_change_and_when_due():
+    sent = []
+    rep = StatusReporter('/erva/nmpc_node', 'hw', sent.append, lambda: 0, lambda: {'n': 1.5})
+    rep.set(ERROR, 'no state')
+    rep.set(ERROR, 'no state')             # unchanged: no second message
+    assert len(sent) == 1
+    name, level, text, values = parse_status(sent[0].status[0])
+    assert (name, level, text, values) == ('/erva/nmpc_node', ERROR, 'no state', {'n': '1.5'})
+    rep.after_sample()
+    rep.on_timer(busy_window_s=10.0)       # busy: only marked due
+    assert len(sent) == 1
+    rep.after_sample()                     # published in the slack after a sample
+    assert len(sent) == 2
+
+
+def test_summary_json_has_no_nan_and_text_names_the_errors():
+    assert jsonable({'a': [float('nan'), np.float64(1.5)], 'b': np.int64(3)}) == \
+        {'a': [None, 1.5], 'b': 3}
+    summary = {
+        'scenario': {'controller': 'preview', 'weights': [1.0, 0.0], 'road': 'paper',
+                     'seed': 0, 'mode': 'realtime', 'model': 'erva', 'duration_s': 4.0,
+                     'ts': 0.02},
+        'metrics': {'samples': 0}, 'commands': {'received': 0}, 'nmpc': {}, 'plant': {},
+        'messages': {'dropped_total': 0, 'rejected_total': 0},
+        'errors': ['nmpc_node died (exit status -9) while running'], 'wall_time_s': 1.0}
+    text = format_summary(summary)
+    assert 'ERROR     nmpc_node died' in text

@@ -1,0 +1,202 @@
+"""Robustness of the real nodes over real DDS, each test playing the rest of the loop itself.
+
+* nmpc_node: bad states and previews (NaN, inf, absurd, malformed) are rejected, counted,
+  logged at a limited rate and never reach the solver; no state for 3 periods gives the
+  passive command and an ERROR diagnostic; it recovers when states return.
+* plant_sim_node: bad commands and road heights are rejected the same way; when the
+  commands stop it applies the last plan, then passive c_e0, and says so on /diagnostics.
+"""
+
+import math
+import re
+
+import numpy as np
+import pytest
+
+from erva_ros.live import msgs
+from erva_ros.live.diagnostics import ERROR, OK, WARN
+
+from test_live_harness import Harness, start_node, stop_node, TS_NS
+
+C_E0 = 10000.0
+
+
+def _preview(stamp_ns):
+    t = stamp_ns * 1e-9
+    return 1e-3 * np.sin(2 * math.pi * 1.7 * (t + 0.02 * np.arange(11)))
+
+
+def _state(k):
+    x = np.zeros(6)
+    x[0], x[1] = 1e-3 * math.sin(0.3 * k), 1e-2 * math.cos(0.3 * k)
+    return x
+
+
+def test_nmpc_rejects_bad_inputs_times_out_to_passive_and_recovers(tmp_path):
+    ns = '/erva_t_nmpc'
+    proc = start_node('nmpc_node', ns, str(tmp_path / 'nmpc.log'),
+                      'controller:=preview', 'duration_s:=100.0')
+    h = Harness(ns)
+    try:
+        h.wait_matched([h.pub_state, h.pub_preview], [h.sub_cmd])
+        good, bad_states, bad_previews = [], [], []
+
+        def bad_state_msg(k, stamp):
+            x = _state(k)
+            kind = k % 4
+            if kind == 0:
+                x[1] = math.nan
+            elif kind == 1:
+                x[3] = math.inf
+            elif kind == 2:
+                x[0] = 3.0                       # a 3 m body displacement is absurd
+            msg = msgs.state_msg(stamp, x, 'erva')
+            if kind == 3:
+                msg.name = ['z_s', 'z_us', 'z_x']
+            return msg
+
+        def bad_preview_msg(k, stamp):
+            p = _preview(stamp)
+            if k % 3 == 0:
+                p[4] = -math.inf
+            elif k % 3 == 1:
+                p[2] = 2.0                       # a 2 m road step is absurd
+            msg = msgs.preview_msg(stamp, p, TS_NS)
+            if k % 3 == 2:
+                msg.points[5].time_from_start = msgs.ns_to_duration(TS_NS)   # off the grid
+            return msg
+
+        def tick(k, stamp):
+            phase_c = 50 <= k < 70
+            h.pub_preview.publish(msgs.preview_msg(stamp, _preview(stamp), TS_NS))
+            if not phase_c:
+                h.pub_state.publish(msgs.state_msg(stamp, _state(k), 'erva'))
+                good.append(stamp)
+            if 25 <= k < 50:
+                # Stamped just after the good sample: if one got through it would be
+                # the newest state and get a command of its own.
+                h.pub_state.publish(bad_state_msg(k, stamp + 1000))
+                bad_states.append(stamp + 1000)
+                h.pub_preview.publish(bad_preview_msg(k, stamp + 1000))
+                bad_previews.append(stamp + 1000)
+
+        start = (h.node.get_clock().now().nanoseconds // TS_NS + 5) * TS_NS
+        end = h.run_ticks(start, 0, 100, tick)
+        h.spin_for(1.2)                      # two diagnostics periods
+        rc = stop_node(proc)
+    finally:
+        h.close()
+        if proc.poll() is None:
+            stop_node(proc)
+    assert rc == 0, 'nmpc_node did not stop cleanly on SIGINT'
+
+    cmd_stamps = [c[0] for c in h.commands]
+    plans = np.vstack([c[2] for c in h.commands])
+    assert np.all(np.isfinite(plans)) and plans.min() >= 0 and plans.max() <= 20000
+    # Every good state is answered, no bad one ever is.
+    missing = set(good) - set(cmd_stamps)
+    assert len(missing) <= 2, f'{len(missing)} good states without a command'
+    assert not set(bad_states) & set(cmd_stamps)
+
+    values = h.last_diag('nmpc_node')
+    assert int(values['rejected_state']) == len(bad_states) == 25
+    assert int(values['rejected_preview']) == len(bad_previews)
+    # The solver never saw a bad value: its own NaN guard never fired.
+    assert int(values['controller_nan_rejections']) == 0
+    assert int(values['controller_steps']) == int(values['solves'])
+    # Rejections logged at a limited rate (1 per topic per second), not 50 lines.
+    log = open(tmp_path / 'nmpc.log').read()
+    logged = re.findall(r'rejected message on (\S+):', log)
+    assert 2 <= len(logged) <= 6, log
+
+    # Phase C: no state from k = 50 on -> passive command (not for any sample) + ERROR.
+    last_good_c = start + 49 * TS_NS
+    safe = [c for c in h.commands if c[0] not in set(good)]
+    assert safe, 'no safe command published'
+    assert all(np.all(c[2] == C_E0) for c in safe)
+    first_safe_rx = min(c[1] for c in safe)
+    silence = (first_safe_rx - last_good_c) * 1e-9
+    assert 0.06 <= silence <= 0.06 + 0.06, f'passive command after {silence * 1e3:.0f} ms'
+    events = [(lvl, text) for _, node, lvl, text, _ in h.diag if node == 'nmpc_node']
+    err = [i for i, (lvl, text) in enumerate(events) if lvl == ERROR and 'no state' in text]
+    assert err, events
+    # Recovery: phase D states are answered and the status leaves ERROR.
+    resumed = [s for s in good if s >= start + 70 * TS_NS]
+    assert set(resumed) <= set(cmd_stamps) | {resumed[0]}
+    assert any(lvl in (OK, WARN) for lvl, _ in events[err[0] + 1:])
+    assert end > start
+
+
+def test_plant_rejects_bad_inputs_then_holds_the_plan_then_goes_passive(tmp_path):
+    ns = '/erva_t_plant'
+    proc = start_node('plant_sim_node', ns, str(tmp_path / 'plant.log'),
+                      'duration_s:=100.0', 'command_timeout_s:=0.2')
+    h = Harness(ns)
+    plan = 5000.0 + 100.0 * np.arange(10)
+    answering = {'on': True}
+    bad_cmd_values = [math.nan, -5.0, 2e6]
+
+    def controller(stamp, x):            # the "NMPC": answer each state with a plan
+        if answering['on']:
+            h.pub_cmd.publish(msgs.damping_msg(stamp, plan, TS_NS))
+
+    h.on_state = controller
+    try:
+        h.wait_matched([h.pub_height, h.pub_cmd], [h.sub_state, h.sub_gen])
+        sent_bad_cmds = []
+
+        def tick(k, stamp):
+            answering['on'] = k < 40 or k >= 60
+            w = 1e-3 * math.sin(2 * math.pi * 1.7 * k * 0.02)
+            if 25 <= k < 40:
+                # A bad height for this very sample first: if it got through the plant
+                # would step with it, and the good one below would be refused.
+                bad = math.nan if k % 2 else 3.0
+                h.pub_height.publish(msgs.road_height_msg(stamp, 0.0, bad))
+            h.pub_height.publish(msgs.road_height_msg(stamp, 0.0, w))
+            if 25 <= k < 40 and k % 4 == 0:
+                v = bad_cmd_values[(k // 4) % 3]
+                h.pub_cmd.publish(msgs.damping_msg(stamp - TS_NS + 1000, [v] * 10, TS_NS))
+                sent_bad_cmds.append(v)
+            if k == 30:
+                m = msgs.damping_msg(stamp - TS_NS + 2000, plan, TS_NS)
+                m.joint_names = ['c_x']
+                h.pub_cmd.publish(m)
+                sent_bad_cmds.append('joint')
+
+        start = (h.node.get_clock().now().nanoseconds // TS_NS + 5) * TS_NS
+        h.run_ticks(start, 0, 80, tick)
+        h.spin_for(1.2)
+        rc = stop_node(proc)
+    finally:
+        h.close()
+        if proc.poll() is None:
+            stop_node(proc)
+    assert rc == 0
+
+    states = np.array([x for _, x in h.states])
+    assert np.all(np.isfinite(states)) and np.max(np.abs(states)) < 0.05
+    values = h.last_diag('plant_sim_node')
+    assert int(values['rejected_road_height']) == 15
+    assert int(values['rejected_damping_cmd']) == len(sent_bad_cmds)
+
+    # Applied damping u_k = effort / v_gen of the generator output at t_k.
+    u = {s: e / v for s, _, v, e in h.generator if abs(v) > 1e-9}
+    k_of = {s: (s - start) // TS_NS for s in u}
+    by_k = {k_of[s]: u[s] for s in u}
+    for k in (10, 20, 30, 39):                   # answered: the command itself
+        assert by_k[k] == pytest.approx(plan[0], rel=1e-9), k
+    for j in range(1, 10):                       # last command at k = 39: its plan
+        assert by_k[39 + j] == pytest.approx(plan[j], rel=1e-9), j
+    for k in range(49, 60):                      # plan used up: passive c_e0
+        if k in by_k:
+            assert by_k[k] == pytest.approx(C_E0, rel=1e-9), k
+    assert by_k[70] == pytest.approx(plan[0], rel=1e-9)   # answering again
+    assert not any(v in bad_cmd_values for v in by_k.values())
+
+    events = [(lvl, text) for _, node, lvl, text, _ in h.diag if node == 'plant_sim_node']
+    warn = next(i for i, (lvl, t) in enumerate(events) if lvl == WARN and 'plan' in t)
+    err = next(i for i, (lvl, t) in enumerate(events) if lvl == ERROR and 'passive' in t)
+    assert warn < err
+    assert any(lvl == OK for lvl, _ in events[err + 1:])
+    assert int(values['u_from_plan']) == 9

@@ -1,0 +1,51 @@
+"""Nothing lost: every message published at the live rates for 60 s is in the bag."""
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+from conftest import REPO, ros_env
+import pytest
+from rosbags.rosbag2 import Reader
+
+from erva_ros.bag.session import recorder_ros_args
+
+DURATION_S = 62.0
+
+
+@pytest.mark.slow
+@pytest.mark.ros
+def test_counts_in_the_bag_equal_counts_published_over_a_minute(tmp_path):
+    bag = str(tmp_path / 'minute')
+    rec = subprocess.Popen([sys.executable, '-m', 'erva_ros.nodes.recorder_node',
+                            *recorder_ros_args(bag, {'scenario': 'nothing-lost'})],
+                           env=ros_env(), cwd=REPO, text=True, stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE)
+    try:
+        # All eight contract topics at their live rates (six /erva topics and /clock at
+        # 50 Hz, /diagnostics from three nodes at 1 Hz), from a separate process.
+        pub = subprocess.run([sys.executable, '-m', 'erva_ros.bag.traffic', 'contract',
+                              '--duration', str(DURATION_S), '--rate', '50'],
+                             env=ros_env(), cwd=REPO, capture_output=True, text=True,
+                             timeout=DURATION_S + 120)
+        assert pub.returncode == 0, pub.stderr
+        published = json.loads(pub.stdout.strip().splitlines()[-1])
+        time.sleep(0.5)
+    finally:
+        rec.send_signal(signal.SIGINT)
+        try:
+            _, err = rec.communicate(timeout=60)
+        finally:
+            if rec.poll() is None:
+                rec.kill()
+    assert rec.returncode == 0, err
+    assert published['acked'] and len(published['published']) == 8
+    assert published['published']['/erva/state'] == int(DURATION_S * 50)
+    with Reader(bag) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+        own = sum(1 for c, _, raw in reader.messages()
+                  if c.topic == '/diagnostics' and b'recorder: bag recorder' in raw)
+    for topic, n in published['published'].items():
+        assert counts[topic] == n + (own if topic == '/diagnostics' else 0), topic

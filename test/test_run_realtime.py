@@ -1,0 +1,134 @@
+"""`erva run` in real time, as a user runs it: recording, a node killed mid-run, signals."""
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from conftest import REPO, ros_env
+
+
+def _start(*args):
+    return subprocess.Popen([sys.executable, '-m', 'erva_ros.cli', 'run', *map(str, args)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=ros_env(), cwd=REPO, start_new_session=True)
+
+
+def _wait_connected(proc, timeout=90.0):
+    """Read erva run's stderr until it is connected; return {node: pid} it reported."""
+    pids, lines = {}, []
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        line = proc.stderr.readline()
+        if not line:
+            break
+        lines.append(line)
+        pids.update({n: int(p) for n, p in re.findall(r'(\w+_node) \(pid (\d+)\)', line)})
+        if 'connected in' in line:
+            return pids
+    raise AssertionError('erva run did not connect:\n' + ''.join(lines))
+
+
+def _gone(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    return False
+
+
+def _count_bag_messages(bag_dir):
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+    mcaps = [f for f in os.listdir(bag_dir) if f.endswith('.mcap')]
+    assert len(mcaps) == 1, os.listdir(bag_dir)
+    counts = {}
+    with open(os.path.join(bag_dir, mcaps[0]), 'rb') as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        for _, channel, _, decoded in reader.iter_decoded_messages():
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+            assert decoded is not None
+    return counts
+
+
+def test_erva_run_realtime_records_and_summarises(tmp_path):
+    proc = _start('--duration', 2, '--record', tmp_path, '--json')
+    out, err = proc.communicate(timeout=180)
+    assert proc.returncode == 0, err
+    s = json.loads(out)
+    assert s['ok'] and not s['errors']
+    assert s['scenario']['controller'] == 'preview' and s['scenario']['mode'] == 'realtime'
+    assert s['metrics']['samples'] == 100 and s['metrics']['acc_2norm'] > 0, json.dumps(s)
+    assert s['metrics']['power_w'] > 0
+    cmd = s['commands']
+    assert cmd['for_samples'] == 101                 # one command per state, t_0..t_100
+    assert abs(cmd['rate_hz'] - 50.0) < 1.0
+    for key in ('period_jitter_ms', 'state_to_command_ms', 'sample_to_command_ms'):
+        assert cmd[key]['samples'] >= 100 and cmd[key]['p50'] >= 0
+    assert s['nmpc']['solve_ms']['samples'] == 101
+    assert s['messages']['dropped_total'] == 0
+    assert all(n['stopped_cleanly'] for n in s['nodes'].values()), s['nodes']
+    # The bag holds what the nodes published (read by the mcap reader, not ours).
+    bag = s['bag']
+    assert os.path.dirname(bag) == str(tmp_path)
+    assert re.fullmatch(r'\d{8}T\d{6}Z_paper', os.path.basename(bag))
+    counts = _count_bag_messages(bag)
+    published = s['messages']['published']
+    assert counts['/erva/state'] == published['state'] == 101
+    assert counts['/erva/damping_cmd'] == published['damping_cmd']
+    assert counts['/erva/road/preview'] == published['road/preview'] == 101
+
+
+def test_killed_nmpc_plant_holds_plan_then_passive_and_run_fails(tmp_path):
+    proc = _start('--duration', 3, '--no-record', '--json')
+    try:
+        pids = _wait_connected(proc)
+        time.sleep(1.2)
+        os.kill(pids['nmpc_node'], signal.SIGKILL)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 1, err
+    s = json.loads(out)
+    assert any(e.startswith('nmpc_node died (exit status -9)') for e in s['errors']), s['errors']
+    assert 'nmpc_node died' in err and 'the run goes on without it' in err
+    plant = s['plant']
+    # The run went on to the end: the plant used the last plan (N - 1 = 9 samples),
+    # then passive damping for the rest of the 150 steps, and reported both.
+    assert plant['steps'] == 150
+    assert plant['u_from_plan'] == 9
+    assert plant['u_from_passive'] >= 150 - plant['u_from_command'] - 9 - 1
+    assert s['nodes']['plant_sim_node']['stopped_cleanly']
+    assert s['nodes']['nmpc_node']['died']
+    assert all(_gone(p) for p in pids.values())
+
+
+@pytest.mark.parametrize('sig, code', [(signal.SIGINT, 130), (signal.SIGTERM, 143),
+                                       (signal.SIGKILL, -9)])
+def test_signals_stop_every_process(sig, code):
+    proc = _start('--duration', 60, '--no-record')
+    try:
+        pids = _wait_connected(proc)
+        assert set(pids) == {'nmpc_node', 'plant_sim_node', 'road_preview_node'}
+        time.sleep(0.5)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=60)
+        assert proc.returncode == code, err
+        if sig != signal.SIGKILL:
+            assert f'interrupted by {signal.Signals(sig).name}' in out
+            assert 'comfort' in out                     # the summary of what ran
+        # No stray process: each node (and its process group) is gone; after SIGKILL of
+        # erva run the kernel's parent-death signal stops the nodes.
+        end = time.monotonic() + 15
+        while time.monotonic() < end and not all(_gone(p) for p in pids.values()):
+            time.sleep(0.1)
+        assert all(_gone(p) for p in pids.values()), pids
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
