@@ -129,6 +129,7 @@ def paper_noise(times: np.ndarray, rms_m: float, cutoff_hz: float,
     impulse[0] = 1.0
     gain = math.sqrt(float(np.sum(lfilter2(b, a, impulse) ** 2)))
     white = rng.standard_normal(times.size) * (rms_m / gain)
+    white[0] = 0.0   # filter at rest and w(0) = 0
     return lfilter2(b, a, white)
 
 

@@ -55,7 +55,7 @@ def _drain(bus, codec, kinds=(Kind.COMMAND,)):
 
 def _bridge(codec, spec, **cfg):
     core = BridgeCore(codec, HW, BridgeConfig(c_e_safe=C_E0, **cfg), lambda: open_bus(spec))
-    assert core.open()
+    assert core.open(now=-10.0)          # tests with explicit times start at 0
     return core
 
 
@@ -314,13 +314,15 @@ def test_bus_loss_is_reported_and_retried_without_crashing(codec):
         assert diag.level == ERROR and 'bus lost' in diag.message
         bridge.tick(now=0.02)                                # retry at once: fails
         bridge.tick(now=0.1)                                 # not yet: bus_retry_s
-        bridge.tick(now=0.6)                                 # second attempt: fails
+        bridge.tick(now=0.53)                                # second attempt: fails
         assert (c['bus_open_attempts'], c['bus_open_failures']) == (3, 2)
         assert 'cannot open bus' in bridge.diagnostics(now=0.6)[1].message
         assert bridge.submit([12000.0], now=0.7) == 'not_sent'
         assert c['frames_not_sent'] >= 2
         blocker.close()
         blocker = None
+        bridge.tick(now=0.9)                                 # not yet
+        assert not bridge.bus_up
         bridge.tick(now=1.2)                                 # the interface is back
         assert bridge.bus_up and c['reconnects'] == 1
         assert bridge.diagnostics(now=1.2)[1].level == OK
@@ -334,6 +336,26 @@ def test_bus_loss_is_reported_and_retried_without_crashing(codec):
     finally:
         if blocker is not None:
             blocker.close()
+        bridge.close()
+        ecu_bus.shutdown()
+
+
+def test_a_full_transmit_queue_drops_the_frame_but_keeps_the_bus(codec, channel):
+    # The ECU side stops reading and its receive queue (1 frame) stays full: python-can's
+    # virtual bus then fails the send after the timeout, like ENOBUFS on SocketCAN.
+    ecu_bus = can.Bus(interface='virtual', channel=channel.split(':', 1)[1], rx_queue_size=1)
+    bridge = _bridge(codec, channel)
+    try:
+        assert bridge.submit([12000.0], now=0.0) == 'sent'
+        assert bridge.submit([12500.0], now=0.02) == 'not_sent'
+        c = bridge.counts
+        assert (c['send_errors'], c['bus_losses']) == (1, 0) and bridge.bus_up
+        assert 'frame dropped' in bridge.diagnostics(now=0.02)[1].values['error']
+        assert ecu_bus.recv(0.1) is not None                 # the ECU reads again
+        assert bridge.submit([13000.0], now=0.04) == 'sent'
+        frames, _ = _drain(ecu_bus, codec)
+        assert [round(p.c_e) for _, _, p in frames] == [13000]
+    finally:
         bridge.close()
         ecu_bus.shutdown()
 

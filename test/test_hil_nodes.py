@@ -208,6 +208,19 @@ def test_bad_parameters_stop_the_node_with_one_line(name, arg, message):
     assert len(lines) == 1 and message in lines[0], proc.stderr
 
 
+def test_hil_yaml_sections_apply_in_a_namespace(tmp_path, erva):
+    # config/hil.yaml's /**/<node> sections reach a node started with -r __ns:=/erva
+    # (a bare 'ecu_bridge_node:' key would be silently ignored there).
+    text = open(os.path.join(REPO, 'config', 'hil.yaml')).read()
+    bad = tmp_path / 'hil.yaml'
+    bad.write_text(text.replace('duty_max: 0.95 ', 'duty_max: 1.5 '))
+    proc = _node('ecu_bridge_node', '-r', '__ns:=/erva', '--params-file', str(bad))
+    assert proc.returncode == 2 and "'duty_max' = 1.5 is out of range" in proc.stderr
+    sim = erva('ecu-sim', '--bus', 'udp:40001:40002', '--hil-config', str(bad))
+    assert sim.returncode == 2
+    assert len(sim.stderr.strip().splitlines()) == 1 and "'duty_max' = 1.5" in sim.stderr
+
+
 def test_bridge_survives_an_unopenable_bus_and_stops_cleanly():
     env = ros_env()
     p = subprocess.Popen([sys.executable, '-m', 'erva_ros.nodes.ecu_bridge_node', '--ros-args',
@@ -232,6 +245,9 @@ def test_ecu_sim_cli(erva):
     assert bad.stderr.strip().splitlines() == [
         "erva ecu-sim: error: bus 'can0': expected socketcan:IFACE, virtual:NAME or "
         'udp:LOCAL_PORT:PEER_PORT']
+    nobus = erva('ecu-sim', '--bus', 'socketcan:erva_no_such_if', timeout=60)
+    assert nobus.returncode == 2 and len(nobus.stderr.strip().splitlines()) == 1
+    assert 'cannot open bus' in nobus.stderr
     a, b = free_udp_ports(2)
     run = erva('ecu-sim', '--bus', f'udp:{a}:{b}', '--road', 'sine', '--duration', '0.5',
                '--json', timeout=60)

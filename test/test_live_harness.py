@@ -125,8 +125,8 @@ class Harness:
         for k in range(k0, k1):
             due = start_ns + k * TS_NS
             while time.time_ns() < due:
-                self.executor.spin_once(timeout_sec=max(0.0, min(0.002,
-                                                                (due - time.time_ns()) * 1e-9)))
+                wait = min(0.002, (due - time.time_ns()) * 1e-9)
+                self.executor.spin_once(timeout_sec=max(0.0, wait))
             on_tick(k, due)
         return start_ns + k1 * TS_NS
 

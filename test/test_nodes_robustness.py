@@ -5,14 +5,18 @@
   passive command and an ERROR diagnostic; it recovers when states return.
 * plant_sim_node: bad commands and road heights are rejected the same way; when the
   commands stop it applies the last plan, then passive c_e0, and says so on /diagnostics.
+* road_preview_node (lock-step): /clock ticks off the Ts grid or going back are rejected.
 """
 
 import math
 import re
 
+from geometry_msgs.msg import PointStamped
 import numpy as np
 import pytest
+from rosgraph_msgs.msg import Clock
 
+from erva_ros import topics
 from erva_ros.live import msgs
 from erva_ros.live.diagnostics import ERROR, OK, WARN
 
@@ -111,9 +115,13 @@ def test_nmpc_rejects_bad_inputs_times_out_to_passive_and_recovers(tmp_path):
 
     # Phase C: no state from k = 50 on -> passive command (not for any sample) + ERROR.
     last_good_c = start + 49 * TS_NS
-    safe = [c for c in h.commands if c[0] not in set(good)]
+    # (After the last tick, k = 100, the node times out again: not part of phase C.)
+    safe = [c for c in h.commands if c[0] not in set(good) and c[0] < start + 100 * TS_NS]
     assert safe, 'no safe command published'
     assert all(np.all(c[2] == C_E0) for c in safe)
+    # Stamped with the sample they stand in for, so the next real command supersedes them.
+    assert all((c[0] - start) % TS_NS == 0 and 52 <= (c[0] - start) // TS_NS < 72
+               for c in safe), [(c[0] - start) / TS_NS for c in safe]
     first_safe_rx = min(c[1] for c in safe)
     silence = (first_safe_rx - last_good_c) * 1e-9
     assert 0.06 <= silence <= 0.06 + 0.06, f'passive command after {silence * 1e3:.0f} ms'
@@ -200,3 +208,32 @@ def test_plant_rejects_bad_inputs_then_holds_the_plan_then_goes_passive(tmp_path
     assert warn < err
     assert any(lvl == OK for lvl, _ in events[err + 1:])
     assert int(values['u_from_plan']) == 9
+
+
+def test_road_node_in_lockstep_answers_each_clock_tick_and_rejects_bad_ones(tmp_path):
+    ns = '/erva_t_road'
+    proc = start_node('road_preview_node', ns, str(tmp_path / 'road.log'), 'mode:=lockstep',
+                      'use_sim_time:=true', 'duration_s:=1.0', 'seed:=2')
+    h = Harness(ns)
+    heights = []
+    sub = h.node.create_subscription(
+        PointStamped, topics.ROAD_HEIGHT,
+        lambda m: heights.append((msgs.time_to_ns(m.header.stamp), m.point.z)),
+        topics.control_qos())
+    pub_clock = h.node.create_publisher(Clock, topics.CLOCK, topics.control_qos())
+    try:
+        h.wait_matched([pub_clock], [sub])
+        for ns_ in (0, TS_NS // 2, 0, TS_NS, 3 * TS_NS, 2 * TS_NS):
+            pub_clock.publish(msgs.clock_msg(ns_))
+            h.spin_for(0.05)
+        h.spin_until(lambda: len(heights) >= 3, 5.0)
+        h.spin_for(1.2)
+        rc = stop_node(proc)
+    finally:
+        h.close()
+        if proc.poll() is None:
+            stop_node(proc)
+    assert rc == 0
+    # Off the grid (Ts/2), repeated (0) and going back (2·Ts after 3·Ts): rejected.
+    assert [s for s, _ in heights] == [0, TS_NS, 3 * TS_NS]
+    assert int(h.last_diag('road_preview_node')['rejected_clock']) == 3

@@ -63,14 +63,21 @@ def test_erva_run_realtime_records_and_summarises(tmp_path):
     s = json.loads(out)
     assert s['ok'] and not s['errors']
     assert s['scenario']['controller'] == 'preview' and s['scenario']['mode'] == 'realtime'
-    assert s['metrics']['samples'] == 100 and s['metrics']['acc_2norm'] > 0, json.dumps(s)
+    assert s['metrics']['samples'] == 100 and s['metrics']['acc_2norm'] > 0
     assert s['metrics']['power_w'] > 0
     cmd = s['commands']
-    assert cmd['for_samples'] == 101                 # one command per state, t_0..t_100
-    assert abs(cmd['rate_hz'] - 50.0) < 1.0
-    for key in ('period_jitter_ms', 'state_to_command_ms', 'sample_to_command_ms'):
-        assert cmd[key]['samples'] >= 100 and cmd[key]['p50'] >= 0
-    assert s['nmpc']['solve_ms']['samples'] == 101
+    # One command per state, t_0..t_100, except where a loaded machine made the NMPC
+    # skip to the newest state (counted as missed samples).
+    assert cmd['for_samples'] + s['nmpc']['missed_samples'] == 101
+    assert cmd['for_samples'] >= 95
+    assert abs(cmd['rate_hz'] - 50.0) < 2.5
+    # Timing figures are there (their values depend on the machine's load: erva bench).
+    assert cmd['sample_to_command_ms']['samples'] == cmd['for_samples']
+    for key in ('period_jitter_ms', 'state_to_command_ms'):
+        assert cmd[key]['samples'] > 0 and cmd[key]['p50'] >= 0
+    plant = s['plant']
+    assert plant['u_from_command'] + plant['u_from_plan'] + plant['u_from_passive'] == 100
+    assert s['nmpc']['solve_ms']['samples'] == cmd['for_samples']
     assert s['messages']['dropped_total'] == 0
     assert all(n['stopped_cleanly'] for n in s['nodes'].values()), s['nodes']
     # The bag holds what the nodes published (read by the mcap reader, not ours).
@@ -99,11 +106,15 @@ def test_killed_nmpc_plant_holds_plan_then_passive_and_run_fails(tmp_path):
     assert any(e.startswith('nmpc_node died (exit status -9)') for e in s['errors']), s['errors']
     assert 'nmpc_node died' in err and 'the run goes on without it' in err
     plant = s['plant']
-    # The run went on to the end: the plant used the last plan (N - 1 = 9 samples),
-    # then passive damping for the rest of the 150 steps, and reported both.
+    # The run went on to the end: after the kill the plant used the last plan (N - 1 =
+    # 9 samples), then passive damping for the rest of the 150 steps, and reported both.
     assert plant['steps'] == 150
-    assert plant['u_from_plan'] == 9
-    assert plant['u_from_passive'] >= 150 - plant['u_from_command'] - 9 - 1
+    assert plant['u_from_plan'] >= 9
+    assert plant['u_from_passive'] >= 150 - plant['u_from_command'] - plant['u_from_plan']
+    assert plant['u_from_passive'] >= 150 - 1.2 / 0.02 - 30
+    events = [(e['level'], e['message']) for e in s['events'] if e['node'] == 'plant_sim_node']
+    last_plan = max(i for i, (lvl, m) in enumerate(events) if lvl == 'WARN' and 'plan' in m)
+    assert events[last_plan + 1] == ('ERROR', 'no command and plan used up: passive damping c_e0')
     assert s['nodes']['plant_sim_node']['stopped_cleanly']
     assert s['nodes']['nmpc_node']['died']
     assert all(_gone(p) for p in pids.values())
@@ -116,7 +127,7 @@ def test_signals_stop_every_process(sig, code):
     try:
         pids = _wait_connected(proc)
         assert set(pids) == {'nmpc_node', 'plant_sim_node', 'road_preview_node'}
-        time.sleep(0.5)
+        time.sleep(1.5)
         proc.send_signal(sig)
         out, err = proc.communicate(timeout=60)
         assert proc.returncode == code, err

@@ -10,9 +10,15 @@ Layout (do-mpc-like separation; no ROS needed except where noted):
 * :mod:`~erva_ros.bag.reader`   -- reading, ``erva bag info``;
 * :mod:`~erva_ros.bag.repair`   -- recovering a bag whose recorder was killed;
 * :mod:`~erva_ros.bag.session`  -- bag directory names and session metadata for ``erva run``;
-* :mod:`~erva_ros.bag.report`   -- comfort, power and timing figures from a bag alone;
-* :mod:`~erva_ros.bag.replay`   -- publishing a bag with its original timing (rclpy);
-* :mod:`~erva_ros.bag.offline`  -- writing an offline closed-loop run as a session bag.
+* :mod:`~erva_ros.bag.report`   -- comfort, power and timing figures from a bag alone
+  (figures in :mod:`~erva_ros.bag.report_plots`);
+* :mod:`~erva_ros.bag.replay`   -- publishing a bag with its original timing (rclpy), and
+  what-if runs of another controller on a recorded road;
+* :mod:`~erva_ros.bag.reevaluate` -- feeding recorded states and previews to a fresh
+  controller (determinism check);
+* :mod:`~erva_ros.bag.offline`  -- writing an offline closed-loop run as a session bag;
+* :mod:`~erva_ros.bag.traffic`, :mod:`~erva_ros.bag.bench` -- synthetic contract traffic
+  and the recorder benchmark (``erva bag bench``).
 
 The recorder node itself is :mod:`erva_ros.nodes.recorder_node`.
 """

@@ -65,11 +65,16 @@ def _last_json(text: str) -> Dict:
     raise BagError('benchmark helper printed no result')
 
 
+#: Extra recorder parameters of every benchmark run (e.g. ['nice:=0']).
+RECORDER_PARAMS: List[str] = []
+
+
 def start_recorder(bag_dir: str, topics: Optional[List[str]] = None) -> subprocess.Popen:
     """Start recorder_node on ``bag_dir``; return its process once it is recording."""
     from erva_ros.bag.session import recorder_ros_args
+    extra = [arg for p in RECORDER_PARAMS for arg in ('-p', p)]
     proc = _spawn(['erva_ros.nodes.recorder_node',
-                   *recorder_ros_args(bag_dir, {'scenario': 'bench'}, topics=topics)])
+                   *recorder_ros_args(bag_dir, {'scenario': 'bench'}, topics=topics), *extra])
     end = time.monotonic() + 20
     while time.monotonic() < end and not os.path.exists(bag_dir):
         if proc.poll() is not None:

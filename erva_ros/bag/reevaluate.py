@@ -69,8 +69,6 @@ def reevaluate(data: SessionData, controller, max_commands: Optional[int] = None
     return out
 
 
-
-
 def controller_from_session(bag, controller: Optional[str] = None):
     """Return (ERVA params, controller settings) stored in ``bag``'s session metadata.
 

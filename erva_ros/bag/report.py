@@ -8,6 +8,10 @@ time axis is the header stamp t_k of each message, relative to the first state.
 * Power: P(t_k) = effort·velocity on ``generator`` (W).  The average harvested power
   is E_h / T with E_h the plant's own integrated energy when its /diagnostics carry
   it (``harvested_j``; exact), else Σ P(t_k)·Ts (a rectangle rule on the samples).
+  The samples can overstate the energy badly when the command switches: right after
+  a switch to high damping P(t_k) is large, but the generator velocity then decays
+  within milliseconds (fastest eigenvalue −250 to −1300 1/s, NOTES.md), long before
+  the next sample.
 * Timing (realtime sessions): the command period and its jitter |Δ − Ts| from the
   damping_cmd publish times (the publisher's clock) and log times (the recorder's);
   the state → command latency as command publish/log time minus the stamp of the

@@ -12,6 +12,13 @@ def _t(series, t0_ns: int) -> np.ndarray:
     return (series.stamp_ns - t0_ns) * 1e-9
 
 
+def _is_number(text) -> bool:
+    try:
+        return np.isfinite(float(text))
+    except (TypeError, ValueError):
+        return False
+
+
 def _save(fig, path: str) -> str:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -51,15 +58,24 @@ def write_all(data, out_dir: str, timing: bool = True) -> List[str]:
     paths.append(_save(fig, os.path.join(out_dir, 'damping_cmd.png')))
 
     fig, ax = plt.subplots(figsize=(8, 3.2))
+    energy = [((d['log_ns'] - t0) * 1e-9, float(d['values']['harvested_j']))
+              for d in data.diagnostics if _is_number(d['values'].get('harvested_j'))]
     if data.generator.n:
         t = _t(data.generator, t0)
         p = data.generator.values[:, 1] * data.generator.values[:, 2]
-        ax.plot(t, p, lw=1, label='P = effort·velocity')
-        dt = np.median(np.diff(t)) if t.size > 1 else 0.0
+        ax.plot(t, p, lw=1, label='P(t_k) = effort·velocity')
         ax2 = ax.twinx()
-        ax2.plot(t, np.cumsum(p) * dt, color='tab:green', lw=1, label='Σ P·Ts')
+        energy = [(te, e) for te, e in energy if t[0] - 0.1 <= te <= t[-1] + 1.0]
+        if energy:
+            te, e = zip(*energy)
+            ax2.plot(te, e, color='tab:green', marker='o', ms=3, lw=1.2,
+                     label='harvested energy (plant, exact)')
+        dt = np.median(np.diff(t)) if t.size > 1 else 0.0
+        ax2.plot(t, np.cumsum(p) * dt, color='tab:green', ls=':', lw=1,
+                 label='Σ P(t_k)·Ts (samples only)')
         ax2.set_ylabel('harvested energy (J)', color='tab:green')
-        ax.legend(loc='upper left')
+        ax2.legend(loc='lower right', fontsize=8)
+        ax.legend(loc='upper left', fontsize=8)
     else:
         _empty(ax, 'generator')
     ax.set(xlabel='time (s)', ylabel='harvested power (W)', title=f'{title}: harvested power')

@@ -58,6 +58,8 @@ def add_arguments(parser):
     p.add_argument('--flood-rates', default='1000,0', metavar='HZ[,HZ...]',
                    help='single-topic flood rates in msg/s, 0 = as fast as possible '
                         '(default 1000,0)')
+    p.add_argument('--recorder-nice', type=int, default=None, metavar='N',
+                   help='recorder CPU niceness 0..19 (default: the node\'s, 10)')
     p.add_argument('--flood-duration', type=positive_float, default=4.0, metavar='S',
                    help='seconds of each throughput run (default 4)')
     add_json_option(p)
@@ -124,6 +126,7 @@ def _bench(args) -> int:
     import sys
 
     from erva_ros.bag import bench
+
     def rates(text, option, zero_ok):
         try:
             values = [float(x) for x in text.split(',') if x.strip()]
@@ -133,6 +136,10 @@ def _bench(args) -> int:
             raise CLIError(f'{option} must be ' + ('>= 0 (0 = as fast as possible)'
                                                    if zero_ok else 'positive'))
         return values
+    if args.recorder_nice is not None:
+        if not 0 <= args.recorder_nice <= 19:
+            raise CLIError(f'--recorder-nice {args.recorder_nice} is outside 0..19')
+        bench.RECORDER_PARAMS.append(f'nice:={args.recorder_nice}')
     result = bench.run(args.window, args.pairs, rates(args.flood_rates, '--flood-rates', True),
                        args.flood_duration,
                        rates(args.contract_rates, '--contract-rates', False),

@@ -1,5 +1,9 @@
 """``erva bench-hil``: latency of the HIL bridge and estimator; the estimator in closed loop."""
 
+import contextlib
+import os
+import sys
+
 from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
                                        positive_int, print_json, Progress)
 from erva_ros.errors import CLIError
@@ -26,7 +30,9 @@ counted.  Also prints the estimation error RMS against the ECU's ground truth.
 --estimator-eval: offline (no ROS) closed loop of each controller of
 --controllers with the full true state and with the EKF's estimate from the ECU's
 noisy, quantised sensors, over --seeds paper roads; prints comfort and power of
-both and their relative change (erva_ros/hil/evaluation.py)."""
+both and their relative change (erva_ros/hil/evaluation.py).  A third run, the
+true state plus 0.01 mm / 0.1 mm/s noise ("perturbed"), shows how sensitive the
+controller itself is to any state error."""
 
 
 def add_arguments(parser):
@@ -44,8 +50,8 @@ def add_arguments(parser):
                         help='--estimator-eval: comma-separated controllers '
                              '(passive, skyhook, no_preview, preview, preview_long)')
     parser.add_argument('--weights', default='1,0;0,1',
-                        help='--estimator-eval: NMPC weight pairs "a1,a2;a1,a2" (default '
-                             '"1,0;0,1")')
+                        help='--estimator-eval: weight pairs "a1,a2;a1,a2" of the NMPC '
+                             'controllers (default "1,0;0,1")')
     parser.add_argument('--seeds', type=positive_int, default=3,
                         help='--estimator-eval: paper-road seeds 0..n-1 (default 3)')
     parser.add_argument('--eval-duration', type=positive_float, default=4.0, metavar='S',
@@ -64,7 +70,34 @@ def _weights(text):
     return out
 
 
+@contextlib.contextmanager
+def _c_stdout_to_stderr(enabled: bool):
+    """Send what C libraries print on fd 1 (solver banners) to stderr, keeping --json clean."""
+    if not enabled:
+        yield
+        return
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)
+    try:
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
 def _estimator_eval(args):
+    with _c_stdout_to_stderr(args.json):
+        result = _evaluate(args)
+    if args.json:
+        print_json(result)
+        return 0
+    _print_eval(args, result)
+    return 0
+
+
+def _evaluate(args):
     import numpy as np
 
     from erva_ros.controllers import ControllerSettings, make_controller
@@ -124,11 +157,12 @@ def _estimator_eval(args):
         row['state_rms'] = {k: float(np.mean([r['state_rms'][k] for r in per_seed]))
                             for k in per_seed[0]['state_rms']}
         rows.append(row)
-    result = {'mode': 'estimator_eval', 'duration_s': args.eval_duration,
-              'noise': noise.as_dict(), 'rows': rows}
-    if args.json:
-        print_json(result)
-        return 0
+    return {'mode': 'estimator_eval', 'duration_s': args.eval_duration,
+            'noise': noise.as_dict(), 'rows': rows}
+
+
+def _print_eval(args, result):
+    rows = result['rows']
     print(f'estimator closed loop, paper road, {args.eval_duration:g} s, seeds 0..'
           f'{args.seeds - 1}: mean (worst seed); "perturbed" = true state + 0.01 mm / '
           '0.1 mm/s noise, the controller\'s own sensitivity')
@@ -139,24 +173,24 @@ def _estimator_eval(args):
                                    if r['weights'] else '')
         f, e = r['full'], r['estimated']
 
-        def pct(key, m):
+        def pct(key, m, r=r):
             return f'{r[key][m]:+6.1f} ({r[key + "_worst"][m]:+6.1f})'
         print(f'{label:<18} {f["acc_2norm"]:>7.3f} / {e["acc_2norm"]:<10.3f} '
-              f'{pct("change_pct", "acc_2norm"):<17} {pct("perturbed_change_pct", "acc_2norm"):<17} '
+              f'{pct("change_pct", "acc_2norm"):<17} '
+              f'{pct("perturbed_change_pct", "acc_2norm"):<17} '
               f'{f["power_w"]:>7.4f} / {e["power_w"]:<10.4f} {pct("change_pct", "power_w"):<17} '
               f'{pct("perturbed_change_pct", "power_w")}')
     rel = {k: rows[0]['estimation_rms'][k] / rows[0]['state_rms'][k]
            for k in rows[0]['state_rms'] if rows[0]['state_rms'][k] > 0}
     print('estimation error RMS / state RMS (' + rows[0]['controller'] + '): '
           + ', '.join(f'{k} {v:.3f}' for k, v in rel.items()))
-    return 0
 
 
 def main(args) -> int:
+    if args.seed < 0:
+        raise CLIError(f'--seed must be >= 0, got {args.seed}')
     if args.estimator_eval:
         return _estimator_eval(args)
-    import sys
-
     from erva_ros.hil.bench import run_live_bench
     from erva_ros.params import default_params_file, load_erva_params
 

@@ -93,6 +93,8 @@ def main(args) -> int:
 
     if not (math.isfinite(args.duration) and args.duration >= 0):
         raise CLIError(f'--duration must be >= 0, got {args.duration}')
+    if args.seed < 0:
+        raise CLIError(f'--seed must be >= 0, got {args.seed}')
     try:
         parse_spec(args.bus)
     except ValueError as exc:
@@ -136,6 +138,8 @@ def main(args) -> int:
                               args.model)
         except ValueError as exc:
             raise CLIError(str(exc)) from None
+        if not core.open():                 # later losses are retried; a wrong bus is not
+            raise CLIError(f'{args.bus}: {core.bus_error}')
         samples = []
         on_cycle = samples.append if ros is None else (
             lambda s: (samples.append(s), ros.publish(core, s)))

@@ -57,10 +57,13 @@ def add_arguments(parser):
     what.add_argument('--drive-plant', action='store_true',
                       help='run a fresh closed loop on the recorded road instead of playing')
     what.add_argument('--controller', default=None,
-                      help='controller of the what-if run (passive, skyhook, no_preview, '
-                           'preview, preview_long; default from the settings)')
-    what.add_argument('--alpha1', type=float, default=None, help='comfort weight alpha1')
-    what.add_argument('--alpha2', type=float, default=None, help='energy weight alpha2')
+                      help='controller of the what-if run or the re-evaluation (passive, '
+                           'skyhook, no_preview, preview, preview_long; default: from '
+                           '--settings, resp. the session)')
+    what.add_argument('--alpha1', type=float, default=None,
+                      help='comfort weight alpha1 (paper eq. (12))')
+    what.add_argument('--alpha2', type=float, default=None,
+                      help='energy weight alpha2 (paper eq. (12))')
     what.add_argument('--settings', metavar='FILE', default=None,
                       help='controller settings (default config/nmpc.yaml)')
     add_params_option(what)

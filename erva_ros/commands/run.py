@@ -1,9 +1,11 @@
 """``erva run``: the live system -- plant, road-preview and NMPC nodes over ROS 2, one scenario."""
 
+import os
 import sys
 
 from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
                                        print_json)
+from erva_ros.errors import CLIError
 
 COMMAND = 'run'
 HELP = 'run the live system (plant, road preview, NMPC nodes over ROS 2) and summarise it'
@@ -11,8 +13,8 @@ DESCRIPTION = """\
 Start plant_sim_node, road_preview_node and nmpc_node as separate processes (and the
 session recorder), wait until they are connected, run one scenario, stop them cleanly
 and print a summary: comfort (chassis-acceleration 2-norm and RMS) and power metrics,
-command rate, command period jitter, sample-to-command latency, solve-time p50/p99,
-deadline misses, fallbacks, dropped and rejected messages.
+command rate, command period jitter and state-to-command latency (measured at the
+plant), solve-time p50/p99, deadline misses, fallbacks, dropped and rejected messages.
 
 Default: the paper's scenario -- 4 s on the paper road, NMPC with preview, the
 nonlinear ERVA, real time at Ts = 0.02 s -- recorded to bags/<UTC time>_<road>/.
@@ -48,8 +50,30 @@ def _seed(text: str) -> int:
         v = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f'{text!r} is not an integer') from None
-    if not 0 <= v < 2 ** 31:
-        raise argparse.ArgumentTypeError(f'{text!r} must be in [0, 2^31)')
+    if not 0 <= v <= 1_000_000_000:
+        raise argparse.ArgumentTypeError(f'{text!r} must be in [0, 1e9]')
+    return v
+
+
+def _snr(text: str) -> float:
+    import argparse
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+    if not -40 <= v <= 200:
+        raise argparse.ArgumentTypeError(f'{text!r} must be in [-40, 200] dB')
+    return v
+
+
+def _delay(text: str) -> float:
+    import argparse
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+    if not 0 <= v <= 10:
+        raise argparse.ArgumentTypeError(f'{text!r} must be in [0, 10] s')
     return v
 
 
@@ -63,6 +87,8 @@ def add_scenario_arguments(parser, duration_default: str = 'config/live.yaml: 4 
                         help='energy weight alpha2 (paper eq. (12); default nmpc.yaml: 0)')
     parser.add_argument('--road', choices=ROADS, default=None,
                         help='road profile (default: config/live.yaml, paper)')
+    parser.add_argument('--road-file', metavar='CSV', default=None,
+                        help='a recorded road: CSV rows "time_s, height_m" (overrides --road)')
     parser.add_argument('--seed', type=_seed, default=None,
                         help='road noise and preview error seed (default: live.yaml, 0)')
     parser.add_argument('--mode', choices=MODES, default=None,
@@ -73,6 +99,11 @@ def add_scenario_arguments(parser, duration_default: str = 'config/live.yaml: 4 
                              'benchmark (linear, eq. (15)) (default: erva)')
     parser.add_argument('--duration', type=positive_float, default=None, metavar='S',
                         help=f'scenario length in seconds (default: {duration_default})')
+    parser.add_argument('--preview-snr', type=_snr, default=None, metavar='DB',
+                        help='add Gaussian noise at this SNR to the road preview, as '
+                             '`erva sim --preview-snr` (default: perfect preview)')
+    parser.add_argument('--preview-delay', type=_delay, default=None, metavar='S',
+                        help='the road preview is this old (s, default 0)')
     add_params_option(parser)
     parser.add_argument('--nmpc', metavar='FILE', default=None,
                         help='controller settings params file (default: config/nmpc.yaml)')
@@ -91,17 +122,40 @@ def add_arguments(parser):
     rec.add_argument('--no-record', action='store_true', help='do not record the session')
     parser.add_argument('--ecu', choices=('none', 'virtual'), default='none',
                         help='none: the plant simulator closes the loop; virtual: through the '
-                             'CAN bridge and a simulated ECU (hardware-in-the-loop)')
+                             'CAN bridge and a simulated ECU (hardware-in-the-loop; not '
+                             'available in `erva run` yet)')
     add_json_option(parser)
 
 
 def run_config(args, record_dir=None):
     """Return the RunConfig of parsed scenario options."""
     from erva_ros.live.orchestrator import RunConfig
+    live = {}
+    if args.preview_snr is not None:
+        live.update(preview_noise=True, preview_snr_db=args.preview_snr)
+    if args.preview_delay is not None:
+        live['preview_delay_s'] = args.preview_delay
+    if args.road_file is not None:
+        live['road_file'] = os.path.abspath(args.road_file)
     return RunConfig(controller=args.controller, alpha1=args.alpha1, alpha2=args.alpha2,
                      road=args.road, seed=args.seed, mode=args.mode, model=args.model,
                      duration_s=args.duration, params_file=args.params, nmpc_file=args.nmpc,
-                     live_file=args.live, record_dir=record_dir, namespace=args.namespace)
+                     live_file=args.live, record_dir=record_dir, namespace=args.namespace,
+                     live_overrides=live)
+
+
+def _check_namespace(namespace: str) -> str:
+    """Return the namespace made absolute, or raise CLIError if ROS would refuse it."""
+    from rclpy.exceptions import InvalidNamespaceException
+    from rclpy.validate_namespace import validate_namespace
+    absolute = namespace if namespace.startswith('/') else '/' + namespace
+    try:
+        validate_namespace(absolute)
+    except InvalidNamespaceException as exc:
+        reason = str(exc).splitlines()[0].rstrip(':')
+        raise CLIError(f'--namespace {namespace!r} is not a valid ROS namespace ({reason})'
+                       ) from None
+    return absolute
 
 
 def main(args) -> int:
@@ -109,6 +163,7 @@ def main(args) -> int:
     from erva_ros.live.report import format_summary, jsonable
 
     ensure_ecu_available(args.ecu)
+    args.namespace = _check_namespace(args.namespace)
     cfg = run_config(args, None if args.no_record else args.record)
     result = run_session(cfg, log=lambda line: print(f'erva run: {line}', file=sys.stderr,
                                                      flush=True))

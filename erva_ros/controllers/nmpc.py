@@ -1,4 +1,4 @@
-"""Nonlinear MPC of the ERVA damping (paper §III.A, eqs. (12)-(14)), on the shared CasADi model.
+r"""Nonlinear MPC of the ERVA damping (paper §III.A, eqs. (12)-(14)), on the shared CasADi model.
 
 Optimal control problem solved at every sample t_k (paper eq. (14)):
 
@@ -17,7 +17,7 @@ preview samples, as in the plant.
 Stage cost ℓ_k, setting ``cost``:
 
 ``paper``  as printed after eq. (14):
-           ℓ_k = α1/Ts²·[x_a(k) − x_a(k−1)]² − α2·u_k·[x6(k) − x_{2\\4}(k)]²,
+           ℓ_k = α1/Ts²·[x_a(k) − x_a(k−1)]² − α2·u_k·[x6(k) − x_{2\4}(k)]²,
            x_a(k) = ẋ_2 at node k with u_k, x_a(−1) the acceleration of the previous
            sample.  The comfort term penalises the *change* of acceleration (a jerk-
            like term); the power is sampled at the nodes.
@@ -25,10 +25,16 @@ Stage cost ℓ_k, setting ``cost``:
            collocation quadrature: ℓ_k = (1/Ts)∫ α1·x_a² − α2·P dt.
 
 Horizon: ``preview``/``no_preview`` use N intervals of Ts (paper: N = 10, Ts = 20 ms).
-``preview_long`` appends ``long_steps`` longer intervals of ``long_step_s`` (non-uniform
-steps; u held over each = move blocking), optionally with a terminal credit for the
-stored mechanical energy (``terminal_weight``).  Paper-cost terms of a long interval
-are weighted by its length in samples.
+``preview_long`` adds a terminal value for what lies beyond the horizon: a credit of
+α2·``terminal_weight``·E_stored(x_N)/Ts for the mechanical energy stored at the end
+(default weight 0.5: part of the stored energy can still be harvested later), so the
+controller may let the absorber build up motion instead of draining it greedily, and
+uses the ``long_cost`` stage cost (default ``continuous``: the paper's node-sampled
+power rewards switching to u_max exactly at a sample, where the generator velocity
+then decays within milliseconds).  It can also append ``long_steps`` longer intervals of
+``long_step_s`` (non-uniform steps; u held over each = move blocking), off by
+default: with the real-time solver they harvested less (see README).  The terminal
+credit acts only when α2 > 0.
 
 Road: ``preview`` uses the preview w(t_k + j·Ts); ``no_preview`` the measured height
 w(t_k) held over the horizon (``road_prediction: hold``) or 0 (``zero``).
@@ -36,21 +42,27 @@ w(t_k) held over the horizon (``road_prediction: hold``) or 0 (``zero``).
 Solvers (``solver``):
 
 ``sqp``    real-time: a reduced-space SQP built once as *one* CasADi Function with
-           ``max_iter`` unrolled iterations (no Python per iteration).  Each iteration:
-           roll the plan out with the model's RK4 (a feasible point), linearise the
-           collocation NLP there (exact Lagrangian Hessian, multipliers by the adjoint),
-           condense onto the N inputs (sparse LU), solve the N-variable box QP
-           (qpOASES, dense), and take the best of the steps 1, ½, ¼, 0 by the
-           true objective -- so the cost never increases.
+           ``max_iter`` unrolled iterations (no Python per iteration).  It starts from
+           the better (by the true objective) of the warm start and a constant-c_e0
+           plan.  Each iteration: roll the plan out with the model's RK4 (a nearly
+           feasible point), linearise the collocation NLP there, condense onto the N
+           inputs (sparse LU of the constraint Jacobian), build the reduced Hessian
+           from the cost's exact Hessian (Gauss-Newton type: constraint curvature
+           left out), solve the N-variable box QP (qpOASES, dense; not convexified,
+           qpOASES returns a local solution), and keep the best of the steps 1, ½, 0
+           by the true objective -- so the cost never increases.
 ``ipopt``  converged reference on the same collocation NLP (tol 1e-8).
 
 Warm start: the previous plan shifted by one sample (last value repeated).
 Variables are scaled (u by 10 kNs/m, positions by 1 cm, velocities by 0.1 m/s).
 """
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import lru_cache
 import math
+import os
+import sys
 from typing import Tuple
 
 import casadi as ca
@@ -71,9 +83,22 @@ COLLOCATION_DEGREE = 3
 #: Longest RK4 sub-step of the rollout (s); shortened if needed for stability at u_max.
 ROLLOUT_SUBSTEP_S = 2.5e-3
 #: Step lengths tried by the real-time SQP's line search (0: keep the iterate).
-LINE_SEARCH_STEPS = (1.0, 0.5, 0.25)
-HESSIAN = 'exact'
-PROJECT = False
+LINE_SEARCH_STEPS = (1.0, 0.5)
+
+
+@contextmanager
+def _quiet_stdout():
+    """Silence file descriptor 1: qpOASES prints its licence banner on first use."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(devnull)
+        os.close(saved)
 
 
 def stable_rollout_substep(model: QuarterCarModel, u_max: float) -> float:
@@ -290,17 +315,19 @@ def build_rti(ocp: OCP, iterations: int) -> ca.Function:
     nz, nb = ocp.nz, len(ocp.blocks)
     zs = ca.SX.sym('z', nz)
     ps = ca.SX.sym('p', ocp.nlp.size1_in(1))
-    ls = ca.SX.sym('lam', ocp.nlp.size1_out(1))
     f, g = ocp.nlp(zs, ps)
     first = ca.Function('first_order', [zs, ps], [f, g, ca.gradient(f, zs), ca.jacobian(g, zs)])
-    lag = f + ca.dot(ls, g) if HESSIAN == 'exact' else f + 0 * ca.sum1(ls)
-    hess = ca.Function('lag_hessian', [zs, ps, ls], [ca.hessian(lag, zs)[0]])
+    # Gauss-Newton-type Hessian: the exact Hessian of the cost, constraint curvature
+    # left out (measured: fewer stalls and ~4x cheaper than the exact Lagrangian one).
+    hess = ca.Function('cost_hessian', [zs, ps], [ca.hessian(f, zs)[0]])
     u_idx = [int(i) for i in ocp.u_index]
     dep = [i for i in range(ocp.nxa, nz) if i not in set(u_idx)]   # x_0 is fixed
     p_u = ca.DM(ca.Sparsity.triplet(nz, nb, u_idx, list(range(nb))), 1.0)
     p_d = ca.DM(ca.Sparsity.triplet(nz, len(dep), dep, list(range(len(dep)))), 1.0)
-    qp = ca.conic('rti_qp', 'qpoases', {'h': ca.Sparsity.dense(nb, nb), 'a': ca.Sparsity(0, nb)},
-                  {'printLevel': 'none', 'error_on_fail': False})
+    with _quiet_stdout():
+        qp = ca.conic('rti_qp', 'qpoases',
+                      {'h': ca.Sparsity.dense(nb, nb), 'a': ca.Sparsity(0, nb)},
+                      {'printLevel': 'none', 'error_on_fail': False})
     lo, hi = ocp.u_min / U_SCALE, ocp.u_max / U_SCALE
 
     x0 = ca.MX.sym('x0', ocp.nx)
@@ -309,17 +336,8 @@ def build_rti(ocp: OCP, iterations: int) -> ca.Function:
     p = ca.MX.sym('p', ps.shape[0])
     w = p[:ocp.horizon + 1]
 
-    def project(zz):
-        # One Newton step on the collocation equations for the dependent variables:
-        # the line search then compares points of the NLP's own model.
-        _, gg, _, jj = first(zz, p)
-        zz = zz - ca.mtimes(p_d, ca.solve(jj[:, dep], gg, 'csparse'))
-        return zz, ocp.nlp(zz, p)[0]
-
     def objective(uu):
         zz = ocp.rollout(x0, a_prev, uu, w)
-        if PROJECT:
-            return project(zz)
         return zz, ocp.nlp(zz, p)[0]
 
     # Start from the better of the warm start and the alternative (constant c_e0):
@@ -337,12 +355,13 @@ def build_rti(ocp: OCP, iterations: int) -> ca.Function:
     for _ in range(iterations):
         fz, gz, grad, jac = first(z, p)
         jd = jac[:, dep]
-        lam = -ca.solve(jd.T, grad[dep], 'csparse')          # adjoint multipliers
         sens = -ca.solve(jd, ca.horzcat(gz, jac[:, u_idx]), 'csparse')
         zp = ca.mtimes(p_d, sens[:, 0])                        # closes the tiny defects
         zu = ca.mtimes(p_d, sens[:, 1:]) + p_u                 # dz/du on the constraints
-        h = hess(z, p, lam)
+        h = hess(z, p)
         hr = ca.mtimes([zu.T, h, zu])
+        # Not convexified: qpOASES returns a local solution of the (bounded) QP and
+        # the line search below only accepts a decrease of the true objective.
         hr = 0.5 * (hr + hr.T) + 1e-9 * ca.MX.eye(nb)
         gr = ca.mtimes(zu.T, grad + ca.mtimes(h, zp))
         du = qp(h=hr, g=gr, lbx=lo - u, ubx=hi - u)['x']
@@ -350,10 +369,7 @@ def build_rti(ocp: OCP, iterations: int) -> ca.Function:
         for step in LINE_SEARCH_STEPS:
             # Clipping maps NaN to a bound, so candidates are always finite inputs.
             uc = ca.fmin(ca.fmax(u + step * du, lo), hi)
-            if PROJECT:
-                zc, fc = project(z + zp + ca.mtimes(zu, uc - u))
-            else:
-                zc, fc = objective(uc)
+            zc, fc = objective(uc)
             better = fc < best_f      # False for NaN: a failed QP never moves the plan
             best_u = ca.if_else(better, uc, best_u)
             best_z = ca.if_else(better, zc, best_z)
@@ -361,8 +377,12 @@ def build_rti(ocp: OCP, iterations: int) -> ca.Function:
             gain = ca.fmax(gain, better)
         u, z, fz = best_u, best_z, best_f
         improved = improved + gain
-    return ca.Function('nmpc_rti', [x0, a_prev, u_guess, u_alt, p], [u, z, fz, improved],
-                       ['x0', 'a_prev', 'u_guess', 'u_alt', 'p'], ['u', 'z', 'f', 'improved'])
+    rti = ca.Function('nmpc_rti', [x0, a_prev, u_guess, u_alt, p], [u, z, fz, improved],
+                      ['x0', 'a_prev', 'u_guess', 'u_alt', 'p'], ['u', 'z', 'f', 'improved'])
+    with _quiet_stdout():   # first call allocates the QP memory (and prints the banner)
+        rti(np.zeros(ocp.nx), 0.0, np.full(nb, hi), np.full(nb, lo),
+            np.zeros(ps.shape[0]))
+    return rti
 
 
 def nmpc_blocks(settings: ControllerSettings, name: str) -> Tuple[int, ...]:
@@ -387,7 +407,8 @@ class NMPCController(Controller):
         self.model = get_model(params, kind)
         self.warm_start = bool(warm_start)
         self.blocks = nmpc_blocks(settings, name)
-        self.ocp = build_ocp(self.model, settings.ts, self.blocks, settings.cost,
+        self.cost = settings.long_cost if name == 'preview_long' else settings.cost
+        self.ocp = build_ocp(self.model, settings.ts, self.blocks, self.cost,
                              settings.u_min, settings.u_max,
                              settings.terminal_weight if name == 'preview_long' else 0.0,
                              settings.collocation_degree,
@@ -457,6 +478,7 @@ class NMPCController(Controller):
                 z = np.asarray(out[1]).ravel()
                 cost = float(out[2])
                 iterations = self.settings.max_iter
+                self._improved = int(out[3])
         except RuntimeError as exc:   # evaluation error inside CasADi
             self._warm = None
             raise SolveFailure(f'solver error: {str(exc).splitlines()[0]}') from None
@@ -467,7 +489,8 @@ class NMPCController(Controller):
         self._warm = plan
         self._prev_sample = (x.copy(), float(plan[0]), float(preview[0]))
         self._pending = None
-        self.last_prediction = {'x_nodes': self.ocp.nodes(z), 'cost': cost}
+        self.last_prediction = {'x_nodes': self.ocp.nodes(z), 'cost': cost,
+                                'improved_steps': getattr(self, '_improved', None)}
         return plan, iterations
 
     def _solve_ipopt(self, x, a_prev, u_guess, w, p):

@@ -12,7 +12,6 @@ stable over the whole box: it is Radau IIA collocation (L-stable), see nmpc.py.
 """
 
 from dataclasses import asdict, dataclass, fields, replace
-import math
 import os
 from typing import Any, Dict, Mapping, Optional, Tuple
 
@@ -55,6 +54,7 @@ CHOICE_SPECS: Dict[str, Tuple[Tuple[str, ...], str]] = {
     'cost': (COST_KINDS, 'NMPC stage cost: paper (discrete, eq. (14)) or continuous (eq. (12))'),
     'solver': (SOLVER_KINDS, 'NMPC solver: sqp (real-time SQP) or ipopt (converged reference)'),
     'road_prediction': (ROAD_PREDICTIONS, 'no_preview road model: hold last height or zero'),
+    'long_cost': (COST_KINDS, 'stage cost of preview_long (paper or continuous)'),
 }
 
 
@@ -71,14 +71,15 @@ class ControllerSettings:
     u_max: float = 20000.0
     cost: str = 'paper'
     solver: str = 'sqp'
-    max_iter: int = 1
+    max_iter: int = 2
     ipopt_max_iter: int = 3000
     time_budget_s: float = 0.01
     collocation_degree: int = 3
     road_prediction: str = 'hold'
-    long_steps: int = 10
+    long_steps: int = 0
     long_step_s: float = 0.06
-    terminal_weight: float = 0.0
+    terminal_weight: float = 0.5
+    long_cost: str = 'continuous'
 
     @property
     def weights(self) -> Tuple[float, float]:
@@ -138,7 +139,8 @@ def validate_settings(values: Mapping[str, Any], source: str = '') -> Controller
         elif key in ERVA_SPECS or key == 'use_sim_time':
             continue  # physical parameters or ROS built-ins sharing the file
         else:
-            raise ParamError(f'{where}unknown parameter {key!r}; known: {", ".join(sorted(known))}')
+            raise ParamError(f'{where}unknown parameter {key!r}; '
+                             f'known: {", ".join(sorted(known))}')
     s = replace(ControllerSettings(), **out)
     if not s.u_min < s.u_max:
         raise ParamError(f'{where}parameter \'u_max\' = {s.u_max:g} must exceed '

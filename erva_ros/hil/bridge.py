@@ -21,12 +21,15 @@ generator, in any order) share one stamp: the receive time of the cycle's first
 frame; a cycle ends when all three arrived, when a kind repeats or after Ts/2.  A
 rejected frame is dropped and counted, and so is a cycle that misses a frame.
 
-Bus loss.  Any error of ``send``/``recv`` (interface down, socket closed) closes
-the bus, is counted and reported (state ERROR), and :meth:`tick` re-opens it through
-``bus_factory`` every ``bus_retry_s`` until it works; nothing raises to the caller.
+Bus loss.  An error of ``send``/``recv`` (interface down, socket closed) closes the
+bus, is counted and reported (state ERROR), and :meth:`tick` re-opens it through
+``bus_factory``, at most once every ``bus_retry_s``, until it works; nothing raises to
+the caller.  A full transmit queue (ENOBUFS / EAGAIN: no ECU acknowledging, a busy
+bus) only drops that frame (``send_errors``): the bus is still there.
 """
 
 from dataclasses import dataclass, field
+import errno
 import math
 import threading
 import time
@@ -39,6 +42,17 @@ from erva_ros.hil.hardware import GeneratorHardware
 
 # diagnostic_msgs/DiagnosticStatus levels.
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
+
+#: Send errors that mean "queue full", not "interface gone" (SocketCAN gives ENOBUFS when
+#: no node acknowledges; python-can's virtual bus when a receiver's queue stays full).
+TRANSIENT_ERRNOS = frozenset({errno.ENOBUFS, errno.EAGAIN})
+_TRANSIENT_TEXT = ('buffer full', 'one or more recipients')
+
+
+def is_transient(exc: BaseException) -> bool:
+    """Return True if a send error leaves the bus usable (the frame alone is lost)."""
+    code = getattr(exc, 'error_code', None) or getattr(exc, 'errno', None)
+    return code in TRANSIENT_ERRNOS or any(t in str(exc).lower() for t in _TRANSIENT_TEXT)
 
 
 @dataclass(frozen=True)
@@ -89,7 +103,11 @@ COUNTER_NAMES = (
 
 
 class BridgeCore:
-    """The ECU bridge without ROS: thread-safe for one sender thread and one reader thread."""
+    """The ECU bridge without ROS.
+
+    Thread-safe for :meth:`submit` and :meth:`tick` called from two threads (they share
+    the command state under a lock) and :meth:`receive` from one of them or a third.
+    """
 
     def __init__(self, codec: EcuCodec, hardware: GeneratorHardware, config: BridgeConfig,
                  bus_factory: Callable[[], can.BusABC],
@@ -100,12 +118,13 @@ class BridgeCore:
         self.c_e_safe, _ = hardware.clamp_c_e(config.c_e_safe)
         self._factory = bus_factory
         self._clock = clock
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()           # the bus object
+        self._cmd_lock = threading.RLock()      # plan, send times, E2E sender
         self.counts: Dict[str, int] = dict.fromkeys(COUNTER_NAMES, 0)
         # bus
         self._bus: Optional[can.BusABC] = None
         self._ever_open = False
-        self._next_retry = -math.inf
+        self._last_attempt = -math.inf
         self.bus_error = ''
         # ROS → CAN
         self._tx = codec.sender(Kind.COMMAND)
@@ -140,12 +159,12 @@ class BridgeCore:
         if self._bus is not None:
             return True
         self.counts['bus_open_attempts'] += 1
+        self._last_attempt = now
         try:
             bus = self._factory()
         except Exception as exc:  # any open failure is reported and retried, never raised
             self.counts['bus_open_failures'] += 1
             self.bus_error = f'cannot open bus: {exc}'
-            self._next_retry = now + self.cfg.bus_retry_s
             return False
         with self._lock:
             self._bus = bus
@@ -162,7 +181,6 @@ class BridgeCore:
             self._bus = None
             self.counts['bus_losses'] += 1
             self.bus_error = f'bus lost: {exc}'
-            self._next_retry = -math.inf       # first retry at the next tick
         try:
             bus.shutdown()
         except Exception:  # a dead interface may fail to close; it is dropped anyway
@@ -184,8 +202,13 @@ class BridgeCore:
             bus.send(msg, timeout=self.cfg.send_timeout_s)
         except (can.CanError, OSError, ValueError) as exc:
             self.counts['send_errors'] += 1
-            self._lost(bus, exc)
+            if is_transient(exc):
+                self.bus_error = f'send failed, frame dropped: {exc}'
+            else:
+                self._lost(bus, exc)
             return False
+        if self.bus_error.startswith('send failed'):
+            self.bus_error = ''
         return True
 
     # ------------------------------------------------------------ ROS → CAN
@@ -198,7 +221,6 @@ class BridgeCore:
         clamping), 'not_sent' (bus down) or 'rejected' (empty or non-finite: ignored,
         the previous command ages on).
         """
-        now = self._clock() if now is None else now
         values = [float(v) for v in plan]
         if not values or not all(math.isfinite(v) for v in values):
             self.counts['commands_rejected'] += 1
@@ -206,14 +228,16 @@ class BridgeCore:
         if offsets is None or len(offsets) != len(values):
             offsets = [k * self.cfg.period_s for k in range(len(values))]
         clamped = [self.hw.clamp_c_e(v) for v in values]
-        self._plan = [v for v, _ in clamped]
-        self._offsets = [float(o) for o in offsets]
-        self._plan_time = now
-        self.counts['commands_received'] += 1
-        if clamped[0][1]:
-            self.counts['commands_clamped'] += 1
-        self.command_state = 'fresh'
-        sent = self._send_c_e(self._plan[0], CommandMode.CONTROLLED, now)
+        with self._cmd_lock:
+            now = self._clock() if now is None else now
+            self._plan = [v for v, _ in clamped]
+            self._offsets = [float(o) for o in offsets]
+            self._plan_time = now
+            self.counts['commands_received'] += 1
+            if clamped[0][1]:
+                self.counts['commands_clamped'] += 1
+            self.command_state = 'fresh'
+            sent = self._send_c_e(self._plan[0], CommandMode.CONTROLLED, now)
         if not sent:
             return 'not_sent'
         return 'clamped' if clamped[0][1] else 'sent'
@@ -236,8 +260,13 @@ class BridgeCore:
 
     def tick(self, now: Optional[float] = None) -> None:
         """Watchdog (call every Ts/4): re-open a lost bus, follow the plan, or send safe."""
-        now = self._clock() if now is None else now
-        if self._bus is None and now >= self._next_retry:
+        with self._cmd_lock:
+            self._tick(self._clock() if now is None else now)
+
+    def _tick(self, now: float) -> None:
+        # Re-open at most every bus_retry_s: an interface that opens but fails on send
+        # (SocketCAN on a link that is down) must not be hammered every tick.
+        if self._bus is None and now - self._last_attempt >= self.cfg.bus_retry_s:
             self.open(now)
         period = self.cfg.period_s
         since_send = now - self._last_send

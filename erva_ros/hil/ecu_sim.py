@@ -126,6 +126,10 @@ class EcuSimCore:
         self.k = 0
 
     # ------------------------------------------------------------------ bus
+    def open(self) -> bool:
+        """Open the bus now if it is not open; return True if it is up (else see bus_error)."""
+        return self._ensure_bus()
+
     def _ensure_bus(self) -> bool:
         if self.bus is not None:
             return True
@@ -208,6 +212,10 @@ class EcuSimCore:
         self.t0 = t0
         self.k = 0
         self._ensure_bus()
+        # Commands queued while the ECU waited to start (e.g. for the road) are history:
+        # keep only those still fresh at t0.
+        self._drain()
+        self._inbox = [m for m in self._inbox if m.timestamp > t0 - self.cfg.command_timeout_s]
         return self._measure_and_send(t0, self.hw.c_e_from_duty(self.duty))
 
     def run_cycle(self, send: bool = True) -> EcuSample:

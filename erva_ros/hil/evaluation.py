@@ -116,6 +116,7 @@ def evaluate_estimator(params: ERVAParams, controller, road, duration_s: float,
     names = ekf.model.state_names
     err = est.x_hat - est.x
     skip = min(len(err) // 4, int(round(0.5 / ts)))     # after the initial transient
+
     def change(run):
         return {k: 100.0 * (run.metrics[k] - full.metrics[k]) / full.metrics[k]
                 for k in ('acc_2norm', 'acc_rms', 'power_w') if full.metrics[k]}

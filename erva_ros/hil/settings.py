@@ -10,6 +10,9 @@ One table per user, the single source of allowed values for the ROS descriptors
   and its discretisation bound.
 * ``ecu_sim``: the simulated ECU's latch step and sensor noise.
 
+Sections are written ``/**/<node>`` so that they apply in any namespace (``-r
+__ns:=/erva``): rcl reads a bare ``<node>`` key as the node in the root namespace.
+
 The sample time ``ts`` and the model kind come from the ``/**`` section (as in an
 ``erva run`` session file), default 0.02 s and ``erva``.
 """
@@ -17,10 +20,12 @@ The sample time ``ts`` and the model kind come from the ``/**`` section (as in a
 import os
 from typing import Any, Dict, Optional
 
+import yaml
+
 from erva_ros.estimator import EstimatorNoise, NOISE_SPECS, validate_noise
 from erva_ros.hil.hardware import (DEFAULTS as HW_DEFAULTS, GeneratorHardware,
                                    HARDWARE_SPECS, validate_hardware)
-from erva_ros.params import check_number, ParamError, read_ros_params, Spec
+from erva_ros.params import check_number, ParamError, Spec
 
 BRIDGE_NODE = 'ecu_bridge_node'
 ESTIMATOR_NODE = 'state_estimator_node'
@@ -109,13 +114,33 @@ def check_value(key: str, value: Any, spec: Spec, source: str = '') -> Any:
 
 
 def _section(path: Optional[str], node: str) -> Dict[str, Any]:
+    """Return the ``ros__parameters`` of ``node`` in a params file ({} if it has none).
+
+    Sections are matched as rcl matches them for a node in any namespace: ``/**/node``
+    (what config/hil.yaml uses, so ``-r __ns:=/erva`` still finds them), ``/node`` or
+    ``node``; ``/**`` is not read (the HIL keys are per node).
+    """
     path = path or default_hil_file()
+    if not os.path.isfile(path):
+        raise ParamError(f'parameter file {path!r} does not exist')
     try:
-        return read_ros_params(path, node)
-    except ParamError as exc:
-        if 'no ros__parameters' in str(exc):
-            return {}
-        raise
+        with open(path, encoding='utf-8') as fh:
+            doc = yaml.safe_load(fh)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, 'problem_mark', None)
+        at = f' at line {mark.line + 1}' if mark is not None else ''
+        raise ParamError(f'{path}: not valid YAML{at}') from None
+    if not isinstance(doc, dict):
+        raise ParamError(f'{path}: expected a mapping of node names to ros__parameters')
+    out: Dict[str, Any] = {}
+    for name in (node, f'/{node}', f'**/{node}', f'/**/{node}'):
+        sec = doc.get(name)
+        if sec is None:
+            continue
+        if not isinstance(sec, dict) or not isinstance(sec.get('ros__parameters'), dict):
+            raise ParamError(f'{path}: section {name!r} must contain a ros__parameters mapping')
+        out.update(sec['ros__parameters'])
+    return out
 
 
 def _validated(values: Dict[str, Any], specs: Dict[str, Spec], defaults: Dict[str, Any],

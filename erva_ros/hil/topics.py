@@ -42,3 +42,7 @@ TOPIC_TYPES = {
     f'/erva/{ECU_DAMPING_APPLIED}': 'sensor_msgs/msg/JointState',
     f'/erva/{TRUE_STATE}': 'sensor_msgs/msg/JointState',
 }
+
+#: The HIL topics a session recorder should add to the contract's (relative names).
+RECORD_TOPICS = (ECU_DAMPING_APPLIED, ECU_SPRUNG_ACCEL, ECU_SUSPENSION, ECU_GENERATOR,
+                 TRUE_STATE)

@@ -3,16 +3,17 @@
 It subscribes to the live topics and ``/diagnostics`` exactly as any other
 subscriber would (same QoS), keeps what arrives with the wall time of arrival, and
 turns it into the run's summary: comfort and power metrics from the plant's
-samples, command rate and period jitter measured on the receiving side, the
-latency from a state's arrival to the arrival of the command computed from it
-(state-to-command) and from the sample time t_k (sample-to-command),
+samples; the command rate; the command period jitter and the state-to-command
+latency (the plant's state out -> the command for it back) as the plant measures
+them where the commands are used, and also as this monitor receives them; the
+sample-to-command latency from the sample time t_k;
 the nodes' own counters and timings from their last diagnostics, and the messages
 each node published but the monitor did not receive (dropped).
 """
 
 import math
 import time
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -22,22 +23,21 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
 from erva_ros import topics
-from erva_ros.live.diagnostics import parse_status
+from erva_ros.live.diagnostics import LEVEL_NAMES, parse_status
 from erva_ros.live.msgs import time_to_ns
 from erva_ros.metrics import comfort_power, percentiles_ms
 
-#: Fully qualified node names in the namespace.
-NODE_NAMES = ('plant_sim_node', 'road_preview_node', 'nmpc_node')
+#: Status changes kept in the summary (the first ones; a flapping node could make many).
+MAX_EVENTS = 200
 
 
 class Monitor(Node):
     """Record every message of a session with its arrival time (wall clock, ns)."""
 
     def __init__(self, namespace: str = topics.NAMESPACE, name: str = 'erva_run_monitor',
-                 context=None):
+                 context=None, gate: Sequence[str] = (topics.ROAD_HEIGHT, topics.ROAD_PREVIEW)):
         super().__init__(name, namespace=namespace, context=context,
                          start_parameter_services=False)
-        self.ns = namespace.rstrip('/')
         qos = topics.control_qos(depth=100)
         self.states: Dict[int, np.ndarray] = {}
         self.accel: Dict[int, float] = {}
@@ -52,13 +52,23 @@ class Monitor(Node):
                                         topics.DAMPING_CMD, topics.DIAGNOSTICS)}
         self.state_rx: Dict[int, int] = {}
         self.last_rx = time.monotonic()
-        self.create_subscription(JointState, topics.STATE, self._on_state, qos)
-        self.create_subscription(AccelStamped, topics.SPRUNG_ACCEL, self._on_accel, qos)
-        self.create_subscription(JointState, topics.GENERATOR, self._on_generator, qos)
-        self.create_subscription(PointStamped, topics.ROAD_HEIGHT, self._on_height, qos)
-        self.create_subscription(JointTrajectory, topics.ROAD_PREVIEW, self._on_preview, qos)
-        self.create_subscription(JointTrajectory, topics.DAMPING_CMD, self._on_command, qos)
-        self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diag, qos)
+        self._qos = qos
+        self._subs = {
+            topics.STATE: (JointState, self._on_state),
+            topics.SPRUNG_ACCEL: (AccelStamped, self._on_accel),
+            topics.GENERATOR: (JointState, self._on_generator),
+            topics.ROAD_HEIGHT: (PointStamped, self._on_height),
+            topics.ROAD_PREVIEW: (JointTrajectory, self._on_preview),
+            topics.DAMPING_CMD: (JointTrajectory, self._on_command),
+            topics.DIAGNOSTICS: (DiagnosticArray, self._on_diag),
+        }
+        # The time master starts when its topics have all their subscribers.  Subscribing
+        # to those last, once every other subscription of this monitor is matched,
+        # makes sure no message of the run is published before the monitor can get it.
+        self.gate = tuple(gate)
+        self.subscriptions_by_topic = {
+            t: self.create_subscription(cls, t, cb, qos)
+            for t, (cls, cb) in self._subs.items() if t not in self.gate}
 
     # -- callbacks ---------------------------------------------------------------------
     def _count(self, topic: str) -> None:
@@ -109,23 +119,25 @@ class Monitor(Node):
             self.diag[node] = (level, text, values, rx)
 
     # -- queries -----------------------------------------------------------------------
-    def graph_ready(self, extra_subscribers: int = 0) -> bool:
-        """Return True when every node's publishers and subscriptions are in the graph."""
-        def pubs(t):
-            return self.count_publishers(self._fq(t))
+    def connect(self, n_diagnostics: int) -> bool:
+        """Return True once every subscription is matched to a publisher (call repeatedly).
 
-        def subs(t):
-            return self.count_subscribers(self._fq(t))
+        Opens the gate topics once the others are matched; ``n_diagnostics`` is the
+        number of nodes publishing /diagnostics.
+        """
+        def matched(topic):
+            sub = self.subscriptions_by_topic.get(topic)
+            need = n_diagnostics if topic == topics.DIAGNOSTICS else 1
+            return sub is not None and sub.get_publisher_count() >= need
 
-        mine = 1 + extra_subscribers   # this monitor (+ the recorder) on every topic
-        return (pubs(topics.STATE) >= 1 and subs(topics.STATE) >= 1 + mine
-                and pubs(topics.SPRUNG_ACCEL) >= 1 and pubs(topics.GENERATOR) >= 1
-                and pubs(topics.ROAD_HEIGHT) >= 1 and subs(topics.ROAD_HEIGHT) >= 1 + mine
-                and pubs(topics.ROAD_PREVIEW) >= 1 and subs(topics.ROAD_PREVIEW) >= 1 + mine
-                and pubs(topics.DAMPING_CMD) >= 1 and subs(topics.DAMPING_CMD) >= 1 + mine)
-
-    def _fq(self, topic: str) -> str:
-        return topic if topic.startswith('/') else f'{self.ns}/{topic}'
+        others = [t for t in self._subs if t not in self.gate]
+        if not all(matched(t) for t in others):
+            return False
+        for t in self.gate:
+            if t not in self.subscriptions_by_topic:
+                cls, cb = self._subs[t]
+                self.subscriptions_by_topic[t] = self.create_subscription(cls, t, cb, self._qos)
+        return all(matched(t) for t in self.gate)
 
     def diag_values(self, node: str) -> Dict[str, str]:
         """Return the newest diagnostic values of ``node`` (empty if none arrived)."""
@@ -177,13 +189,17 @@ class Monitor(Node):
         cmd: Dict[str, Any] = {'received': len(cmds), 'for_samples': len(scheduled)}
         if realtime and len(scheduled) > 1:
             rx = np.array([c[1] for c in scheduled], dtype=float) * 1e-9
-            periods = np.diff(rx)
             cmd['rate_hz'] = float((len(rx) - 1) / (rx[-1] - rx[0]))
-            cmd['period_jitter_ms'] = percentiles_ms(np.abs(periods - ts))
-            cmd['state_to_command_ms'] = percentiles_ms(
-                [(c[1] - self.state_rx[c[0]]) * 1e-9 for c in scheduled])
+            # Measured where the commands are used: at the plant (its diagnostics).
+            cmd['period_jitter_ms'] = _stats(plant, 'cmd_jitter_ms')
+            cmd['state_to_command_ms'] = _stats(plant, 'loop_latency_ms')
             cmd['sample_to_command_ms'] = percentiles_ms(
                 [(c[1] - c[0]) * 1e-9 for c in scheduled])
+            # And as this monitor, one more subscriber, sees them.
+            cmd['monitor'] = {
+                'period_jitter_ms': percentiles_ms(np.abs(np.diff(rx) - ts)),
+                'state_to_command_ms': percentiles_ms(
+                    [(c[1] - self.state_rx[c[0]]) * 1e-9 for c in scheduled])}
         out['commands'] = cmd
         out['nmpc'] = {
             'controller': nmpc.get('controller'),
@@ -199,6 +215,8 @@ class Monitor(Node):
         out['plant'] = {k: _int(plant.get(k)) for k in (
             'steps', 'u_from_command', 'u_from_plan', 'u_from_passive', 'late_commands',
             'road_gaps', 'lockstep_timeouts', 'rejected_road_height', 'rejected_damping_cmd')}
+        out['plant'].update({k: _stats(plant, k) for k in (
+            'loop_latency_ms', 'cmd_jitter_ms', 'road_latency_ms', 'step_ms')})
         published = {
             topics.STATE: _int(plant.get('states')),
             topics.SPRUNG_ACCEL: _int(plant.get('steps')),
@@ -215,6 +233,10 @@ class Monitor(Node):
                     'road/height': _int(plant.get('rejected_road_height')),
                     'damping_cmd': _int(plant.get('rejected_damping_cmd')),
                     '/clock': _int(road.get('rejected_clock'))}
+        t0 = min(self.state_rx.values()) if self.state_rx else 0
+        out['events'] = [{'t_s': round((rx - t0) * 1e-9, 3), 'node': node,
+                          'level': LEVEL_NAMES.get(level, str(level)), 'message': text}
+                         for rx, node, level, text in self.diag_events[:MAX_EVENTS]]
         out['messages'] = {'published': published, 'received': dict(self.received),
                            'dropped': dropped,
                            'dropped_total': sum(v for v in dropped.values() if v),
@@ -241,4 +263,4 @@ def _stats(values: Dict[str, str], prefix: str) -> Dict[str, Any]:
     return out
 
 
-__all__ = ['NODE_NAMES', 'Monitor']
+__all__ = ['MAX_EVENTS', 'Monitor']

@@ -22,6 +22,7 @@
 import ctypes
 from dataclasses import dataclass, field
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -31,6 +32,7 @@ from typing import Any, Callable, Dict, List, Optional
 
 import yaml
 
+from erva_ros import topics
 from erva_ros.controllers.settings import load_controller_settings
 from erva_ros.errors import CLIError
 from erva_ros.live.parameters import (LIVE_CHOICES, LIVE_DEFAULTS, LIVE_INTEGERS,
@@ -241,7 +243,8 @@ class NodeProcess:
 
     def tail(self, lines: int = 5) -> str:
         """Return the last lines of the node's output."""
-        self._log.flush()
+        if not self._log.closed:
+            self._log.flush()
         try:
             with open(self.log_path, encoding='utf-8', errors='replace') as fh:
                 return ''.join(fh.readlines()[-lines:]).rstrip()
@@ -311,142 +314,182 @@ def recorder_available() -> bool:
                for m in ('erva_ros.bag.session', 'erva_ros.nodes.recorder_node'))
 
 
-def run_session(cfg: RunConfig, log: Callable[[str], None] = lambda s: None,
-                on_started: Optional[Callable[[Dict[str, NodeProcess]], None]] = None
-                ) -> RunResult:
+class _Supervisor:
+    """One `erva run` session: the node processes, the monitor, and the run's phases."""
+
+    #: Nodes without which the run cannot go on (lock-step also needs the controller).
+    NEEDED = {'plant_sim_node', 'road_preview_node'}
+
+    def __init__(self, cfg: RunConfig, session: Session, recording: bool, log):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
+        from erva_ros.live.monitor import Monitor
+
+        self.cfg, self.session, self.recording, self.log = cfg, session, recording, log
+        self.procs: Dict[str, NodeProcess] = {}
+        self.errors: List[str] = []
+        self.dead: set = set()
+        self.caught: List[int] = []
+        self.phase = 'starting'
+        self.t_start = time.monotonic()
+        self.needed = set(self.NEEDED) | (set() if session.realtime else {'nmpc_node'})
+        self.context = rclpy.Context()
+        rclpy.init(args=[], context=self.context,
+                   signal_handler_options=SignalHandlerOptions.NO)
+        # The monitor subscribes to the time master's topics last (see Monitor).
+        gate = ((topics.ROAD_HEIGHT, topics.ROAD_PREVIEW) if session.realtime
+                else (topics.STATE,))
+        self.monitor = Monitor(cfg.namespace, context=self.context, gate=gate)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.monitor)
+
+    def start(self) -> None:
+        """Start the recorder (when recording) and the nodes, slowest first."""
+        env = dict(os.environ)
+        env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+        env['PYTHONUNBUFFERED'] = '1'
+        if self.recording:
+            self.procs['recorder_node'] = _recorder(self.cfg, self.session,
+                                                    self.cfg.record_dir, env, self.log)
+        for name in NODES:
+            argv = [sys.executable, '-m', f'erva_ros.nodes.{name}', '--ros-args',
+                    '-r', f'__ns:={self.cfg.namespace}',
+                    '--params-file', self.session.params_file]
+            self.procs[name] = NodeProcess(
+                name, argv, os.path.join(self.session.directory, f'{name}.log'), env)
+        self.log('started ' + ', '.join(f'{n} (pid {p.pid})' for n, p in self.procs.items()))
+
+    def supervise(self) -> None:
+        """Connect, run and drain, until the scenario ends, a needed node dies or a signal."""
+        self.phase = 'connecting'
+        last_progress, last_states, finish_seen = time.monotonic(), 0, 0.0
+        while True:
+            self.executor.spin_once(timeout_sec=0.02)
+            if self.caught:
+                self.errors.append(f'interrupted by {signal.Signals(self.caught[0]).name} '
+                                   f'while {self.phase}')
+                return
+            if self._check_deaths():
+                return
+            now = time.monotonic()
+            if self.phase == 'connecting':
+                if self.monitor.connect(n_diagnostics=len(NODES)):
+                    self.phase = 'running'
+                    self.log(f'connected in {now - self.t_start:.1f} s; running '
+                             f'{self.session.live["duration_s"]:g} s '
+                             f'({self.session.live["mode"]})')
+                elif now - self.t_start > self.cfg.startup_timeout_s:
+                    self.errors.append(f'the nodes did not connect within '
+                                       f'{self.cfg.startup_timeout_s:g} s')
+                    return
+            elif self.phase == 'running':
+                states = self.monitor.received[topics.STATE]
+                if states != last_states:
+                    last_states, last_progress = states, now
+                if all(self.monitor.diag_values(n).get('finished') == 'true'
+                       for n in NODES if n not in self.dead):
+                    self.phase, finish_seen = 'draining', now
+                    continue
+                limit = 10.0 + (5.0 if last_states == 0 else 0.0)
+                if now - last_progress > limit + self.session.live['start_delay_s']:
+                    self.errors.append(f'no progress for {now - last_progress:.0f} s '
+                                       f'({last_states} states received)')
+                    return
+            elif now - finish_seen > 1.0 or _all_received(self.monitor):
+                return   # drained: the final diagnostics and messages in flight arrived
+
+    def _check_deaths(self) -> bool:
+        """Record nodes that exited on their own; return True if the run must stop."""
+        for name, p in self.procs.items():
+            if name in self.dead or p.poll() is None:
+                continue
+            self.dead.add(name)
+            where = (f'at t = {self.monitor.received[topics.STATE] * self.session.live["ts"]:.2f}'
+                     f' s' if self.phase == 'running' else f'while {self.phase}')
+            self.errors.append(f'{name} died (exit status {p.poll()}) {where}'
+                               + (f': {p.tail(1)}' if p.tail(1) else ''))
+            # Without the controller the real-time plant falls back to the plan, then
+            # passive damping, which is worth seeing; without the recorder the loop
+            # runs on unrecorded.
+            goes_on = self.phase == 'running' and name not in self.needed
+            self.log(self.errors[-1] + ('; the run goes on without it' if goes_on else ''))
+        return bool(self.dead) and (self.phase != 'running' or bool(self.dead & self.needed))
+
+    def stop(self) -> None:
+        """Stop the nodes, then the recorder (so it records to the end), then the monitor."""
+        import rclpy
+        stop_processes([p for n, p in self.procs.items() if n != 'recorder_node'])
+        if 'recorder_node' in self.procs:
+            stop_processes([self.procs['recorder_node']], grace_s=10.0)
+        self.executor.shutdown()
+        self.monitor.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+    def summary(self) -> Dict[str, Any]:
+        """Return the run's summary: the monitor's figures plus scenario, nodes and errors."""
+        s = self.session
+        summary = self.monitor.summary(s.live['ts'], s.n_steps, s.realtime)
+        nodes = {}
+        for name, p in self.procs.items():
+            status = p.poll()
+            nodes[name] = {'pid': p.pid, 'exit_status': status, 'died': name in self.dead,
+                           'stopped_cleanly': p.stopped_by_us and status == 0,
+                           'log': p.log_path}
+            if name not in self.dead and status != 0:
+                self.errors.append(f'{name} did not stop cleanly (exit status {status})'
+                                   + (f': {p.tail(1)}' if p.tail(1) else ''))
+        if 'recorder_node' in self.procs:
+            summary['bag'] = self.procs['recorder_node'].bag_dir
+        if summary['commands']['received'] == 0 and not self.caught:
+            self.errors.append('no damping commands were received')
+        summary.update({
+            'scenario': {'controller': s.settings.controller,
+                         'weights': list(s.settings.weights), 'road': s.scenario,
+                         'seed': s.live['seed'], 'mode': s.live['mode'],
+                         'model': s.live['model'], 'duration_s': s.live['duration_s'],
+                         'ts': s.live['ts'], 'namespace': self.cfg.namespace},
+            'nodes': nodes, 'errors': self.errors, 'ok': not self.errors,
+            'wall_time_s': round(time.monotonic() - self.t_start, 3),
+            'session_dir': s.directory,
+        })
+        return summary
+
+    def exit_code(self) -> int:
+        """Return 128 + signal if interrupted, 1 on any error, else 0."""
+        if self.caught:
+            return SIGNAL_EXIT.get(self.caught[0], 1)
+        return 1 if self.errors else 0
+
+
+def run_session(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> RunResult:
     """Run one scenario (see module doc); ``log`` gets progress lines for stderr."""
     recording = cfg.record_dir is not None and recorder_available()
     if cfg.record_dir is not None and not recording:
         log('recorder not available yet: summary only')
     session = prepare_session(cfg, recording)
-    env = dict(os.environ)
-    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    env['PYTHONUNBUFFERED'] = '1'
-
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
-    from erva_ros.live.monitor import Monitor
-
-    context = rclpy.Context()
-    rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
-    monitor = Monitor(cfg.namespace, context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(monitor)
-
-    caught: List[int] = []
+    sup = _Supervisor(cfg, session, recording, log)
     handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    for sig in handlers:
-        signal.signal(sig, lambda signum, frame: caught.append(signum))
-
-    procs: Dict[str, NodeProcess] = {}
-    errors: List[str] = []
-    t_start = time.monotonic()
-    phase = 'starting'
-    dead: set = set()
+    for sig in handlers:   # Ctrl-C / SIGTERM: stop the nodes cleanly, then summarise
+        signal.signal(sig, lambda signum, frame: sup.caught.append(signum))
     try:
-        if recording:
-            procs['recorder_node'] = _recorder(cfg, session, cfg.record_dir, env, log)
-        for name in NODES:
-            argv = [sys.executable, '-m', f'erva_ros.nodes.{name}', '--ros-args',
-                    '-r', f'__ns:={cfg.namespace}', '--params-file', session.params_file]
-            procs[name] = NodeProcess(name, argv, os.path.join(session.directory,
-                                                               f'{name}.log'), env)
-        log('started ' + ', '.join(f'{n} (pid {p.pid})' for n, p in procs.items()))
-        if on_started is not None:
-            on_started(procs)
-        phase = 'connecting'
-        last_progress = time.monotonic()
-        last_states = 0
-        finish_seen = None
-        while True:
-            executor.spin_once(timeout_sec=0.02)
-            if caught:
-                errors.append(f'interrupted by {signal.Signals(caught[0]).name} while '
-                              f'{phase}')
-                break
-            newly_dead = [p for n, p in procs.items() if n not in dead and p.poll() is not None]
-            for p in newly_dead:
-                dead.add(p.name)
-                where = (f'at t = {monitor.received["state"] * session.live["ts"]:.2f} s'
-                         if phase == 'running' else f'while {phase}')
-                errors.append(f'{p.name} died (exit status {p.poll()}) {where}'
-                              + (f': {p.tail(1)}' if p.tail(1) else ''))
-                goes_on = phase == 'running' and p.name in ('nmpc_node', 'recorder_node')
-                log(errors[-1] + ('; the run goes on without it' if goes_on else ''))
-            # Without the plant or the road nothing moves.  Without the controller the
-            # plant falls back to the plan, then passive damping, which is worth seeing;
-            # without the recorder the loop runs on unrecorded.
-            if dead and (phase != 'running'
-                         or dead & {'plant_sim_node', 'road_preview_node'}):
-                break
-            now = time.monotonic()
-            if phase == 'connecting':
-                if monitor.graph_ready(extra_subscribers=1 if recording else 0):
-                    phase = 'running'
-                    log(f'connected in {now - t_start:.1f} s; running '
-                        f'{session.live["duration_s"]:g} s ({session.live["mode"]})')
-                elif now - t_start > cfg.startup_timeout_s:
-                    errors.append(f'the nodes did not connect within '
-                                  f'{cfg.startup_timeout_s:g} s')
-                    break
-                continue
-            if phase == 'running':
-                states = monitor.received['state']
-                if states != last_states:
-                    last_states, last_progress = states, now
-                if all(monitor.diag_values(n).get('finished') == 'true'
-                       for n in NODES if n not in dead):
-                    phase = 'draining'
-                    finish_seen = now
-                    continue
-                limit = 10.0 + (5.0 if last_states == 0 else 0.0)
-                if now - last_progress > limit + session.live['start_delay_s']:
-                    errors.append(f'no progress for {now - last_progress:.0f} s '
-                                  f'({last_states} states received)')
-                    break
-                continue
-            # draining: let the final diagnostics and any message in flight arrive
-            if now - finish_seen > 1.0 or _all_received(monitor):
-                break
+        sup.start()
+        sup.supervise()
     finally:
-        stop_processes([p for n, p in procs.items() if n != 'recorder_node'])
-        if 'recorder_node' in procs:
-            stop_processes([procs['recorder_node']], grace_s=10.0)
+        sup.stop()
         for sig, handler in handlers.items():
             signal.signal(sig, handler)
-        executor.shutdown()
-        monitor.destroy_node()
-        rclpy.try_shutdown(context=context)
-
-    summary = monitor.summary(session.live['ts'], session.n_steps, session.realtime)
-    nodes = {}
-    for name, p in procs.items():
-        status = p.poll()
-        nodes[name] = {'pid': p.pid, 'exit_status': status, 'died': name in dead,
-                       'stopped_cleanly': p.stopped_by_us and status == 0, 'log': p.log_path}
-        if name not in dead and status != 0:
-            errors.append(f'{name} did not stop cleanly (exit status {status})'
-                          + (f': {p.tail(1)}' if p.tail(1) else ''))
-    if 'recorder_node' in procs:
-        summary['bag'] = procs['recorder_node'].bag_dir
-    if summary['commands']['received'] == 0 and not caught:
-        errors.append('no damping commands were received')
-    summary.update({
-        'scenario': {'controller': session.settings.controller,
-                     'weights': list(session.settings.weights), 'road': session.scenario,
-                     'seed': session.live['seed'], 'mode': session.live['mode'],
-                     'model': session.live['model'], 'duration_s': session.live['duration_s'],
-                     'ts': session.live['ts'], 'namespace': cfg.namespace},
-        'nodes': nodes, 'errors': errors, 'ok': not errors,
-        'wall_time_s': round(time.monotonic() - t_start, 3),
-        'session_dir': session.directory,
-    })
-    if caught:
-        code = SIGNAL_EXIT.get(caught[0], 1)
-    else:
-        code = 0 if not errors else 1
-    return RunResult(summary, code, monitor.trajectory(session.n_steps), session)
+    summary = sup.summary()
+    code = sup.exit_code()
+    if cfg.session_dir is None and code == 0:
+        # Nothing to look into: drop the temporary params file and node logs.
+        shutil.rmtree(session.directory, ignore_errors=True)
+        summary['session_dir'] = None
+        for node in summary['nodes'].values():
+            node['log'] = None
+    elif summary['errors']:
+        log(f'node logs and the session params file are in {session.directory}')
+    return RunResult(summary, code, sup.monitor.trajectory(session.n_steps), session)
 
 
 def _all_received(monitor) -> bool:

@@ -33,7 +33,7 @@ LIVE_NUMERIC: Dict[str, Spec] = {
     'ts': NUMERIC_SPECS['ts'],
     'duration_s': Spec(0.0, 86400.0, 's', 'scenario length: the road ends and the plant stops',
                        lo_open=True),
-    'seed': Spec(0, 2 ** 31 - 1, '-', 'seed of the road noise and the preview error'),
+    'seed': Spec(0, 1_000_000_000, '-', 'seed of the road noise and the preview error'),
     'speed_mps': Spec(0.0, 100.0, 'm/s', 'vehicle speed (time to distance)', lo_open=True),
     'bump_height_m': Spec(-0.5, 0.5, 'm', 'bump road: height of the cosine bump'),
     'bump_length_m': Spec(0.0, 100.0, 'm', 'bump road: length of the bump', lo_open=True),

@@ -54,8 +54,10 @@ def format_summary(s: Dict[str, Any]) -> str:
     rate = f'{cmd["rate_hz"]:.2f} Hz' if cmd.get('rate_hz') else 'n/a (lock-step)'
     lines.append(f'  commands  {cmd["received"]} received, rate {rate}')
     if 'period_jitter_ms' in cmd:
-        lines.append(f'  jitter    command period |Δt - Ts| {_ms(cmd["period_jitter_ms"])}')
-        lines.append(f'  latency   state -> command {_ms(cmd["state_to_command_ms"])}')
+        lines.append(f'  jitter    command period |Δt - Ts| at the plant '
+                     f'{_ms(cmd["period_jitter_ms"])}')
+        lines.append(f'  latency   state -> command at the plant '
+                     f'{_ms(cmd["state_to_command_ms"])}')
         lines.append(f'            sample time -> command {_ms(cmd["sample_to_command_ms"])}')
     lines.append(f'  solve     {_ms(nm.get("solve_ms"))}')
     lines.append(f'  deadlines {nm.get("deadline_misses")} missed; controller fallbacks: plan '

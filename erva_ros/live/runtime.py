@@ -6,6 +6,7 @@
 parameter stops it with one line on stderr and exit status 2, never a traceback.
 """
 
+import gc
 import sys
 from typing import Callable, List, Optional
 
@@ -29,6 +30,10 @@ def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]]
     node = None
     try:
         node = factory()
+        # Start-up objects (CasADi functions, messages, modules) never die: move them out
+        # of the collector's way so a collection during the loop scans only new objects.
+        gc.collect()
+        gc.freeze()
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()
@@ -37,6 +42,11 @@ def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]]
         return EXIT_BAD_PARAMETER
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        if rclpy.ok():
+            raise
+        # SIGINT/SIGTERM shut the context down while a callback was publishing: the
+        # callback's "context is invalid" error is part of a normal shutdown.
     finally:
         if node is not None:
             node.destroy_node()

@@ -57,11 +57,16 @@ def build_road(cfg: Mapping[str, Any]) -> Road:
         raise ParamError(str(exc)) from None
 
 
+#: The preview noise is seeded with seed + this, as `erva sim` does (commands/
+#: _closed_loop_options.py), so the road noise and the preview noise are independent.
+PREVIEW_SEED_OFFSET = 7919
+
+
 def build_preview_model(cfg: Mapping[str, Any]) -> PreviewErrorModel:
     """Return the preview error model of the live parameters (perfect unless configured)."""
     snr = float(cfg['preview_snr_db']) if cfg['preview_noise'] else None
-    return PreviewErrorModel(snr, float(cfg['preview_delay_s']), int(cfg['seed']),
-                             float(cfg['ts']))
+    return PreviewErrorModel(snr, float(cfg['preview_delay_s']),
+                             int(cfg['seed']) + PREVIEW_SEED_OFFSET, float(cfg['ts']))
 
 
 def required_preview_steps(settings) -> int:
@@ -72,4 +77,5 @@ def required_preview_steps(settings) -> int:
     return settings.horizon
 
 
-__all__ = ['load_road_file', 'build_road', 'build_preview_model', 'required_preview_steps']
+__all__ = ['PREVIEW_SEED_OFFSET', 'load_road_file', 'build_road', 'build_preview_model',
+           'required_preview_steps']

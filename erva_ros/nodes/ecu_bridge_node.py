@@ -7,6 +7,8 @@ A thin rclpy adapter around :class:`erva_ros.hil.bridge.BridgeCore` (no ROS insi
   an E2E-protected ERVA_CMD frame; a 4·Ts watchdog timer keeps the frames at Ts,
   follows the NMPC's plan while a command is late, and sends the safe passive c_e0
   with an ERROR diagnostic once no fresh command came for ``command_timeout_periods``.
+  The watchdog and the CAN reception share one thread; the executor only serves
+  ``damping_cmd`` and the periodic diagnostics.
 * ECU frames (reader thread, E2E-checked) → ``ecu/damping_applied``,
   ``ecu/sprung_accel``, ``ecu/suspension``, ``ecu/generator`` (erva_ros/hil/topics.py),
   each published as soon as its frame arrived, all stamped with the CAN receive time
@@ -33,6 +35,7 @@ from erva_ros import topics
 from erva_ros.hil import topics as hil_topics
 from erva_ros.hil.bridge import BridgeConfig, BridgeCore, SensorFrame
 from erva_ros.hil.codec import EcuCodec, Kind
+from erva_ros.hil.latency import LatencyStats
 from erva_ros.hil.settings import (BRIDGE_DEFAULTS, BRIDGE_NUMERIC, BRIDGE_STRINGS,
                                    hardware_of, INTEGER_KEYS, TS_SPEC)
 from erva_ros.hil.transport import open_bus, parse_spec
@@ -40,7 +43,6 @@ from erva_ros.live import diagnostics as diag
 from erva_ros.live.msgs import ns_to_time, time_to_ns
 from erva_ros.live.parameters import declare_erva_params, declare_number, declare_string
 from erva_ros.live.runtime import run_node
-from erva_ros.hil.latency import LatencyStats
 from erva_ros.params import ParamError
 
 #: Commands beyond this magnitude (Ns/m) are absurd (a unit error), not just out of range.
@@ -93,7 +95,9 @@ class EcuBridgeNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
         self.create_subscription(JointTrajectory, topics.DAMPING_CMD, self._on_command, qos)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self.create_timer(self.ts / 4, self._on_tick, clock=steady)
+        # The Ts/4 watchdog runs in the CAN thread (below), not as an rclpy timer: the
+        # executor then wakes only for commands, and never holds the GIL while a CAN
+        # frame waits to be published.
         self.create_timer(cfg['diagnostics_period_s'], self._publish_diagnostics, clock=steady)
         self._last_levels = None
         self._last_state = None
@@ -102,7 +106,7 @@ class EcuBridgeNode(Node):
             self.get_logger().error(f'{cfg["bus"]}: {self.core.bus_error}; retrying every '
                                     f'{cfg["bus_retry_s"]:g} s')
         self._stop = threading.Event()
-        self._reader = threading.Thread(target=self._read_loop, name='can_reader', daemon=True)
+        self._reader = threading.Thread(target=self._can_loop, name='can', daemon=True)
         self._reader.start()
         # Start-up objects (CasADi functions, messages, rclpy) are never garbage: keep the
         # collector from scanning them, so a collection cannot stall a cycle for ms.
@@ -142,7 +146,7 @@ class EcuBridgeNode(Node):
             offsets.append(time_to_ns(p.time_from_start) * 1e-9)
         return plan, offsets
 
-    def _on_tick(self) -> None:
+    def _tick(self) -> None:
         self.core.tick()
         # An ERROR (or its end) is published at once, not at the next period.
         state = (self.core.command_state, self.core.bus_up, self.core.ecu_silent())
@@ -151,9 +155,17 @@ class EcuBridgeNode(Node):
             self._publish_diagnostics()
 
     # -- CAN -> ROS --------------------------------------------------------------------
-    def _read_loop(self) -> None:
+    def _can_loop(self) -> None:
+        """CAN thread: publish each ECU frame as it arrives; run the watchdog every Ts/4."""
+        period = self.ts / 4
+        next_tick = time.monotonic()
         while not self._stop.is_set():
-            f = self.core.receive(timeout=0.05)
+            now = time.monotonic()
+            if now >= next_tick:
+                self._tick()
+                next_tick = max(next_tick + period, now)
+                continue
+            f = self.core.receive(timeout=next_tick - now)
             if f is not None:
                 self._publish_frame(f)
 

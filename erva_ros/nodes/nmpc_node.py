@@ -11,16 +11,20 @@ Modes:
 
 * ``realtime``: a wall-clock timer at 1/Ts, phase-aligned to the state stamps (it
   ticks at t_k + m·Ts).  Each tick takes the newest state and preview; if the state
-  of this period has not arrived yet, it is solved the moment it does, so the
+  of this period has not arrived yet, it is solved the moment it does (and its
+  preview, which the road node publishes just after the height), so the
   state-to-command latency is the solve time plus message transport.  A solve over
   ``time_budget_s`` is replaced by the controller's fallback (shifted plan, then
   passive) and counted as a deadline miss, as is a command published later than
   t_k + Ts.  After ``state_timeout_periods`` periods without a state, each tick
-  publishes the safe passive command c_e0 and the status is ERROR until states
-  return.
+  publishes the safe passive command c_e0 (stamped with the sample time it is for,
+  on the grid of the last state) and the status is ERROR until states return.
 * ``lockstep``: solves each state as soon as the preview with the same stamp is
   there; the wall-clock budget is disabled (time is simulated) so the run is
   deterministic.
+
+After the scenario's last sample (``duration_s``) it stops and reports ``finished``,
+so the end of the road is not mistaken for a lost plant.
 
 Incoming states and previews are validated (erva_ros.live.validation): a non-finite
 or absurd value is rejected, counted and logged at a limited rate, and never reaches
@@ -215,7 +219,11 @@ class NMPCNode(Node):
             self.count['state_timeouts'] += 1
             self.get_logger().error(f'no state for {silent_s * 1e3:.0f} ms: publishing the '
                                     f'passive command {self.controller.c_e0:g} Ns/m')
-        self.pub_cmd.publish(damping_msg(time.time_ns(), self.passive_plan, self.ts_ns))
+        # Stamped with the sample it is for (on the grid of the last state), so the
+        # command computed from the next state that does arrive supersedes it.
+        last = self.state[0]
+        stamp = last + max(1, (time.time_ns() - last) // self.ts_ns) * self.ts_ns
+        self.pub_cmd.publish(damping_msg(stamp, self.passive_plan, self.ts_ns))
         self.count['safe_commands'] += 1
         self.status.set(diag.ERROR, f'no state for more than '
                         f'{self.cfg["state_timeout_periods"]} periods: passive command')
@@ -259,8 +267,8 @@ class NMPCNode(Node):
             self.count['deadline_misses'] += 1
         if missed or status != 'ok':
             self._warn_until = time.monotonic() + WARN_HOLD_S
-            self.status.set(diag.WARN, f'last {status}' + (', deadline missed' if missed
-                                                            else ''))
+            why = f'last {status}' + (', deadline missed' if missed else '')
+            self.status.set(diag.WARN, why)
         elif not self.timed_out and time.monotonic() > self._warn_until:
             self.status.set(diag.OK, 'running')
         if stamp >= self.first_stamp + (self.n_samples - 1) * self.ts_ns:

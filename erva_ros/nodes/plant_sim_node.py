@@ -19,7 +19,9 @@ Modes (parameter ``mode``):
   repeats -- deterministic, and equal to the offline closed loop (`erva sim`).
 
 Topics (erva_ros/topics.py): publishes state, sprung_accel, generator,
-/diagnostics (and /clock); subscribes road/height and damping_cmd.
+/diagnostics (and /clock); subscribes road/height and damping_cmd.  Being where the
+commands are used, it also measures the loop as it sees it (realtime): state
+published -> its command received (loop_latency_ms) and the command period jitter.
 """
 
 import time
@@ -39,7 +41,7 @@ from erva_ros.live.msgs import (accel_msg, clock_msg, generator_msg, parse_dampi
                                 parse_road_height, s_to_ns, state_msg)
 from erva_ros.live.parameters import declare_erva_params, declare_live
 from erva_ros.live.runtime import run_node
-from erva_ros.live.timing import DurationStats
+from erva_ros.live.timing import DurationStats, PeriodStats
 from erva_ros.live.validation import MessageRejected, Rejections
 from erva_ros.plant import PlantSimulator
 
@@ -80,6 +82,9 @@ class PlantSimNode(Node):
                                      cfg['reject_log_period_s'])
         self.road_latency = DurationStats()   # road sample time -> height received
         self.step_time = DurationStats()      # height received -> state published
+        self.loop_latency = DurationStats()   # state published -> its command received
+        self.cmd_period = PeriodStats(cfg['ts'])   # command arrivals |Δt - Ts|
+        self._state_pub_ns = 0
 
         qos = topics.control_qos()
         self.pub_state = self.create_publisher(JointState, topics.STATE, qos)
@@ -175,16 +180,22 @@ class PlantSimNode(Node):
 
     def _publish_state(self) -> None:
         self.pub_state.publish(state_msg(self.t_ns, self.plant.x, self.kind))
+        self._state_pub_ns = time.time_ns()
         self.count['states'] += 1
         self._wait_since = time.monotonic()
 
     # -- commands ----------------------------------------------------------------------
     def _on_command(self, msg: JointTrajectory) -> None:
+        rx_ns = time.time_ns()
         try:
             stamp, plan = parse_damping(msg, self.ts_ns)
         except MessageRejected as exc:
             self.rejections.reject(topics.DAMPING_CMD, str(exc))
             return
+        if not self.lockstep and stamp == self.t_ns:
+            # The loop as the plant sees it: its state out -> the command for it back.
+            self.loop_latency.add((rx_ns - self._state_pub_ns) * 1e-9)
+            self.cmd_period.mark(rx_ns * 1e-9)
         if self.t_ns is not None and stamp < self.t_ns:
             self.count['late_commands'] += 1  # its sample is already integrated
         self.hold.update(stamp, plan)
@@ -245,6 +256,8 @@ class PlantSimNode(Node):
         vals.update(self.count)
         vals.update(diag.flatten('road_latency_ms', self.road_latency.summary()))
         vals.update(diag.flatten('step_ms', self.step_time.summary()))
+        vals.update(diag.flatten('loop_latency_ms', self.loop_latency.summary()))
+        vals.update(diag.flatten('cmd_jitter_ms', self.cmd_period.jitter.summary()))
         vals['out_of_order_commands'] = self.hold.out_of_order
         vals['rejected_road_height'] = self.rejections.counts.get(topics.ROAD_HEIGHT, 0)
         vals['rejected_damping_cmd'] = self.rejections.counts.get(topics.DAMPING_CMD, 0)

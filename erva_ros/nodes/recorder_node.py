@@ -25,6 +25,9 @@ Parameters (read at start-up):
 ``compression``     string        MCAP chunk compression: none (rosbag2 default), zstd, lz4
 ``fsync``           bool          also fsync at each flush (survives power loss)
 ``diagnostics_period_s`` double   period of the recorder's own /diagnostics status
+``nice``            int           CPU niceness added to this process (default 10): the
+                                  control loop's nodes get the CPU first; DDS keeps 10
+                                  messages per topic (200 ms at 50 Hz) for the recorder
 ==================  ============  =========================================================
 
 SIGINT/SIGTERM: pending messages are taken, the file is finished (summary, indexes,
@@ -36,6 +39,7 @@ own process, the recorder cannot stall or stop the control loop.
 
 import functools
 import json
+import os
 import signal
 import sys
 import threading
@@ -72,43 +76,55 @@ CONTRACT_TYPES.update({name: contract.TOPIC_TYPES[name]
 DISCOVERY_PERIOD_S = 0.1   # rosbag2's default topic polling interval
 
 
+def _range(lo, hi, integer=False):
+    if integer:
+        return {'integer_range': [IntegerRange(from_value=lo, to_value=hi, step=1)]}
+    return {'floating_point_range': [FloatingPointRange(from_value=lo, to_value=hi)]}
+
+
+#: Parameters: name -> (default, type, description, range); see the module doc.
+PARAMETERS = {
+    'bag_dir': ('', ParameterType.PARAMETER_STRING,
+                'bag directory to create (must not exist)', {}),
+    'topics': (list(DEFAULT_TOPICS), ParameterType.PARAMETER_STRING_ARRAY,
+               'topics to record; relative names resolve against the node namespace', {}),
+    'session_metadata': ('{}', ParameterType.PARAMETER_STRING,
+                         'JSON object stored as the erva_session MCAP metadata record', {}),
+    'chunk_size': (DEFAULT_CHUNK_SIZE, ParameterType.PARAMETER_INTEGER,
+                   'close an MCAP chunk at this size (bytes)',
+                   _range(1024, 64 * 1024 * 1024, integer=True)),
+    'flush_period_s': (0.5, ParameterType.PARAMETER_DOUBLE,
+                       'close the chunk and hand it to the OS at least this often (s)',
+                       _range(0.01, 60.0)),
+    'compression': ('none', ParameterType.PARAMETER_STRING,
+                    'MCAP chunk compression: ' + ', '.join(COMPRESSIONS), {}),
+    'fsync': (False, ParameterType.PARAMETER_BOOL, 'fsync the file at every flush', {}),
+    'diagnostics_period_s': (1.0, ParameterType.PARAMETER_DOUBLE,
+                             'period of the recorder status on /diagnostics (s)',
+                             _range(0.1, 60.0)),
+    'nice': (10, ParameterType.PARAMETER_INTEGER,
+             'CPU niceness added to the recorder process, so the control loop goes first',
+             _range(0, 19, integer=True)),
+}
+
+
 class RecorderNode(Node):
     """Record topics into one bag; see the module doc for parameters and behaviour."""
 
     def __init__(self):
         super().__init__('recorder', namespace=contract.NAMESPACE)
-        self.bag_dir = self._declare(
-            'bag_dir', '', ParameterType.PARAMETER_STRING,
-            'bag directory to create (must not exist)')
-        requested = self._declare(
-            'topics', list(DEFAULT_TOPICS), ParameterType.PARAMETER_STRING_ARRAY,
-            'topics to record; relative names resolve against the node namespace')
-        meta_text = self._declare(
-            'session_metadata', '{}', ParameterType.PARAMETER_STRING,
-            'JSON object stored as the erva_session MCAP metadata record')
-        chunk_size = self._declare(
-            'chunk_size', DEFAULT_CHUNK_SIZE, ParameterType.PARAMETER_INTEGER,
-            'close an MCAP chunk at this size (bytes)',
-            integer_range=[IntegerRange(from_value=1024, to_value=64 * 1024 * 1024, step=1)])
-        flush_period = self._declare(
-            'flush_period_s', 0.5, ParameterType.PARAMETER_DOUBLE,
-            'close the chunk and hand it to the OS at least this often (s)',
-            floating_point_range=[FloatingPointRange(from_value=0.01, to_value=60.0)])
-        compression = self._declare(
-            'compression', 'none', ParameterType.PARAMETER_STRING,
-            'MCAP chunk compression: ' + ', '.join(COMPRESSIONS))
-        fsync = self._declare(
-            'fsync', False, ParameterType.PARAMETER_BOOL, 'fsync the file at every flush')
-        diag_period = self._declare(
-            'diagnostics_period_s', 1.0, ParameterType.PARAMETER_DOUBLE,
-            'period of the recorder status on /diagnostics (s)',
-            floating_point_range=[FloatingPointRange(from_value=0.1, to_value=60.0)])
-        if not self.bag_dir:
+        p = {name: self.declare_parameter(name, default, ParameterDescriptor(
+                 name=name, type=ptype, description=doc, read_only=True, **rng)).value
+             for name, (default, ptype, doc, rng) in PARAMETERS.items()}
+        if not p['bag_dir']:
             raise ValueError('parameter bag_dir is required (the bag directory to create)')
-        if compression not in COMPRESSIONS:
-            raise ValueError(f'parameter compression={compression!r}: choose from '
+        if p['compression'] not in COMPRESSIONS:
+            raise ValueError(f'parameter compression={p["compression"]!r}: choose from '
                              f'{", ".join(COMPRESSIONS)}')
-        session = self._session(meta_text)
+        if p['nice']:
+            os.nice(p['nice'])
+        self.bag_dir = p['bag_dir']
+        session = self._session(p['session_metadata'])
         self._use_sim_time = bool(self.get_parameter('use_sim_time').value)
 
         self.error: Optional[str] = None
@@ -121,30 +137,29 @@ class RecorderNode(Node):
         self._status_pub = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS,
                                                  contract.control_qos())
         try:
-            self.writer = BagWriter(self.bag_dir, chunk_size=chunk_size,
-                                    compression=compression, flush_period_s=flush_period,
-                                    fsync=fsync, session=session, custom_data=session)
+            self.writer = BagWriter(self.bag_dir, chunk_size=p['chunk_size'],
+                                    compression=p['compression'],
+                                    flush_period_s=p['flush_period_s'], fsync=p['fsync'],
+                                    session=session, custom_data=session)
         except BagError as exc:
             self._fail(str(exc))
         if self.writer is not None:
-            for name in requested:
-                topic = self.resolve_topic_name(name)
-                self._pending[topic] = CONTRACT_TYPES.get(name) or contract.TOPIC_TYPES.get(
-                    topic)
-                if self._pending[topic] is not None:
-                    self._subscribe(topic, self._pending[topic])
-            self._discovery_timer = self.create_timer(DISCOVERY_PERIOD_S, self._discover)
-            self.create_timer(flush_period, self._flush)
-            self.get_logger().info(f'recording {len(self._pending)} topics to '
-                                   f'{self.writer.file_path}')
-        self.create_timer(diag_period, self._publish_status)
+            self._start(p['topics'], p['flush_period_s'])
+        self.create_timer(p['diagnostics_period_s'], self._publish_status)
 
-    # -- parameters ------------------------------------------------------------------------
-    def _declare(self, name, default, ptype, description, **ranges):
-        descriptor = ParameterDescriptor(name=name, type=ptype, description=description,
-                                         read_only=True, **ranges)
-        return self.declare_parameter(name, default, descriptor).value
+    def _start(self, requested: List[str], flush_period_s: float) -> None:
+        """Subscribe to the requested topics whose type is known; discover the others."""
+        for name in requested:
+            topic = self.resolve_topic_name(name)
+            self._pending[topic] = CONTRACT_TYPES.get(name) or contract.TOPIC_TYPES.get(topic)
+            if self._pending[topic] is not None:
+                self._subscribe(topic, self._pending[topic])
+        self._discovery_timer = self.create_timer(DISCOVERY_PERIOD_S, self._discover)
+        self.create_timer(flush_period_s, self._flush)
+        self.get_logger().info(f'recording {len(self._pending)} topics to '
+                               f'{self.writer.file_path}')
 
+    # -- session metadata --------------------------------------------------------------
     def _session(self, text: str) -> Dict[str, str]:
         try:
             given = json.loads(text) if text.strip() else {}

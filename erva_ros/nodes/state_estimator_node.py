@@ -10,7 +10,8 @@ prediction from t_{k-1} with the ECU's cycle-mean c_e and the road w(t_{k-1}) �
 and the output linearisation; each measurement is then applied the moment it
 arrives (sequential scalar updates, equal to the batch update); the estimate is
 published on ``state`` with stamp t_k once all three are in.  A cycle that stays
-incomplete (a CAN frame was lost) is published with what it has after Ts/2.
+incomplete (a CAN frame was lost) is published with what it has when the next cycle
+starts, or after Ts/2 at the latest check (once per Ts).
 ``/diagnostics`` reports counters, the mean normalised innovation squared (≈ 3 when
 the noise model fits) and the latency this node adds (last message of a cycle
 received → state published, p50/p99/max in ms).
@@ -29,6 +30,7 @@ from sensor_msgs.msg import JointState
 from erva_ros import topics
 from erva_ros.estimator import ExtendedKalmanFilter
 from erva_ros.hil import topics as hil_topics
+from erva_ros.hil.latency import LatencyStats
 from erva_ros.hil.road_buffer import RoadBuffer
 from erva_ros.hil.settings import (ESTIMATOR_DEFAULTS, ESTIMATOR_NUMERIC, INTEGER_KEYS,
                                    noise_of, TS_SPEC)
@@ -37,7 +39,6 @@ from erva_ros.live.msgs import NS, state_msg, time_to_ns
 from erva_ros.live.parameters import (declare_choice, declare_erva_params, declare_number,
                                       LIVE_CHOICES)
 from erva_ros.live.runtime import run_node
-from erva_ros.hil.latency import LatencyStats
 
 #: Measurement rows of the EKF (erva_ros.estimator.MEASUREMENTS) fed by each topic.
 ROWS = {'accel': 0, 'deflection': 1, 'speed': 2}
@@ -99,7 +100,7 @@ class StateEstimatorNode(Node):
         self.create_subscription(JointState, hil_topics.ECU_GENERATOR, self._on_generator, qos)
         self.create_subscription(PointStamped, topics.ROAD_HEIGHT, self._on_road, qos)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self.create_timer(self.ts / 4, self._on_timer, clock=steady)
+        self.create_timer(self.ts, self._on_timer, clock=steady)
         self.create_timer(cfg['diagnostics_period_s'], self._publish_diagnostics, clock=steady)
         # Start-up objects (CasADi functions, messages, rclpy) are never garbage: keep the
         # collector from scanning them, so a collection cannot stall a cycle for ms.
@@ -235,7 +236,8 @@ class StateEstimatorNode(Node):
             self._publish_diagnostics()
 
     def _on_timer(self) -> None:
-        # A cycle still incomplete after Ts/2 lost a frame: do not make the NMPC wait.
+        # A cycle still incomplete after Ts/2 lost a frame: do not make the NMPC wait (a
+        # new cycle finishes it too; this timer, once per Ts, is the backstop).
         if self.cycle is not None and time.monotonic() - self.cycle.started > self.ts / 2:
             self._finish(self.cycle)
 

@@ -1,0 +1,131 @@
+"""Options shared by `erva sim`, `erva table`, `erva pareto` and `erva bench` (closed loop).
+
+Controller settings come from config/nmpc.yaml (``--settings``), physical parameters
+from config/erva_paper.yaml (``--params``); command-line options override the file.
+"""
+
+import argparse
+
+from erva_ros.commands._common import positive_float
+from erva_ros.errors import CLIError
+
+ROAD_CHOICES = ('paper', 'iso8608', 'bump', 'sine')
+PAPER_T1_S = 4.0        # paper Table I: t0 = 0 s, t1 = 4 s
+
+
+def weights(text: str):
+    """Parse 'A1,A2' into a tuple of two non-negative floats (argparse type)."""
+    parts = text.split(',')
+    try:
+        vals = tuple(float(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not two numbers "A1,A2"') from None
+    if len(vals) != 2 or any(v < 0 or v != v or v == float('inf') for v in vals):
+        raise argparse.ArgumentTypeError(f'{text!r} must be two non-negative numbers "A1,A2"')
+    if vals == (0.0, 0.0):
+        raise argparse.ArgumentTypeError('weights 0,0 leave nothing to optimise')
+    return vals
+
+
+def weight_list(text: str):
+    """Parse 'A1,A2;B1,B2;...' into a list of weight pairs (argparse type)."""
+    return [weights(part) for part in text.split(';') if part.strip()]
+
+
+def seed_int(text: str) -> int:
+    """Parse a non-negative integer seed (argparse type)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not an integer') from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f'{text!r} must be >= 0')
+    return v
+
+
+def add_settings_options(parser: argparse.ArgumentParser, controller: bool = True) -> None:
+    """Add --settings and the common controller overrides."""
+    from erva_ros.controllers.settings import CONTROLLER_NAMES, COST_KINDS, SOLVER_KINDS
+    parser.add_argument('--settings', metavar='FILE', default=None,
+                        help='controller settings, a ROS 2 params file with an nmpc_node '
+                             'section (default: the shipped config/nmpc.yaml)')
+    if controller:
+        parser.add_argument('--controller', choices=CONTROLLER_NAMES, default=None,
+                            help='control law (default: "controller" in the settings file)')
+    parser.add_argument('--cost', choices=COST_KINDS, default=None,
+                        help='stage cost of every NMPC: paper (as printed, jerk-like comfort '
+                             'term, node-sampled power) or continuous (alpha1 a^2 - alpha2 P '
+                             'integrated); default: cost (and long_cost for preview_long) '
+                             'in the settings file')
+    parser.add_argument('--solver', choices=SOLVER_KINDS, default=None,
+                        help='NMPC solver: sqp (real-time) or ipopt (converged reference)')
+    parser.add_argument('--horizon', type=int, default=None, metavar='N',
+                        help='NMPC horizon N in samples (paper: 10)')
+    parser.add_argument('--max-iter', type=int, default=None, metavar='K',
+                        help='real-time SQP iterations per sample')
+    parser.add_argument('--u-min', type=float, default=None, metavar='NS_PER_M',
+                        help='lower bound of the damping command (Ns/m)')
+    parser.add_argument('--u-max', type=float, default=None, metavar='NS_PER_M',
+                        help='upper bound of the damping command (Ns/m)')
+
+
+def add_road_options(parser: argparse.ArgumentParser, seed: bool = True) -> None:
+    """Add --road, --duration and the road's options."""
+    parser.add_argument('--road', choices=ROAD_CHOICES, default='paper',
+                        help='road: paper (1.7 Hz, 1 mm sine + filtered noise at 7 dB SNR), '
+                             'iso8608 (random, --road-class, --speed), bump, sine '
+                             '(default paper)')
+    parser.add_argument('--duration', type=positive_float, default=PAPER_T1_S, metavar='S',
+                        help=f'simulated time in s (default {PAPER_T1_S:g}, paper t1)')
+    if seed:
+        parser.add_argument('--seed', type=seed_int, default=0,
+                            help='noise seed of the road (default 0)')
+    parser.add_argument('--road-class', default='C', choices=list('ABCDE'),
+                        help='ISO 8608 road class for --road iso8608 (default C)')
+    parser.add_argument('--speed', type=positive_float, default=20.0, metavar='M_PER_S',
+                        help='vehicle speed for iso8608/bump roads (m/s, default 20)')
+    parser.add_argument('--preview-snr', type=float, default=None, metavar='DB',
+                        help='add Gaussian noise at this SNR to the road preview '
+                             '(default: perfect preview)')
+    parser.add_argument('--preview-delay', type=float, default=0.0, metavar='S',
+                        help='the road preview is this old (s, default 0)')
+
+
+def load_settings(args, **extra):
+    """Return validated ControllerSettings from --settings and the override options."""
+    from erva_ros.controllers.settings import load_controller_settings
+    overrides = {'controller': getattr(args, 'controller', None), 'cost': args.cost,
+                 'long_cost': args.cost,
+                 'solver': args.solver, 'horizon': args.horizon, 'max_iter': args.max_iter,
+                 'u_min': args.u_min, 'u_max': args.u_max}
+    overrides.update(extra)
+    return load_controller_settings(args.settings, overrides)
+
+
+def make_road_from_args(args, duration_s: float, seed: int):
+    """Return the road chosen on the command line (one-line CLIError on bad options)."""
+    from erva_ros.roads import make_road, RoadError
+    opts = {}
+    if args.road in ('iso8608', 'bump'):
+        opts['speed_mps'] = args.speed
+    if args.road == 'iso8608':
+        opts['road_class'] = args.road_class
+    try:
+        return make_road(args.road, duration_s, seed=seed, **opts)
+    except RoadError as exc:
+        raise CLIError(str(exc)) from None
+
+
+def preview_model_from_args(args, seed: int, ts: float):
+    """Return the PreviewErrorModel of --preview-snr/--preview-delay, or None."""
+    from erva_ros.preview import PreviewErrorModel
+    if args.preview_snr is None and not args.preview_delay:
+        return None
+    if args.preview_delay < 0:
+        raise CLIError(f'--preview-delay {args.preview_delay:g} must be >= 0')
+    return PreviewErrorModel(args.preview_snr, args.preview_delay, seed=seed + 7919, ts=ts)
+
+
+__all__ = ['add_settings_options', 'add_road_options', 'load_settings',
+           'make_road_from_args', 'preview_model_from_args', 'weights', 'weight_list',
+           'seed_int', 'PAPER_T1_S']

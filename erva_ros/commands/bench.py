@@ -1,0 +1,118 @@
+"""``erva bench``: NMPC solve times, suboptimality and real-time factor in the offline loop."""
+
+import platform
+
+from erva_ros.commands._closed_loop_options import (add_settings_options, load_settings,
+                                                    seed_int, weights)
+from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
+                                       positive_int, print_json)
+from erva_ros.errors import CLIError
+
+COMMAND = 'bench'
+HELP = 'NMPC solve-time benchmark: >= 2000 closed-loop steps, suboptimality vs IPOPT'
+DESCRIPTION = """\
+Runs --steps closed-loop samples (default 2000 = 40 s) of the paper road with the
+chosen controller and solver (default: preview, the real-time sqp), then the same
+with the converged IPOPT reference, and reports:
+
+  solve_ms           p50 / p99 / max of controller.compute() wall time (ms)
+  over_budget        solves slower than time_budget_s (their plan is not used)
+  suboptimality_pct  100·(J − J_ref)/|J_ref|, J = the NMPC stage cost summed along the
+                     closed loop on the same road (J_ref: IPOPT); negative = better
+  realtime_factor    simulated time / wall time of the offline closed loop
+
+--live measures the same in the running ROS 2 system instead (erva_ros.live)."""
+
+
+def add_arguments(parser):
+    add_params_option(parser)
+    add_settings_options(parser)
+    parser.add_argument('--alpha', type=weights, default=None, metavar='A1,A2',
+                        help='cost weights (default: the settings file, 1,0)')
+    parser.add_argument('--steps', type=positive_int, default=2000,
+                        help='closed-loop samples (default 2000)')
+    parser.add_argument('--seed', type=seed_int, default=0, help='paper-road seed (default 0)')
+    parser.add_argument('--no-reference', action='store_true',
+                        help='skip the IPOPT reference run (suboptimality_pct is null)')
+    parser.add_argument('--live', action='store_true',
+                        help='benchmark the live ROS 2 nodes instead of the offline loop')
+    parser.add_argument('--duration', type=positive_float, default=None, metavar='S',
+                        help='--live only: how long to measure (s)')
+    add_json_option(parser)
+
+
+def main(args) -> int:
+    if args.live:
+        try:
+            from erva_ros.live.benchmark import run_live_bench
+        except ImportError as exc:
+            raise CLIError(f'--live needs erva_ros.live.benchmark, which is not available '
+                           f'({exc})') from None
+        return run_live_bench(args)
+    if args.duration is not None:
+        raise CLIError('--duration applies to --live only; use --steps offline')
+
+    from erva_ros.closed_loop import closed_loop_cost, simulate_closed_loop
+    from erva_ros.controllers import make_controller
+    from erva_ros.params import load_erva_params
+    from erva_ros.roads import make_road
+
+    params = load_erva_params(args.params)
+    extra = {} if args.alpha is None else {'alpha1': args.alpha[0], 'alpha2': args.alpha[1]}
+    settings = load_settings(args, **extra)
+    name = args.controller or settings.controller
+    if name in ('passive', 'skyhook'):
+        raise CLIError(f'--controller {name} has no solver to benchmark; use no_preview, '
+                       'preview or preview_long')
+    settings = settings.with_(controller=name)
+    cost_kind = settings.long_cost if name == 'preview_long' else settings.cost
+    duration = args.steps * settings.ts
+    road = make_road('paper', duration, seed=args.seed)
+
+    def run(s):
+        ctrl = make_controller(name, params, s)
+        return simulate_closed_loop(params, ctrl, road, duration, s.ts)
+
+    main_run = run(settings)
+    m = main_run.metrics
+    cost = closed_loop_cost(main_run, settings.alpha1, settings.alpha2, cost_kind)
+    result = {
+        'solver': settings.solver, 'controller': name, 'samples': int(main_run.t.size),
+        'solve_ms': {k: m['solve_ms'][k] for k in ('p50', 'p99', 'max')},
+        'over_budget': int(m['fallbacks']['over_budget']),
+        'suboptimality_pct': None,
+        'realtime_factor': m['realtime_factor'],
+        'weights': [settings.alpha1, settings.alpha2], 'cost': cost_kind,
+        'max_iter': settings.max_iter, 'time_budget_ms': settings.time_budget_s * 1e3,
+        'closed_loop_cost': cost, 'fallbacks': m['fallbacks'],
+        'acc_2norm': m['acc_2norm'], 'power_w': m['power_w'],
+        'machine': f'{platform.machine()}, {platform.python_implementation()} '
+                   f'{platform.python_version()}',
+    }
+    if not args.no_reference and settings.solver != 'ipopt':
+        ref = run(settings.with_(solver='ipopt'))
+        ref_cost = closed_loop_cost(ref, settings.alpha1, settings.alpha2, cost_kind)
+        result['suboptimality_pct'] = 100 * (cost - ref_cost) / abs(ref_cost)
+        result['reference'] = {'solver': 'ipopt', 'closed_loop_cost': ref_cost,
+                               'solve_ms': {k: ref.metrics['solve_ms'][k]
+                                            for k in ('p50', 'p99', 'max')},
+                               'acc_2norm': ref.metrics['acc_2norm'],
+                               'power_w': ref.metrics['power_w']}
+    elif settings.solver == 'ipopt':
+        result['suboptimality_pct'] = 0.0
+    if args.json:
+        print_json(result)
+    else:
+        sm = result['solve_ms']
+        print(f'{name} / {settings.solver}: {result["samples"]} closed-loop samples on the '
+              f'paper road, alpha = ({settings.alpha1:g}, {settings.alpha2:g}), '
+              f'{cost_kind} cost')
+        print(f'  solve time   p50 {sm["p50"]:.3f} ms, p99 {sm["p99"]:.3f} ms, '
+              f'max {sm["max"]:.3f} ms; over budget {result["over_budget"]}')
+        line = f'  closed-loop cost {cost:.6g}'
+        if 'reference' in result:
+            line += (f' vs IPOPT {result["reference"]["closed_loop_cost"]:.6g} '
+                     f'(suboptimality {result["suboptimality_pct"]:+.2f} %)')
+        print(line)
+        print(f'  real-time factor {result["realtime_factor"]:.1f}x')
+    return 0

@@ -1,0 +1,271 @@
+"""``erva table``: the paper's results (§IV.B) over many road seeds, with the clairvoyant bound."""
+
+import csv
+import json
+import os
+import time
+
+from erva_ros.commands._closed_loop_options import (add_settings_options, load_settings,
+                                                    PAPER_T1_S, weight_list)
+from erva_ros.commands._common import (add_json_option, add_out_option, add_params_option,
+                                       ensure_out_dir, positive_float, positive_int,
+                                       print_json, Progress)
+from erva_ros.errors import CLIError
+
+COMMAND = 'table'
+HELP = "the paper's results table (§IV.B) as mean ± spread over road seeds, with the bound"
+DESCRIPTION = """\
+Reproduces the numbers of paper §IV.B for the three weightings (α1, α2) = (1, 0),
+(0, 1), (1, 0.01): passive, skyhook, NMPC without and with preview, preview_long and
+the clairvoyant bound, each as mean ± standard deviation over --seeds noise seeds of
+the paper road (4 s, 1.7 Hz 1 mm sine + filtered noise at 7 dB).
+
+Columns: chassis-acceleration 2-norm (m/s², over the 200 samples at Ts), average
+harvested power (W), and pct_of_clairvoyant = 100·(J_passive − J)/(J_passive −
+J_bound), the share of the improvement over passive that the bound shows possible,
+with J = α1·acc_rms² − α2·P_avg (per seed, then averaged); power_pct_of_clairvoyant
+= 100·P/P_bound.  The paper's own numbers are printed next to ours.
+
+The bound solves a 200-interval OCP from several starts per seed and weighting: it
+dominates the run time (about a minute per seed on 2 cores; --no-bound skips it).
+The real-time budget is not enforced here (results must not depend on machine
+load); `erva bench` measures solve times."""
+
+CONTROLLERS = ('passive', 'skyhook', 'no_preview', 'preview', 'preview_long')
+PAPER_WEIGHTS = [(1.0, 0.0), (0.0, 1.0), (1.0, 0.01)]
+#: Paper §IV.B numbers.
+PAPER = {
+    (1.0, 0.0): {'acc_decrease_pct': 41.13},
+    (0.0, 1.0): {'power_w': {'preview': 11.0352, 'no_preview': 7.3998, 'passive': 2.5358},
+                 'power_increase_pct': 49.13},
+    (1.0, 0.01): {'power_increase_pct': 26.45, 'acc_decrease_pct': 31.41},
+}
+
+
+def add_arguments(parser):
+    add_params_option(parser)
+    add_settings_options(parser, controller=False)
+    parser.add_argument('--seeds', type=positive_int, default=10,
+                        help='number of road noise seeds 0..n-1 (default 10)')
+    parser.add_argument('--duration', type=positive_float, default=PAPER_T1_S, metavar='S',
+                        help=f'simulated time per run in s (default {PAPER_T1_S:g}, paper t1)')
+    parser.add_argument('--weights', type=weight_list, default=PAPER_WEIGHTS,
+                        metavar='A1,A2;B1,B2',
+                        help='weightings to run (default "1,0;0,1;1,0.01", the paper\'s)')
+    parser.add_argument('--controllers', default=','.join(CONTROLLERS),
+                        help=f'causal controllers (default {",".join(CONTROLLERS)})')
+    parser.add_argument('--no-bound', action='store_true',
+                        help='skip the clairvoyant bound (fast; no pct_of_clairvoyant)')
+    parser.add_argument('--jobs', type=positive_int, default=1,
+                        help='worker processes, one seed each (default 1)')
+    add_out_option(parser, 'table.md, table.json and table.csv')
+    add_json_option(parser)
+
+
+def _stats(values):
+    import numpy as np
+    v = np.asarray([x for x in values if x is not None], dtype=float)
+    if v.size == 0:
+        return None
+    return {'mean': float(np.mean(v)), 'std': float(np.std(v, ddof=1)) if v.size > 1 else 0.0}
+
+
+def run_seed(job):
+    """Run every controller (and the bound) on one seed; return per-weighting metrics."""
+    from erva_ros.closed_loop import evaluation_objective, simulate_closed_loop
+    from erva_ros.controllers import make_controller
+    from erva_ros.controllers.clairvoyant import clairvoyant_bound
+    from erva_ros.roads import make_road
+
+    params, settings, seed, duration, weights, controllers, bound = job
+    road = make_road('paper', duration, seed=seed)
+    out = {}
+    for alpha in weights:
+        s = settings.with_(alpha1=alpha[0], alpha2=alpha[1])
+        rows, starts = {}, {}
+        for name in controllers:
+            run = simulate_closed_loop(params, make_controller(name, params, s), road,
+                                       duration, s.ts)
+            m = run.metrics
+            rows[name] = {'acc_2norm': m['acc_2norm'], 'acc_rms': m['acc_rms'],
+                          'power_w': m['power_w'], 'J': evaluation_objective(m, alpha),
+                          'solve_p99_ms': m['solve_ms']['p99'],
+                          'fallbacks': sum(m['fallbacks'][k] for k in
+                                           ('fallback_plan', 'fallback_passive'))}
+            if name != 'passive':
+                starts[name] = run.u
+        if bound:
+            b = clairvoyant_bound(params, road, duration, s.ts, alpha, s.u_min, s.u_max,
+                                  starts)
+            m = b.run.metrics
+            rows['clairvoyant'] = {'acc_2norm': m['acc_2norm'], 'acc_rms': m['acc_rms'],
+                                   'power_w': m['power_w'], 'J': b.objective,
+                                   'best_start': b.best_start, 'solve_s': b.solve_s}
+        out[alpha] = rows
+    return seed, out
+
+
+def aggregate(per_seed, weights, names):
+    """Return the JSON rows: mean ± std over seeds, and the shares of the bound."""
+    rows = []
+    for alpha in weights:
+        for name in names:
+            vals = [r[alpha][name] for r in per_seed if name in r[alpha]]
+            if not vals:
+                continue
+            row = {'weights': list(alpha), 'controller': name,
+                   'acc_2norm': _stats(v['acc_2norm'] for v in vals),
+                   'acc_rms': _stats(v['acc_rms'] for v in vals),
+                   'power_w': _stats(v['power_w'] for v in vals),
+                   'objective_J': _stats(v['J'] for v in vals),
+                   'pct_of_clairvoyant': None, 'power_pct_of_clairvoyant': None}
+            shares, pshares, beaten = [], [], 0
+            for r in per_seed:
+                bound = r[alpha].get('clairvoyant')
+                passive = r[alpha].get('passive')
+                me = r[alpha].get(name)
+                if bound is None or me is None:
+                    continue
+                if passive is not None and passive['J'] - bound['J'] > 1e-12:
+                    shares.append(100 * (passive['J'] - me['J']) / (passive['J'] - bound['J']))
+                if bound['power_w'] > 0:
+                    pshares.append(100 * me['power_w'] / bound['power_w'])
+                beaten += int(me['J'] < bound['J'] - 1e-12)
+            if shares:
+                row['pct_of_clairvoyant'] = _stats(shares)['mean']
+            if pshares:
+                row['power_pct_of_clairvoyant'] = _stats(pshares)['mean']
+            if name != 'clairvoyant' and any('clairvoyant' in r[alpha] for r in per_seed):
+                row['seeds_beating_bound'] = beaten
+            if 'solve_p99_ms' in vals[0]:
+                row['solve_p99_ms_max'] = max(v['solve_p99_ms'] for v in vals)
+                row['fallbacks'] = int(sum(v['fallbacks'] for v in vals))
+            rows.append(row)
+    return rows
+
+
+def paper_comparison(rows, weights):
+    """Return ours vs the paper for the quantities §IV.B reports."""
+    def mean(alpha, name, key):
+        for r in rows:
+            if tuple(r['weights']) == alpha and r['controller'] == name:
+                return r[key]['mean']
+        return None
+
+    out = []
+    for alpha in weights:
+        paper = PAPER.get(tuple(alpha))
+        if paper is None:
+            continue
+        a_np, a_p = mean(alpha, 'no_preview', 'acc_2norm'), mean(alpha, 'preview', 'acc_2norm')
+        p_np, p_p = mean(alpha, 'no_preview', 'power_w'), mean(alpha, 'preview', 'power_w')
+        if 'acc_decrease_pct' in paper and a_np and a_p is not None:
+            out.append({'weights': list(alpha),
+                        'quantity': '2-norm acceleration decrease, preview vs no preview (%)',
+                        'paper': paper['acc_decrease_pct'], 'ours': 100 * (1 - a_p / a_np)})
+        if 'power_increase_pct' in paper and p_np and p_p is not None:
+            out.append({'weights': list(alpha),
+                        'quantity': 'power increase, preview vs no preview (%)',
+                        'paper': paper['power_increase_pct'], 'ours': 100 * (p_p / p_np - 1)})
+        for name, value in paper.get('power_w', {}).items():
+            ours = mean(alpha, name, 'power_w')
+            if ours is not None:
+                out.append({'weights': list(alpha), 'quantity': f'average power, {name} (W)',
+                            'paper': value, 'ours': ours})
+    return out
+
+
+def _fmt(stat, digits=3):
+    return '-' if stat is None else f'{stat["mean"]:.{digits}f} ± {stat["std"]:.{digits}f}'
+
+
+def markdown(result) -> str:
+    """Return the table and the paper comparison as markdown."""
+    lines = [f'Paper road, {result["duration_s"]:g} s, {result["seeds"]} seeds '
+             f'(mean ± std); NMPC cost {result["cost"]}, solver {result["solver"]}, '
+             f'box [{result["u_box"][0]:g}, {result["u_box"][1]:g}] Ns/m', '',
+             '| (α1, α2) | controller | acc 2-norm (m/s²) | power (W) | % of bound '
+             '(J gap) | % of bound power |',
+             '|---|---|---|---|---|---|']
+    for r in result['rows']:
+        pct = r['pct_of_clairvoyant']
+        ppct = r['power_pct_of_clairvoyant']
+        lines.append(f'| ({r["weights"][0]:g}, {r["weights"][1]:g}) | {r["controller"]} | '
+                     f'{_fmt(r["acc_2norm"])} | {_fmt(r["power_w"])} | '
+                     f'{"-" if pct is None else f"{pct:.1f}"} | '
+                     f'{"-" if ppct is None else f"{ppct:.1f}"} |')
+    if result['paper_comparison']:
+        lines += ['', '| (α1, α2) | quantity | paper | ours |', '|---|---|---|---|']
+        for c in result['paper_comparison']:
+            lines.append(f'| ({c["weights"][0]:g}, {c["weights"][1]:g}) | {c["quantity"]} | '
+                         f'{c["paper"]:g} | {c["ours"]:.2f} |')
+    return '\n'.join(lines) + '\n'
+
+
+def main(args) -> int:
+    from erva_ros.controllers.settings import CONTROLLER_NAMES
+    from erva_ros.params import load_erva_params
+
+    names = [n.strip() for n in args.controllers.split(',') if n.strip()]
+    for n in names:
+        if n not in CONTROLLER_NAMES:
+            raise CLIError(f'--controllers: unknown controller {n!r}; choose from '
+                           f'{", ".join(CONTROLLER_NAMES)}')
+    if not names:
+        raise CLIError('--controllers: give at least one controller')
+    out = ensure_out_dir(args.out)
+    params = load_erva_params(args.params)
+    # Offline quality runs: the real-time budget is not enforced (10 s), so results do
+    # not depend on machine load; `erva bench` measures timing.
+    settings = load_settings(args, time_budget_s=10.0)
+    weights = [tuple(w) for w in args.weights]
+    jobs = [(params, settings, seed, args.duration, weights, names, not args.no_bound)
+            for seed in range(args.seeds)]
+    progress = Progress('erva table: seeds', enabled=True)
+    t0 = time.perf_counter()
+    per_seed = []
+    if args.jobs > 1 and len(jobs) > 1:
+        import multiprocessing
+        with multiprocessing.get_context('fork').Pool(min(args.jobs, len(jobs))) as pool:
+            for i, (_, r) in enumerate(pool.imap(run_seed, jobs), 1):
+                per_seed.append(r)
+                progress(i, len(jobs))
+    else:
+        for i, job in enumerate(jobs, 1):
+            per_seed.append(run_seed(job)[1])
+            progress(i, len(jobs))
+    elapsed = time.perf_counter() - t0
+    all_names = names + ([] if args.no_bound else ['clairvoyant'])
+    rows = aggregate(per_seed, weights, all_names)
+    result = {'seeds': args.seeds, 'rows': rows,
+              'paper_comparison': paper_comparison(rows, weights),
+              'duration_s': args.duration, 'ts': settings.ts, 'cost': settings.cost,
+              'solver': settings.solver, 'u_box': [settings.u_min, settings.u_max],
+              'elapsed_s': round(elapsed, 1)}
+    if out:
+        md_path = os.path.join(out, 'table.md')
+        with open(md_path, 'w', encoding='utf-8') as fh:
+            fh.write(markdown(result))
+        json_path = os.path.join(out, 'table.json')
+        with open(json_path, 'w', encoding='utf-8') as fh:
+            json.dump(result, fh, indent=2)
+        csv_path = os.path.join(out, 'table.csv')
+        with open(csv_path, 'w', newline='', encoding='utf-8') as fh:
+            wr = csv.writer(fh)
+            wr.writerow(['seed', 'alpha1', 'alpha2', 'controller', 'acc_2norm', 'acc_rms',
+                         'power_w', 'J'])
+            for seed, r in enumerate(per_seed):
+                for alpha in weights:
+                    for name, v in r[alpha].items():
+                        wr.writerow([seed, alpha[0], alpha[1], name, f'{v["acc_2norm"]:.6g}',
+                                     f'{v["acc_rms"]:.6g}', f'{v["power_w"]:.6g}',
+                                     f'{v["J"]:.6g}'])
+        result['files'] = [md_path, json_path, csv_path]
+    if args.json:
+        print_json(result)
+    else:
+        print(markdown(result), end='')
+        print(f'({elapsed:.0f} s)')
+        for f in result.get('files', []):
+            print(f'wrote {f}')
+    return 0

@@ -1,0 +1,36 @@
+"""`erva bench`: the JSON object of the issue, and its error lines."""
+
+import json
+
+
+def test_bench_json_shape(erva):
+    proc = erva('bench', '--steps', 60, '--json')
+    assert proc.returncode == 0, proc.stderr
+    res = json.loads(proc.stdout)
+    for key in ('solver', 'controller', 'samples', 'solve_ms', 'over_budget',
+                'suboptimality_pct', 'realtime_factor'):
+        assert key in res
+    assert (res['solver'], res['controller'], res['samples']) == ('sqp', 'preview', 60)
+    assert set(res['solve_ms']) == {'p50', 'p99', 'max'}
+    assert 0 < res['solve_ms']['p50'] <= res['solve_ms']['p99'] <= res['solve_ms']['max']
+    assert isinstance(res['over_budget'], int)
+    assert isinstance(res['suboptimality_pct'], float)
+    assert res['reference']['solver'] == 'ipopt'
+    assert res['realtime_factor'] > 1
+
+
+def test_bench_other_controller_without_reference(erva):
+    proc = erva('bench', '--steps', 30, '--controller', 'preview_long', '--alpha', '0,1',
+                '--no-reference', '--json')
+    assert proc.returncode == 0, proc.stderr
+    res = json.loads(proc.stdout)
+    assert res['controller'] == 'preview_long' and res['suboptimality_pct'] is None
+
+
+def test_bench_errors_are_one_line(erva):
+    for args, message in [(['--controller', 'passive'], 'has no solver to benchmark'),
+                          (['--duration', '5'], '--duration applies to --live only'),
+                          (['--steps', '0'], "'0' must be a positive integer")]:
+        proc = erva('bench', *args)
+        assert proc.returncode == 2, args
+        assert message in proc.stderr.strip().splitlines()[-1]

@@ -1,0 +1,81 @@
+"""`erva run` options, errors as one line, and the launch file (which cannot run here)."""
+
+import ast
+import importlib.util
+import os
+import re
+
+import pytest
+
+from conftest import REPO
+
+LAUNCH = os.path.join(REPO, 'launch', 'erva.launch.py')
+
+
+def test_run_help_lists_the_options(erva):
+    proc = erva('run', '--help')
+    assert proc.returncode == 0
+    for opt in ('--controller', '--alpha1', '--alpha2', '--road', '--seed', '--mode',
+                '--model', '--duration', '--params', '--record', '--no-record', '--ecu',
+                '--json'):
+        assert opt in proc.stdout, opt
+
+
+@pytest.mark.parametrize('args, message', [
+    (['--ecu', 'virtual'], r'--ecu virtual is not available yet'),
+    (['--params', '/no/such.yaml'], r"parameter file '/no/such.yaml' does not exist"),
+    (['--live', '{bad}'], r'live parameter file'),
+    (['--seed', '3', '--live', 'BADLIVE'], r"unknown live parameter\(s\) speeed_mps"),
+])
+def test_bad_input_is_one_line_and_no_node_starts(erva, tmp_path, args, message):
+    bad = tmp_path / 'live.yaml'
+    bad.write_text('/**/road_preview_node:\n  ros__parameters:\n    speeed_mps: 3.0\n')
+    args = [str(bad) if a == 'BADLIVE' else a for a in args]
+    proc = erva('run', '--no-record', *args)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and re.search(message, lines[0]), proc.stderr
+    assert 'started' not in proc.stderr
+
+
+def test_option_values_are_checked_by_argparse(erva):
+    for args in (['--duration', '-1'], ['--alpha1', 'nan'], ['--mode', 'fast'],
+                 ['--controller', 'lqr'], ['--seed', 'x']):
+        proc = erva('run', *args)
+        assert proc.returncode == 2 and 'error:' in proc.stderr, args
+        assert 'Traceback' not in proc.stderr
+
+
+def test_option_choices_match_the_code():
+    from erva_ros.commands import run
+    from erva_ros.controllers.settings import CONTROLLER_NAMES
+    from erva_ros.live.parameters import LIVE_CHOICES, MODES
+    from erva_ros.model import MODEL_KINDS
+    assert run.CONTROLLERS == CONTROLLER_NAMES
+    assert run.ROADS == LIVE_CHOICES['road'][0]
+    assert run.MODES == MODES and run.MODELS == MODEL_KINDS
+
+
+def test_launch_file_parses_and_references_what_exists():
+    source = open(LAUNCH, encoding='utf-8').read()
+    compile(source, LAUNCH, 'exec')
+    spec = importlib.util.spec_from_file_location('erva_launch', LAUNCH)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)            # no ROS launch needed to import it
+    assert callable(mod.generate_launch_description)
+    setup = ast.parse(open(os.path.join(REPO, 'setup.py'), encoding='utf-8').read())
+    nodes = next(ast.literal_eval(n.value) for n in setup.body
+                 if isinstance(n, ast.Assign) and getattr(n.targets[0], 'id', '') == 'NODES')
+    assert set(mod.NODES) <= set(nodes)
+    for name in mod.NODES:
+        assert importlib.util.find_spec(f'erva_ros.nodes.{name}') is not None
+    for cfg in mod.CONFIG_FILES:
+        assert os.path.isfile(os.path.join(REPO, 'config', cfg)), cfg
+    # Every launch argument is a parameter some node declares.
+    from erva_ros.controllers.settings import DEFAULTS
+    from erva_ros.live.parameters import LIVE_DEFAULTS
+    for name, default, kind, _ in mod.ARGUMENTS:
+        assert name == 'namespace' or name in LIVE_DEFAULTS or name in DEFAULTS, name
+        kind(default)
+    section = mod.node_section(os.path.join(REPO, 'config', 'nmpc.yaml'), 'nmpc_node')
+    assert section.get('controller') == 'preview' and 'horizon' in section
