@@ -54,7 +54,7 @@ TOPIC_TYPES = {
 
 
 def control_qos(depth: int = 10):
-    """QoS of the control topics: reliable, volatile, keep-last ``depth``.
+    """Return the control topics' QoS: reliable, volatile, keep-last ``depth``.
 
     Reliable so that nothing published is silently lost (the recorder's counts must
     equal the publishers'); depth 10 absorbs a 200 ms stall at 50 Hz.
