@@ -109,3 +109,10 @@ def test_short_preview_is_a_programming_error():
     c = make_controller('passive', P, ControllerSettings())
     with pytest.raises(ValueError, match='needs 11 road heights'):
         c.compute(np.zeros(6), np.zeros(3), 0.0)
+
+
+def test_codegen_setting_accepts_yaml_booleans():
+    assert settings_mod.validate_settings({'codegen': True}).codegen == 'on'
+    assert settings_mod.validate_settings({'codegen': False}).codegen == 'off'
+    with pytest.raises(ParamError, match="'codegen' = 'fast' is not allowed"):
+        settings_mod.validate_settings({'codegen': 'fast'})

@@ -160,3 +160,24 @@ def test_no_preview_holds_the_measured_road_height():
     z = make_controller('no_preview', P, S.with_(road_prediction='zero'))
     np.testing.assert_array_equal(z.road_prediction(preview)[1:], np.zeros(10))
     assert make_controller('preview', P, S).road_prediction(preview) is preview
+
+
+def test_compiled_function_matches_and_is_cached(tmp_path, monkeypatch):
+    import shutil
+    import casadi as ca
+    from erva_ros.controllers.nmpc import compile_function
+    if not (shutil.which('cc') or shutil.which('gcc')):
+        pytest.skip('no C compiler')
+    monkeypatch.setenv('ERVA_CACHE_DIR', str(tmp_path))
+    x = ca.SX.sym('x', 6)
+    u = ca.SX.sym('u')
+    fn = ca.Function('power_check', [x, u], [MODEL.power(x, u), MODEL.ode(x, u, 0.001)])
+    compiled = compile_function(fn)
+    xv, uv = np.array([1e-3, 2e-2, 0, -1e-2, 3e-3, 5e-2]), 15000.0
+    for a, b in zip(compiled(xv, uv), fn(xv, uv)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12)
+    libs = list(tmp_path.glob('power_check_*.so'))
+    assert len(libs) == 1
+    mtime = libs[0].stat().st_mtime_ns
+    compile_function(fn)                       # second use loads the cached library
+    assert libs[0].stat().st_mtime_ns == mtime

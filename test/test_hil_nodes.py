@@ -267,3 +267,15 @@ def test_bench_hil_reports_every_latency(erva):
         stats = out['latency_ms'][key]
         assert stats['samples'] > 50 and 0 < stats['p50'] <= stats['p99'] <= stats['max'], key
     assert out['errors'] == [] and out['matched'] > 100
+
+
+def test_bench_hil_cores_and_bad_options(erva):
+    run = erva('bench-hil', '--cores', '--samples', '50', '--json', timeout=120)
+    assert run.returncode == 0, run.stderr
+    out = json.loads(run.stdout)
+    for key in ('bridge_ros_to_can', 'bridge_can_to_ros', 'estimator_cycle'):
+        assert out[key]['samples'] == 50 and 0 < out[key]['p50'] <= out[key]['max']
+    bad = erva('bench-hil', '--estimator-eval', '--controllers', 'nmpc9', timeout=60)
+    assert bad.returncode == 2 and bad.stderr.strip().splitlines() == [
+        "erva bench-hil: error: --controllers: unknown 'nmpc9'; choose from passive, "
+        'skyhook, no_preview, preview, preview_long']

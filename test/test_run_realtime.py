@@ -3,6 +3,7 @@
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -56,7 +57,7 @@ def _count_bag_messages(bag_dir):
     return counts
 
 
-def test_erva_run_realtime_records_and_summarises(tmp_path):
+def test_erva_run_realtime_records_and_summarises(tmp_path, erva):
     proc = _start('--duration', 2, '--record', tmp_path, '--json')
     out, err = proc.communicate(timeout=180)
     assert proc.returncode == 0, err
@@ -77,6 +78,11 @@ def test_erva_run_realtime_records_and_summarises(tmp_path):
         assert cmd[key]['samples'] > 0 and cmd[key]['p50'] >= 0
     plant = s['plant']
     assert plant['u_from_command'] + plant['u_from_plan'] + plant['u_from_passive'] == 100
+    if plant['u_from_command'] == 100 and s['nmpc']['controller_fallback_plan'] == 0:
+        # Every command in time (the usual case): the real-time loop is the offline one.
+        sim = json.loads(erva('sim', '--duration', 2, '--json', check=True).stdout)
+        assert s['metrics']['acc_2norm'] == pytest.approx(sim['acc_2norm'], rel=1e-9)
+        assert s['metrics']['power_w'] == pytest.approx(sim['power_w'], rel=1e-6)
     assert s['nmpc']['solve_ms']['samples'] == cmd['for_samples']
     assert s['messages']['dropped_total'] == 0
     assert all(n['stopped_cleanly'] for n in s['nodes'].values()), s['nodes']
@@ -118,6 +124,9 @@ def test_killed_nmpc_plant_holds_plan_then_passive_and_run_fails(tmp_path):
     assert s['nodes']['plant_sim_node']['stopped_cleanly']
     assert s['nodes']['nmpc_node']['died']
     assert all(_gone(p) for p in pids.values())
+    # The node logs are kept for a failed run; this one failed on purpose.
+    assert os.path.isfile(os.path.join(s['session_dir'], 'nmpc_node.log'))
+    shutil.rmtree(s['session_dir'])
 
 
 @pytest.mark.parametrize('sig, code', [(signal.SIGINT, 130), (signal.SIGTERM, 143),
@@ -127,6 +136,8 @@ def test_signals_stop_every_process(sig, code):
     try:
         pids = _wait_connected(proc)
         assert set(pids) == {'nmpc_node', 'plant_sim_node', 'road_preview_node'}
+        argv = open(f'/proc/{pids["nmpc_node"]}/cmdline').read().split('\0')
+        params_file = argv[argv.index('--params-file') + 1]
         time.sleep(1.5)
         proc.send_signal(sig)
         out, err = proc.communicate(timeout=60)
@@ -140,6 +151,10 @@ def test_signals_stop_every_process(sig, code):
         while time.monotonic() < end and not all(_gone(p) for p in pids.values()):
             time.sleep(0.1)
         assert all(_gone(p) for p in pids.values()), pids
+        if sig == signal.SIGKILL:
+            session_dir = os.path.dirname(params_file)
+            assert os.path.isdir(session_dir)       # nobody left to clean up: the test does
+            shutil.rmtree(session_dir)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)

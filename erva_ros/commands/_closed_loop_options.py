@@ -63,6 +63,10 @@ def add_settings_options(parser: argparse.ArgumentParser, controller: bool = Tru
                         help='NMPC horizon N in samples (paper: 10)')
     parser.add_argument('--max-iter', type=int, default=None, metavar='K',
                         help='real-time SQP iterations per sample')
+    parser.add_argument('--codegen', choices=('off', 'on'), default=None,
+                        help='compile the real-time solver to C with cc (first use compiles '
+                             'for ~30 s, then cached in ~/.cache/erva_ros; default: settings '
+                             'file, off)')
     parser.add_argument('--u-min', type=float, default=None, metavar='NS_PER_M',
                         help='lower bound of the damping command (Ns/m)')
     parser.add_argument('--u-max', type=float, default=None, metavar='NS_PER_M',
@@ -95,7 +99,7 @@ def load_settings(args, **extra):
     """Return validated ControllerSettings from --settings and the override options."""
     from erva_ros.controllers.settings import load_controller_settings
     overrides = {'controller': getattr(args, 'controller', None), 'cost': args.cost,
-                 'long_cost': args.cost,
+                 'long_cost': args.cost, 'codegen': args.codegen,
                  'solver': args.solver, 'horizon': args.horizon, 'max_iter': args.max_iter,
                  'u_min': args.u_min, 'u_max': args.u_max}
     overrides.update(extra)

@@ -27,6 +27,9 @@ prints the latency each stage adds (p50 / p99 / max in ms, sample counts):
 Target: <= 1 ms p99 for the bridge and the estimator each.  The first 0.5 s are not
 counted.  Also prints the estimation error RMS against the ECU's ground truth.
 
+--cores: the same stages without ROS and DDS (bridge encode + E2E + send on loopback
+UDP, receive + E2E + decode, one EKF cycle): their pure CPU cost.
+
 --estimator-eval: offline (no ROS) closed loop of each controller of
 --controllers with the full true state and with the EKF's estimate from the ECU's
 noisy, quantised sensors, over --seeds paper roads; prints comfort and power of
@@ -44,6 +47,11 @@ def add_arguments(parser):
     parser.add_argument('--law', choices=('skyhook', 'passive'), default='skyhook',
                         help='control law of the stand-in controller (default skyhook)')
     parser.add_argument('--seed', type=int, default=0, help='paper road seed (default 0)')
+    parser.add_argument('--cores', action='store_true',
+                        help='instead: time the plain-Python cores alone (no ROS): bridge '
+                             'encode+send, receive+decode, one EKF cycle; --samples of each')
+    parser.add_argument('--samples', type=positive_int, default=2000,
+                        help='--cores: samples per stage (default 2000)')
     parser.add_argument('--estimator-eval', action='store_true',
                         help='instead: offline closed loop on estimated vs true state')
     parser.add_argument('--controllers', default='skyhook,preview',
@@ -191,6 +199,17 @@ def main(args) -> int:
         raise CLIError(f'--seed must be >= 0, got {args.seed}')
     if args.estimator_eval:
         return _estimator_eval(args)
+    if args.cores:
+        from erva_ros.hil.bench import run_core_bench
+        result = run_core_bench(args.samples)
+        if args.json:
+            print_json(result)
+            return 0
+        print('HIL cores alone, no ROS (p50 / p99 / max ms, samples)')
+        for key, s in result.items():
+            print(f'  {key:<22} {s["p50"]:7.3f} {s["p99"]:7.3f} {s["max"]:7.3f} '
+                  f'{int(s["samples"]):6d}')
+        return 0
     from erva_ros.hil.bench import run_live_bench
     from erva_ros.params import default_params_file, load_erva_params
 

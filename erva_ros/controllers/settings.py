@@ -55,6 +55,8 @@ CHOICE_SPECS: Dict[str, Tuple[Tuple[str, ...], str]] = {
     'solver': (SOLVER_KINDS, 'NMPC solver: sqp (real-time SQP) or ipopt (converged reference)'),
     'road_prediction': (ROAD_PREDICTIONS, 'no_preview road model: hold last height or zero'),
     'long_cost': (COST_KINDS, 'stage cost of preview_long (paper or continuous)'),
+    'codegen': (('off', 'on'), 'compile the real-time solver\'s model functions to C '
+                               '(needs cc; cached in ~/.cache/erva_ros)'),
 }
 
 
@@ -80,6 +82,7 @@ class ControllerSettings:
     long_step_s: float = 0.06
     terminal_weight: float = 0.5
     long_cost: str = 'continuous'
+    codegen: str = 'off'
 
     @property
     def weights(self) -> Tuple[float, float]:
@@ -111,6 +114,8 @@ def describe(key: str) -> str:
 
 def _check(key: str, value: Any, source: str) -> Any:
     where = f'{source}: ' if source else ''
+    if key == 'codegen' and isinstance(value, bool):
+        value = 'on' if value else 'off'   # YAML 1.1 reads a bare on/off as a boolean
     if key in CHOICE_SPECS:
         choices, _ = CHOICE_SPECS[key]
         if not isinstance(value, str) or value not in choices:

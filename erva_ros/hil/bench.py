@@ -20,6 +20,8 @@ runs at the ECU's 50 Hz.  Measured:
   from outside (last ecu/* message of a cycle published → state published) and the
   whole sensor path (first CAN frame of the cycle received → state received);
 * estimation error against the ECU's ground truth (``ecu_sim/state``).
+
+:func:`run_core_bench` times the same stages' plain-Python cores without ROS.
 """
 
 import os
@@ -257,3 +259,58 @@ def _finite(obj):
     if isinstance(obj, float) and not np.isfinite(obj):
         return None
     return obj
+
+
+def run_core_bench(samples: int = 2000) -> Dict:
+    """Time the plain-Python cores alone (no ROS, no DDS): the CPU cost of each stage.
+
+    * bridge ROS→CAN: :meth:`BridgeCore.submit` (clamp, duty, DBC encode, E2E, send on
+      a loopback UDP bus);
+    * bridge CAN→ROS: :meth:`BridgeCore.receive` of a frame waiting in the socket
+      (read, E2E check, DBC decode);
+    * estimator: one ECU cycle of the EKF (predict over Ts, output linearisation,
+      three sequential measurement updates).
+    """
+    import math
+
+    from erva_ros.estimator import ExtendedKalmanFilter
+    from erva_ros.hil.bridge import BridgeConfig, BridgeCore
+    from erva_ros.hil.codec import Chassis, EcuCodec, Kind
+    from erva_ros.hil.hardware import GeneratorHardware
+    from erva_ros.hil.transport import free_udp_ports, open_bus
+    from erva_ros.params import paper_params
+
+    codec = EcuCodec()
+    a, b = free_udp_ports(2)
+    ecu = open_bus(f'udp:{b}:{a}')
+    core = BridgeCore(codec, GeneratorHardware(), BridgeConfig(),
+                      lambda: open_bus(f'udp:{a}:{b}'))
+    core.open()
+    tx = codec.sender(Kind.CHASSIS)
+    ekf = ExtendedKalmanFilter(paper_params())
+    send, recv, est = [], [], []
+    try:
+        for k in range(samples):
+            c_e = 10000.0 + 5000.0 * math.sin(0.1 * k)
+            t0 = time.perf_counter()
+            core.submit([c_e] * 10)
+            send.append(time.perf_counter() - t0)
+            ecu.recv(1.0)
+            ecu.send(codec.encode(Kind.CHASSIS, Chassis(0.1, 0.001), tx))
+            time.sleep(0.0002)                   # the frame is in the socket
+            t0 = time.perf_counter()
+            frame = core.receive(1.0)
+            recv.append(time.perf_counter() - t0)
+            assert frame is not None
+            t0 = time.perf_counter()
+            ekf.predict(c_e, 1e-3, 1.1e-3)
+            ekf.linearize_output(c_e, 1.1e-3)
+            for i, y in enumerate((0.1, 1e-3, 0.05)):
+                ekf.correct(i, y)
+            est.append(time.perf_counter() - t0)
+    finally:
+        core.close()
+        ecu.shutdown()
+    return {'bridge_ros_to_can': percentiles_ms(send),
+            'bridge_can_to_ros': percentiles_ms(recv),
+            'estimator_cycle': percentiles_ms(est)}

@@ -19,6 +19,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import AccelStamped, PointStamped
 from rclpy.node import Node
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
@@ -32,84 +33,55 @@ MAX_EVENTS = 200
 
 
 class Monitor(Node):
-    """Record every message of a session with its arrival time (wall clock, ns)."""
+    """Record every message of a session with its arrival time (wall clock, ns).
+
+    The data topics are taken raw (serialized bytes) and decoded only for the summary:
+    the observer costs the loop as little CPU as possible while it runs.
+    """
 
     def __init__(self, namespace: str = topics.NAMESPACE, name: str = 'erva_run_monitor',
                  context=None, gate: Sequence[str] = (topics.ROAD_HEIGHT, topics.ROAD_PREVIEW)):
         super().__init__(name, namespace=namespace, context=context,
                          start_parameter_services=False)
-        qos = topics.control_qos(depth=100)
+        self._qos = topics.control_qos(depth=100)
+        self._types = {topics.STATE: JointState, topics.SPRUNG_ACCEL: AccelStamped,
+                       topics.GENERATOR: JointState, topics.ROAD_HEIGHT: PointStamped,
+                       topics.ROAD_PREVIEW: JointTrajectory, topics.DAMPING_CMD: JointTrajectory}
+        self._raw: Dict[str, List[Tuple[int, bytes]]] = {t: [] for t in self._types}
+        self._decoded = -1
+        self.received = {t: 0 for t in (*self._types, topics.DIAGNOSTICS)}
+        self.diag: Dict[str, Tuple[int, str, Dict[str, str], int]] = {}
+        self.diag_events: List[Tuple[int, str, int, str]] = []  # (rx_ns, node, level, msg)
+        # Decoded by _decode(): by sample stamp (ns).
         self.states: Dict[int, np.ndarray] = {}
+        self.state_rx: Dict[int, int] = {}
         self.accel: Dict[int, float] = {}
         self.power: Dict[int, float] = {}
         self.heights: Dict[int, float] = {}
         self.previews: Dict[int, np.ndarray] = {}
         self.commands: List[Tuple[int, int, np.ndarray]] = []   # (stamp, rx_ns, plan)
-        self.diag: Dict[str, Tuple[int, str, Dict[str, str], int]] = {}
-        self.diag_events: List[Tuple[int, str, int, str]] = []  # (rx_ns, node, level, msg)
-        self.received = {t: 0 for t in (topics.STATE, topics.SPRUNG_ACCEL, topics.GENERATOR,
-                                        topics.ROAD_HEIGHT, topics.ROAD_PREVIEW,
-                                        topics.DAMPING_CMD, topics.DIAGNOSTICS)}
-        self.state_rx: Dict[int, int] = {}
-        self.last_rx = time.monotonic()
-        self._qos = qos
-        self._subs = {
-            topics.STATE: (JointState, self._on_state),
-            topics.SPRUNG_ACCEL: (AccelStamped, self._on_accel),
-            topics.GENERATOR: (JointState, self._on_generator),
-            topics.ROAD_HEIGHT: (PointStamped, self._on_height),
-            topics.ROAD_PREVIEW: (JointTrajectory, self._on_preview),
-            topics.DAMPING_CMD: (JointTrajectory, self._on_command),
-            topics.DIAGNOSTICS: (DiagnosticArray, self._on_diag),
-        }
         # The time master starts when its topics have all their subscribers.  Subscribing
         # to those last, once every other subscription of this monitor is matched,
         # makes sure no message of the run is published before the monitor can get it.
         self.gate = tuple(gate)
         self.subscriptions_by_topic = {
-            t: self.create_subscription(cls, t, cb, qos)
-            for t, (cls, cb) in self._subs.items() if t not in self.gate}
+            t: self._subscribe(t) for t in (*self._types, topics.DIAGNOSTICS)
+            if t not in self.gate}
 
-    # -- callbacks ---------------------------------------------------------------------
-    def _count(self, topic: str) -> None:
-        self.received[topic] += 1
-        self.last_rx = time.monotonic()
+    def _subscribe(self, topic: str):
+        if topic == topics.DIAGNOSTICS:
+            return self.create_subscription(DiagnosticArray, topic, self._on_diag, self._qos)
+        store = self._raw[topic]
 
-    def _on_state(self, msg: JointState) -> None:
-        rx = time.time_ns()
-        self._count(topics.STATE)
-        x = np.empty(2 * len(msg.position))
-        x[0::2], x[1::2] = msg.position, msg.velocity
-        stamp = time_to_ns(msg.header.stamp)
-        self.states[stamp] = x
-        self.state_rx[stamp] = rx
-
-    def _on_accel(self, msg: AccelStamped) -> None:
-        self._count(topics.SPRUNG_ACCEL)
-        self.accel[time_to_ns(msg.header.stamp)] = msg.accel.linear.z
-
-    def _on_generator(self, msg: JointState) -> None:
-        self._count(topics.GENERATOR)
-        self.power[time_to_ns(msg.header.stamp)] = msg.effort[0] * msg.velocity[0]
-
-    def _on_height(self, msg: PointStamped) -> None:
-        self._count(topics.ROAD_HEIGHT)
-        self.heights[time_to_ns(msg.header.stamp)] = msg.point.z
-
-    def _on_preview(self, msg: JointTrajectory) -> None:
-        self._count(topics.ROAD_PREVIEW)
-        self.previews[time_to_ns(msg.header.stamp)] = np.array(
-            [p.positions[0] for p in msg.points])
-
-    def _on_command(self, msg: JointTrajectory) -> None:
-        rx = time.time_ns()
-        self._count(topics.DAMPING_CMD)
-        self.commands.append((time_to_ns(msg.header.stamp), rx,
-                              np.array([p.positions[0] for p in msg.points])))
+        def on_message(data: bytes) -> None:
+            store.append((time.time_ns(), data))
+            self.received[topic] += 1
+        return self.create_subscription(self._types[topic], topic, on_message, self._qos,
+                                        raw=True)
 
     def _on_diag(self, msg: DiagnosticArray) -> None:
         rx = time.time_ns()
-        self._count(topics.DIAGNOSTICS)
+        self.received[topics.DIAGNOSTICS] += 1
         for status in msg.status:
             name, level, text, values = parse_status(status)
             node = name.rsplit('/', 1)[-1]
@@ -117,6 +89,34 @@ class Monitor(Node):
             if old is None or (old[0], old[1]) != (level, text):
                 self.diag_events.append((rx, node, level, text))
             self.diag[node] = (level, text, values, rx)
+
+    def _decode(self) -> None:
+        """Deserialize what arrived since the last call into the per-sample tables."""
+        total = sum(len(v) for v in self._raw.values())
+        if total == self._decoded:
+            return
+        self._decoded = total
+        self.states.clear()
+        self.state_rx.clear()
+        self.commands.clear()
+
+        def each(topic):
+            for rx, data in self._raw[topic]:
+                msg = deserialize_message(data, self._types[topic])
+                yield rx, time_to_ns(msg.header.stamp), msg
+
+        for rx, stamp, msg in each(topics.STATE):
+            x = np.empty(2 * len(msg.position))
+            x[0::2], x[1::2] = msg.position, msg.velocity
+            self.states[stamp], self.state_rx[stamp] = x, rx
+        self.accel = {stamp: m.accel.linear.z for _, stamp, m in each(topics.SPRUNG_ACCEL)}
+        self.power = {stamp: m.effort[0] * m.velocity[0]
+                      for _, stamp, m in each(topics.GENERATOR)}
+        self.heights = {stamp: m.point.z for _, stamp, m in each(topics.ROAD_HEIGHT)}
+        self.previews = {stamp: np.array([p.positions[0] for p in m.points])
+                         for _, stamp, m in each(topics.ROAD_PREVIEW)}
+        self.commands = [(stamp, rx, np.array([p.positions[0] for p in m.points]))
+                         for rx, stamp, m in each(topics.DAMPING_CMD)]
 
     # -- queries -----------------------------------------------------------------------
     def connect(self, n_diagnostics: int) -> bool:
@@ -130,13 +130,12 @@ class Monitor(Node):
             need = n_diagnostics if topic == topics.DIAGNOSTICS else 1
             return sub is not None and sub.get_publisher_count() >= need
 
-        others = [t for t in self._subs if t not in self.gate]
+        others = [t for t in self.received if t not in self.gate]
         if not all(matched(t) for t in others):
             return False
         for t in self.gate:
             if t not in self.subscriptions_by_topic:
-                cls, cb = self._subs[t]
-                self.subscriptions_by_topic[t] = self.create_subscription(cls, t, cb, self._qos)
+                self.subscriptions_by_topic[t] = self._subscribe(t)
         return all(matched(t) for t in self.gate)
 
     def diag_values(self, node: str) -> Dict[str, str]:
@@ -149,13 +148,30 @@ class Monitor(Node):
         entry = self.diag.get(node)
         return 0 if entry is None else entry[3]
 
-    def finished(self) -> bool:
-        """Return True once the plant reported the end of the scenario."""
-        return self.diag_values('plant_sim_node').get('finished') == 'true'
+    def published(self) -> Dict[str, Optional[int]]:
+        """Return the messages each node says it published per topic (None: not known)."""
+        plant = self.diag_values('plant_sim_node')
+        nmpc = self.diag_values('nmpc_node')
+        road = self.diag_values('road_preview_node')
+        return {
+            topics.STATE: _int(plant.get('states')),
+            topics.SPRUNG_ACCEL: _int(plant.get('steps')),
+            topics.GENERATOR: _int(plant.get('steps')),
+            topics.ROAD_HEIGHT: _int(road.get('samples_published')),
+            topics.ROAD_PREVIEW: _int(road.get('samples_published')),
+            topics.DAMPING_CMD: (None if not nmpc else (_int(nmpc.get('commands')) or 0)
+                                 + (_int(nmpc.get('safe_commands')) or 0)),
+        }
+
+    def dropped(self, published: Dict[str, Optional[int]]) -> Dict[str, Optional[int]]:
+        """Return, per topic, the messages published but not received here."""
+        return {t: (max(0, n - self.received[t]) if n is not None else None)
+                for t, n in published.items()}
 
     # -- summary -----------------------------------------------------------------------
     def trajectory(self, n_steps: Optional[int] = None) -> Dict[str, np.ndarray]:
         """Return the time series by sample (t from the first state, x, u, w, accel, power)."""
+        self._decode()
         stamps = sorted(self.accel)
         if n_steps is not None:
             stamps = stamps[:n_steps]
@@ -174,6 +190,7 @@ class Monitor(Node):
 
     def summary(self, ts: float, n_steps: int, realtime: bool) -> Dict[str, Any]:
         """Return the run's figures (see module doc) for a run of ``n_steps`` periods ``ts``."""
+        self._decode()
         plant = self.diag_values('plant_sim_node')
         nmpc = self.diag_values('nmpc_node')
         road = self.diag_values('road_preview_node')
@@ -182,6 +199,11 @@ class Monitor(Node):
         duration = len(accel) * ts
         metrics = comfort_power(accel, harvested, duration) if accel else {}
         metrics.update({'harvested_j': harvested, 'samples': len(accel)})
+        if len(self.state_rx) > 1:
+            # Simulated time over the wall time between the first and the last state.
+            rx = sorted(self.state_rx.values())
+            span = (rx[-1] - rx[0]) * 1e-9
+            metrics['realtime_factor'] = (len(rx) - 1) * ts / span if span > 0 else None
 
         cmds = self.commands
         scheduled = [c for c in cmds if c[0] in self.states]   # not the safe commands
@@ -217,17 +239,8 @@ class Monitor(Node):
             'road_gaps', 'lockstep_timeouts', 'rejected_road_height', 'rejected_damping_cmd')}
         out['plant'].update({k: _stats(plant, k) for k in (
             'loop_latency_ms', 'cmd_jitter_ms', 'road_latency_ms', 'step_ms')})
-        published = {
-            topics.STATE: _int(plant.get('states')),
-            topics.SPRUNG_ACCEL: _int(plant.get('steps')),
-            topics.GENERATOR: _int(plant.get('steps')),
-            topics.ROAD_HEIGHT: _int(road.get('samples_published')),
-            topics.ROAD_PREVIEW: _int(road.get('samples_published')),
-            topics.DAMPING_CMD: (None if not nmpc else (_int(nmpc.get('commands')) or 0)
-                                 + (_int(nmpc.get('safe_commands')) or 0)),
-        }
-        dropped = {t: (max(0, n - self.received[t]) if n is not None else None)
-                   for t, n in published.items()}
+        published = self.published()
+        dropped = self.dropped(published)
         rejected = {'state': _int(nmpc.get('rejected_state')),
                     'road/preview': _int(nmpc.get('rejected_preview')),
                     'road/height': _int(plant.get('rejected_road_height')),

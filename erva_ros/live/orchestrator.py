@@ -481,7 +481,8 @@ def run_session(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> 
             signal.signal(sig, handler)
     summary = sup.summary()
     code = sup.exit_code()
-    if cfg.session_dir is None and code == 0:
+    interrupted_only = sup.caught and len(summary['errors']) == 1
+    if cfg.session_dir is None and (code == 0 or interrupted_only):
         # Nothing to look into: drop the temporary params file and node logs.
         shutil.rmtree(session.directory, ignore_errors=True)
         summary['session_dir'] = None
@@ -494,10 +495,9 @@ def run_session(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> 
 
 def _all_received(monitor) -> bool:
     """Return True once every node's final counters arrived and nothing is missing."""
-    s = monitor.summary(1.0, 0, False)
-    published = s['messages']['published']
+    published = monitor.published()
     return (all(v is not None for v in published.values())
-            and s['messages']['dropped_total'] == 0)
+            and not any(monitor.dropped(published).values()))
 
 
 def ensure_ecu_available(ecu: str) -> None:

@@ -51,6 +51,8 @@ def format_summary(s: Dict[str, Any]) -> str:
                      f'RMS {m["acc_rms"]:.4g} m/s² ({m["samples"]} samples)')
         lines.append(f'  energy    average harvested power {m["power_w"]:.4g} W '
                      f'({m["harvested_j"]:.4g} J)')
+    if m.get('realtime_factor'):
+        lines.append(f'  pace      {m["realtime_factor"]:.2f}x real time')
     rate = f'{cmd["rate_hz"]:.2f} Hz' if cmd.get('rate_hz') else 'n/a (lock-step)'
     lines.append(f'  commands  {cmd["received"]} received, rate {rate}')
     if 'period_jitter_ms' in cmd:

@@ -7,6 +7,7 @@ parameter stops it with one line on stderr and exit status 2, never a traceback.
 """
 
 import gc
+import signal
 import sys
 from typing import Callable, List, Optional
 
@@ -22,6 +23,17 @@ def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]]
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
+    # Installed before rclpy.init, so rclpy's own handlers (which shut the context down)
+    # chain to it: a signal is then known even if it lands inside a callback.
+    signalled = []
+
+    def note(signum, frame):
+        signalled.append(signum)
+        if signum == signal.SIGINT:
+            raise KeyboardInterrupt
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, note)
     try:
         rclpy.init(args=args)
     except Exception as exc:  # malformed --ros-args: rcl reports it, keep it to one line
@@ -43,10 +55,10 @@ def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]]
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:
-        if rclpy.ok():
+        if rclpy.ok() and not signalled:
             raise
-        # SIGINT/SIGTERM shut the context down while a callback was publishing: the
-        # callback's "context is invalid" error is part of a normal shutdown.
+        # SIGINT/SIGTERM arrived while a callback ran (a publish on the invalidated
+        # context, an interrupted message conversion): part of a normal shutdown.
     finally:
         if node is not None:
             node.destroy_node()

@@ -11,9 +11,11 @@ Modes:
 
 * ``realtime``: a wall-clock timer at 1/Ts, phase-aligned to the state stamps (it
   ticks at t_k + m·Ts).  Each tick takes the newest state and preview; if the state
-  of this period has not arrived yet, it is solved the moment it does (and its
-  preview, which the road node publishes just after the height), so the
-  state-to-command latency is the solve time plus message transport.  A solve over
+  of this period has not arrived yet, the tick arms the node and the state is
+  solved the moment it arrives (with its preview, which the road node publishes
+  just after the height), so the state-to-command latency is the solve time plus
+  message transport; at most one such early solve per tick keeps the rate at 1/Ts
+  even if states come faster.  A solve over
   ``time_budget_s`` is replaced by the controller's fallback (shifted plan, then
   passive) and counted as a deadline miss, as is a command published later than
   t_k + Ts.  After ``state_timeout_periods`` periods without a state, each tick
@@ -89,7 +91,7 @@ class NMPCNode(Node):
         self.first_stamp = None
         self.n_samples = int(round(cfg['duration_s'] / self.ts)) + 1
         self.finished = False
-        self._last_solve_mono = 0.0
+        self.armed = True               # the next state is solved the moment it arrives
         self._awaiting_preview = None   # stamp of a state waiting for its preview
         self.timed_out = False
         self._warn_until = 0.0
@@ -154,14 +156,15 @@ class NMPCNode(Node):
             self.get_logger().info('states are back: controller running again')
         if self.lockstep:
             self._solve_if_ready()
-        elif self._tick_timer is None and self._align_timer is None:
-            self._align(stamp)
-            self._awaiting_preview = stamp
-            self._solve_if_ready()
-        elif time.monotonic() - self._last_solve_mono >= 0.5 * self.ts:
-            # This period's tick came first: solve on arrival (once its preview is here).
-            self._awaiting_preview = stamp
-            self._solve_if_ready()
+        else:
+            if self._tick_timer is None and self._align_timer is None:
+                self._align(stamp)
+            if self.armed:
+                # This period's tick came first: solve on arrival (once its preview is
+                # here).  Disarmed until the next tick, so at most one such solve a period.
+                self.armed = False
+                self._awaiting_preview = stamp
+                self._solve_if_ready()
 
     def _on_preview(self, msg: JointTrajectory) -> None:
         try:
@@ -196,18 +199,23 @@ class NMPCNode(Node):
         self._align_timer = self.create_timer(delay * 1e-9, self._start_ticks)
 
     def _start_ticks(self) -> None:
+        """Run at the first grid instant: start the periodic timer and act as its tick."""
         self._align_timer.cancel()
         self.destroy_timer(self._align_timer)
         self._tick_timer = self.create_timer(self.ts, self._on_tick)
+        self.armed = True   # the timer's first tick is a period away: the next state is due
 
     def _on_tick(self) -> None:
         now_ns = time.time_ns()
         self.tick_period.mark(now_ns * 1e-9)
         self.tick_phase.add(((now_ns - self.first_stamp) % self.ts_ns) * 1e-9)
         if self.state is not None and self.state[0] > self.last_solved:
-            # Arrived within half a period of the last solve, or its preview never came
-            # (then the newest preview, shifted, is used).
+            # Arrived before this tick while disarmed, or its preview never came (then
+            # the newest preview, shifted, is used).
             self._solve_newest()
+        # Re-arm every tick, also after solving here: a late period must not make every
+        # following state wait for the next tick.
+        self.armed = True
         silent = time.monotonic() - self.last_state_mono
         if silent > self.cfg['state_timeout_periods'] * self.ts:
             self._publish_safe(silent)
@@ -242,7 +250,6 @@ class NMPCNode(Node):
         if self.last_solved >= 0 and stamp - self.last_solved > self.ts_ns:
             self.count['missed_samples'] += (stamp - self.last_solved) // self.ts_ns - 1
         self.last_solved = stamp
-        self._last_solve_mono = time.monotonic()
         preview = self._preview_for(stamp)
         over_before = self.controller.counters.get('over_budget', 0)
         if preview is None:

@@ -103,7 +103,7 @@ class PlantSimNode(Node):
         self.create_timer(cfg['diagnostics_period_s'], self._on_diag_timer, clock=self.steady)
         if self.lockstep:
             # Wall-clock timer: sim time stands still while the plant waits.
-            self.create_timer(0.005, self._on_lockstep_timer, clock=self.steady)
+            self.create_timer(0.05, self._on_lockstep_timer, clock=self.steady)
         self.status.set(diag.OK, 'waiting for the road' if not self.lockstep
                         else 'waiting for the nodes before publishing /clock')
         self.get_logger().info(
