@@ -56,7 +56,7 @@ class PlantSimulator:
         self.harvested_j = 0.0
 
     def sample(self, u: float, w: float) -> PlantSample:
-        """Return the outputs at the current time if command ``u`` is applied with road height ``w``."""
+        """Return the outputs now if command ``u`` is applied with road height ``w``."""
         acc, pw = self._outputs(self.x, u, w)
         return PlantSample(self.t, self.x.copy(), float(w), float(u), float(acc), float(pw),
                            self.harvested_j)
