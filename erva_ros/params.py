@@ -143,7 +143,8 @@ def read_ros_params(path: str, node_name: Optional[str] = None) -> Dict[str, Any
     merged: Dict[str, Any] = {}
     sections = ['/**', '**']
     if node_name:
-        sections += [node_name, '/' + node_name.lstrip('/')]
+        # '/**/name' matches the node in any namespace (e.g. /erva/nmpc_node), as rcl does.
+        sections += [node_name, '/' + node_name.lstrip('/'), '/**/' + node_name.lstrip('/')]
     found = False
     for name in sections:
         sec = doc.get(name)
