@@ -124,11 +124,8 @@ def validate_erva(values: Dict[str, Any], source: str = '') -> ERVAParams:
     return ERVAParams(**out)
 
 
-def read_ros_params(path: str, node_name: Optional[str] = None) -> Dict[str, Any]:
-    """Merge the ``ros__parameters`` of ``/**`` and ``node_name`` sections of a params file.
-
-    Node-specific values override the wildcard section, as ``--params-file`` does.
-    """
+def load_params_yaml(path: str) -> Dict[str, Any]:
+    """Parse a ROS params file into its top-level mapping, or raise a one-line ParamError."""
     if not os.path.isfile(path):
         raise ParamError(f'parameter file {path!r} does not exist')
     try:
@@ -140,6 +137,15 @@ def read_ros_params(path: str, node_name: Optional[str] = None) -> Dict[str, Any
         raise ParamError(f'{path}: not valid YAML{at}') from None
     if not isinstance(doc, dict):
         raise ParamError(f'{path}: expected a mapping of node names to ros__parameters')
+    return doc
+
+
+def read_ros_params(path: str, node_name: Optional[str] = None) -> Dict[str, Any]:
+    """Merge the ``ros__parameters`` of ``/**`` and ``node_name`` sections of a params file.
+
+    Node-specific values override the wildcard section, as ``--params-file`` does.
+    """
+    doc = load_params_yaml(path)
     merged: Dict[str, Any] = {}
     sections = ['/**', '**']
     if node_name:

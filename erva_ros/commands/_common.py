@@ -45,6 +45,24 @@ def positive_int(text: str) -> int:
     return v
 
 
+def bounded(kind, lo: float, hi: float, describe: str):
+    """Return an argparse type parsing ``kind`` (int or float) within [lo, hi].
+
+    ``describe`` completes the error "'X' must be ..." (e.g. 'in [0, 10] s').
+    """
+    noun = 'an integer' if kind is int else 'a number'
+
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'{text!r} is not {noun}') from None
+        if not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f'{text!r} must be {describe}')
+        return v
+    return parse
+
+
 def ensure_out_dir(path: Optional[str]) -> Optional[str]:
     """Create ``path`` if needed; a clear error if it cannot be written."""
     if path is None:

@@ -3,8 +3,8 @@
 import os
 import sys
 
-from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
-                                       print_json)
+from erva_ros.commands._common import (add_json_option, add_params_option, bounded,
+                                       positive_float, print_json)
 from erva_ros.errors import CLIError
 
 COMMAND = 'run'
@@ -33,48 +33,11 @@ MODES = ('realtime', 'lockstep')
 MODELS = ('erva', 'benchmark')
 
 
-def _weight(text: str) -> float:
-    import argparse
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
-    if not 0 <= v < float('inf'):
-        raise argparse.ArgumentTypeError(f'{text!r} must be a finite number >= 0')
-    return v
-
-
-def _seed(text: str) -> int:
-    import argparse
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'{text!r} is not an integer') from None
-    if not 0 <= v <= 1_000_000_000:
-        raise argparse.ArgumentTypeError(f'{text!r} must be in [0, 1e9]')
-    return v
-
-
-def _snr(text: str) -> float:
-    import argparse
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
-    if not -40 <= v <= 200:
-        raise argparse.ArgumentTypeError(f'{text!r} must be in [-40, 200] dB')
-    return v
-
-
-def _delay(text: str) -> float:
-    import argparse
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
-    if not 0 <= v <= 10:
-        raise argparse.ArgumentTypeError(f'{text!r} must be in [0, 10] s')
-    return v
+# Upper bound of a weight: the largest float, so inf (and NaN) are rejected.
+_weight = bounded(float, 0.0, 1.7976931348623157e308, 'a finite number >= 0')
+_seed = bounded(int, 0, 1_000_000_000, 'in [0, 1e9]')
+_snr = bounded(float, -40.0, 200.0, 'in [-40, 200] dB')
+_delay = bounded(float, 0.0, 10.0, 'in [0, 10] s')
 
 
 def add_scenario_arguments(parser, duration_default: str = 'config/live.yaml: 4 s') -> None:

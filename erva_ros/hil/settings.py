@@ -20,12 +20,10 @@ The sample time ``ts`` and the model kind come from the ``/**`` section (as in a
 import os
 from typing import Any, Dict, Optional
 
-import yaml
-
 from erva_ros.estimator import EstimatorNoise, NOISE_SPECS, validate_noise
 from erva_ros.hil.hardware import (DEFAULTS as HW_DEFAULTS, GeneratorHardware,
                                    HARDWARE_SPECS, validate_hardware)
-from erva_ros.params import check_number, ParamError, Spec
+from erva_ros.params import check_number, load_params_yaml, ParamError, Spec
 
 BRIDGE_NODE = 'ecu_bridge_node'
 ESTIMATOR_NODE = 'state_estimator_node'
@@ -121,17 +119,7 @@ def _section(path: Optional[str], node: str) -> Dict[str, Any]:
     ``node``; ``/**`` is not read (the HIL keys are per node).
     """
     path = path or default_hil_file()
-    if not os.path.isfile(path):
-        raise ParamError(f'parameter file {path!r} does not exist')
-    try:
-        with open(path, encoding='utf-8') as fh:
-            doc = yaml.safe_load(fh)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, 'problem_mark', None)
-        at = f' at line {mark.line + 1}' if mark is not None else ''
-        raise ParamError(f'{path}: not valid YAML{at}') from None
-    if not isinstance(doc, dict):
-        raise ParamError(f'{path}: expected a mapping of node names to ros__parameters')
+    doc = load_params_yaml(path)
     out: Dict[str, Any] = {}
     for name in (node, f'/{node}', f'**/{node}', f'/**/{node}'):
         sec = doc.get(name)
