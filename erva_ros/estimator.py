@@ -43,12 +43,14 @@ same result as the batch :meth:`ExtendedKalmanFilter.update`.
 
 from dataclasses import asdict, dataclass
 from typing import Dict, Optional, Tuple
+import warnings
 
 import casadi as ca
 import numpy as np
 
+from erva_ros.codegen import compile_functions, use_codegen
 from erva_ros.model import get_model, rk4_stable_substeps
-from erva_ros.params import ERVAParams, Spec
+from erva_ros.params import ERVAParams, ParamError, Spec
 
 #: Measurement names, in the order of y.
 MEASUREMENTS = ('sprung_accel', 'deflection', 'generator_speed')
@@ -98,7 +100,7 @@ class ExtendedKalmanFilter:
 
     def __init__(self, params: ERVAParams, kind: str = 'erva', ts: float = 0.02,
                  noise: EstimatorNoise = EstimatorNoise(), u_max: float = 22800.0,
-                 substeps: Optional[int] = None):
+                 substeps: Optional[int] = None, codegen: str = 'auto'):
         self.model = get_model(params, kind)
         self.params = params
         self.kind = kind
@@ -118,9 +120,65 @@ class ExtendedKalmanFilter:
                        self.model.generator_velocity(x) / params.l)
         self._meas = ca.Function('ekf_measure', [x, u, w0], [y, ca.jacobian(y, x)],
                                  ['x', 'u', 'w'], ['y', 'H'])
+        self._cycle = self._cycle_function(x, xn, ca.jacobian(xn, x), u, w0, w1)
+        if use_codegen(codegen):    # as the NMPC: C when a compiler is there (2x faster)
+            try:
+                self._pred, self._meas, self._cycle = compile_functions(
+                    (self._pred, self._meas, self._cycle))
+            except ParamError as exc:   # a broken compiler: 'auto' runs uncompiled
+                if codegen != 'auto':
+                    raise
+                warnings.warn(f'{exc}; running the EKF uncompiled')
         self.Q = self._process_noise()
         self.R = np.diag([noise.r_sprung_accel, noise.r_deflection, noise.r_speed]) ** 2
+        self._r = np.diag(self.R).copy()
         self.reset()
+
+    def _cycle_function(self, x, xn, a, u_mean, w0, w1) -> ca.Function:
+        """Return predict + update of one ECU cycle as one CasADi function (see :meth:`cycle`).
+
+        The rows are applied one by one (R diagonal: equal to the batch update), each
+        only where its mask is 1, with the output linearised once at the prior.
+        """
+        nx = self.nx
+        p = ca.SX.sym('P', nx, nx)
+        q = ca.SX.sym('Q', nx, nx)
+        r = ca.SX.sym('r', 3)
+        u_now, y, mask = ca.SX.sym('u_now'), ca.SX.sym('y', 3), ca.SX.sym('mask', 3)
+        p1 = a @ p @ a.T + q
+        yh, hh = self._meas(xn, u_now, w1)     # the SX function: inlined
+        xk, pk, nis = xn, p1, 0
+        for i in range(3):
+            h = hh[i, :]
+            nu = y[i] - (yh[i] + h @ (xk - xn))
+            ph = pk @ h.T
+            s = h @ ph + r[i]
+            k = ph / s
+            ikh = ca.SX.eye(nx) - k @ h
+            xk = ca.if_else(mask[i], xk + k * nu, xk)
+            pk = ca.if_else(mask[i], ikh @ pk @ ikh.T + r[i] * (k @ k.T), pk)
+            nis = nis + mask[i] * nu * nu / s
+        return ca.Function('ekf_cycle', [x, p, q, r, u_mean, u_now, w0, w1, y, mask],
+                           [xk, pk, nis],
+                           ['x', 'P', 'Q', 'r', 'u_mean', 'u_now', 'w0', 'w1', 'y', 'mask'],
+                           ['x_next', 'P_next', 'nis'])
+
+    def cycle(self, y, u_mean: float, u_now: float, w0: float, w1: float
+              ) -> Tuple[np.ndarray, float]:
+        """Predict over one cycle and update with y (NaN = missing), in one C call.
+
+        Equal to :meth:`predict` (u_mean, w0 → w1) then :meth:`update` (y, u_now, w1);
+        returns (x̂, NIS of the rows used).  The node's per-cycle path: a few Python
+        operations instead of dozens (each one costs much more cold than in a loop).
+        """
+        y = np.asarray(y, dtype=float)
+        mask = np.isfinite(y)
+        x, p, nis = self._cycle(self.x, self.P, self.Q, self._r, u_mean, u_now, w0, w1,
+                                np.where(mask, y, 0.0), mask.astype(float))
+        self.x = np.asarray(x).ravel()
+        self.P = np.asarray(p)
+        self.k += 1
+        return self.x, float(nis)
 
     def _process_noise(self) -> np.ndarray:
         ts, n = self.ts, self.noise

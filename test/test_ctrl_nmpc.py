@@ -165,19 +165,41 @@ def test_no_preview_holds_the_measured_road_height():
 def test_compiled_function_matches_and_is_cached(tmp_path, monkeypatch):
     import shutil
     import casadi as ca
-    from erva_ros.controllers.nmpc import compile_function
+    from erva_ros.codegen import compile_functions
     if not (shutil.which('cc') or shutil.which('gcc')):
         pytest.skip('no C compiler')
     monkeypatch.setenv('ERVA_CACHE_DIR', str(tmp_path))
     x = ca.SX.sym('x', 6)
     u = ca.SX.sym('u')
     fn = ca.Function('power_check', [x, u], [MODEL.power(x, u), MODEL.ode(x, u, 0.001)])
-    compiled = compile_function(fn)
+    compiled, = compile_functions([fn])
     xv, uv = np.array([1e-3, 2e-2, 0, -1e-2, 3e-3, 5e-2]), 15000.0
     for a, b in zip(compiled(xv, uv), fn(xv, uv)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12)
     libs = list(tmp_path.glob('power_check_*.so'))
     assert len(libs) == 1
     mtime = libs[0].stat().st_mtime_ns
-    compile_function(fn)                       # second use loads the cached library
+    compile_functions([fn])                    # second use loads the cached library
     assert libs[0].stat().st_mtime_ns == mtime
+
+
+def test_codegen_auto_follows_the_c_compiler(monkeypatch):
+    from erva_ros.codegen import use_codegen
+    monkeypatch.delenv('CC', raising=False)
+    monkeypatch.setenv('PATH', '')
+    assert not use_codegen('auto') and use_codegen('on') and not use_codegen('off')
+    monkeypatch.setenv('CC', '/usr/bin/cc')
+    assert use_codegen('auto')
+
+
+def test_reference_gap_judges_the_real_time_solver_against_a_better_solve():
+    road = make_road('paper', 0.6, seed=2)
+    c = make_controller('preview', P, S.with_(time_budget_s=1.0))
+    c.recorded_problems = []
+    simulate_closed_loop(P, c, road, 0.6)
+    assert len(c.recorded_problems) == 30
+    gaps = np.array([c.reference_gap(pr) for pr in c.recorded_problems[::3]])
+    # IPOPT also starts from the real-time solution, so it is never worse ...
+    assert np.all(gaps >= -1e-6)
+    # ... and two SQP iterations are not converged: somewhere it finds a lower cost.
+    assert np.max(gaps) > 1e-4

@@ -61,6 +61,19 @@ def test_sequential_rows_equal_the_batch_update():
     assert list(r.used) == [False, True, False] and r.innovation.shape == (1,)
 
 
+def test_one_call_cycle_equals_predict_then_update(ekf):
+    # The node's per-cycle path (one compiled call), with rows missing (NaN) too.
+    a, b = ExtendedKalmanFilter(P), ekf
+    for y in ([0.5, 0.004, 0.2], [np.nan, 0.004, 0.2], [np.nan] * 3):
+        a.reset(X)
+        b.reset(X)
+        a.predict(12000.0, 1e-3, 1.2e-3)
+        res = a.update(y, 13000.0, 1.2e-3)
+        x, nis = b.cycle(y, 12000.0, 13000.0, 1e-3, 1.2e-3)
+        assert np.allclose(x, a.x, rtol=0, atol=1e-12) and np.allclose(b.P, a.P, atol=1e-14)
+        assert nis == pytest.approx(res.nis, rel=1e-9, abs=1e-15) and b.k == a.k
+
+
 def test_converges_from_a_wrong_initial_state_with_consistent_innovations():
     road = make_road('paper', 5.0, seed=3)
     plant = PlantSimulator(P, ts=0.02)

@@ -16,7 +16,7 @@ import pytest
 
 from erva_ros.hil.bridge import BridgeConfig, BridgeCore, ERROR, OK, WARN
 from erva_ros.hil.codec import (Chassis, Command, CommandMode, E2EReceiver, EcuCodec, EcuMode,
-                                Kind, Status)
+                                Generator, Kind, Status)
 from erva_ros.hil.ecu_sim import EcuSimConfig, EcuSimCore, run_realtime, SensorNoise
 from erva_ros.hil.hardware import GeneratorHardware
 from erva_ros.hil.transport import free_udp_ports, open_bus
@@ -377,6 +377,48 @@ def test_ecu_status_heartbeat_and_silence(codec, channel):
         d = bridge.diagnostics()[2]
         assert d.level == ERROR and 'ECU silent' in d.message
         assert bridge.counts['ecu_silences'] == 1
+    finally:
+        bridge.close()
+        ecu_bus.shutdown()
+
+
+def test_each_ecu_cycle_is_handed_out_once_whole_even_with_a_lost_frame(codec, channel):
+    # What ecu_bridge_node publishes as ecu/measurements: one EcuCycle per ECU cycle, with
+    # the cycle's stamp and payloads; a lost frame's kind is absent.
+    ecu_bus = _bus(channel)
+    now = [100.0]
+    bridge = BridgeCore(codec, HW, BridgeConfig(c_e_safe=C_E0), lambda: open_bus(channel),
+                        clock=lambda: now[0])
+    assert bridge.open()
+    tx = {k: codec.sender(k) for k in (Kind.STATUS, Kind.CHASSIS, Kind.GENERATOR)}
+    payloads = {Kind.STATUS: Status(EcuMode.CONTROLLED, 15000.0, 14000.0, 0, 0),
+                Kind.CHASSIS: Chassis(0.25, 0.002), Kind.GENERATOR: Generator(3.0, 1.5, 10.0)}
+    try:
+        def send(kind):
+            ecu_bus.send(codec.encode(kind, payloads[kind], tx[kind]))
+            return bridge.receive(0.5)
+
+        frames = [send(k) for k in (Kind.STATUS, Kind.CHASSIS, Kind.GENERATOR)]
+        assert [len(f.cycles) for f in frames] == [0, 0, 1]
+        cyc = frames[2].cycles[0]
+        assert cyc.complete and cyc.stamp == frames[0].stamp == frames[2].stamp
+        assert cyc.payloads == {f.kind: f.payload for f in frames}
+        assert cyc.rx_time == frames[2].rx_time
+        assert bridge.expire(now=now[0] + 1.0) is None            # nothing left open
+        # The next cycle loses its chassis frame: it ends, without it, at the next
+        # cycle's first frame...
+        now[0] += 0.02
+        first, gen, nxt = send(Kind.STATUS), send(Kind.GENERATOR), send(Kind.STATUS)
+        assert first.cycles == () and gen.cycles == ()
+        (lost,) = nxt.cycles
+        assert not lost.complete and set(lost.payloads) == {Kind.STATUS, Kind.GENERATOR}
+        assert lost.stamp == first.stamp == gen.stamp != nxt.stamp
+        # ... or Ts/2 after its first frame (the bridge node's Ts/4 watchdog check), once.
+        assert bridge.expire(now=now[0] + 0.009) is None
+        late = bridge.expire(now=now[0] + 0.011)
+        assert late is not None and set(late.payloads) == {Kind.STATUS}
+        assert late.stamp == nxt.stamp and bridge.expire(now=now[0] + 1.0) is None
+        assert (bridge.counts['ecu_cycles'], bridge.counts['incomplete_cycles']) == (3, 2)
     finally:
         bridge.close()
         ecu_bus.shutdown()

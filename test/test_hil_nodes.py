@@ -30,7 +30,7 @@ class Driver:
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
         from diagnostic_msgs.msg import DiagnosticArray
-        from geometry_msgs.msg import PointStamped
+        from geometry_msgs.msg import AccelStamped, PointStamped
         from sensor_msgs.msg import JointState
         from trajectory_msgs.msg import JointTrajectory
 
@@ -57,6 +57,17 @@ class Driver:
         self.t0 = time.time()
         self.answer = True
         self.est, self.truth = {}, {}
+        # What the bridge publishes, by stamp: the four per-frame topics and the cycle.
+        self.ecu = {t: {} for t in (hil_topics.ECU_DAMPING_APPLIED, hil_topics.ECU_SPRUNG_ACCEL,
+                                    hil_topics.ECU_SUSPENSION, hil_topics.ECU_GENERATOR)}
+        self.measurements = {}          # stamp -> [position lists]
+        for topic in self.ecu:
+            self.node.create_subscription(
+                AccelStamped if topic == hil_topics.ECU_SPRUNG_ACCEL else JointState, topic,
+                lambda msg, topic=topic: self._on_ecu(topic, msg), qos)
+        self.node.create_subscription(JointState, hil_topics.ECU_MEASUREMENTS,
+                                      self._on_measurements, qos)
+        self.pub_meas = self.node.create_publisher(JointState, hil_topics.ECU_MEASUREMENTS, qos)
         self.diag_log = []            # (time, name, level, message, values)
 
     def _on_road(self):
@@ -71,6 +82,15 @@ class Driver:
         if self.answer:
             u = 20000.0 if x[1] * (x[1] - x[3]) > 0 else 0.0
             self.pub_cmd.publish(damping_msg(stamp, [u] * 10, 20_000_000))
+
+    def _on_ecu(self, topic, msg):
+        from erva_ros.live.msgs import time_to_ns
+        self.ecu[topic][time_to_ns(msg.header.stamp)] = msg
+
+    def _on_measurements(self, msg):
+        from erva_ros.live.msgs import time_to_ns
+        self.measurements.setdefault(time_to_ns(msg.header.stamp), []).append(
+            (list(msg.name), list(msg.position)))
 
     def _on_truth(self, msg):
         from erva_ros.live.msgs import parse_state
@@ -186,6 +206,112 @@ def test_hil_loop_estimates_the_state_and_goes_safe_when_the_nmpc_stops(tmp_path
     rel = np.sqrt(np.mean(np.square(errs), 0)) / np.sqrt(np.mean(np.square(truth), 0))
     assert np.all(rel < 0.3), rel
     assert driver.last('ecu_sim')[4]['finished'] == 'true'
+    # Exactly one ecu/measurements per ECU cycle, with the stamp and the values of the
+    # cycle's four per-frame messages.
+    from erva_ros.hil import topics as hil_topics
+    assert all(len(v) == 1 for v in driver.measurements.values())
+    stamps = set.intersection(*(set(d) for d in driver.ecu.values()))
+    assert len(stamps) > 300 and len(set(driver.measurements) & stamps) >= len(stamps) - 2
+    v_max = 0.0
+    for stamp in sorted(stamps & set(driver.measurements)):
+        names, values = driver.measurements[stamp][0]
+        assert names == list(hil_topics.MEASUREMENT_NAMES)
+        applied = driver.ecu[hil_topics.ECU_DAMPING_APPLIED][stamp].position
+        gen = driver.ecu[hil_topics.ECU_GENERATOR][stamp]
+        assert values == [applied[0], applied[1],
+                          driver.ecu[hil_topics.ECU_SPRUNG_ACCEL][stamp].accel.linear.z,
+                          driver.ecu[hil_topics.ECU_SUSPENSION][stamp].position[0],
+                          gen.velocity[0], gen.effort[0]], stamp
+        v_max = max(v_max, abs(gen.velocity[0]))
+    assert v_max > 0
+    assert int(est[4]['incomplete']) == 0 and int(est[4]['rejected']) == 0
+
+
+def test_estimator_takes_one_message_per_cycle_and_rejects_bad_ones(tmp_path):
+    from erva_ros.hil import topics as hil_topics
+    from erva_ros.hil.processes import hil_process_specs
+    from erva_ros.live.msgs import ns_to_time
+    from sensor_msgs.msg import JointState
+
+    specs = [s for s in hil_process_specs(PARAMS, env=ros_env())
+             if s.name == 'state_estimator_node']
+    driver = Driver()
+    driver.answer = False
+    procs = _start(specs, tmp_path)
+    log = tmp_path / 'state_estimator_node.log'
+    names = list(hil_topics.MEASUREMENT_NAMES)
+    good = [12000.0, 11500.0, 0.3, 0.002, 0.05, 40.0]
+    nan = float('nan')
+    try:
+        driver.spin(30.0, until=lambda: driver.pub_meas.get_subscription_count() >= 1)
+        assert driver.pub_meas.get_subscription_count() >= 1, log.read_text()[-800:]
+        stamp = None
+
+        def send(values, names=names, velocity=(), same_stamp=False):
+            nonlocal stamp
+            stamp = stamp if same_stamp else time.time_ns()
+            m = JointState(name=list(names), position=[float(v) for v in values],
+                           velocity=list(velocity))
+            m.header.stamp = ns_to_time(stamp)
+            driver.pub_meas.publish(m)
+            driver.spin(0.02)
+
+        # Until the estimator's reader has matched this publisher: then a base line.
+        for _ in range(500):
+            send(good)
+            if driver.est:
+                break
+        n0 = len(driver.est)
+        driver.spin(3.0, until=lambda: driver.last('state_estimator_node')[4].get(
+            'updates') == str(n0))
+        base = {k: int(v) for k, v in driver.last('state_estimator_node')[4].items()
+                if k in ('updates', 'incomplete', 'rejected', 'late_or_repeated', 'restarts')}
+        assert base['updates'] == n0 and base['rejected'] == 0, base
+        for _ in range(20):
+            send(good)
+        send(good[:2] + [nan, nan] + good[4:])             # chassis frame lost
+        send([nan, nan] + good[2:])                        # status frame lost
+        send(good)
+        send(good, same_stamp=True)                        # repeated
+        bad = [good[:2] + [nan, 0.002] + good[4:],         # NaN in part of a frame
+               good[:2] + [1e3] + good[3:],                # absurd acceleration
+               good[:3] + [float('inf')] + good[4:],       # infinite deflection
+               [-5.0] + good[1:],                          # negative c_e
+               good[:5]]                                   # wrong size
+        for values in bad:
+            send(values)
+        send(good, names=names[::-1])                      # wrong names
+        send(good, velocity=[0.0] * 6)                     # fields it does not use
+        send(good)
+        driver.spin(3.0, until=lambda: driver.last('state_estimator_node')[4].get(
+            'updates') == str(n0 + 24))
+    finally:
+        _stop(procs)
+        driver.close()
+    values = driver.last('state_estimator_node')[4]
+    delta = {k: int(values[k]) - v for k, v in base.items()}
+    assert delta == {'updates': 24, 'incomplete': 2, 'rejected': 7, 'late_or_repeated': 1,
+                     'restarts': 0}, (values, log.read_text()[-800:])
+    assert len(driver.est) == n0 + 24
+    assert all(np.all(np.isfinite(x)) for x in driver.est.values())
+
+
+def test_measurements_are_parsed_and_checked():
+    from erva_ros.hil.topics import MEASUREMENT_NAMES
+    from erva_ros.nodes.state_estimator_node import parse_measurements
+    from sensor_msgs.msg import JointState
+
+    def parse(values, names=MEASUREMENT_NAMES):
+        return parse_measurements(JointState(name=list(names), position=values), 0.1)
+
+    assert parse([1e4, 9e3, 0.3, 0.002, 0.05, 40.0]) == pytest.approx(
+        (1e4, 9e3, 0.3, 0.002, 0.5))                        # rotor speed v_gen / l
+    got = parse([1e4, 9e3, float('nan'), float('nan'), 0.05, 40.0])
+    assert np.isnan(got[2]) and np.isnan(got[3]) and got[4] == pytest.approx(0.5)
+    assert parse([1e4, 9e3, 0.3, float('nan'), 0.05, 40.0]) is None
+    assert parse([1e4, 9e3, 0.3, 0.002, 200.0, 40.0]) is None          # 2000 rad/s
+    assert parse([1e4, 9e3, 0.3, 0.002, 0.05, 2e6]) is None            # absurd force
+    assert parse([1e4, 9e3, 0.3, 0.002, 0.05, 40.0], MEASUREMENT_NAMES[:5] + ('x',)) is None
 
 
 def _node(name, *ros_args, timeout=60):

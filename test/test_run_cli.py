@@ -17,12 +17,11 @@ def test_run_help_lists_the_options(erva):
     assert proc.returncode == 0
     for opt in ('--controller', '--alpha1', '--alpha2', '--road', '--seed', '--mode',
                 '--model', '--duration', '--params', '--record', '--no-record', '--ecu',
-                '--json'):
+                '--realtime-priority', '--json'):
         assert opt in proc.stdout, opt
 
 
 @pytest.mark.parametrize('args, message', [
-    (['--ecu', 'virtual'], r'--ecu virtual is not available yet'),
     (['--params', '/no/such.yaml'], r"parameter file '/no/such.yaml' does not exist"),
     (['--live', '{bad}'], r'live parameter file'),
     (['--seed', '3', '--live', 'BADLIVE'], r"unknown live parameter\(s\) speeed_mps"),
@@ -40,7 +39,7 @@ def test_bad_input_is_one_line_and_no_node_starts(erva, tmp_path, args, message)
 
 def test_option_values_are_checked_by_argparse(erva):
     for args in (['--duration', '-1'], ['--alpha1', 'nan'], ['--mode', 'fast'],
-                 ['--controller', 'lqr'], ['--seed', 'x']):
+                 ['--controller', 'lqr'], ['--seed', 'x'], ['--realtime-priority', '99']):
         proc = erva('run', *args)
         assert proc.returncode == 2 and 'error:' in proc.stderr, args
         assert 'Traceback' not in proc.stderr

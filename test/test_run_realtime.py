@@ -86,6 +86,13 @@ def test_erva_run_realtime_records_and_summarises(tmp_path, erva):
     assert s['nmpc']['solve_ms']['samples'] == cmd['for_samples']
     assert s['messages']['dropped_total'] == 0
     assert all(n['stopped_cleanly'] for n in s['nodes'].values()), s['nodes']
+    # realtime_priority 20 (config/live.yaml): every loop node got SCHED_FIFO, or says why not.
+    sched = s['scheduling']
+    assert set(sched) == {'nmpc_node', 'plant_sim_node', 'road_preview_node'}, sched
+    fifo = subprocess.run([sys.executable, '-c', 'import os; os.sched_setscheduler(0, '
+                           'os.SCHED_FIFO, os.sched_param(20))']).returncode == 0
+    for node, got in sched.items():
+        assert got == 'SCHED_FIFO 20' if fifo else got.startswith('unavailable'), (node, got)
     # The bag holds what the nodes published (read by the mcap reader, not ours).
     bag = s['bag']
     assert os.path.dirname(bag) == str(tmp_path)

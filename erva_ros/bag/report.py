@@ -104,11 +104,19 @@ def _duration_s(d) -> float:
 
 
 def guess_namespace(bag: Bag) -> str:
-    """Return the namespace of the contract topics in ``bag`` (default /erva)."""
-    for name in bag.topics:
-        if name.endswith('/' + contract.DAMPING_CMD) or name.endswith('/' + contract.STATE):
-            return name.rsplit('/', 1)[0] or '/'
-    return contract.NAMESPACE
+    """Return the namespace of the contract topics in ``bag`` (default /erva).
+
+    A namespace with both ``state`` and ``damping_cmd`` wins: an `erva run --ecu
+    virtual` bag also holds ``<ns>/ecu_sim/state``.
+    """
+    found = []
+    for suffix in (contract.DAMPING_CMD, contract.STATE):
+        found += [n.rsplit('/', 1)[0] or '/' for n in sorted(bag.topics)
+                  if n.endswith('/' + suffix)]
+    for ns in found:
+        if {_topic(contract.STATE, ns), _topic(contract.DAMPING_CMD, ns)} <= set(bag.topics):
+            return ns
+    return found[0] if found else contract.NAMESPACE
 
 
 def load_session(bag: Bag, namespace: Optional[str] = None) -> SessionData:

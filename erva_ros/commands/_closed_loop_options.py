@@ -45,7 +45,8 @@ def seed_int(text: str) -> int:
 
 def add_settings_options(parser: argparse.ArgumentParser, controller: bool = True) -> None:
     """Add --settings and the common controller overrides."""
-    from erva_ros.controllers.settings import CONTROLLER_NAMES, COST_KINDS, SOLVER_KINDS
+    from erva_ros.controllers.settings import (CODEGEN_MODES, CONTROLLER_NAMES, COST_KINDS,
+                                               SOLVER_KINDS)
     parser.add_argument('--settings', metavar='FILE', default=None,
                         help='controller settings, a ROS 2 params file with an nmpc_node '
                              'section (default: the shipped config/nmpc.yaml)')
@@ -63,10 +64,11 @@ def add_settings_options(parser: argparse.ArgumentParser, controller: bool = Tru
                         help='NMPC horizon N in samples (paper: 10)')
     parser.add_argument('--max-iter', type=int, default=None, metavar='K',
                         help='real-time SQP iterations per sample')
-    parser.add_argument('--codegen', choices=('off', 'on'), default=None,
-                        help='compile the real-time solver to C with cc (first use compiles '
-                             'for ~30 s, then cached in ~/.cache/erva_ros; default: settings '
-                             'file, off)')
+    parser.add_argument('--codegen', choices=CODEGEN_MODES, default=None,
+                        help='compile the real-time solver\'s model functions to C: on, off, '
+                             'or auto = on when cc/gcc is on PATH (first use of a '
+                             'configuration compiles for ~5 s, then cached in '
+                             '~/.cache/erva_ros; default: settings file, auto)')
     parser.add_argument('--u-min', type=float, default=None, metavar='NS_PER_M',
                         help='lower bound of the damping command (Ns/m)')
     parser.add_argument('--u-max', type=float, default=None, metavar='NS_PER_M',

@@ -4,9 +4,10 @@ import contextlib
 import os
 import sys
 
-from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
-                                       positive_int, print_json, Progress)
+from erva_ros.commands._common import (add_json_option, add_params_option, bounded,
+                                       positive_float, positive_int, print_json, Progress)
 from erva_ros.errors import CLIError
+from erva_ros.live.realtime import DEFAULT_PRIORITY, MAX_PRIORITY
 
 COMMAND = 'bench-hil'
 HELP = 'HIL benchmark: bridge and estimator latency (live), estimator closed loop (offline)'
@@ -47,6 +48,11 @@ def add_arguments(parser):
     parser.add_argument('--law', choices=('skyhook', 'passive'), default='skyhook',
                         help='control law of the stand-in controller (default skyhook)')
     parser.add_argument('--seed', type=int, default=0, help='paper road seed (default 0)')
+    parser.add_argument('--realtime-priority',
+                        type=bounded(int, 0, MAX_PRIORITY, f'in [0, {MAX_PRIORITY}]'),
+                        default=DEFAULT_PRIORITY, metavar='P',
+                        help='SCHED_FIFO priority of the ECU sim, bridge and estimator, 0 = '
+                             'normal scheduling (default %(default)s, as config/live.yaml)')
     parser.add_argument('--cores', action='store_true',
                         help='instead: time the plain-Python cores alone (no ROS): bridge '
                              'encode+send, receive+decode, one EKF cycle; --samples of each')
@@ -219,6 +225,7 @@ def main(args) -> int:
     load_bridge_section(args.hil_config)
     load_estimator_section(args.hil_config)
     result = run_live_bench(params_file, args.hil_config, args.duration, args.law, args.seed,
+                            realtime_priority=args.realtime_priority,
                             log=lambda s: print(f'erva bench-hil: {s}', file=sys.stderr,
                                                 flush=True))
     if args.json:

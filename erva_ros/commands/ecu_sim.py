@@ -4,9 +4,10 @@ import math
 import signal
 import sys
 
-from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
-                                       print_json)
+from erva_ros.commands._common import (add_json_option, add_params_option, bounded,
+                                       positive_float, print_json)
 from erva_ros.errors import CLIError
+from erva_ros.live.realtime import MAX_PRIORITY, set_fifo_priority
 
 COMMAND = 'ecu-sim'
 HELP = 'simulated generator ECU on a CAN bus: applies damping frames to the plant, sends sensors'
@@ -24,9 +25,10 @@ here).  Example, with the bridge on udp:47001:47002:
 
   erva ecu-sim --bus udp:47002:47001 --road paper --duration 10
 
-With --road ros the road height comes from /erva/road/height (road_preview_node),
-and --ros publishes the ground truth (sprung_accel, generator, ecu_sim/state and
-/diagnostics) like plant_sim_node; `erva run --ecu virtual` starts it that way.
+With --road ros the road height comes from /erva/road/height (road_preview_node) and
+the ECU's cycles fall on the road's sample grid; --ros publishes the ground truth
+(sprung_accel, generator, ecu_sim/state and /diagnostics) like plant_sim_node;
+`erva run --ecu virtual` starts it that way.
 Stops after --duration, or on Ctrl-C / SIGTERM, and prints a summary."""
 
 ROADS = ('ros', 'flat', 'paper', 'sine', 'bump', 'iso8608')
@@ -59,6 +61,11 @@ def add_arguments(parser):
                         help='ROS namespace of the topics (default /erva)')
     parser.add_argument('--wait-road', type=positive_float, default=15.0, metavar='S',
                         help='with --road ros: wait at most S s for the first road height')
+    parser.add_argument('--realtime-priority', type=bounded(int, 0, MAX_PRIORITY,
+                                                            f'in [0, {MAX_PRIORITY}]'),
+                        default=0, metavar='P',
+                        help='SCHED_FIFO priority of the ECU loop once it runs, 0 = normal '
+                             'scheduling (default; needs CAP_SYS_NICE, else a warning)')
     parser.add_argument('--noise-free', action='store_true',
                         help='sensors without noise (the DBC quantisation remains)')
     add_json_option(parser)
@@ -125,19 +132,19 @@ def main(args) -> int:
         if use_ros:
             from erva_ros.hil.ecu_sim_ros import EcuSimRos
             ros = EcuSimRos(args.namespace, args.model, hw)
-            road = ros.road_height
-            if args.road == 'ros' and not ros.wait_for_road(args.wait_road, lambda: bool(stop)):
-                if stop:
-                    return 130
-                raise CLIError(f'no road height on {args.namespace}/road/height within '
-                               f'{args.wait_road:g} s (is road_preview_node running?)')
-        if args.road != 'ros':
-            road = _road_function(args)
+        road = ros.road_height if args.road == 'ros' else _road_function(args)
         try:
             core = EcuSimCore(params, hw, codec, lambda: open_bus(args.bus), road, cfg, noise,
                               args.model)
         except ValueError as exc:
             raise CLIError(str(exc)) from None
+        # Built before the wait (the plant's CasADi set-up takes longer than a period), so
+        # the ECU starts on the road's first sample; the bus opens after it (no backlog).
+        if args.road == 'ros' and not ros.wait_for_road(args.wait_road, lambda: bool(stop)):
+            if stop:
+                return 130
+            raise CLIError(f'no road height on {args.namespace}/road/height within '
+                           f'{args.wait_road:g} s (is road_preview_node running?)')
         if not core.open():                 # later losses are retried; a wrong bus is not
             raise CLIError(f'{args.bus}: {core.bus_error}')
         samples = []
@@ -146,8 +153,18 @@ def main(args) -> int:
         if ros is None:
             print(f'erva ecu-sim: {args.bus}, Ts = {args.ts:g} s, road {args.road}',
                   file=sys.stderr, flush=True)
-        run_realtime(core, args.duration, on_cycle, lambda: bool(stop),
-                     wait=None if ros is None else ros.spin_for)
+        # After the set-up, like the nodes (erva_ros/live/realtime.py).
+        scheduling = set_fifo_priority(
+            args.realtime_priority, lambda m: print(f'erva ecu-sim: warning: {m}',
+                                                    file=sys.stderr))
+        if ros is not None:
+            ros.scheduling = scheduling
+        if args.road == 'ros':      # cycles on the road's grid, each once its road is here
+            run_realtime(core, args.duration, on_cycle, lambda: bool(stop),
+                         wait=ros.wait_cycle, t0=ros.start_time(args.ts))
+        else:
+            run_realtime(core, args.duration, on_cycle, lambda: bool(stop),
+                         wait=None if ros is None else ros.spin_for)
         if ros is not None:
             ros.publish_final(core)
         core.close()

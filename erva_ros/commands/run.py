@@ -6,6 +6,7 @@ import sys
 from erva_ros.commands._common import (add_json_option, add_params_option, bounded,
                                        positive_float, print_json)
 from erva_ros.errors import CLIError
+from erva_ros.live.realtime import MAX_PRIORITY
 
 COMMAND = 'run'
 HELP = 'run the live system (plant, road preview, NMPC nodes over ROS 2) and summarise it'
@@ -21,6 +22,10 @@ nonlinear ERVA, real time at Ts = 0.02 s -- recorded to bags/<UTC time>_<road>/.
 Parameters come from config/erva_paper.yaml, config/nmpc.yaml and config/live.yaml;
 options override them.  Modes: realtime (wall clock, 50 Hz) or lockstep (the plant
 publishes /clock, deterministic, equal to `erva sim`).
+
+--ecu virtual runs the hardware-in-the-loop loop instead of plant_sim_node (real
+time only): NMPC -> ecu_bridge_node -> CAN (UDP on 127.0.0.1) -> simulated ECU and
+plant (`erva ecu-sim`) -> CAN -> ecu_bridge_node -> state_estimator_node -> NMPC.
 
 Exit status: 0 ok; 1 a node died, did not stop cleanly, or no command arrived;
 2 bad option or parameter; 130/143 interrupted by SIGINT/SIGTERM (the nodes are
@@ -38,6 +43,7 @@ _weight = bounded(float, 0.0, 1.7976931348623157e308, 'a finite number >= 0')
 _seed = bounded(int, 0, 1_000_000_000, 'in [0, 1e9]')
 _snr = bounded(float, -40.0, 200.0, 'in [-40, 200] dB')
 _delay = bounded(float, 0.0, 10.0, 'in [0, 10] s')
+_priority = bounded(int, 0, MAX_PRIORITY, f'in [0, {MAX_PRIORITY}]')
 
 
 def add_scenario_arguments(parser, duration_default: str = 'config/live.yaml: 4 s') -> None:
@@ -68,6 +74,10 @@ def add_scenario_arguments(parser, duration_default: str = 'config/live.yaml: 4 
     parser.add_argument('--preview-delay', type=_delay, default=None, metavar='S',
                         help='the road preview is this old (s, default 0)')
     add_params_option(parser)
+    parser.add_argument('--realtime-priority', type=_priority, default=None, metavar='P',
+                        help='SCHED_FIFO priority of every loop process in realtime mode, '
+                             '0 = normal scheduling (config/live.yaml: 20; needs '
+                             'CAP_SYS_NICE, else each node warns once)')
     parser.add_argument('--nmpc', metavar='FILE', default=None,
                         help='controller settings params file (default: config/nmpc.yaml)')
     parser.add_argument('--live', metavar='FILE', default=None,
@@ -84,9 +94,15 @@ def add_arguments(parser):
                           '(default: bags)')
     rec.add_argument('--no-record', action='store_true', help='do not record the session')
     parser.add_argument('--ecu', choices=('none', 'virtual'), default='none',
-                        help='none: the plant simulator closes the loop; virtual: through the '
-                             'CAN bridge and a simulated ECU (hardware-in-the-loop; not '
-                             'available in `erva run` yet)')
+                        help='none (default): plant_sim_node closes the loop; virtual: '
+                             'hardware-in-the-loop -- the commands go through '
+                             'ecu_bridge_node over a loopback CAN bus (UDP) to a simulated '
+                             'ECU with the plant (`erva ecu-sim`), and the NMPC gets the '
+                             'state from state_estimator_node (EKF on the ECU\'s sensor '
+                             'frames); comfort and power are the ECU\'s ground truth, the '
+                             'HIL topics are recorded and the summary adds a hil block '
+                             '(bridge drops and timeouts, latencies, estimation error); '
+                             'real time only')
     add_json_option(parser)
 
 
@@ -100,11 +116,13 @@ def run_config(args, record_dir=None):
         live['preview_delay_s'] = args.preview_delay
     if args.road_file is not None:
         live['road_file'] = os.path.abspath(args.road_file)
+    if args.realtime_priority is not None:
+        live['realtime_priority'] = args.realtime_priority
     return RunConfig(controller=args.controller, alpha1=args.alpha1, alpha2=args.alpha2,
                      road=args.road, seed=args.seed, mode=args.mode, model=args.model,
                      duration_s=args.duration, params_file=args.params, nmpc_file=args.nmpc,
                      live_file=args.live, record_dir=record_dir, namespace=args.namespace,
-                     live_overrides=live)
+                     live_overrides=live, ecu=args.ecu)
 
 
 def _check_namespace(namespace: str) -> str:

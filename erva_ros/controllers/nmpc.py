@@ -44,15 +44,17 @@ Solvers (``solver``):
 
 ``sqp``    real-time: a reduced-space SQP built once as *one* CasADi Function with
            ``max_iter`` unrolled iterations (no Python per iteration).  It starts from
-           the better (by the true objective) of the warm start and a constant-c_e0
-           plan.  Each iteration: roll the plan out with the model's RK4 (a nearly
-           feasible point), linearise the collocation NLP there, condense onto the N
-           inputs (sparse LU of the constraint Jacobian), build the reduced Hessian
+           the best (by the true objective) of the warm start, a constant-c_e0 plan
+           and the warm start with its first move at u_max or u_min.  Each iteration:
+           roll the plan out with the model's RK4 (a nearly feasible point), linearise
+           the collocation NLP there, condense onto the N inputs (sparse LU of the
+           constraint Jacobian), build the reduced Hessian
            from the cost's exact Hessian (Gauss-Newton type: constraint curvature
            left out), solve the N-variable box QP (qpOASES, dense; not convexified,
            qpOASES returns a local solution), and keep the best of the steps 1, ½, 0
            by the true objective -- so the cost never increases.
-``ipopt``  converged reference on the same collocation NLP (tol 1e-8).
+``ipopt``  converged reference on the same collocation NLP (tol 1e-8), solved from
+           the warm start and from constant c_e0, keeping the better local optimum.
 
 Warm start: the previous plan shifted by one sample (last value repeated).
 Variables are scaled (u by 10 kNs/m, positions by 1 cm, velocities by 0.1 m/s).
@@ -61,19 +63,17 @@ Variables are scaled (u by 10 kNs/m, positions by 1 cm, velocities by 0.1 m/s).
 from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import lru_cache
-import hashlib
 import math
 import os
-import shutil
-import subprocess
 import sys
-import tempfile
+import warnings
 from typing import Tuple
 
 import casadi as ca
 import numpy as np
 
 from erva_ros.controllers.base import Controller, SolveFailure
+from erva_ros.codegen import compile_functions, use_codegen
 from erva_ros.controllers.settings import ControllerSettings
 from erva_ros.model import get_model, linearize, QuarterCarModel
 from erva_ros.params import ERVAParams, ParamError
@@ -87,6 +87,8 @@ IPOPT_TOL = 1e-8
 COLLOCATION_DEGREE = 3
 #: Longest RK4 sub-step of the rollout (s); shortened if needed for stability at u_max.
 ROLLOUT_SUBSTEP_S = 2.5e-3
+#: Other starts the real-time SQP compares with the warm start (NMPCController._alternatives).
+N_ALTERNATIVES = 3
 #: Step lengths tried by the real-time SQP's line search (0: keep the iterate).
 LINE_SEARCH_STEPS = (1.0, 0.5)
 
@@ -104,50 +106,6 @@ def _quiet_stdout():
         os.dup2(saved, 1)
         os.close(devnull)
         os.close(saved)
-
-
-#: C compiler flags of ``codegen: on``.
-CODEGEN_FLAGS = ('-O2', '-shared', '-fPIC')
-
-
-def codegen_cache_dir() -> str:
-    """Return the directory of compiled NMPC functions (ERVA_CACHE_DIR or ~/.cache)."""
-    base = os.environ.get('XDG_CACHE_HOME') or os.path.join(os.path.expanduser('~'), '.cache')
-    return os.environ.get('ERVA_CACHE_DIR') or os.path.join(base, 'erva_ros')
-
-
-def compile_function(fn: ca.Function) -> ca.Function:
-    """Return ``fn`` generated as C, compiled once per machine and loaded (cached by hash).
-
-    The generated source is hashed with the compiler flags, so a changed model,
-    parameter set or horizon gets its own library; the first use compiles (seconds),
-    later processes load the cached shared object.
-    """
-    cg = ca.CodeGenerator(f'{fn.name()}.c', {'with_header': False})
-    cg.add(fn)
-    source = cg.dump()
-    key = hashlib.sha1((source + ' '.join(CODEGEN_FLAGS)).encode()).hexdigest()[:16]
-    cache = codegen_cache_dir()
-    lib = os.path.join(cache, f'{fn.name()}_{key}.so')
-    if not os.path.isfile(lib):
-        cc = os.environ.get('CC') or shutil.which('cc') or shutil.which('gcc')
-        if cc is None:
-            raise ParamError("parameter 'codegen' = 'on' needs a C compiler (cc or gcc) "
-                             "on PATH; set codegen: off")
-        os.makedirs(cache, exist_ok=True)
-        with tempfile.TemporaryDirectory(dir=cache) as tmp:
-            src = os.path.join(tmp, 'f.c')
-            with open(src, 'w', encoding='utf-8') as fh:
-                fh.write(source)
-            out = os.path.join(tmp, 'f.so')
-            proc = subprocess.run([cc, *CODEGEN_FLAGS, '-o', out, src, '-lm'],
-                                  capture_output=True, text=True)
-            if proc.returncode != 0:
-                first = (proc.stderr.strip().splitlines() or ['unknown error'])[0]
-                raise ParamError(f"parameter 'codegen' = 'on': compiling {fn.name()} "
-                                 f'failed: {first}')
-            os.replace(out, lib)   # atomic: concurrent processes never load half a file
-    return ca.external(fn.name(), lib)
 
 
 def stable_rollout_substep(model: QuarterCarModel, u_max: float) -> float:
@@ -356,7 +314,8 @@ def build_ipopt(ocp: OCP, max_iter: int) -> ca.Function:
 
 
 @lru_cache(maxsize=32)
-def build_rti(ocp: OCP, iterations: int, codegen: bool = False) -> ca.Function:
+def build_rti(ocp: OCP, iterations: int, codegen: bool = False,
+              n_alt: int = 1) -> ca.Function:
     """Return the real-time reduced-space SQP as one Function (see module doc).
 
     (x0, a_prev, u_guess, u_alt (scaled, per interval), p) -> (u, z, f, improved).
@@ -372,7 +331,7 @@ def build_rti(ocp: OCP, iterations: int, codegen: bool = False) -> ca.Function:
     hess = ca.Function('cost_hessian', [zs, ps], [ca.hessian(f, zs)[0]])
     nlp, rollout = ocp.nlp, ocp.rollout
     if codegen:
-        first, hess, nlp, rollout = (compile_function(fn) for fn in (first, hess, nlp, rollout))
+        first, hess, nlp, rollout = compile_functions((first, hess, nlp, rollout))
     u_idx = [int(i) for i in ocp.u_index]
     dep = [i for i in range(ocp.nxa, nz) if i not in set(u_idx)]   # x_0 is fixed
     p_u = ca.DM(ca.Sparsity.triplet(nz, nb, u_idx, list(range(nb))), 1.0)
@@ -393,17 +352,18 @@ def build_rti(ocp: OCP, iterations: int, codegen: bool = False) -> ca.Function:
         zz = rollout(x0, a_prev, uu, w)
         return zz, nlp(zz, p)[0]
 
-    # Start from the better of the warm start and the alternative (constant c_e0):
+    # Start from the best of the warm start and the alternatives (columns of u_alt):
     # the OCP is non-convex and a shifted plan can sit in a poor basin.
-    u_alt = ca.MX.sym('u_alt', nb)
+    u_alt = ca.MX.sym('u_alt', nb, n_alt)
     u = ca.fmin(ca.fmax(u_guess, lo), hi)
     z, fz = objective(u)
-    ua = ca.fmin(ca.fmax(u_alt, lo), hi)
-    za, fa = objective(ua)
-    use_alt = fa < fz
-    u = ca.if_else(use_alt, ua, u)
-    z = ca.if_else(use_alt, za, z)
-    fz = ca.fmin(fa, fz)
+    for j in range(n_alt):
+        ua = ca.fmin(ca.fmax(u_alt[:, j], lo), hi)
+        za, fa = objective(ua)
+        use_alt = fa < fz
+        u = ca.if_else(use_alt, ua, u)
+        z = ca.if_else(use_alt, za, z)
+        fz = ca.fmin(fa, fz)
     improved = 0
     for _ in range(iterations):
         fz, gz, grad, jac = first(z, p)
@@ -433,7 +393,7 @@ def build_rti(ocp: OCP, iterations: int, codegen: bool = False) -> ca.Function:
     rti = ca.Function('nmpc_rti', [x0, a_prev, u_guess, u_alt, p], [u, z, fz, improved],
                       ['x0', 'a_prev', 'u_guess', 'u_alt', 'p'], ['u', 'z', 'f', 'improved'])
     with _quiet_stdout():   # first call allocates the QP memory (and prints the banner)
-        rti(np.zeros(ocp.nx), 0.0, np.full(nb, hi), np.full(nb, lo),
+        rti(np.zeros(ocp.nx), 0.0, np.full(nb, hi), np.full((nb, n_alt), lo),
             np.zeros(ps.shape[0]))
     return rti
 
@@ -470,13 +430,22 @@ class NMPCController(Controller):
             self._ipopt = build_ipopt(self.ocp, settings.ipopt_max_iter)
             budget = math.inf      # the reference is not a real-time solver
         else:
-            self._rti = build_rti(self.ocp, settings.max_iter, settings.codegen == 'on')
+            try:
+                self._rti = build_rti(self.ocp, settings.max_iter,
+                                      use_codegen(settings.codegen), n_alt=N_ALTERNATIVES)
+            except ParamError as exc:   # a broken compiler: 'auto' runs uncompiled
+                if settings.codegen != 'auto':
+                    raise
+                warnings.warn(f'{exc}; running the solver uncompiled')
+                self._rti = build_rti(self.ocp, settings.max_iter, False, n_alt=N_ALTERNATIVES)
             budget = settings.time_budget_s
         super().__init__(self.ocp.horizon, settings.ts, settings.u_min, settings.u_max,
                          params.c_e0, budget)
         self._block_start = np.cumsum((0,) + self.blocks[:-1])
         self._u_alt = np.full(len(self.blocks), self.c_e0 / U_SCALE)
         self.last_prediction = None
+        #: Set to a list to keep every real-time solve's OCP (for :meth:`reference_gap`).
+        self.recorded_problems = None
 
     # -- memory -------------------------------------------------------------------------
     def _reset_law(self) -> None:
@@ -516,6 +485,17 @@ class NMPCController(Controller):
             return np.r_[prev[1:], prev[-1]]
         return np.full(self.horizon, self.c_e0)
 
+    def _alternatives(self, u_guess: np.ndarray) -> np.ndarray:
+        """Return the real-time SQP's other starts (scaled, one per column).
+
+        Constant c_e0, and the warm start with its first move at u_max / u_min: the
+        first sample's jerk term reacts to u_0 at once, so its optimum often sits at
+        a bound.
+        """
+        hi = np.r_[self.u_max / U_SCALE, u_guess[1:]]
+        lo = np.r_[self.u_min / U_SCALE, u_guess[1:]]
+        return np.column_stack([self._u_alt, hi, lo])
+
     def _compute(self, x, preview, t):
         self._pending = (x.copy(), float(preview[0]))
         w = self.road_prediction(preview)
@@ -526,12 +506,15 @@ class NMPCController(Controller):
             if self.settings.solver == 'ipopt':
                 u_blocks, z, cost, iterations = self._solve_ipopt(x, a_prev, u_guess, w, p)
             else:
-                out = self._rti(x, a_prev, u_guess, self._u_alt, p)
+                out = self._rti(x, a_prev, u_guess, self._alternatives(u_guess), p)
                 u_blocks = np.asarray(out[0]).ravel()
                 z = np.asarray(out[1]).ravel()
                 cost = float(out[2])
                 iterations = self.settings.max_iter
                 self._improved = int(out[3])
+                if self.recorded_problems is not None:
+                    self.recorded_problems.append((x.copy(), a_prev, u_guess, w, p,
+                                                   u_blocks.copy(), cost))
         except RuntimeError as exc:   # evaluation error inside CasADi
             self._warm = None
             raise SolveFailure(f'solver error: {str(exc).splitlines()[0]}') from None
@@ -547,15 +530,46 @@ class NMPCController(Controller):
         return plan, iterations
 
     def _solve_ipopt(self, x, a_prev, u_guess, w, p):
-        z0 = np.asarray(self.ocp.rollout(x, a_prev, u_guess, w)).ravel()
+        # Non-convex OCP: converge from the same two starts the real-time SQP compares
+        # (warm start, constant c_e0) and keep the better local optimum, so the
+        # reference is at least as good a solver as the one it judges.
         lbz, ubz = self.ocp.bounds(x, a_prev)
-        sol = self._ipopt(x0=z0, p=p, lbx=lbz, ubx=ubz, lbg=0, ubg=0)
-        stats = self._ipopt.stats()
-        status = str(stats.get('return_status', ''))
-        if not (stats.get('success') or status == 'Solved_To_Acceptable_Level'):
-            raise SolveFailure(f'ipopt: {status or "failed"}')
-        z = np.asarray(sol['x']).ravel()
-        return z[self.ocp.u_index], z, float(sol['f']), int(stats.get('iter_count', 0))
+        best, status, iterations = None, 'failed', []
+        starts = [u_guess] if np.allclose(u_guess, self._u_alt) else [u_guess, self._u_alt]
+        for u0 in starts:
+            z0 = np.asarray(self.ocp.rollout(x, a_prev, u0, w)).ravel()
+            sol = self._ipopt(x0=z0, p=p, lbx=lbz, ubx=ubz, lbg=0, ubg=0)
+            stats = self._ipopt.stats()
+            iterations.append(int(stats.get('iter_count', 0)))
+            status = str(stats.get('return_status', '')) or status
+            if not (stats.get('success') or status == 'Solved_To_Acceptable_Level'):
+                continue
+            if best is None or float(sol['f']) < float(best['f']):
+                best = sol
+        if best is None:
+            raise SolveFailure(f'ipopt: {status}')
+        z = np.asarray(best['x']).ravel()
+        # Iterations from the warm start (what warm starting is judged by).
+        return z[self.ocp.u_index], z, float(best['f']), iterations[0]
+
+    def reference_gap(self, problem) -> float:
+        """Return the real-time solve's relative objective gap to a converged one (≥ 0).
+
+        ``problem`` is an entry of :attr:`recorded_problems`.  IPOPT starts from the
+        warm start, from c_e0 and from the real-time solution itself, so the reference
+        is never worse than what it judges: (f_rt − f_ref) / |f_ref|.
+        """
+        x, a_prev, u_guess, w, p, u_rt, f_rt = problem
+        ipopt = build_ipopt(self.ocp, self.settings.ipopt_max_iter)
+        lbz, ubz = self.ocp.bounds(x, a_prev)
+        f_ref = f_rt
+        for u0 in (u_guess, self._u_alt, u_rt):
+            z0 = np.asarray(self.ocp.rollout(x, a_prev, u0, w)).ravel()
+            sol = ipopt(x0=z0, p=p, lbx=lbz, ubx=ubz, lbg=0, ubg=0)
+            stats = ipopt.stats()
+            if stats.get('success') or stats.get('return_status') == 'Solved_To_Acceptable_Level':
+                f_ref = min(f_ref, float(sol['f']))
+        return (f_rt - f_ref) / abs(f_ref) if f_ref != 0 else 0.0
 
 
 __all__ = ['NMPCController', 'build_ocp', 'build_rti', 'build_ipopt', 'nmpc_blocks',

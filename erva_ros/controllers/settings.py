@@ -23,6 +23,8 @@ CONTROLLER_NAMES = ('passive', 'skyhook', 'no_preview', 'preview', 'preview_long
 COST_KINDS = ('paper', 'continuous')
 #: NMPC solvers: 'sqp' = real-time SQP (qrqp QPs, built once), 'ipopt' = converged reference.
 SOLVER_KINDS = ('sqp', 'ipopt')
+#: codegen: auto = compile when a C compiler is on PATH (else run the CasADi VM).
+CODEGEN_MODES = ('auto', 'on', 'off')
 #: How the no-preview NMPC predicts the road: hold the last measured height, or zero.
 ROAD_PREDICTIONS = ('hold', 'zero')
 
@@ -55,8 +57,8 @@ CHOICE_SPECS: Dict[str, Tuple[Tuple[str, ...], str]] = {
     'solver': (SOLVER_KINDS, 'NMPC solver: sqp (real-time SQP) or ipopt (converged reference)'),
     'road_prediction': (ROAD_PREDICTIONS, 'no_preview road model: hold last height or zero'),
     'long_cost': (COST_KINDS, 'stage cost of preview_long (paper or continuous)'),
-    'codegen': (('off', 'on'), 'compile the real-time solver\'s model functions to C '
-                               '(needs cc; cached in ~/.cache/erva_ros)'),
+    'codegen': (CODEGEN_MODES, 'compile the real-time solver\'s model functions to C '
+                               '(auto: when cc/gcc is on PATH; cached in ~/.cache/erva_ros)'),
 }
 
 
@@ -82,7 +84,7 @@ class ControllerSettings:
     long_step_s: float = 0.06
     terminal_weight: float = 0.5
     long_cost: str = 'continuous'
-    codegen: str = 'off'
+    codegen: str = 'auto'
 
     @property
     def weights(self) -> Tuple[float, float]:

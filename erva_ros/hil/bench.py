@@ -6,18 +6,18 @@ Processes (as `erva run --ecu virtual` starts them, :func:`hil_process_specs`):
 road node and the NMPC: it publishes the road height at 50 Hz and answers every
 ``state`` with a ``damping_cmd`` at once (skyhook or passive law), so the loop
 
-    driver → damping_cmd → bridge → CAN → ECU/plant → CAN → bridge → ecu/* → estimator
-    → state → driver
+    driver → damping_cmd → bridge → CAN → ECU/plant → CAN → bridge → ecu/measurements
+    → estimator → state → driver
 
 runs at the ECU's 50 Hz.  Measured:
 
 * by the nodes themselves (reported on /diagnostics, DDS receive time → done):
   bridge ROS→CAN (damping_cmd received → frame sent), bridge CAN→ROS (frame's kernel
-  receive time → its topic published), estimator (last message of a cycle received →
-  state published); and within each, the node's own processing (time inside its
+  receive time → its topic published), estimator (``ecu/measurements``, one per ECU
+  cycle, received → state published); and within each, the node's own processing (time inside its
   callbacks), the rest being time spent waiting to be scheduled;
 * by the driver, from message stamps and DDS source timestamps: the estimator seen
-  from outside (last ecu/* message of a cycle published → state published) and the
+  from outside (``ecu/measurements`` published → state published) and the
   whole sensor path (first CAN frame of the cycle received → state received);
 * estimation error against the ECU's ground truth (``ecu_sim/state``).
 
@@ -49,7 +49,8 @@ NODE_LATENCIES = {
 
 def run_live_bench(params_file: str, hil_file: Optional[str], duration_s: float,
                    law: str = 'skyhook', seed: int = 0, namespace: str = '/erva',
-                   log=lambda s: None, startup_timeout_s: float = 30.0) -> Dict:
+                   log=lambda s: None, startup_timeout_s: float = 30.0,
+                   realtime_priority: int = 0) -> Dict:
     """Run the HIL loop for ``duration_s`` and return the measured figures (see module doc)."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -62,7 +63,8 @@ def run_live_bench(params_file: str, hil_file: Optional[str], duration_s: float,
     road = make_road('paper', duration_s + 30.0, seed=seed)
     env = dict(os.environ)
     env.setdefault('ROS_DOMAIN_ID', '0')
-    specs = hil_process_specs(params_file, namespace, duration_s, hil_file, env=env)
+    specs = hil_process_specs(params_file, namespace, duration_s, hil_file, env=env,
+                              realtime_priority=realtime_priority)
     logdir = tempfile.mkdtemp(prefix='erva_bench_hil_')
     context = rclpy.Context()
     rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
@@ -125,7 +127,7 @@ class _Driver:
 
     def __init__(self, namespace, context, road, law, params):
         from diagnostic_msgs.msg import DiagnosticArray
-        from geometry_msgs.msg import AccelStamped, PointStamped
+        from geometry_msgs.msg import PointStamped
         from rclpy.node import Node
         from sensor_msgs.msg import JointState
         from trajectory_msgs.msg import JointTrajectory
@@ -141,18 +143,16 @@ class _Driver:
         self.node.create_subscription(JointState, topics.STATE, self._on_state, qos)
         self.node.create_subscription(JointState, hil_topics.TRUE_STATE, self._on_truth, qos)
         self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diag, qos)
-        for name, typ in ((hil_topics.ECU_DAMPING_APPLIED, JointState),
-                          (hil_topics.ECU_SPRUNG_ACCEL, AccelStamped),
-                          (hil_topics.ECU_SUSPENSION, JointState),
-                          (hil_topics.ECU_GENERATOR, JointState)):
-            self.node.create_subscription(typ, name, self._on_ecu, qos)
+        # The estimator's input: one message per ECU cycle, after the cycle's frames.
+        self.node.create_subscription(JointState, hil_topics.ECU_MEASUREMENTS, self._on_ecu,
+                                      qos)
         self.t0 = time.time()
         self.ready = None
         self.node.create_timer(0.02, self._on_road_timer)
         self.states = 0
         self.est: Dict[int, np.ndarray] = {}
         self.truth: Dict[int, np.ndarray] = {}
-        self.ecu_src: Dict[int, int] = {}       # stamp -> newest ecu/* source time (ns)
+        self.ecu_src: Dict[int, int] = {}       # stamp -> ecu/measurements source time
         self.state_src: Dict[int, int] = {}     # stamp -> source time of the state (ns)
         self.sensor_path: List[float] = []
         self.diag: Dict[str, Dict[str, str]] = {}
@@ -165,7 +165,8 @@ class _Driver:
         return (n.count_publishers(f'{ns}/state') >= 1
                 and n.count_subscribers(f'{ns}/damping_cmd') >= 1
                 and n.count_subscribers(f'{ns}/road/height') >= 2
-                and n.count_publishers(f'{ns}/ecu/generator') >= 1
+                and n.count_publishers(f'{ns}/ecu/measurements') >= 1
+                and n.count_subscribers(f'{ns}/ecu/measurements') >= 2
                 and n.count_publishers(f'{ns}/ecu_sim/state') >= 1)
 
     def _on_road_timer(self):

@@ -20,6 +20,11 @@ cycle, which would add latency).  Frames of one ECU cycle (status, chassis,
 generator, in any order) share one stamp: the receive time of the cycle's first
 frame; a cycle ends when all three arrived, when a kind repeats or after Ts/2.  A
 rejected frame is dropped and counted, and so is a cycle that misses a frame.
+Each ended cycle is also handed out whole, once, as an :class:`EcuCycle` (what a
+node publishes as ``ecu/measurements``): with the frame that completes it
+(``SensorFrame.cycles``) or, for a cycle that misses a frame, with the next cycle's
+first frame or from :meth:`BridgeCore.expire` (call it from the receiving thread,
+e.g. every Ts/4) once it is Ts/2 old, whichever comes first.
 
 Bus loss.  An error of ``send``/``recv`` (interface down, socket closed) closes the
 bus, is counted and reported (state ERROR), and :meth:`tick` re-opens it through
@@ -69,6 +74,19 @@ class BridgeConfig:
 
 
 @dataclass
+class EcuCycle:
+    """One ended ECU cycle: the payloads that arrived (a lost frame's kind is absent)."""
+
+    stamp: float                       # CAN receive time of its first frame (epoch s)
+    payloads: Dict[Kind, Any]          # Status, Chassis, Generator by kind
+    rx_time: float                     # CAN receive time of its last frame (epoch s)
+
+    @property
+    def complete(self) -> bool:
+        return len(self.payloads) == len(ECU_KINDS)
+
+
+@dataclass
 class SensorFrame:
     """One accepted ECU frame, decoded; times are CAN receive times (epoch s)."""
 
@@ -76,12 +94,19 @@ class SensorFrame:
     payload: Any                       # Status, Chassis or Generator
     stamp: float                       # first frame of this ECU cycle: the cycle's stamp
     rx_time: float                     # this frame
+    cycles: tuple = ()                 # EcuCycles this frame ended (oldest first)
 
 
 @dataclass
 class _Cycle:
     stamp: float
-    kinds: set = field(default_factory=set)
+    started: float = 0.0               # on the core's clock (for expire)
+    rx_time: float = 0.0
+    payloads: Dict[Kind, Any] = field(default_factory=dict)
+
+    @property
+    def kinds(self):
+        return self.payloads.keys()
 
 
 @dataclass
@@ -315,21 +340,33 @@ class BridgeCore:
         self._ecu_silent = False
         rx = msg.timestamp or time.time()
         cyc = self._cycle
+        ended = []
         if cyc is None or kind in cyc.kinds or rx - cyc.stamp > 0.5 * self.cfg.period_s:
             if cyc is not None:
-                self._close_cycle(cyc)
-            cyc = self._cycle = _Cycle(rx)
-        cyc.kinds.add(kind)
+                ended.append(self._close_cycle(cyc))
+            cyc = self._cycle = _Cycle(rx, now)
+        cyc.payloads[kind] = payload
+        cyc.rx_time = rx
         if len(cyc.kinds) == len(ECU_KINDS):
-            self._close_cycle(cyc)
+            ended.append(self._close_cycle(cyc))
             self._cycle = None
         self.last[kind] = payload
-        return SensorFrame(kind, payload, cyc.stamp, rx)
+        return SensorFrame(kind, payload, cyc.stamp, rx, tuple(ended))
 
-    def _close_cycle(self, cyc: _Cycle) -> None:
+    def expire(self, now: Optional[float] = None) -> Optional[EcuCycle]:
+        """End and return the open cycle if it is older than Ts/2 (a frame was lost)."""
+        cyc = self._cycle
+        now = self._clock() if now is None else now
+        if cyc is None or now - cyc.started <= 0.5 * self.cfg.period_s:
+            return None
+        self._cycle = None
+        return self._close_cycle(cyc)
+
+    def _close_cycle(self, cyc: _Cycle) -> EcuCycle:
         self.counts['ecu_cycles'] += 1
         if len(cyc.kinds) < len(ECU_KINDS):
             self.counts['incomplete_cycles'] += 1
+        return EcuCycle(cyc.stamp, dict(cyc.payloads), cyc.rx_time)
 
     # ------------------------------------------------------------ reporting
     def rx_counts(self) -> Dict[str, int]:

@@ -281,18 +281,20 @@ class EcuSimCore:
 def run_realtime(core: EcuSimCore, duration_s: float = 0.0,
                  on_cycle: Optional[Callable[[EcuSample], None]] = None,
                  should_stop: Callable[[], bool] = lambda: False,
-                 wait: Optional[Callable[[float], None]] = None) -> int:
+                 wait: Optional[Callable[[float], None]] = None,
+                 t0: Optional[float] = None) -> int:
     """Run ``core`` against the wall clock until ``duration_s`` (0: forever) or ``should_stop``.
 
     ``wait(seconds)`` sleeps until the next cycle (default time.sleep; a ROS caller passes
-    a function that spins its executor meanwhile).  A cycle that starts more than one
-    period late is counted as an overrun; the missed cycles are integrated without
-    sending, so the plant stays on the wall clock.  Returns the number of cycles run.
+    a function that spins its executor meanwhile).  ``t0`` (epoch s, default now) is the
+    time of cycle 0, e.g. an instant of the road's sample grid.  A cycle that starts more
+    than one period late is counted as an overrun; the missed cycles are integrated
+    without sending, so the plant stays on the wall clock.  Returns the number of cycles
+    run.
     """
     wait = wait or time.sleep
     ts = core.cfg.period_s
-    t0 = time.time()
-    sample = core.start(t0)
+    sample = core.start(time.time() if t0 is None else t0)
     if on_cycle:
         on_cycle(sample)
     while not should_stop():

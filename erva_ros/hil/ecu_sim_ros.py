@@ -7,12 +7,16 @@ process (single-threaded), subscribes ``road/height`` and publishes
 
 * ``sprung_accel`` and ``generator`` with the contract of erva_ros/topics.py (as
   plant_sim_node does), so `erva run` computes comfort and power on the truth;
-* ``ecu_sim/state`` (the true state) and ``/diagnostics`` (ECU counters, and
-  ``finished: true`` when a run with a duration ends).
+* ``ecu_sim/state`` (the true state) and ``/diagnostics`` (ECU counters, the samples
+  published, and ``finished: true`` when a run with a duration ends).
+
+With the road from ROS, the ECU's cycles fall on the road's sample grid (see
+:meth:`EcuSimRos.start_time`) and the ground truth is stamped with exactly those
+instants, as plant_sim_node stamps its samples.
 """
 
 import time
-from typing import Callable
+from typing import Callable, Optional, Tuple
 
 from erva_ros import topics
 from erva_ros.hil import topics as hil_topics
@@ -35,6 +39,7 @@ class EcuSimRos:
 
         self.kind = kind
         self.hw = hardware
+        self.scheduling = 'off'            # set by `erva ecu-sim` (live/realtime.py)
         self.context = rclpy.Context()
         # Signals stay with `erva ecu-sim`, which stops the ECU loop cleanly.
         rclpy.init(args=[], context=self.context, signal_handler_options=SignalHandlerOptions.NO)
@@ -51,12 +56,18 @@ class EcuSimRos:
         self.diag_period = diagnostics_period_s
         self._last_diag = 0.0
         self.name = self.node.get_fully_qualified_name()
+        self.first_road_ns: Optional[int] = None
+        self._grid: Optional[Tuple[int, int]] = None    # (t0, Ts) in ns
+        self.published = 0
 
     def _on_road(self, msg) -> None:
         from erva_ros.live.msgs import NS, time_to_ns
         w = float(msg.point.z)
         if abs(w) <= 1.0:
-            self.road.add(time_to_ns(msg.header.stamp) / NS, w)
+            stamp = time_to_ns(msg.header.stamp)
+            if self.first_road_ns is None:
+                self.first_road_ns = stamp
+            self.road.add(stamp / NS, w)
 
     def road_height(self, t: float) -> float:
         """Return w(t) (m) at epoch time t from the received road samples."""
@@ -69,6 +80,21 @@ class EcuSimRos:
             self.executor.spin_once(timeout_sec=0.05)
         return len(self.road) > 0
 
+    def start_time(self, ts: float) -> float:
+        """Return the ECU's t0 (epoch s): the newest instant of the road's sample grid.
+
+        The road node publishes w(t_k) at t_k = t_first + k·Ts.  Cycles on the same
+        grid make the state of t_k (estimated from this ECU's sensors) meet the preview
+        of t_k in the NMPC, as with plant_sim_node.  Call after :meth:`wait_for_road`;
+        then wait with :meth:`wait_cycle`.
+        """
+        from erva_ros.live.msgs import NS
+        ts_ns = int(round(ts * NS))
+        now = time.time_ns()
+        t0 = now - (now - self.first_road_ns) % ts_ns
+        self._grid = (t0, ts_ns)
+        return t0 / NS
+
     def spin_for(self, seconds: float) -> None:
         """Serve ROS callbacks for ``seconds`` (the ECU loop's wait between cycles)."""
         end = time.monotonic() + seconds
@@ -78,15 +104,35 @@ class EcuSimRos:
                 return
             self.executor.spin_once(timeout_sec=left)
 
+    def wait_cycle(self, seconds: float) -> None:
+        """Wait for the next cycle on the road's grid, then for the road sample of that instant.
+
+        The road node publishes w(t_k) at t_k, the instant the ECU integrates up to:
+        serve callbacks until it arrived, at most Ts/4 more, so the plant is driven by
+        the road the estimator sees rather than an extrapolation (the sensor frames go
+        out that much later: typically well under a millisecond).
+        """
+        due = time.time() + seconds
+        self.spin_for(seconds)
+        ts = self._grid[1] * 1e-9
+        end = time.monotonic() + ts / 4
+        while self.road.latest[0] < due - ts / 2 and time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=max(0.0, end - time.monotonic()))
+
     def publish(self, core: EcuSimCore, s: EcuSample) -> None:
         """Publish the ground truth of one ECU cycle (stamp = ECU sample time)."""
-        from erva_ros.live.msgs import accel_msg, generator_msg, state_msg
-        stamp = int(round((core.t0 + s.t) * 1e9))
+        from erva_ros.live.msgs import accel_msg, generator_msg, NS, state_msg
+        if self._grid is None:
+            stamp = int(round((core.t0 + s.t) * NS))
+        else:   # exactly on the grid (epoch seconds as a float are 0.2 us coarse)
+            t0, ts_ns = self._grid
+            stamp = t0 + int(round(s.t * NS / ts_ns)) * ts_ns
         x = s.x
         rel = x[4] - (x[0] - x[2]) if self.kind == 'erva' else x[0] - x[2]
         self.pub_accel.publish(accel_msg(stamp, s.sprung_accel))
         self.pub_gen.publish(generator_msg(stamp, rel, s.v_gen, s.c_e))
         self.pub_state.publish(state_msg(stamp, x, self.kind))
+        self.published += 1
         now = time.monotonic()
         if now - self._last_diag >= self.diag_period:
             self._last_diag = now
@@ -104,6 +150,8 @@ class EcuSimRos:
         values['finished'] = finished
         values['ecu_mode'] = core.mode.name
         values['harvested_j'] = core.plant.harvested_j
+        values['samples_published'] = self.published
+        values['scheduling'] = self.scheduling
         level = diag.ERROR if core.bus is None else (
             diag.OK if core.mode.name == 'CONTROLLED' else diag.WARN)
         text = core.bus_error or f'ECU {core.mode.name}'

@@ -18,6 +18,7 @@ import sys
 from typing import Dict, List, Optional
 
 from erva_ros.hil.settings import default_hil_file
+from erva_ros.live.realtime import DEFAULT_PRIORITY
 from erva_ros.hil.transport import free_udp_ports
 
 
@@ -33,7 +34,10 @@ class ProcessSpec:
 def hil_process_specs(params_file: str, namespace: str = '/erva', duration_s: float = 0.0,
                       hil_file: Optional[str] = None, model: str = 'erva', ts: float = 0.02,
                       ports: Optional[tuple] = None, env: Optional[Dict[str, str]] = None,
-                      road: str = 'ros', wait_road_s: float = 60.0) -> List[ProcessSpec]:
+                      road: str = 'ros', wait_road_s: float = 60.0,
+                      stamp_on_road_grid: bool = False,
+                      realtime_priority: int = DEFAULT_PRIORITY
+                      ) -> List[ProcessSpec]:
     """Return the HIL processes for a session (see the module docstring).
 
     ``params_file`` is the session's ROS params file (physical parameters in ``/**``,
@@ -42,6 +46,9 @@ def hil_process_specs(params_file: str, namespace: str = '/erva', duration_s: fl
     caller's ROS_DOMAIN_ID is kept and ROS_AUTOMATIC_DISCOVERY_RANGE is forced to
     LOCALHOST.  ``duration_s`` = 0 runs the ECU until it is stopped (SIGINT/SIGTERM); the
     ECU's run starts with the first road height it receives (within ``wait_road_s``).
+    ``stamp_on_road_grid`` stamps the estimates with the road's sample instants, which the
+    NMPC needs to pair a state with its preview (`erva run`).  ``realtime_priority`` is
+    the SCHED_FIFO priority of all three once started (0: normal scheduling).
     """
     hil_file = hil_file or default_hil_file()
     bridge_port, ecu_port = ports or free_udp_ports(2)
@@ -55,10 +62,15 @@ def hil_process_specs(params_file: str, namespace: str = '/erva', duration_s: fl
            '--hil-config', hil_file, '--model', model, '--ts', repr(float(ts)),
            '--road', road, '--wait-road', repr(float(wait_road_s)), '--ros',
            '--namespace', namespace,
-           '--duration', repr(float(duration_s)), '--json']
+           '--duration', repr(float(duration_s)), '--json',
+           '--realtime-priority', str(int(realtime_priority))]
     bridge = [sys.executable, '-m', 'erva_ros.nodes.ecu_bridge_node', *ros_args,
               '-p', f'bus:=udp:{bridge_port}:{ecu_port}']
     estimator = [sys.executable, '-m', 'erva_ros.nodes.state_estimator_node', *ros_args]
+    if stamp_on_road_grid:
+        estimator += ['-p', 'stamp_on_road_grid:=true']
+    for argv in (bridge, estimator):
+        argv += ['-p', f'realtime_priority:={int(realtime_priority)}']
     return [ProcessSpec('ecu_sim', ecu, dict(base)),
             ProcessSpec('ecu_bridge_node', bridge, dict(base)),
             ProcessSpec('state_estimator_node', estimator, dict(base))]

@@ -12,6 +12,7 @@ Plain helpers around rclpy, kept out of the node files so the nodes stay thin:
 * :mod:`~erva_ros.live.timing` -- grid alignment and timing statistics;
 * :mod:`~erva_ros.live.runtime` -- the main() idiom of every node;
 * :mod:`~erva_ros.live.monitor` -- the in-process monitor node of `erva run`;
+* :mod:`~erva_ros.live.hil_summary` -- its HIL figures (`erva run --ecu virtual`);
 * :mod:`~erva_ros.live.orchestrator` -- `erva run`: processes, start, stop, summary;
 * :mod:`~erva_ros.live.benchmark` -- `erva bench --live`.
 """

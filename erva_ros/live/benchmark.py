@@ -33,13 +33,16 @@ def _run_config(args):
                  for k in ('cost', 'solver', 'horizon', 'max_iter', 'u_min', 'u_max')}
     overrides = {k: v for k, v in overrides.items() if v is not None}
     alpha = getattr(args, 'alpha', None)
+    priority = getattr(args, 'realtime_priority', None)
+    live = {} if priority is None else {'realtime_priority': priority}
     return RunConfig(controller=getattr(args, 'controller', None),
                      alpha1=alpha[0] if alpha else None, alpha2=alpha[1] if alpha else None,
                      seed=getattr(args, 'seed', None), mode='realtime',
                      duration_s=getattr(args, 'duration', None) or DEFAULT_DURATION_S,
                      params_file=getattr(args, 'params', None),
                      nmpc_file=getattr(args, 'settings', None),
-                     record_dir=None, settings_overrides=overrides)
+                     record_dir=None, settings_overrides=overrides,
+                     live_overrides=live)
 
 
 def bench_result(summary: Dict[str, Any]) -> Dict[str, Any]:

@@ -9,6 +9,10 @@ them where the commands are used, and also as this monitor receives them; the
 sample-to-command latency from the sample time t_k;
 the nodes' own counters and timings from their last diagnostics, and the messages
 each node published but the monitor did not receive (dropped).
+
+With ``hil=True`` (`erva run --ecu virtual`) the plant's part is played by the simulated
+ECU, the CAN bridge and the state estimator: the monitor also takes the ECU's true
+state, and :mod:`~erva_ros.live.hil_summary` maps the plant's figures to theirs.
 """
 
 import math
@@ -24,6 +28,7 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
 from erva_ros import topics
+from erva_ros.live import hil_summary
 from erva_ros.live.diagnostics import LEVEL_NAMES, parse_status
 from erva_ros.live.msgs import time_to_ns
 from erva_ros.metrics import comfort_power, percentiles_ms
@@ -40,18 +45,25 @@ class Monitor(Node):
     """
 
     def __init__(self, namespace: str = topics.NAMESPACE, name: str = 'erva_run_monitor',
-                 context=None, gate: Sequence[str] = (topics.ROAD_HEIGHT, topics.ROAD_PREVIEW)):
+                 context=None, gate: Sequence[str] = (topics.ROAD_HEIGHT, topics.ROAD_PREVIEW),
+                 hil: bool = False):
         super().__init__(name, namespace=namespace, context=context,
                          start_parameter_services=False)
         self._qos = topics.control_qos(depth=100)
         self._types = {topics.STATE: JointState, topics.SPRUNG_ACCEL: AccelStamped,
                        topics.GENERATOR: JointState, topics.ROAD_HEIGHT: PointStamped,
                        topics.ROAD_PREVIEW: JointTrajectory, topics.DAMPING_CMD: JointTrajectory}
+        self.hil = hil
+        if hil:
+            from erva_ros.hil.topics import TRUE_STATE
+            self._types[TRUE_STATE] = JointState
+            self.truth_topic = TRUE_STATE
         self._raw: Dict[str, List[Tuple[int, bytes]]] = {t: [] for t in self._types}
         self._decoded = -1
         self.received = {t: 0 for t in (*self._types, topics.DIAGNOSTICS)}
         self.diag: Dict[str, Tuple[int, str, Dict[str, str], int]] = {}
         self.diag_events: List[Tuple[int, str, int, str]] = []  # (rx_ns, node, level, msg)
+        self.finished_rx: Dict[str, int] = {}   # node -> arrival of its first `finished`
         # Decoded by _decode(): by sample stamp (ns).
         self.states: Dict[int, np.ndarray] = {}
         self.state_rx: Dict[int, int] = {}
@@ -60,6 +72,7 @@ class Monitor(Node):
         self.heights: Dict[int, float] = {}
         self.previews: Dict[int, np.ndarray] = {}
         self.commands: List[Tuple[int, int, np.ndarray]] = []   # (stamp, rx_ns, plan)
+        self.truth: Dict[int, np.ndarray] = {}                  # HIL: the ECU's true state
         # The time master starts when its topics have all their subscribers.  Subscribing
         # to those last, once every other subscription of this monitor is matched,
         # makes sure no message of the run is published before the monitor can get it.
@@ -89,6 +102,8 @@ class Monitor(Node):
             if old is None or (old[0], old[1]) != (level, text):
                 self.diag_events.append((rx, node, level, text))
             self.diag[node] = (level, text, values, rx)
+            if values.get('finished') == 'true':
+                self.finished_rx.setdefault(node, rx)
 
     def _decode(self) -> None:
         """Deserialize what arrived since the last call into the per-sample tables."""
@@ -106,9 +121,9 @@ class Monitor(Node):
                 yield rx, time_to_ns(msg.header.stamp), msg
 
         for rx, stamp, msg in each(topics.STATE):
-            x = np.empty(2 * len(msg.position))
-            x[0::2], x[1::2] = msg.position, msg.velocity
-            self.states[stamp], self.state_rx[stamp] = x, rx
+            self.states[stamp], self.state_rx[stamp] = _state(msg), rx
+        if self.hil:
+            self.truth = {stamp: _state(m) for _, stamp, m in each(self.truth_topic)}
         self.accel = {stamp: m.accel.linear.z for _, stamp, m in each(topics.SPRUNG_ACCEL)}
         self.power = {stamp: m.effort[0] * m.velocity[0]
                       for _, stamp, m in each(topics.GENERATOR)}
@@ -153,10 +168,12 @@ class Monitor(Node):
         plant = self.diag_values('plant_sim_node')
         nmpc = self.diag_values('nmpc_node')
         road = self.diag_values('road_preview_node')
-        return {
+        loop = hil_summary.published(self.diag_values) if self.hil else {
             topics.STATE: _int(plant.get('states')),
             topics.SPRUNG_ACCEL: _int(plant.get('steps')),
-            topics.GENERATOR: _int(plant.get('steps')),
+            topics.GENERATOR: _int(plant.get('steps'))}
+        return {
+            **loop,
             topics.ROAD_HEIGHT: _int(road.get('samples_published')),
             topics.ROAD_PREVIEW: _int(road.get('samples_published')),
             topics.DAMPING_CMD: (None if not nmpc else (_int(nmpc.get('commands')) or 0)
@@ -195,7 +212,8 @@ class Monitor(Node):
         nmpc = self.diag_values('nmpc_node')
         road = self.diag_values('road_preview_node')
         accel = [self.accel[s] for s in sorted(self.accel)][:n_steps]
-        harvested = _num(plant.get('harvested_j'))
+        harvested = _num(self.diag_values(hil_summary.ECU if self.hil else 'plant_sim_node')
+                         .get('harvested_j'))
         duration = len(accel) * ts
         metrics = comfort_power(accel, harvested, duration) if accel else {}
         metrics.update({'harvested_j': harvested, 'samples': len(accel)})
@@ -212,9 +230,10 @@ class Monitor(Node):
         if realtime and len(scheduled) > 1:
             rx = np.array([c[1] for c in scheduled], dtype=float) * 1e-9
             cmd['rate_hz'] = float((len(rx) - 1) / (rx[-1] - rx[0]))
-            # Measured where the commands are used: at the plant (its diagnostics).
-            cmd['period_jitter_ms'] = _stats(plant, 'cmd_jitter_ms')
-            cmd['state_to_command_ms'] = _stats(plant, 'loop_latency_ms')
+            if not self.hil:   # the HIL loop has no plant node: the monitor's figures below
+                # Measured where the commands are used: at the plant (its diagnostics).
+                cmd['period_jitter_ms'] = _stats(plant, 'cmd_jitter_ms')
+                cmd['state_to_command_ms'] = _stats(plant, 'loop_latency_ms')
             cmd['sample_to_command_ms'] = percentiles_ms(
                 [(c[1] - c[0]) * 1e-9 for c in scheduled])
             # And as this monitor, one more subscriber, sees them.
@@ -234,18 +253,30 @@ class Monitor(Node):
                 'missed_samples', 'stale_previews', 'no_preview', 'rejected_state',
                 'rejected_preview', 'controller_fallback_plan', 'controller_fallback_passive',
                 'controller_failures', 'controller_over_budget')}}
-        out['plant'] = {k: _int(plant.get(k)) for k in (
-            'steps', 'u_from_command', 'u_from_plan', 'u_from_passive', 'late_commands',
-            'road_gaps', 'lockstep_timeouts', 'rejected_road_height', 'rejected_damping_cmd')}
-        out['plant'].update({k: _stats(plant, k) for k in (
-            'loop_latency_ms', 'cmd_jitter_ms', 'road_latency_ms', 'step_ms')})
+        # What each node's threads got from realtime_priority (live/realtime.py).
+        out['scheduling'] = {node: entry[2]['scheduling'] for node, entry in self.diag.items()
+                             if 'scheduling' in entry[2]}
+        if self.hil:
+            out['plant'] = hil_summary.plant_equivalents(self.diag_values)
+            out['hil'] = hil_summary.hil_block(
+                self.diag_values, self.states, self.truth, _stats, self.diag_events,
+                self.finished_rx.get(hil_summary.ECU))
+        else:
+            out['plant'] = {k: _int(plant.get(k)) for k in (
+                'steps', 'u_from_command', 'u_from_plan', 'u_from_passive', 'late_commands',
+                'road_gaps', 'lockstep_timeouts', 'rejected_road_height',
+                'rejected_damping_cmd')}
+            out['plant'].update({k: _stats(plant, k) for k in (
+                'loop_latency_ms', 'cmd_jitter_ms', 'road_latency_ms', 'step_ms')})
         published = self.published()
         dropped = self.dropped(published)
         rejected = {'state': _int(nmpc.get('rejected_state')),
                     'road/preview': _int(nmpc.get('rejected_preview')),
                     'road/height': _int(plant.get('rejected_road_height')),
-                    'damping_cmd': _int(plant.get('rejected_damping_cmd')),
+                    'damping_cmd': out['plant'].get('rejected_damping_cmd'),
                     '/clock': _int(road.get('rejected_clock'))}
+        if self.hil:   # the ECU ignores absurd road heights without counting them
+            del rejected['road/height']
         t0 = min(self.state_rx.values()) if self.state_rx else 0
         out['events'] = [{'t_s': round((rx - t0) * 1e-9, 3), 'node': node,
                           'level': LEVEL_NAMES.get(level, str(level)), 'message': text}
@@ -256,6 +287,13 @@ class Monitor(Node):
                            'rejected': rejected,
                            'rejected_total': sum(v for v in rejected.values() if v)}
         return out
+
+
+def _state(msg: JointState) -> np.ndarray:
+    """Return x = [z_s, ż_s, z_us, ż_us(, z_d, ż_d)] of a state message."""
+    x = np.empty(2 * len(msg.position))
+    x[0::2], x[1::2] = msg.position, msg.velocity
+    return x
 
 
 def _num(text: Optional[str]) -> float:

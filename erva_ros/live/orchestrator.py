@@ -17,6 +17,13 @@
    grace period) and the recorder last, so the bag is finished;
 5. returns the summary (comfort and power, command rate, jitter and latency,
    solve times, deadline misses, fallbacks, dropped and rejected messages).
+
+With ``ecu='virtual'`` (hardware-in-the-loop, real time only) the processes of
+:func:`erva_ros.hil.hil_process_specs` take plant_sim_node's place: ``erva ecu-sim``
+(plant + simulated ECU on a loopback-UDP CAN bus; it ends by itself after the
+scenario), ecu_bridge_node and state_estimator_node, so the loop is NMPC → bridge →
+CAN → ECU → CAN → bridge → estimator → NMPC.  The recorder also records the HIL
+topics, and the summary gets a ``hil`` block (:mod:`erva_ros.live.hil_summary`).
 """
 
 import ctypes
@@ -35,6 +42,7 @@ import yaml
 from erva_ros import topics
 from erva_ros.controllers.settings import load_controller_settings
 from erva_ros.errors import CLIError
+from erva_ros.live import hil_summary
 from erva_ros.live.parameters import (LIVE_CHOICES, LIVE_DEFAULTS, LIVE_INTEGERS,
                                       LIVE_NUMERIC, LIVE_OTHER)
 from erva_ros.live.scenario import build_road, required_preview_steps
@@ -42,6 +50,18 @@ from erva_ros.params import check_number, load_erva_params, ParamError
 
 #: The live nodes in start order (the slowest to start first).
 NODES = ('nmpc_node', 'plant_sim_node', 'road_preview_node')
+#: The processes replacing plant_sim_node with --ecu virtual, in start order.
+HIL_PROCESSES = ('ecu_sim', 'ecu_bridge_node', 'state_estimator_node')
+HIL_NODES = ('nmpc_node', *HIL_PROCESSES, 'road_preview_node')
+#: Once the ECU finished (no state comes any more), how long the others may take.
+HIL_FINISH_WAIT_S = 2.0
+#: Least settling time before sample 0 in HIL mode (live start_delay_s, default 0.5 s).
+#: Seven processes discover each other on a loaded machine: with 0.5 s the recorder's
+#: readers were sometimes matched ~0.2 s into the run and it lost the first samples.
+HIL_START_DELAY_S = 1.5
+#: HIL: the bridge and the estimator send no final status; after the finish, wait up to
+#: this long for their next periodic one (period 0.5 s, config/hil.yaml).
+HIL_DRAIN_S = 1.5
 #: Live parameters that belong to one node's section of the session params file.
 NODE_PARAMETERS = {
     'road_preview_node': ('road', 'road_file', 'seed', 'road_class', 'speed_mps',
@@ -142,6 +162,7 @@ class RunConfig:
     live_overrides: Dict[str, Any] = field(default_factory=dict)
     settings_overrides: Dict[str, Any] = field(default_factory=dict)
     session_dir: Optional[str] = None      # where the params file and node logs go
+    ecu: str = 'none'                      # 'virtual': the HIL loop (simulated ECU, CAN)
 
 
 @dataclass
@@ -154,6 +175,12 @@ class Session:
     directory: str
     params_file: str
     scenario: str
+    ecu: str = 'none'
+
+    @property
+    def hil(self) -> bool:
+        """Return True for the hardware-in-the-loop loop (--ecu virtual)."""
+        return self.ecu != 'none'
 
     @property
     def realtime(self) -> bool:
@@ -184,6 +211,11 @@ def prepare_session(cfg: RunConfig, recording: bool) -> Session:
             values[key] = value
     values.update(cfg.live_overrides)
     live = validate_live(values, source=live_path)
+    if cfg.ecu != 'none':
+        if live['mode'] != 'realtime':
+            raise CLIError(f'--ecu {cfg.ecu} runs in real time only (the ECU keeps wall-clock '
+                           f'time), not with mode {live["mode"]}')
+        live['start_delay_s'] = max(live['start_delay_s'], HIL_START_DELAY_S)
     live['preview_steps'] = max(live['preview_steps'], required_preview_steps(settings))
     # The time master starts when each of its topics has the other loop node, this
     # process's monitor and (when recording) the recorder as subscribers.
@@ -205,7 +237,7 @@ def prepare_session(cfg: RunConfig, recording: bool) -> Session:
     with open(path, 'w', encoding='utf-8') as fh:
         fh.write('# Effective parameters of an `erva run` session (ROS 2 params file).\n')
         yaml.safe_dump(doc, fh, sort_keys=False)
-    return Session(erva.as_dict(), settings, live, directory, path, scenario)
+    return Session(erva.as_dict(), settings, live, directory, path, scenario, cfg.ecu)
 
 
 def _die_with_parent() -> None:
@@ -288,6 +320,7 @@ class RunResult:
 
 def _recorder(cfg: RunConfig, session: Session, bag_parent: str, env, log) -> NodeProcess:
     from erva_ros.bag import session as bag_session
+    from erva_ros.nodes.recorder_node import DEFAULT_TOPICS
     bag_dir = bag_session.new_bag_dir(bag_parent, session.scenario)
     params = {'erva': session.erva, 'controller': session.settings.as_dict(),
               'live': session.live}
@@ -295,10 +328,15 @@ def _recorder(cfg: RunConfig, session: Session, bag_parent: str, env, log) -> No
         session.scenario, parameters=params, seed=session.live['seed'],
         controller=session.settings.controller,
         extra={'mode': session.live['mode'], 'model': session.live['model'],
-               'duration_s': session.live['duration_s'],
+               'duration_s': session.live['duration_s'], 'ecu': session.ecu,
                'params_file': session.params_file})
+    record = list(DEFAULT_TOPICS)
+    if session.hil:
+        from erva_ros.hil.topics import RECORD_TOPICS
+        record += RECORD_TOPICS
     argv = [sys.executable, '-m', 'erva_ros.nodes.recorder_node',
-            *bag_session.recorder_ros_args(bag_dir, meta, namespace=cfg.namespace,
+            *bag_session.recorder_ros_args(bag_dir, meta, topics=record,
+                                           namespace=cfg.namespace,
                                            use_sim_time=not session.realtime)]
     proc = NodeProcess('recorder_node', argv,
                        os.path.join(session.directory, 'recorder_node.log'), env)
@@ -319,6 +357,9 @@ class _Supervisor:
 
     #: Nodes without which the run cannot go on (lock-step also needs the controller).
     NEEDED = {'plant_sim_node', 'road_preview_node'}
+    #: The same in HIL mode (real time only): without the controller the bridge sends
+    #: the safe passive command, which is worth seeing.
+    HIL_NEEDED = {*HIL_PROCESSES, 'road_preview_node'}
 
     def __init__(self, cfg: RunConfig, session: Session, recording: bool, log):
         import rclpy
@@ -334,13 +375,22 @@ class _Supervisor:
         self.phase = 'starting'
         self.t_start = time.monotonic()
         self.needed = set(self.NEEDED) | (set() if session.realtime else {'nmpc_node'})
+        # Processes run, and those that report `finished` on /diagnostics.
+        self.node_names, self.finishers = NODES, NODES
+        if session.hil:
+            self.node_names = HIL_NODES
+            self.finishers = ('nmpc_node', 'road_preview_node', hil_summary.ECU)
+            self.needed = set(self.HIL_NEEDED)
+        self.ended: set = set()     # exited 0 by themselves at the end (the ECU)
+        self._ecu_done: Optional[float] = None
         self.context = rclpy.Context()
         rclpy.init(args=[], context=self.context,
                    signal_handler_options=SignalHandlerOptions.NO)
         # The monitor subscribes to the time master's topics last (see Monitor).
         gate = ((topics.ROAD_HEIGHT, topics.ROAD_PREVIEW) if session.realtime
                 else (topics.STATE,))
-        self.monitor = Monitor(cfg.namespace, context=self.context, gate=gate)
+        self.monitor = Monitor(cfg.namespace, context=self.context, gate=gate,
+                               hil=session.hil)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.monitor)
 
@@ -352,18 +402,28 @@ class _Supervisor:
         if self.recording:
             self.procs['recorder_node'] = _recorder(self.cfg, self.session,
                                                     self.cfg.record_dir, env, self.log)
-        for name in NODES:
+        hil = {}
+        if self.session.hil:
+            from erva_ros.hil import hil_process_specs
+            live = self.session.live
+            hil = {spec.name: spec for spec in hil_process_specs(
+                self.session.params_file, self.cfg.namespace, live['duration_s'],
+                model=live['model'], ts=live['ts'], env=env, stamp_on_road_grid=True,
+                realtime_priority=live['realtime_priority'])}
+        for name in self.node_names:
             argv = [sys.executable, '-m', f'erva_ros.nodes.{name}', '--ros-args',
                     '-r', f'__ns:={self.cfg.namespace}',
                     '--params-file', self.session.params_file]
+            spec = hil.get(name)
             self.procs[name] = NodeProcess(
-                name, argv, os.path.join(self.session.directory, f'{name}.log'), env)
+                name, spec.argv if spec else argv,
+                os.path.join(self.session.directory, f'{name}.log'), spec.env if spec else env)
         self.log('started ' + ', '.join(f'{n} (pid {p.pid})' for n, p in self.procs.items()))
 
     def supervise(self) -> None:
         """Connect, run and drain, until the scenario ends, a needed node dies or a signal."""
         self.phase = 'connecting'
-        last_progress, last_states, finish_seen = time.monotonic(), 0, 0.0
+        last_progress, last_states, finish_seen, finish_ns = time.monotonic(), 0, 0.0, 0
         while True:
             self.executor.spin_once(timeout_sec=0.02)
             if self.caught:
@@ -374,7 +434,8 @@ class _Supervisor:
                 return
             now = time.monotonic()
             if self.phase == 'connecting':
-                if self.monitor.connect(n_diagnostics=len(NODES)):
+                if self._graph_ready() and self.monitor.connect(
+                        n_diagnostics=len(self.node_names)):
                     self.phase = 'running'
                     self.log(f'connected in {now - self.t_start:.1f} s; running '
                              f'{self.session.live["duration_s"]:g} s '
@@ -387,22 +448,73 @@ class _Supervisor:
                 states = self.monitor.received[topics.STATE]
                 if states != last_states:
                     last_states, last_progress = states, now
-                if all(self.monitor.diag_values(n).get('finished') == 'true'
-                       for n in NODES if n not in self.dead):
-                    self.phase, finish_seen = 'draining', now
+                if self._finished(now):
+                    self.phase, finish_seen, finish_ns = 'draining', now, time.time_ns()
                     continue
                 limit = 10.0 + (5.0 if last_states == 0 else 0.0)
                 if now - last_progress > limit + self.session.live['start_delay_s']:
                     self.errors.append(f'no progress for {now - last_progress:.0f} s '
                                        f'({last_states} states received)')
                     return
-            elif now - finish_seen > 1.0 or _all_received(self.monitor):
+            elif self._drained(now - finish_seen, finish_ns):
                 return   # drained: the final diagnostics and messages in flight arrived
+
+    def _graph_ready(self) -> bool:
+        """HIL: return True once the ROS graph shows the whole loop (always True otherwise).
+
+        The monitor's own subscriptions (Monitor.connect) do not show that the estimator
+        listens to the bridge (ecu/measurements), the ECU to the road, or the recorder
+        (which subscribes to the HIL topics once it discovers their types) to all of them;
+        the road, which starts the loop, must wait for them too.
+        """
+        if not self.session.hil:
+            return True
+        from erva_ros.hil import topics as hil_topics
+        ns = self.cfg.namespace.rstrip('/')
+        m, rec = self.monitor, int(self.recording)
+        ecu = (hil_topics.ECU_DAMPING_APPLIED, hil_topics.ECU_SPRUNG_ACCEL,
+               hil_topics.ECU_SUSPENSION, hil_topics.ECU_GENERATOR)
+        subs = {topics.ROAD_HEIGHT: 2 + rec,      # ECU, estimator (the monitor comes last)
+                topics.DAMPING_CMD: 2 + rec,      # bridge, monitor
+                topics.STATE: 2 + rec,            # nmpc, monitor
+                hil_topics.TRUE_STATE: 1 + rec,   # monitor
+                hil_topics.ECU_MEASUREMENTS: 1 + rec,   # estimator
+                **{t: rec for t in ecu}}          # per-frame topics: only recorded
+        published = ecu + (hil_topics.ECU_MEASUREMENTS,)
+        return (all(m.count_subscribers(f'{ns}/{t}') >= n for t, n in subs.items())
+                and all(m.count_publishers(f'{ns}/{t}') >= 1 for t in published))
+
+    def _finished(self, now: float) -> bool:
+        """Return True once every node that reports `finished` did (or died)."""
+        def done(name):
+            return name in self.ended or self.monitor.diag_values(name).get('finished') == 'true'
+        waiting = [n for n in self.finishers if n not in self.dead and not done(n)]
+        if not waiting:
+            return True
+        if self.session.hil and done(hil_summary.ECU):
+            # No state comes after the ECU's last cycle: a node still waiting for one
+            # (the NMPC, had it missed the first state) would never finish.
+            self._ecu_done = self._ecu_done or now
+            if now - self._ecu_done > HIL_FINISH_WAIT_S:
+                self.log(f'the ECU finished; {", ".join(waiting)} did not report finished')
+                return True
+        return False
+
+    def _drained(self, elapsed: float, finish_ns: int) -> bool:
+        """Return True once the final counters arrived and nothing is missing (or timed out)."""
+        if not self.session.hil:
+            return elapsed > 1.0 or _all_received(self.monitor)
+        fresh = all(self.monitor.diag_rx(n) > finish_ns for n in hil_summary.PERIODIC
+                    if n.split(':')[0] not in self.dead)
+        return elapsed > HIL_DRAIN_S or (fresh and _all_received(self.monitor))
 
     def _check_deaths(self) -> bool:
         """Record nodes that exited on their own; return True if the run must stop."""
         for name, p in self.procs.items():
-            if name in self.dead or p.poll() is None:
+            if name in self.dead or name in self.ended or p.poll() is None:
+                continue
+            if name == hil_summary.ECU and p.poll() == 0:
+                self.ended.add(name)    # `erva ecu-sim --duration` ends by itself
                 continue
             self.dead.add(name)
             where = (f'at t = {self.monitor.received[topics.STATE] * self.session.live["ts"]:.2f}'
@@ -419,6 +531,14 @@ class _Supervisor:
     def stop(self) -> None:
         """Stop the nodes, then the recorder (so it records to the end), then the monitor."""
         import rclpy
+        ecu = self.procs.get(hil_summary.ECU)
+        if ecu is not None and hil_summary.ECU in self.monitor.finished_rx:
+            try:    # it ends by itself after its last status: let it print its summary
+                ecu.popen.wait(timeout=STOP_GRACE_S)
+            except subprocess.TimeoutExpired:
+                pass
+            if ecu.poll() == 0:
+                self.ended.add(hil_summary.ECU)
         stop_processes([p for n, p in self.procs.items() if n != 'recorder_node'])
         if 'recorder_node' in self.procs:
             stop_processes([self.procs['recorder_node']], grace_s=10.0)
@@ -434,7 +554,8 @@ class _Supervisor:
         for name, p in self.procs.items():
             status = p.poll()
             nodes[name] = {'pid': p.pid, 'exit_status': status, 'died': name in self.dead,
-                           'stopped_cleanly': p.stopped_by_us and status == 0,
+                           'stopped_cleanly': status == 0 and (p.stopped_by_us
+                                                               or name in self.ended),
                            'log': p.log_path}
             if name not in self.dead and status != 0:
                 self.errors.append(f'{name} did not stop cleanly (exit status {status})'
@@ -448,7 +569,8 @@ class _Supervisor:
                          'weights': list(s.settings.weights), 'road': s.scenario,
                          'seed': s.live['seed'], 'mode': s.live['mode'],
                          'model': s.live['model'], 'duration_s': s.live['duration_s'],
-                         'ts': s.live['ts'], 'namespace': self.cfg.namespace},
+                         'ts': s.live['ts'], 'namespace': self.cfg.namespace,
+                         'ecu': s.ecu},
             'nodes': nodes, 'errors': self.errors, 'ok': not self.errors,
             'wall_time_s': round(time.monotonic() - self.t_start, 3),
             'session_dir': s.directory,
@@ -501,17 +623,16 @@ def _all_received(monitor) -> bool:
 
 
 def ensure_ecu_available(ecu: str) -> None:
-    """Raise CLIError unless the HIL loop for ``--ecu`` can run (issue 6)."""
+    """Raise CLIError unless the HIL loop for ``--ecu`` can run (its modules import)."""
     if ecu == 'none':
         return
-    import importlib.util
-    if importlib.util.find_spec('erva_ros.hil') is None:
-        raise CLIError(f'--ecu {ecu} is not available yet: the HIL modules (erva_ros.hil) '
-                       'are not installed')
-    raise CLIError(f'--ecu {ecu} is not available yet: the HIL loop is not wired into '
-                   '`erva run`')
+    try:
+        import erva_ros.hil  # noqa: F401  (python-can, cantools, the estimator)
+    except ImportError as exc:
+        raise CLIError(f'--ecu {ecu} is not available: the HIL modules (erva_ros.hil) do not '
+                       f'import ({exc})') from None
 
 
-__all__ = ['NODES', 'RunConfig', 'Session', 'RunResult', 'prepare_session', 'run_session',
-           'read_live_file', 'validate_live', 'stop_processes', 'NodeProcess',
+__all__ = ['NODES', 'HIL_NODES', 'RunConfig', 'Session', 'RunResult', 'prepare_session',
+           'run_session', 'read_live_file', 'validate_live', 'stop_processes', 'NodeProcess',
            'recorder_available', 'ensure_ecu_available', 'default_config_file']

@@ -21,6 +21,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 
 from erva_ros.controllers.settings import (CHOICE_SPECS, ControllerSettings, DEFAULTS,
                                            INTEGER_KEYS, NUMERIC_SPECS, validate_settings)
+from erva_ros.live.realtime import DEFAULT_PRIORITY, MAX_PRIORITY
 from erva_ros.model import MODEL_KINDS
 from erva_ros.params import (check_number, ERVA_SPECS, ERVAParams, PAPER_VALUES, ParamError,
                              Spec, validate_erva)
@@ -53,10 +54,13 @@ LIVE_NUMERIC: Dict[str, Spec] = {
     'start_delay_s': Spec(0.0, 600.0, 's', 'time master: settling time before the first sample'),
     'diagnostics_period_s': Spec(0.05, 3600.0, 's', 'period of the /diagnostics status'),
     'reject_log_period_s': Spec(0.0, 3600.0, 's', 'rejected messages are logged once per period'),
+    'realtime_priority': Spec(0, MAX_PRIORITY, '-',
+                              'realtime mode: SCHED_FIFO priority of the node\'s threads, '
+                              '0 = normal scheduling (needs CAP_SYS_NICE, else a warning)'),
 }
 #: Live parameters that are whole numbers.
 LIVE_INTEGERS = frozenset({'seed', 'preview_steps', 'state_timeout_periods',
-                           'wait_for_subscribers'})
+                           'wait_for_subscribers', 'realtime_priority'})
 #: String parameters of the live nodes with a fixed set of values.
 LIVE_CHOICES: Dict[str, tuple] = {
     'mode': (MODES, 'time base: realtime (wall clock) or lockstep (the plant publishes /clock)'),
@@ -72,7 +76,7 @@ LIVE_DEFAULTS: Dict[str, Any] = {
     'preview_steps': 10, 'preview_noise': False, 'preview_snr_db': 20.0,
     'preview_delay_s': 0.0, 'command_timeout_s': 0.2, 'lockstep_timeout_s': 5.0,
     'state_timeout_periods': 3, 'wait_for_subscribers': 1, 'start_delay_s': 0.5,
-    'diagnostics_period_s': 0.5, 'reject_log_period_s': 1.0,
+    'diagnostics_period_s': 0.5, 'reject_log_period_s': 1.0, 'realtime_priority': DEFAULT_PRIORITY,
 }
 #: Descriptions of the live parameters that are neither numbers nor choices.
 LIVE_OTHER = {

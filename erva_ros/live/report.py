@@ -61,14 +61,23 @@ def format_summary(s: Dict[str, Any]) -> str:
         lines.append(f'  latency   state -> command at the plant '
                      f'{_ms(cmd["state_to_command_ms"])}')
         lines.append(f'            sample time -> command {_ms(cmd["sample_to_command_ms"])}')
+    elif 'monitor' in cmd:      # HIL: no plant node; as the monitor receives them
+        lines.append(f'  jitter    command period |Δt - Ts| at the monitor '
+                     f'{_ms(cmd["monitor"]["period_jitter_ms"])}')
+        lines.append(f'  latency   state -> command at the monitor '
+                     f'{_ms(cmd["monitor"]["state_to_command_ms"])}')
+        lines.append(f'            sample time -> command {_ms(cmd["sample_to_command_ms"])}')
     lines.append(f'  solve     {_ms(nm.get("solve_ms"))}')
     lines.append(f'  deadlines {nm.get("deadline_misses")} missed; controller fallbacks: plan '
                  f'{nm.get("controller_fallback_plan")}, passive '
                  f'{nm.get("controller_fallback_passive")}; state timeouts '
                  f'{nm.get("state_timeouts")}')
-    lines.append(f'  plant     u from command {pl.get("u_from_command")}, from plan '
-                 f'{pl.get("u_from_plan")}, passive {pl.get("u_from_passive")}; '
-                 f'late commands {pl.get("late_commands")}')
+    if 'hil' in s:
+        lines.extend(_hil_lines(s['hil']))
+    else:
+        lines.append(f'  plant     u from command {pl.get("u_from_command")}, from plan '
+                     f'{pl.get("u_from_plan")}, passive {pl.get("u_from_passive")}; '
+                     f'late commands {pl.get("late_commands")}')
     lines.append(f'  messages  dropped {msg["dropped_total"]}, rejected {msg["rejected_total"]}')
     if s.get('bag'):
         lines.append(f'  bag       {s["bag"]}')
@@ -79,6 +88,26 @@ def format_summary(s: Dict[str, Any]) -> str:
         lines.append(f'  ok        all nodes ran and stopped cleanly ({s["wall_time_s"]:.1f} s '
                      'wall)')
     return '\n'.join(lines)
+
+
+def _hil_lines(h: Dict[str, Any]) -> List[str]:
+    br, ecu, est, lat = h['bridge'], h['ecu'], h['estimator'], h['latency_ms']
+    nis = est.get('nis_mean')
+    drops = '/'.join(str(br.get(f'dropped_{k}')) for k in ('crc', 'counter', 'length'))
+    ecu_drops = '/'.join(str(ecu.get(f'dropped_{k}')) for k in ('crc', 'counter', 'length'))
+    lines = [f'  bridge    E2E drops crc/counter/length {drops}, command timeouts '
+             f'{br.get("command_timeouts")}, bus errors {br.get("bus_errors")}; ECU drops '
+             f'{ecu_drops}, overruns {ecu.get("overruns")}',
+             f'            ROS -> CAN {_ms(lat["bridge_ros_to_can"])}',
+             f'            CAN -> ROS {_ms(lat["bridge_can_to_ros"])}',
+             f'  estimator {_ms(lat["estimator"])}; NIS mean '
+             f'{nis if nis is None else format(nis, ".2f")}']
+    err = est.get('error') or {}
+    if err.get('matched'):
+        rel = ', '.join(f'{k} {v:.0%}' for k, v in err['relative_rms'].items())
+        lines.append(f'            error / state RMS vs the ECU\'s truth: {rel} '
+                     f'({err["matched"]} samples)')
+    return lines
 
 
 __all__ = ['TARGETS', 'jsonable', 'format_summary']

@@ -11,6 +11,7 @@ import signal
 import sys
 from typing import Callable, List, Optional
 
+from erva_ros.live.realtime import set_fifo_priority
 from erva_ros.params import ParamError
 
 #: Exit status of a node stopped by a bad parameter or option.
@@ -46,6 +47,12 @@ def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]]
         # of the collector's way so a collection during the loop scans only new objects.
         gc.collect()
         gc.freeze()
+        # Last, after the start-up work: a FIFO thread building CasADi functions would
+        # starve the other nodes starting on the same cores.
+        priority = getattr(node, 'realtime_priority', 0)
+        node.scheduling = set_fifo_priority(priority, node.get_logger().warning)
+        if priority > 0 and node.scheduling.startswith('SCHED_FIFO'):
+            node.get_logger().info(f'running at {node.scheduling}')
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()

@@ -12,7 +12,13 @@ A thin rclpy adapter around :class:`erva_ros.hil.bridge.BridgeCore` (no ROS insi
 * ECU frames (reader thread, E2E-checked) → ``ecu/damping_applied``,
   ``ecu/sprung_accel``, ``ecu/suspension``, ``ecu/generator`` (erva_ros/hil/topics.py),
   each published as soon as its frame arrived, all stamped with the CAN receive time
-  of the ECU cycle's first frame.
+  of the ECU cycle's first frame; and the whole cycle once more in one message,
+  ``ecu/measurements`` (the estimator's input: one callback per cycle), published
+  when its last frame arrived, right after that frame's own topic (the estimator it
+  wakes then does not compete with the bridge for the CPU).  A cycle that lost
+  a frame is published with NaN for that frame's values when the next cycle's first
+  frame arrives or Ts/2 after its first frame (the watchdog's Ts/4 check), whichever
+  comes first.
 * ``/diagnostics``: command link, CAN bus (E2E counters, losses, reconnects) and ECU
   heartbeat, with the bridge's added latency (p50/p99/max in ms).
 
@@ -33,7 +39,7 @@ from trajectory_msgs.msg import JointTrajectory
 
 from erva_ros import topics
 from erva_ros.hil import topics as hil_topics
-from erva_ros.hil.bridge import BridgeConfig, BridgeCore, SensorFrame
+from erva_ros.hil.bridge import BridgeConfig, BridgeCore, EcuCycle, SensorFrame
 from erva_ros.hil.codec import EcuCodec, Kind
 from erva_ros.hil.latency import LatencyStats
 from erva_ros.hil.settings import (BRIDGE_DEFAULTS, BRIDGE_NUMERIC, BRIDGE_STRINGS,
@@ -41,7 +47,8 @@ from erva_ros.hil.settings import (BRIDGE_DEFAULTS, BRIDGE_NUMERIC, BRIDGE_STRIN
 from erva_ros.hil.transport import open_bus, parse_spec
 from erva_ros.live import diagnostics as diag
 from erva_ros.live.msgs import ns_to_time, time_to_ns
-from erva_ros.live.parameters import declare_erva_params, declare_number, declare_string
+from erva_ros.live.parameters import (declare_erva_params, declare_number, declare_string,
+                                      LIVE_DEFAULTS, LIVE_NUMERIC)
 from erva_ros.live.runtime import run_node
 from erva_ros.params import ParamError
 
@@ -56,6 +63,10 @@ class EcuBridgeNode(Node):
         super().__init__('ecu_bridge_node')
         self.params = declare_erva_params(self)
         self.ts = declare_number(self, 'ts', 0.02, TS_SPEC)
+        # SCHED_FIFO once started (erva_ros/live/realtime.py): the bridge is on the loop.
+        self.realtime_priority = declare_number(
+            self, 'realtime_priority', LIVE_DEFAULTS['realtime_priority'],
+            LIVE_NUMERIC['realtime_priority'], integer=True)
         cfg = {}
         for key, default in BRIDGE_DEFAULTS.items():
             if key in BRIDGE_STRINGS:
@@ -92,6 +103,7 @@ class EcuBridgeNode(Node):
         self.pub_gen = self.create_publisher(JointState, hil_topics.ECU_GENERATOR, qos)
         self.pub_applied = self.create_publisher(JointState, hil_topics.ECU_DAMPING_APPLIED,
                                                  qos)
+        self.pub_meas = self.create_publisher(JointState, hil_topics.ECU_MEASUREMENTS, qos)
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
         self.create_subscription(JointTrajectory, topics.DAMPING_CMD, self._on_command, qos)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -148,6 +160,9 @@ class EcuBridgeNode(Node):
 
     def _tick(self) -> None:
         self.core.tick()
+        cyc = self.core.expire()                # a cycle that lost a frame: publish it
+        if cyc is not None:
+            self._publish_cycle(cyc)
         # An ERROR (or its end) is published at once, not at the next period.
         state = (self.core.command_state, self.core.bus_up, self.core.ecu_silent())
         if state != self._last_state:
@@ -172,6 +187,12 @@ class EcuBridgeNode(Node):
     def _publish_frame(self, f: SensorFrame) -> None:
         """Publish one ECU frame at once, stamped with its ECU cycle's stamp."""
         t0 = time.perf_counter()
+        done = None
+        for cyc in f.cycles:                    # an older, incomplete cycle: first
+            if cyc.stamp == f.stamp:
+                done = cyc
+            else:
+                self._publish_cycle(cyc)
         stamp = ns_to_time(int(round(f.stamp * 1e9)))
         p = f.payload
         if f.kind is Kind.STATUS:
@@ -193,8 +214,24 @@ class EcuBridgeNode(Node):
                            effort=[float(self.hw.force_from_current(p.current))])
             m.header.stamp = stamp
             self.pub_gen.publish(m)
+        if done is not None:                    # the cycle this frame completed: last
+            self._publish_cycle(done)
         self.lat_sensor.add(time.time() - f.rx_time)
         self.proc_sensor.add(time.perf_counter() - t0)
+
+    def _publish_cycle(self, cyc: EcuCycle) -> None:
+        """Publish one ECU cycle on ``ecu/measurements`` (NaN: that frame was lost)."""
+        nan = float('nan')
+        st = cyc.payloads.get(Kind.STATUS)
+        ch = cyc.payloads.get(Kind.CHASSIS)
+        gen = cyc.payloads.get(Kind.GENERATOR)
+        values = ([float(st.c_e_applied), float(st.c_e_mean)] if st else [nan, nan]) + (
+            [float(ch.sprung_accel), float(ch.deflection)] if ch else [nan, nan]) + (
+            [float(gen.speed * self.params.l), float(self.hw.force_from_current(gen.current))]
+            if gen else [nan, nan])
+        m = JointState(name=list(hil_topics.MEASUREMENT_NAMES), position=values)
+        m.header.stamp = ns_to_time(int(round(cyc.stamp * 1e9)))
+        self.pub_meas.publish(m)
 
     # -- diagnostics -------------------------------------------------------------------
     def _publish_diagnostics(self) -> None:
@@ -207,6 +244,7 @@ class EcuBridgeNode(Node):
         statuses[0].values.update({k: diag.format_value(v) for k, v in lat.items()
                                    if k.startswith('ros_to_can')})
         statuses[0].values['messages_rejected'] = str(self.rejected_msgs)
+        statuses[0].values['scheduling'] = getattr(self, 'scheduling', 'off')
         statuses[2].values.update({k: diag.format_value(v) for k, v in lat.items()
                                    if k.startswith('can_to_ros')})
         arr = DiagnosticArray()

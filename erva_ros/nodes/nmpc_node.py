@@ -55,7 +55,8 @@ from erva_ros.live.timing import DurationStats, next_grid_delay_ns, PeriodStats
 from erva_ros.live.validation import MessageRejected, Rejections
 
 LIVE_PARAMETERS = ('mode', 'model', 'duration_s', 'state_timeout_periods',
-                   'diagnostics_period_s', 'reject_log_period_s')
+                   'diagnostics_period_s', 'reject_log_period_s',
+                   'realtime_priority')
 #: A preview at most this many samples older than the state is shifted and used.
 MAX_PREVIEW_AGE = 3
 #: How long (s) a deadline miss or fallback keeps the status at WARN.
@@ -70,6 +71,8 @@ class NMPCNode(Node):
         params = declare_erva_params(self)
         settings = declare_controller_settings(self)
         cfg = declare_live(self, LIVE_PARAMETERS)
+        # SCHED_FIFO in realtime mode only: a lock-step loop runs flat out (see live/realtime.py)
+        self.realtime_priority = cfg['realtime_priority'] if cfg['mode'] == 'realtime' else 0
         self.cfg = cfg
         self.kind = cfg['model']
         self.lockstep = cfg['mode'] == 'lockstep'
@@ -301,7 +304,8 @@ class NMPCNode(Node):
         vals = {'mode': self.cfg['mode'], 'controller': self.controller.name,
                 'finished': self.finished,
                 'model': self.kind, 'horizon': self.controller.horizon,
-                'time_budget_s': self.settings.time_budget_s}
+                'time_budget_s': self.settings.time_budget_s,
+                'scheduling': getattr(self, 'scheduling', 'off')}
         vals.update(self.count)
         vals.update(diag.flatten('solve_ms', self.solve.summary()))
         vals.update(diag.flatten('latency_ms', self.latency.summary()))

@@ -47,7 +47,8 @@ from erva_ros.plant import PlantSimulator
 
 LIVE_PARAMETERS = ('mode', 'model', 'ts', 'duration_s', 'command_timeout_s',
                    'lockstep_timeout_s', 'wait_for_subscribers', 'start_delay_s',
-                   'diagnostics_period_s', 'reject_log_period_s')
+                   'diagnostics_period_s', 'reject_log_period_s',
+                   'realtime_priority')
 
 
 class PlantSimNode(Node):
@@ -57,6 +58,8 @@ class PlantSimNode(Node):
         super().__init__('plant_sim_node')
         self.params = declare_erva_params(self)
         cfg = declare_live(self, LIVE_PARAMETERS)
+        # SCHED_FIFO in realtime mode only: a lock-step loop runs flat out (see live/realtime.py)
+        self.realtime_priority = cfg['realtime_priority'] if cfg['mode'] == 'realtime' else 0
         self.cfg = cfg
         self.kind = cfg['model']
         self.lockstep = cfg['mode'] == 'lockstep'
@@ -251,7 +254,8 @@ class PlantSimNode(Node):
         vals = {'mode': self.cfg['mode'], 'model': self.kind, 'steps': self.k or 0,
                 'steps_total': self.n_steps, 'finished': self.finished,
                 'sim_time_s': 0.0 if self.k is None else self.k * self.cfg['ts'],
-                'harvested_j': self.plant.harvested_j}
+                'harvested_j': self.plant.harvested_j,
+                'scheduling': getattr(self, 'scheduling', 'off')}
         vals.update({f'u_from_{s}': n for s, n in self.hold.counts.items()})
         vals.update(self.count)
         vals.update(diag.flatten('road_latency_ms', self.road_latency.summary()))

@@ -37,7 +37,8 @@ LIVE_PARAMETERS = ('mode', 'ts', 'duration_s', 'road', 'road_file', 'seed', 'roa
                    'speed_mps', 'bump_height_m', 'bump_length_m', 'bump_start_s',
                    'preview_steps', 'preview_noise', 'preview_snr_db', 'preview_delay_s',
                    'wait_for_subscribers', 'start_delay_s', 'diagnostics_period_s',
-                   'reject_log_period_s')
+                   'reject_log_period_s',
+                   'realtime_priority')
 
 
 class RoadPreviewNode(Node):
@@ -46,6 +47,8 @@ class RoadPreviewNode(Node):
     def __init__(self):
         super().__init__('road_preview_node')
         cfg = declare_live(self, LIVE_PARAMETERS)
+        # SCHED_FIFO in realtime mode only: a lock-step loop runs flat out (see live/realtime.py)
+        self.realtime_priority = cfg['realtime_priority'] if cfg['mode'] == 'realtime' else 0
         self.cfg = cfg
         self.road = build_road(cfg)
         self.error_model = build_preview_model(cfg)
@@ -159,7 +162,7 @@ class RoadPreviewNode(Node):
                 'preview_points': self.cfg['preview_steps'] + 1,
                 'preview_error': 'perfect' if self.error_model.is_perfect else
                 f'snr={self.error_model.snr_db} dB delay={self.error_model.delay_s:g} s',
-                'finished': self.finished,
+                'finished': self.finished, 'scheduling': getattr(self, 'scheduling', 'off'),
                 'rejected_clock': self.rejections.counts.get(topics.CLOCK, 0)}
 
 

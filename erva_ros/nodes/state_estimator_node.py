@@ -1,28 +1,37 @@
 """state_estimator_node: the NMPC's state ``/erva/state`` from the ECU's sensors (HIL mode).
 
 A thin rclpy adapter around :class:`erva_ros.estimator.ExtendedKalmanFilter` (the shared
-CasADi model, paper eq. (11)).  It subscribes to what ecu_bridge_node publishes for
-each ECU cycle -- ``ecu/damping_applied``, ``ecu/sprung_accel``, ``ecu/suspension``
-and ``ecu/generator``, all with the same stamp t_k -- plus ``road/height`` (the road at
-the tyre, buffered and interpolated).  The work is spread over the cycle's messages so
-the last one costs little: the damping message (the ECU sends it first) triggers the
-prediction from t_{k-1} with the ECU's cycle-mean c_e and the road w(t_{k-1}) → w(t_k)
-and the output linearisation; each measurement is then applied the moment it
-arrives (sequential scalar updates, equal to the batch update); the estimate is
-published on ``state`` with stamp t_k once all three are in.  A cycle that stays
-incomplete (a CAN frame was lost) is published with what it has when the next cycle
-starts, or after Ts/2 at the latest check (once per Ts).
+CasADi model, paper eq. (11)).  It subscribes to ``ecu/measurements``, the one message
+ecu_bridge_node publishes per ECU cycle (stamp t_k; c_e applied and cycle-mean c_e,
+sprung acceleration, deflection, v_gen, generator force), plus ``road/height`` (the road
+at the tyre, buffered and interpolated).  One callback per cycle: the prediction from
+t_{k-1} with the ECU's cycle-mean c_e and the road w(t_{k-1}) → w(t_k), the correction
+with the measurements present (a lost CAN frame's values are NaN: that channel is left
+out, the cycle counted ``incomplete``; a lost status frame holds the last applied c_e),
+and the estimate published on ``state`` with stamp t_k; predict and update are one
+compiled CasADi call (:meth:`ExtendedKalmanFilter.cycle`), and 4 ms before the next
+cycle is due a timer runs that computation once on scratch copies, so the real one
+finds the CPU caches warm (cold, after ~Ts asleep, it costs ~4x).  A malformed
+message (names, sizes), an absurd value or a NaN that is not a whole channel is
+rejected and counted, and never reaches the filter.  (The four per-frame topics
+``ecu/damping_applied``, ``ecu/sprung_accel``, ``ecu/suspension``, ``ecu/generator``
+are only listened to by a second, never-spun node of this process, so that the graph
+shows the estimator listening to the bridge as before: they cost this node nothing.)
+With ``stamp_on_road_grid`` (`erva run --ecu virtual` sets it) a cycle's stamp is the
+road's sample instant t_k at or before its CAN receive time: the simulated ECU samples
+on that grid, and the NMPC pairs each state with the road preview of the same t_k.
 ``/diagnostics`` reports counters, the mean normalised innovation squared (≈ 3 when
-the noise model fits) and the latency this node adds (last message of a cycle
-received → state published, p50/p99/max in ms).
+the noise model fits) and the latency this node adds (``ecu/measurements`` received →
+state published, p50/p99/max in ms) with, inside it, its own processing (compute_ms).
 """
 
 import gc
+import math
 import time
-from typing import Dict, Optional
+from typing import Optional, Tuple
 
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import AccelStamped, PointStamped
+from geometry_msgs.msg import PointStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
@@ -36,27 +45,45 @@ from erva_ros.hil.settings import (ESTIMATOR_DEFAULTS, ESTIMATOR_NUMERIC, INTEGE
                                    noise_of, TS_SPEC)
 from erva_ros.live import diagnostics as diag
 from erva_ros.live.msgs import NS, state_msg, time_to_ns
-from erva_ros.live.parameters import (declare_choice, declare_erva_params, declare_number,
-                                      LIVE_CHOICES)
+from erva_ros.live.parameters import (declare_bool, declare_choice, declare_erva_params,
+                                      declare_number, LIVE_CHOICES, LIVE_DEFAULTS,
+                                      LIVE_NUMERIC)
 from erva_ros.live.runtime import run_node
 
-#: Measurement rows of the EKF (erva_ros.estimator.MEASUREMENTS) fed by each topic.
-ROWS = {'accel': 0, 'deflection': 1, 'speed': 2}
-#: Plausibility bounds of the measurements (absurd beyond: rejected, counted).
-LIMITS = {'accel': 100.0, 'deflection': 0.5, 'speed': 1e3, 'applied': 1e6}
+#: Plausibility bounds of the measurements (absurd beyond: rejected, counted); speed is
+#: the rotor speed v_gen / l (rad/s), applied the c_e's (Ns/m, >= 0), force in N.
+LIMITS = {'accel': 100.0, 'deflection': 0.5, 'speed': 1e3, 'applied': 1e6, 'force': 1e6}
+#: Cache warming runs this long before the next ECU cycle is due (s).
+WARM_LEAD_S = 0.004
+_WARM_Y = (0.0, 0.0, 0.0)
+_NAMES = list(hil_topics.MEASUREMENT_NAMES)
+_CHANNELS = tuple(hil_topics.MEASUREMENT_CHANNELS.values())
 
 
-class _Cycle:
-    """Measurements of one ECU cycle (one stamp) as they arrive."""
+def parse_measurements(msg: JointState, l_gen: float) -> Optional[Tuple[float, ...]]:
+    """Return (c_e, c_e_mean, accel, deflection, rotor speed) of ``ecu/measurements``.
 
-    def __init__(self, stamp_ns: int):
-        self.stamp_ns = stamp_ns
-        self.started = time.monotonic()
-        self.begun = False                  # predicted to this stamp, output linearised
-        self.waiting: Dict[str, float] = {}  # measurements that came before the damping
-        self.used = set()
-        self.nis = 0.0
-        self.cpu = 0.0                      # s spent in this cycle's callbacks
+    NaN marks a lost frame's values; None if the message is malformed (names, sizes), a
+    value is absurd (beyond :data:`LIMITS`, infinite) or a frame's values are only partly
+    NaN.
+    """
+    if list(msg.name) != _NAMES or len(msg.position) != len(_NAMES) or len(
+            msg.velocity) or len(msg.effort):
+        return None
+    v = [float(x) for x in msg.position]
+    for channel in _CHANNELS:
+        nans = sum(math.isnan(v[i]) for i in channel)
+        if 0 < nans < len(channel):
+            return None
+    c_e, c_e_mean, accel, defl, v_gen, force = v
+    speed = v_gen / l_gen
+    if not all(math.isnan(x) or ok for x, ok in (
+            (c_e, 0 <= c_e <= LIMITS['applied']),
+            (c_e_mean, 0 <= c_e_mean <= LIMITS['applied']),
+            (accel, abs(accel) <= LIMITS['accel']), (defl, abs(defl) <= LIMITS['deflection']),
+            (speed, abs(speed) <= LIMITS['speed']), (force, abs(force) <= LIMITS['force']))):
+        return None
+    return c_e, c_e_mean, accel, defl, speed
 
 
 class StateEstimatorNode(Node):
@@ -68,39 +95,43 @@ class StateEstimatorNode(Node):
         self.ts = declare_number(self, 'ts', 0.02, TS_SPEC)
         choices, doc = LIVE_CHOICES['model']
         self.kind = declare_choice(self, 'model', 'erva', choices, doc)
+        # SCHED_FIFO once started (erva_ros/live/realtime.py): the estimator is on the loop.
+        self.realtime_priority = declare_number(
+            self, 'realtime_priority', LIVE_DEFAULTS['realtime_priority'],
+            LIVE_NUMERIC['realtime_priority'], integer=True)
         cfg = {key: declare_number(self, key, default, ESTIMATOR_NUMERIC[key],
                                    integer=key in INTEGER_KEYS)
                for key, default in ESTIMATOR_DEFAULTS.items()}
         self.cfg = cfg
+        self.on_road_grid = declare_bool(
+            self, 'stamp_on_road_grid', False, 'stamp each ECU cycle with the road sample '
+            'instant at or before its CAN receive time (an ECU sampling on the road grid)')
+        self.grid_ns: Optional[int] = None  # a road sample instant: the grid's phase
         self.ekf = ExtendedKalmanFilter(self.params, self.kind, self.ts, noise_of(cfg),
                                         u_max=cfg['u_max'])
         self.ts_ns = int(round(self.ts * NS))
         self.road = RoadBuffer(max_extrapolation_s=self.ts)
-        self.cycle: Optional[_Cycle] = None
         self.last_ns: Optional[int] = None  # stamp of the last published estimate
         self.u_now = self.params.c_e0       # damping applied at the last stamp (Ns/m)
         self.count = dict.fromkeys(('updates', 'incomplete', 'gaps', 'restarts',
                                     'late_or_repeated', 'rejected', 'no_road'), 0)
         self.nis_sum = 0.0
-        self.latency = LatencyStats()       # last message of a cycle received -> published
-        self.compute = LatencyStats()       # time spent in the cycle's callbacks
+        self.latency = LatencyStats()       # ecu/measurements received -> state published
+        self.compute = LatencyStats()       # time spent in that callback
         self.status_level, self.status_text = diag.WARN, 'waiting for ECU measurements'
 
         qos = topics.control_qos()
         self.pub_state = self.create_publisher(JointState, topics.STATE, qos)
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
-        # Created in the order the ECU sends (status first): when several are ready at
-        # once the executor takes them in this order, so the prediction comes first.
-        self.create_subscription(JointState, hil_topics.ECU_DAMPING_APPLIED, self._on_applied,
+        self.create_subscription(JointState, hil_topics.ECU_MEASUREMENTS, self._on_measurements,
                                  qos)
-        self.create_subscription(AccelStamped, hil_topics.ECU_SPRUNG_ACCEL, self._on_accel,
-                                 qos)
-        self.create_subscription(JointState, hil_topics.ECU_SUSPENSION, self._on_suspension,
-                                 qos)
-        self.create_subscription(JointState, hil_topics.ECU_GENERATOR, self._on_generator, qos)
         self.create_subscription(PointStamped, topics.ROAD_HEIGHT, self._on_road, qos)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self.create_timer(self.ts, self._on_timer, clock=steady)
+        # Cache warming: WARM_LEAD_S before the next cycle is due, run its computation once
+        # on scratch copies (re-armed by every cycle, so it follows the ECU's phase).
+        self.warm_timer = self.create_timer(max(self.ts - WARM_LEAD_S, 0.5 * self.ts),
+                                            self._warm, clock=steady)
+        self.warm_timer.cancel()
         self.create_timer(cfg['diagnostics_period_s'], self._publish_diagnostics, clock=steady)
         # Start-up objects (CasADi functions, messages, rclpy) are never garbage: keep the
         # collector from scanning them, so a collection cannot stall a cycle for ms.
@@ -115,137 +146,97 @@ class StateEstimatorNode(Node):
         if not abs(w) <= 1.0:
             self.count['rejected'] += 1
             return
-        self.road.add(time_to_ns(msg.header.stamp) / NS, w)
+        stamp = time_to_ns(msg.header.stamp)
+        if self.on_road_grid and self.grid_ns is None:
+            self.grid_ns = stamp
+        self.road.add(stamp / NS, w)
 
-    def _on_accel(self, msg: AccelStamped, info) -> None:
-        self._on_measurement('accel', msg, msg.accel.linear.z, info)
-
-    def _on_suspension(self, msg: JointState, info) -> None:
-        if list(msg.name) != [hil_topics.SUSPENSION_JOINT] or len(msg.position) != 1:
-            self.count['rejected'] += 1
-            return
-        self._on_measurement('deflection', msg, msg.position[0], info)
-
-    def _on_generator(self, msg: JointState, info) -> None:
-        if list(msg.name) != [topics.GENERATOR_JOINT] or len(msg.velocity) != 1:
-            self.count['rejected'] += 1
-            return
-        # Measured as rotor speed phi' = v_gen / l (the EKF's y_3).
-        self._on_measurement('speed', msg, msg.velocity[0] / self.params.l, info)
-
-    def _on_applied(self, msg: JointState, info) -> None:
-        if list(msg.name) != list(hil_topics.APPLIED_JOINTS) or len(msg.position) != 2:
-            self.count['rejected'] += 1
-            return
-        u_now, u_mean = float(msg.position[0]), float(msg.position[1])
-        if not (0 <= u_now <= LIMITS['applied'] and 0 <= u_mean <= LIMITS['applied']):
-            self.count['rejected'] += 1
-            return
+    def _on_measurements(self, msg: JointState, info) -> None:
         t0 = time.perf_counter()
-        cyc = self._cycle_for(time_to_ns(msg.header.stamp))
-        if cyc is not None and not cyc.begun:
-            self._begin(cyc, u_now, u_mean)
-            self._maybe_publish(cyc, info, t0)
-
-    def _on_measurement(self, part: str, msg, value: float, info) -> None:
-        value = float(value)
-        if not abs(value) <= LIMITS[part]:           # also NaN
+        y = parse_measurements(msg, self.params.l)
+        if y is None:
             self.count['rejected'] += 1
             return
-        t0 = time.perf_counter()
-        cyc = self._cycle_for(time_to_ns(msg.header.stamp))
-        if cyc is None:
+        stamp = self._stamp(msg)
+        if self.last_ns is not None and stamp <= self.last_ns:
+            self.count['late_or_repeated'] += 1
             return
-        if cyc.begun:
-            self._correct(cyc, part, value)
-            self._maybe_publish(cyc, info, t0)
-        else:
-            cyc.waiting[part] = value
-            cyc.cpu += time.perf_counter() - t0
+        if any(math.isnan(v) for v in y):   # a CAN frame of the cycle was lost
+            self.count['incomplete'] += 1
+        u_now, u_mean, accel, deflection, speed = y
+        if math.isnan(u_now):               # status frame lost: the last c_e held
+            u_now = u_mean = self.u_now
+        self.nis_sum += self._step(stamp, u_now, u_mean, (accel, deflection, speed))
+        self._publish(stamp)
+        self.latency.add((time.time_ns() - info['received_timestamp']) * 1e-9)
+        self.compute.add(time.perf_counter() - t0)
+        self.warm_timer.reset()
+
+    def _warm(self) -> None:
+        """Run a cycle's computation on scratch copies, so the due one finds warm caches.
+
+        After ~Ts asleep, with the other processes of the loop on the same cores, this
+        node's code and data are out of the CPU caches: the cycle then costs several
+        times its warm time (measured: the compiled EKF cycle 0.4 ms instead of 0.1 ms).
+        """
+        self.warm_timer.cancel()
+        ekf = self.ekf
+        x, p, k = ekf.x, ekf.P, ekf.k
+        ekf.cycle(_WARM_Y, self.u_now, self.u_now, 0.0, 0.0)
+        state_msg(self.last_ns or 0, ekf.x, self.kind)
+        ekf.x, ekf.P, ekf.k = x, p, k
+
+    def _stamp(self, msg) -> int:
+        """Return the cycle stamp of an ECU message (ns): see stamp_on_road_grid."""
+        stamp = time_to_ns(msg.header.stamp)
+        if self.grid_ns is not None:
+            stamp -= (stamp - self.grid_ns) % self.ts_ns
+        return stamp
 
     # -- the filter ----------------------------------------------------------------------
-    def _cycle_for(self, stamp: int) -> Optional[_Cycle]:
-        """Return the cycle of ``stamp``; finish an older unfinished one first."""
-        if (self.last_ns is not None and stamp <= self.last_ns) or (
-                self.cycle is not None and stamp < self.cycle.stamp_ns):
-            self.count['late_or_repeated'] += 1
-            return None
-        if self.cycle is not None and stamp != self.cycle.stamp_ns:
-            self._finish(self.cycle)
-        if self.cycle is None:
-            self.cycle = _Cycle(stamp)
-        return self.cycle
+    def _step(self, stamp_ns: int, u_now: float, u_mean: float, y) -> float:
+        """Predict from the last estimate to ``stamp_ns`` and correct with y; return NIS.
 
-    def _begin(self, cyc: _Cycle, u_now: float, u_mean: float) -> None:
-        """Predict from the last estimate to the cycle's stamp; linearise the outputs."""
-        t = cyc.stamp_ns / NS
+        y is in erva_ros.estimator.MEASUREMENTS order, NaN = missing.
+        """
         if len(self.road) == 0:
             self.count['no_road'] += 1
-        if self.last_ns is None:
+        t1 = stamp_ns / NS
+        w1 = self.road.height(t1)
+        steps = 0 if self.last_ns is None else max(
+            1, int(round((stamp_ns - self.last_ns) / self.ts_ns)))
+        if steps == 1:                      # every cycle: one compiled call
+            _, nis = self.ekf.cycle(y, u_mean, u_now, self.road.height(self.last_ns / NS), w1)
+            self.u_now = u_now
+            return nis
+        if steps == 0 or steps > self.cfg['max_gap_periods']:
+            if steps:
+                self.count['restarts'] += 1
             self.ekf.reset()
         else:
-            steps = max(1, int(round((cyc.stamp_ns - self.last_ns) / self.ts_ns)))
-            if steps > self.cfg['max_gap_periods']:
-                self.count['restarts'] += 1
-                self.ekf.reset()
-            else:
-                if steps > 1:
-                    self.count['gaps'] += 1
-                t0 = self.last_ns / NS
-                for i in range(steps):      # over a gap: the last applied damping held
-                    self.ekf.predict(u_mean if i == steps - 1 else self.u_now,
-                                     self.road.height(t0 + i * self.ts),
-                                     self.road.height(t0 + (i + 1) * self.ts))
-        self.ekf.linearize_output(u_now, self.road.height(t))
+            self.count['gaps'] += 1
+            t0 = self.last_ns / NS
+            for i in range(steps):          # over a gap: the last applied damping held
+                self.ekf.predict(u_mean if i == steps - 1 else self.u_now,
+                                 self.road.height(t0 + i * self.ts),
+                                 self.road.height(t0 + (i + 1) * self.ts))
         self.u_now = u_now
-        cyc.begun = True
-        for part, value in cyc.waiting.items():
-            self._correct(cyc, part, value)
-        cyc.waiting.clear()
+        return self.ekf.update(y, u_now, w1).nis
 
-    def _correct(self, cyc: _Cycle, part: str, value: float) -> None:
-        if part in cyc.used:
-            return
-        _, nis = self.ekf.correct(ROWS[part], value)
-        cyc.nis += nis
-        cyc.used.add(part)
-
-    def _maybe_publish(self, cyc: _Cycle, info, t0: float) -> None:
-        if cyc.begun and len(cyc.used) == len(ROWS):
-            self._publish(cyc)
-            self.latency.add((time.time_ns() - info['received_timestamp']) * 1e-9)
-            self.compute.add(cyc.cpu + time.perf_counter() - t0)
-        else:
-            cyc.cpu += time.perf_counter() - t0
-
-    def _finish(self, cyc: _Cycle) -> None:
-        """Publish a cycle that will not complete (a frame was lost) with what it has."""
-        self.count['incomplete'] += 1
-        if not cyc.begun:
-            self._begin(cyc, self.u_now, self.u_now)
-        self._publish(cyc)
-
-    def _publish(self, cyc: _Cycle) -> None:
-        self.pub_state.publish(state_msg(cyc.stamp_ns, self.ekf.x, self.kind))
-        self.nis_sum += cyc.nis
+    def _publish(self, stamp_ns: int) -> None:
+        self.pub_state.publish(state_msg(stamp_ns, self.ekf.x, self.kind))
         self.count['updates'] += 1
-        self.last_ns = cyc.stamp_ns
-        self.cycle = None
+        self.last_ns = stamp_ns
         if self.status_level != diag.OK:
             self.status_level, self.status_text = diag.OK, 'estimating'
             self._publish_diagnostics()
-
-    def _on_timer(self) -> None:
-        # A cycle still incomplete after Ts/2 lost a frame: do not make the NMPC wait (a
-        # new cycle finishes it too; this timer, once per Ts, is the backstop).
-        if self.cycle is not None and time.monotonic() - self.cycle.started > self.ts / 2:
-            self._finish(self.cycle)
 
     # -- diagnostics ---------------------------------------------------------------------
     def _publish_diagnostics(self) -> None:
         values = dict(self.count)
         n = max(self.count['updates'], 1)
         values['nis_mean'] = self.nis_sum / n
+        values['scheduling'] = getattr(self, 'scheduling', 'off')
         values.update(diag.flatten('latency_ms', self.latency.summary()))
         values.update(diag.flatten('compute_ms', self.compute.summary()))
         std = self.ekf.std()
