@@ -79,6 +79,10 @@ def format_summary(s: Dict[str, Any]) -> str:
                      f'{pl.get("u_from_plan")}, passive {pl.get("u_from_passive")}; '
                      f'late commands {pl.get("late_commands")}')
     lines.append(f'  messages  dropped {msg["dropped_total"]}, rejected {msg["rejected_total"]}')
+    if s.get('scheduling'):     # what realtime_priority got each node (live/realtime.py)
+        kinds = sorted(set(s['scheduling'].values()))
+        lines.append(f'  sched     {"; ".join(kinds)} '
+                     f'({len(s["scheduling"])} node{"s" if len(s["scheduling"]) > 1 else ""})')
     if s.get('bag'):
         lines.append(f'  bag       {s["bag"]}')
     if s['errors']:
