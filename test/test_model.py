@@ -182,3 +182,20 @@ def test_plant_simulator_matches_model_and_integrates_energy():
     assert plant.harvested_j == pytest.approx(np.trapezoid(2e4 * vgen ** 2, dx=2.5e-4),
                                               rel=1e-4)
     assert plant.t == pytest.approx(2.0)
+
+
+def test_compiled_plant_step_equals_the_casadi_vm_one():
+    import shutil
+    if not (shutil.which('cc') or shutil.which('gcc')):
+        pytest.skip('no C compiler')
+    from erva_ros.plant import PlantSimulator
+    compiled, vm = PlantSimulator(P, codegen='on'), PlantSimulator(P, codegen='off')
+    assert compiled._step.name() == vm._step.name() and compiled._step is not vm._step
+    for k in range(300):   # a command switching across the box, a 1 mm road
+        u, w0, w1 = 10000 + 9000 * np.sign(np.sin(k / 5)), 1e-3 * np.sin(k / 3), \
+            1e-3 * np.sin((k + 1) / 3)
+        compiled.step(u, w0, w1)
+        vm.step(u, w0, w1)
+    np.testing.assert_allclose(compiled.x, vm.x, rtol=1e-12, atol=1e-15)
+    assert compiled.harvested_j == pytest.approx(vm.harvested_j, rel=1e-12)
+    assert np.max(np.abs(vm.x)) > 1e-4          # the trajectory really moved
