@@ -11,6 +11,7 @@ import os
 import shutil
 import subprocess
 import tempfile
+import warnings
 
 import casadi as ca
 
@@ -79,5 +80,22 @@ def compile_functions(fns):
     return [ca.external(fn.name(), lib) for fn, lib in zip(fns, libs)]
 
 
+def compile_for(setting: str, fns, what: str):
+    """Return ``fns`` compiled as ``codegen`` = setting asks, else unchanged.
+
+    'auto' never fails: without a compiler, or if compiling fails, it warns once and
+    keeps CasADi's virtual machine (the same arithmetic); 'on' raises ParamError.
+    """
+    if not use_codegen(setting):
+        return list(fns)
+    try:
+        return compile_functions(fns)
+    except ParamError as exc:
+        if setting != 'auto':
+            raise
+        warnings.warn(f'{exc}; running {what} uncompiled')
+        return list(fns)
+
+
 __all__ = ['CODEGEN_FLAGS', 'codegen_cache_dir', 'c_compiler', 'use_codegen',
-           'compile_functions']
+           'compile_functions', 'compile_for']

@@ -43,14 +43,13 @@ same result as the batch :meth:`ExtendedKalmanFilter.update`.
 
 from dataclasses import asdict, dataclass
 from typing import Dict, Optional, Tuple
-import warnings
 
 import casadi as ca
 import numpy as np
 
-from erva_ros.codegen import compile_functions, use_codegen
+from erva_ros.codegen import compile_for
 from erva_ros.model import get_model, rk4_stable_substeps
-from erva_ros.params import ERVAParams, ParamError, Spec
+from erva_ros.params import ERVAParams, Spec
 
 #: Measurement names, in the order of y.
 MEASUREMENTS = ('sprung_accel', 'deflection', 'generator_speed')
@@ -121,14 +120,9 @@ class ExtendedKalmanFilter:
         self._meas = ca.Function('ekf_measure', [x, u, w0], [y, ca.jacobian(y, x)],
                                  ['x', 'u', 'w'], ['y', 'H'])
         self._cycle = self._cycle_function(x, xn, ca.jacobian(xn, x), u, w0, w1)
-        if use_codegen(codegen):    # as the NMPC: C when a compiler is there (2x faster)
-            try:
-                self._pred, self._meas, self._cycle = compile_functions(
-                    (self._pred, self._meas, self._cycle))
-            except ParamError as exc:   # a broken compiler: 'auto' runs uncompiled
-                if codegen != 'auto':
-                    raise
-                warnings.warn(f'{exc}; running the EKF uncompiled')
+        # As the NMPC: C when a compiler is there (2x faster).
+        self._pred, self._meas, self._cycle = compile_for(
+            codegen, (self._pred, self._meas, self._cycle), 'the EKF')
         self.Q = self._process_noise()
         self.R = np.diag([noise.r_sprung_accel, noise.r_deflection, noise.r_speed]) ** 2
         self._r = np.diag(self.R).copy()

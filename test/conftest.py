@@ -40,6 +40,12 @@ os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
 os.environ.setdefault('MPLBACKEND', 'Agg')
 
 
+def fifo_permitted(priority: int = 20) -> bool:
+    """Return whether this kernel lets a process take SCHED_FIFO (asked, not assumed)."""
+    probe = f'import os; os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param({priority}))'
+    return subprocess.run([sys.executable, '-c', probe], capture_output=True).returncode == 0
+
+
 def run_erva(*args, timeout=300, env=None, check=False):
     """Run ``erva ARGS`` as a user would (python -m erva_ros.cli), capture output."""
     proc = subprocess.run([sys.executable, '-m', 'erva_ros.cli', *map(str, args)],

@@ -7,6 +7,7 @@ import sys
 
 import pytest
 
+from conftest import fifo_permitted
 from erva_ros.live.realtime import set_fifo_priority
 
 PROBE = r'''
@@ -33,12 +34,6 @@ def _probe():
     return json.loads(out.stdout)
 
 
-def _fifo_permitted() -> bool:
-    """Ask the kernel directly, in a throw-away process."""
-    probe = 'import os; os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(7))'
-    return subprocess.run([sys.executable, '-c', probe], capture_output=True).returncode == 0
-
-
 def test_zero_priority_leaves_scheduling_alone():
     warnings = []
     assert set_fifo_priority(0, warnings.append) == 'off'
@@ -52,7 +47,7 @@ def test_out_of_range_priority_is_an_error():
 
 def test_every_thread_switches_or_one_warning_explains_why():
     r = _probe()
-    if _fifo_permitted():
+    if fifo_permitted(7):
         assert r['outcome'] == 'SCHED_FIFO 7' and r['warnings'] == []
         assert set(r['policies'].values()) == {r['fifo']}, r['policies']
         assert r['late'] == [r['fifo']] and r['prio'] == 7

@@ -8,12 +8,10 @@ import json
 import math
 import os
 import re
-import subprocess
-import sys
 
 import pytest
 
-from conftest import run_erva
+from conftest import fifo_permitted, run_erva
 
 pytestmark = pytest.mark.ros
 
@@ -96,8 +94,7 @@ def test_hil_block_reports_a_clean_link_latencies_and_estimation_error(hil_run):
         lat = hil['latency_ms'][key]
         assert lat['samples'] > 50 and 0 < lat['p50'] <= lat['p99'] <= lat['max'], key
     # realtime_priority (config/live.yaml) reaches every process of the loop.
-    fifo = subprocess.run([sys.executable, '-c', 'import os; os.sched_setscheduler(0, '
-                           'os.SCHED_FIFO, os.sched_param(20))']).returncode == 0
+    fifo = fifo_permitted(20)
     sched = s['scheduling']
     assert set(sched) == {'nmpc_node', 'road_preview_node', 'ecu_sim', 'state_estimator_node',
                           'ecu_bridge_node: command'}, sched

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from conftest import REPO, ros_env
+from conftest import fifo_permitted, REPO, ros_env
 
 
 def _start(*args):
@@ -89,8 +89,7 @@ def test_erva_run_realtime_records_and_summarises(tmp_path, erva):
     # realtime_priority 20 (config/live.yaml): every loop node got SCHED_FIFO, or says why not.
     sched = s['scheduling']
     assert set(sched) == {'nmpc_node', 'plant_sim_node', 'road_preview_node'}, sched
-    fifo = subprocess.run([sys.executable, '-c', 'import os; os.sched_setscheduler(0, '
-                           'os.SCHED_FIFO, os.sched_param(20))']).returncode == 0
+    fifo = fifo_permitted(20)
     for node, got in sched.items():
         assert got == 'SCHED_FIFO 20' if fifo else got.startswith('unavailable'), (node, got)
     # The bag holds what the nodes published (read by the mcap reader, not ours).

@@ -7,6 +7,7 @@ import sys
 from typing import Any, Optional
 
 from erva_ros.errors import CLIError
+from erva_ros.live.realtime import MAX_PRIORITY
 
 
 def add_params_option(parser: argparse.ArgumentParser) -> None:
@@ -61,6 +62,10 @@ def bounded(kind, lo: float, hi: float, describe: str):
             raise argparse.ArgumentTypeError(f'{text!r} must be {describe}')
         return v
     return parse
+
+
+#: argparse type of --realtime-priority (erva run, bench --live, bench-hil, ecu-sim).
+realtime_priority = bounded(int, 0, MAX_PRIORITY, f'in [0, {MAX_PRIORITY}]')
 
 
 def ensure_out_dir(path: Optional[str]) -> Optional[str]:

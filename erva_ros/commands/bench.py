@@ -6,10 +6,9 @@ import numpy as np
 
 from erva_ros.commands._closed_loop_options import (add_settings_options, load_settings,
                                                     seed_int, weights)
-from erva_ros.commands._common import (add_json_option, add_params_option, bounded,
-                                       positive_float, positive_int, print_json)
+from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
+                                       positive_int, print_json, realtime_priority)
 from erva_ros.errors import CLIError
-from erva_ros.live.realtime import MAX_PRIORITY
 
 COMMAND = 'bench'
 HELP = 'NMPC solve-time benchmark: >= 2000 closed-loop steps, suboptimality vs IPOPT'
@@ -52,7 +51,7 @@ def add_arguments(parser):
     parser.add_argument('--duration', type=positive_float, default=None, metavar='S',
                         help='--live only: how long to measure (s)')
     parser.add_argument('--realtime-priority',
-                        type=bounded(int, 0, MAX_PRIORITY, f'in [0, {MAX_PRIORITY}]'),
+                        type=realtime_priority,
                         default=None, metavar='P',
                         help='--live only: SCHED_FIFO priority of the nodes, 0 = normal '
                              'scheduling (default: the live file, config/live.yaml)')

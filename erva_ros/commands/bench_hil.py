@@ -4,10 +4,10 @@ import contextlib
 import os
 import sys
 
-from erva_ros.commands._common import (add_json_option, add_params_option, bounded,
-                                       positive_float, positive_int, print_json, Progress)
+from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
+                                       positive_int, print_json, Progress, realtime_priority)
 from erva_ros.errors import CLIError
-from erva_ros.live.realtime import DEFAULT_PRIORITY, MAX_PRIORITY
+from erva_ros.live.realtime import DEFAULT_PRIORITY
 
 COMMAND = 'bench-hil'
 HELP = 'HIL benchmark: bridge and estimator latency (live), estimator closed loop (offline)'
@@ -49,7 +49,7 @@ def add_arguments(parser):
                         help='control law of the stand-in controller (default skyhook)')
     parser.add_argument('--seed', type=int, default=0, help='paper road seed (default 0)')
     parser.add_argument('--realtime-priority',
-                        type=bounded(int, 0, MAX_PRIORITY, f'in [0, {MAX_PRIORITY}]'),
+                        type=realtime_priority,
                         default=DEFAULT_PRIORITY, metavar='P',
                         help='SCHED_FIFO priority of the ECU sim, bridge and estimator, 0 = '
                              'normal scheduling (default %(default)s, as config/live.yaml)')

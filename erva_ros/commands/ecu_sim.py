@@ -4,10 +4,10 @@ import math
 import signal
 import sys
 
-from erva_ros.commands._common import (add_json_option, add_params_option, bounded,
-                                       positive_float, print_json)
+from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
+                                       print_json, realtime_priority)
 from erva_ros.errors import CLIError
-from erva_ros.live.realtime import MAX_PRIORITY, set_fifo_priority
+from erva_ros.live.realtime import set_fifo_priority
 
 COMMAND = 'ecu-sim'
 HELP = 'simulated generator ECU on a CAN bus: applies damping frames to the plant, sends sensors'
@@ -61,8 +61,7 @@ def add_arguments(parser):
                         help='ROS namespace of the topics (default /erva)')
     parser.add_argument('--wait-road', type=positive_float, default=15.0, metavar='S',
                         help='with --road ros: wait at most S s for the first road height')
-    parser.add_argument('--realtime-priority', type=bounded(int, 0, MAX_PRIORITY,
-                                                            f'in [0, {MAX_PRIORITY}]'),
+    parser.add_argument('--realtime-priority', type=realtime_priority,
                         default=0, metavar='P',
                         help='SCHED_FIFO priority of the ECU loop once it runs, 0 = normal '
                              'scheduling (default; needs CAP_SYS_NICE, else a warning)')

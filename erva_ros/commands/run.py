@@ -4,9 +4,8 @@ import os
 import sys
 
 from erva_ros.commands._common import (add_json_option, add_params_option, bounded,
-                                       positive_float, print_json)
+                                       positive_float, print_json, realtime_priority)
 from erva_ros.errors import CLIError
-from erva_ros.live.realtime import MAX_PRIORITY
 
 COMMAND = 'run'
 HELP = 'run the live system (plant, road preview, NMPC nodes over ROS 2) and summarise it'
@@ -43,7 +42,6 @@ _weight = bounded(float, 0.0, 1.7976931348623157e308, 'a finite number >= 0')
 _seed = bounded(int, 0, 1_000_000_000, 'in [0, 1e9]')
 _snr = bounded(float, -40.0, 200.0, 'in [-40, 200] dB')
 _delay = bounded(float, 0.0, 10.0, 'in [0, 10] s')
-_priority = bounded(int, 0, MAX_PRIORITY, f'in [0, {MAX_PRIORITY}]')
 
 
 def add_scenario_arguments(parser, duration_default: str = 'config/live.yaml: 4 s') -> None:
@@ -74,7 +72,7 @@ def add_scenario_arguments(parser, duration_default: str = 'config/live.yaml: 4 
     parser.add_argument('--preview-delay', type=_delay, default=None, metavar='S',
                         help='the road preview is this old (s, default 0)')
     add_params_option(parser)
-    parser.add_argument('--realtime-priority', type=_priority, default=None, metavar='P',
+    parser.add_argument('--realtime-priority', type=realtime_priority, default=None, metavar='P',
                         help='SCHED_FIFO priority of every loop process in realtime mode, '
                              '0 = normal scheduling (config/live.yaml: 20; needs '
                              'CAP_SYS_NICE, else each node warns once)')

@@ -66,14 +66,13 @@ from functools import lru_cache
 import math
 import os
 import sys
-import warnings
 from typing import Tuple
 
 import casadi as ca
 import numpy as np
 
 from erva_ros.controllers.base import Controller, SolveFailure
-from erva_ros.codegen import compile_functions, use_codegen
+from erva_ros.codegen import compile_for
 from erva_ros.controllers.settings import ControllerSettings
 from erva_ros.model import get_model, linearize, QuarterCarModel
 from erva_ros.params import ERVAParams, ParamError
@@ -314,12 +313,12 @@ def build_ipopt(ocp: OCP, max_iter: int) -> ca.Function:
 
 
 @lru_cache(maxsize=32)
-def build_rti(ocp: OCP, iterations: int, codegen: bool = False,
+def build_rti(ocp: OCP, iterations: int, codegen: str = 'off',
               n_alt: int = 1) -> ca.Function:
     """Return the real-time reduced-space SQP as one Function (see module doc).
 
     (x0, a_prev, u_guess, u_alt (scaled, per interval), p) -> (u, z, f, improved).
-    With ``codegen`` its model functions are compiled C (see :func:`compile_function`).
+    ``codegen`` (auto/on/off) compiles its model functions to C (erva_ros/codegen.py).
     """
     nz, nb = ocp.nz, len(ocp.blocks)
     zs = ca.SX.sym('z', nz)
@@ -330,8 +329,8 @@ def build_rti(ocp: OCP, iterations: int, codegen: bool = False,
     # left out (measured: fewer stalls and ~4x cheaper than the exact Lagrangian one).
     hess = ca.Function('cost_hessian', [zs, ps], [ca.hessian(f, zs)[0]])
     nlp, rollout = ocp.nlp, ocp.rollout
-    if codegen:
-        first, hess, nlp, rollout = compile_functions((first, hess, nlp, rollout))
+    first, hess, nlp, rollout = compile_for(codegen, (first, hess, nlp, rollout),
+                                            'the NMPC solver')
     u_idx = [int(i) for i in ocp.u_index]
     dep = [i for i in range(ocp.nxa, nz) if i not in set(u_idx)]   # x_0 is fixed
     p_u = ca.DM(ca.Sparsity.triplet(nz, nb, u_idx, list(range(nb))), 1.0)
@@ -430,14 +429,8 @@ class NMPCController(Controller):
             self._ipopt = build_ipopt(self.ocp, settings.ipopt_max_iter)
             budget = math.inf      # the reference is not a real-time solver
         else:
-            try:
-                self._rti = build_rti(self.ocp, settings.max_iter,
-                                      use_codegen(settings.codegen), n_alt=N_ALTERNATIVES)
-            except ParamError as exc:   # a broken compiler: 'auto' runs uncompiled
-                if settings.codegen != 'auto':
-                    raise
-                warnings.warn(f'{exc}; running the solver uncompiled')
-                self._rti = build_rti(self.ocp, settings.max_iter, False, n_alt=N_ALTERNATIVES)
+            self._rti = build_rti(self.ocp, settings.max_iter, settings.codegen,
+                                  n_alt=N_ALTERNATIVES)
             budget = settings.time_budget_s
         super().__init__(self.ocp.horizon, settings.ts, settings.u_min, settings.u_max,
                          params.c_e0, budget)
@@ -533,19 +526,8 @@ class NMPCController(Controller):
         # Non-convex OCP: converge from the same two starts the real-time SQP compares
         # (warm start, constant c_e0) and keep the better local optimum, so the
         # reference is at least as good a solver as the one it judges.
-        lbz, ubz = self.ocp.bounds(x, a_prev)
-        best, status, iterations = None, 'failed', []
         starts = [u_guess] if np.allclose(u_guess, self._u_alt) else [u_guess, self._u_alt]
-        for u0 in starts:
-            z0 = np.asarray(self.ocp.rollout(x, a_prev, u0, w)).ravel()
-            sol = self._ipopt(x0=z0, p=p, lbx=lbz, ubx=ubz, lbg=0, ubg=0)
-            stats = self._ipopt.stats()
-            iterations.append(int(stats.get('iter_count', 0)))
-            status = str(stats.get('return_status', '')) or status
-            if not (stats.get('success') or status == 'Solved_To_Acceptable_Level'):
-                continue
-            if best is None or float(sol['f']) < float(best['f']):
-                best = sol
+        best, status, iterations = converge_from(self.ocp, self._ipopt, x, a_prev, w, p, starts)
         if best is None:
             raise SolveFailure(f'ipopt: {status}')
         z = np.asarray(best['x']).ravel()
@@ -561,15 +543,31 @@ class NMPCController(Controller):
         """
         x, a_prev, u_guess, w, p, u_rt, f_rt = problem
         ipopt = build_ipopt(self.ocp, self.settings.ipopt_max_iter)
-        lbz, ubz = self.ocp.bounds(x, a_prev)
-        f_ref = f_rt
-        for u0 in (u_guess, self._u_alt, u_rt):
-            z0 = np.asarray(self.ocp.rollout(x, a_prev, u0, w)).ravel()
-            sol = ipopt(x0=z0, p=p, lbx=lbz, ubx=ubz, lbg=0, ubg=0)
-            stats = ipopt.stats()
-            if stats.get('success') or stats.get('return_status') == 'Solved_To_Acceptable_Level':
-                f_ref = min(f_ref, float(sol['f']))
+        best, _, _ = converge_from(self.ocp, ipopt, x, a_prev, w, p,
+                                   (u_guess, self._u_alt, u_rt))
+        f_ref = f_rt if best is None else min(f_rt, float(best['f']))
         return (f_rt - f_ref) / abs(f_ref) if f_ref != 0 else 0.0
+
+
+def converge_from(ocp: OCP, ipopt: ca.Function, x, a_prev, w, p, starts):
+    """Solve the OCP with IPOPT from each start plan (scaled inputs); keep the best.
+
+    Returns (the best converged solution or None, the last return status, the
+    iteration count of each start).
+    """
+    lbz, ubz = ocp.bounds(x, a_prev)
+    best, status, iterations = None, 'failed', []
+    for u0 in starts:
+        z0 = np.asarray(ocp.rollout(x, a_prev, u0, w)).ravel()
+        sol = ipopt(x0=z0, p=p, lbx=lbz, ubx=ubz, lbg=0, ubg=0)
+        stats = ipopt.stats()
+        iterations.append(int(stats.get('iter_count', 0)))
+        status = str(stats.get('return_status', '')) or status
+        if not (stats.get('success') or status == 'Solved_To_Acceptable_Level'):
+            continue
+        if best is None or float(sol['f']) < float(best['f']):
+            best = sol
+    return best, status, iterations
 
 
 __all__ = ['NMPCController', 'build_ocp', 'build_rti', 'build_ipopt', 'nmpc_blocks',

@@ -14,7 +14,7 @@ between a sample's arrival and its result: the period timer only marks it due
 
 import math
 import time
-from typing import Any, Callable, Dict, Tuple
+from typing import Any, Callable, Dict, Optional, Tuple
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
@@ -50,6 +50,20 @@ def parse_status(status: DiagnosticStatus) -> Tuple[str, int, str, Dict[str, str
     level = status.level
     level = level[0] if isinstance(level, (bytes, bytearray)) else int(level)
     return status.name, int(level), status.message, {kv.key: kv.value for kv in status.values}
+
+
+def value_float(text: Optional[str]) -> float:
+    """Return a diagnostic value (a string, or None when absent) as a float; NaN if none."""
+    try:
+        return float(text)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def value_int(text: Optional[str]) -> Optional[int]:
+    """Return a diagnostic counter as an int; None when absent or not a number."""
+    value = value_float(text)
+    return int(value) if math.isfinite(value) else None
 
 
 def flatten(prefix: str, stats: Dict[str, Any]) -> Dict[str, Any]:
@@ -110,4 +124,4 @@ class StatusReporter:
 
 
 __all__ = ['OK', 'WARN', 'ERROR', 'STALE', 'LEVEL_NAMES', 'format_value', 'status_msg',
-           'parse_status', 'flatten', 'StatusReporter']
+           'parse_status', 'value_float', 'value_int', 'flatten', 'StatusReporter']

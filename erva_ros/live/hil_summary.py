@@ -20,6 +20,7 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 import numpy as np
 
 from erva_ros import topics
+from erva_ros.live.diagnostics import value_float, value_int
 
 ECU = 'ecu_sim'
 ESTIMATOR = 'state_estimator_node'
@@ -41,8 +42,8 @@ Values = Callable[[str], Dict[str, str]]
 def published(values: Values) -> Dict[str, Optional[int]]:
     """Return the loop-side messages published per topic (None: not reported yet)."""
     from erva_ros.hil import topics as hil_topics
-    samples = _int(values(ECU).get('samples_published'))
-    return {topics.STATE: _int(values(ESTIMATOR).get('updates')),
+    samples = value_int(values(ECU).get('samples_published'))
+    return {topics.STATE: value_int(values(ESTIMATOR).get('updates')),
             topics.SPRUNG_ACCEL: samples, topics.GENERATOR: samples,
             hil_topics.TRUE_STATE: samples}
 
@@ -54,8 +55,8 @@ def plant_equivalents(values: Values) -> Dict[str, Optional[int]]:
     bridge refused.  The plant's per-step command / plan / passive counts have none:
     the bridge counts frames, also before the run and after it (module doc).
     """
-    return {'steps': _int(values(ECU).get('cycles')),
-            'rejected_damping_cmd': _int(values(BRIDGE_COMMAND).get('commands_rejected'))}
+    return {'steps': value_int(values(ECU).get('cycles')),
+            'rejected_damping_cmd': value_int(values(BRIDGE_COMMAND).get('commands_rejected'))}
 
 
 def hil_block(values: Values, estimates: Dict[int, np.ndarray],
@@ -71,25 +72,25 @@ def hil_block(values: Values, estimates: Dict[int, np.ndarray],
     cmd, bus, link = values(BRIDGE_COMMAND), values(BRIDGE_BUS), values(BRIDGE_ECU)
     ecu, est = values(ECU), values(ESTIMATOR)
     bridge = {f'dropped_{k}': _sum(bus, names) for k, names in DROPS.items()}
-    total = _int(cmd.get('command_timeouts'))
+    total = value_int(cmd.get('command_timeouts'))
     bridge['command_timeouts'] = total if end_ns is None else _timeouts_before(events, end_ns)
     bridge['command_timeouts_total'] = total
-    bridge.update({k: _int(cmd.get(k)) for k in (
+    bridge.update({k: value_int(cmd.get(k)) for k in (
         'commands_received', 'commands_rejected', 'commands_clamped', 'plan_frames_sent')})
     bridge['bus_errors'] = _sum(bus, ('send_errors', 'bus_losses', 'bus_open_failures'))
-    bridge['reconnects'] = _int(bus.get('reconnects'))
-    bridge['incomplete_cycles'] = _int(link.get('incomplete_cycles'))
+    bridge['reconnects'] = value_int(bus.get('reconnects'))
+    bridge['incomplete_cycles'] = value_int(link.get('incomplete_cycles'))
     # The ECU checks the command frames the same way (its counters are rx_<name>).
     ecu_out = {f'dropped_{k}': _sum(ecu, [f'rx_{n}' for n in names])
                for k, names in DROPS.items()}
-    ecu_out.update({k: _int(ecu.get(k)) for k in (
+    ecu_out.update({k: value_int(ecu.get(k)) for k in (
         'cycles', 'commands_applied', 'command_timeouts', 'duty_out_of_range', 'overruns')})
     ecu_out['bus_errors'] = _sum(ecu, ('send_errors', 'bus_losses'))
     ecu_out['mode'] = ecu.get('ecu_mode')
-    estimator: Dict[str, Any] = {k: _int(est.get(k)) for k in (
+    estimator: Dict[str, Any] = {k: value_int(est.get(k)) for k in (
         'updates', 'incomplete', 'gaps', 'restarts', 'late_or_repeated', 'rejected',
         'no_road')}
-    estimator['nis_mean'] = _float(est.get('nis_mean'))
+    estimator['nis_mean'] = value_float(est.get('nis_mean'))
     estimator['error'] = estimation_error(estimates, truth)
     return {'bridge': bridge, 'ecu': ecu_out, 'estimator': estimator,
             'latency_ms': {'bridge_ros_to_can': stats(cmd, 'ros_to_can_ms'),
@@ -129,21 +130,9 @@ def _timeouts_before(events: List[Tuple[int, str, int, str]], end_ns: int) -> in
     return count
 
 
-def _float(text: Optional[str]) -> float:
-    try:
-        return float(text)
-    except (TypeError, ValueError):
-        return float('nan')
-
-
-def _int(text: Optional[str]) -> Optional[int]:
-    value = _float(text)
-    return int(value) if np.isfinite(value) else None
-
-
 def _sum(values: Dict[str, str], keys) -> Optional[int]:
     """Return the sum of integer counters, None if any is not reported."""
-    parts = [_int(values.get(k)) for k in keys]
+    parts = [value_int(values.get(k)) for k in keys]
     return None if any(p is None for p in parts) else sum(parts)
 
 

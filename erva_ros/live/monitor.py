@@ -15,7 +15,6 @@ ECU, the CAN bridge and the state estimator: the monitor also takes the ECU's tr
 state, and :mod:`~erva_ros.live.hil_summary` maps the plant's figures to theirs.
 """
 
-import math
 import time
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
@@ -29,7 +28,7 @@ from trajectory_msgs.msg import JointTrajectory
 
 from erva_ros import topics
 from erva_ros.live import hil_summary
-from erva_ros.live.diagnostics import LEVEL_NAMES, parse_status
+from erva_ros.live.diagnostics import LEVEL_NAMES, parse_status, value_float, value_int
 from erva_ros.live.msgs import time_to_ns
 from erva_ros.metrics import comfort_power, percentiles_ms
 
@@ -169,15 +168,15 @@ class Monitor(Node):
         nmpc = self.diag_values('nmpc_node')
         road = self.diag_values('road_preview_node')
         loop = hil_summary.published(self.diag_values) if self.hil else {
-            topics.STATE: _int(plant.get('states')),
-            topics.SPRUNG_ACCEL: _int(plant.get('steps')),
-            topics.GENERATOR: _int(plant.get('steps'))}
+            topics.STATE: value_int(plant.get('states')),
+            topics.SPRUNG_ACCEL: value_int(plant.get('steps')),
+            topics.GENERATOR: value_int(plant.get('steps'))}
         return {
             **loop,
-            topics.ROAD_HEIGHT: _int(road.get('samples_published')),
-            topics.ROAD_PREVIEW: _int(road.get('samples_published')),
-            topics.DAMPING_CMD: (None if not nmpc else (_int(nmpc.get('commands')) or 0)
-                                 + (_int(nmpc.get('safe_commands')) or 0)),
+            topics.ROAD_HEIGHT: value_int(road.get('samples_published')),
+            topics.ROAD_PREVIEW: value_int(road.get('samples_published')),
+            topics.DAMPING_CMD: (None if not nmpc else (value_int(nmpc.get('commands')) or 0)
+                                 + (value_int(nmpc.get('safe_commands')) or 0)),
         }
 
     def dropped(self, published: Dict[str, Optional[int]]) -> Dict[str, Optional[int]]:
@@ -212,8 +211,8 @@ class Monitor(Node):
         nmpc = self.diag_values('nmpc_node')
         road = self.diag_values('road_preview_node')
         accel = [self.accel[s] for s in sorted(self.accel)][:n_steps]
-        harvested = _num(self.diag_values(hil_summary.ECU if self.hil else 'plant_sim_node')
-                         .get('harvested_j'))
+        integrator = hil_summary.ECU if self.hil else 'plant_sim_node'
+        harvested = value_float(self.diag_values(integrator).get('harvested_j'))
         duration = len(accel) * ts
         metrics = comfort_power(accel, harvested, duration) if accel else {}
         metrics.update({'harvested_j': harvested, 'samples': len(accel)})
@@ -248,7 +247,7 @@ class Monitor(Node):
             'latency_ms': _stats(nmpc, 'latency_ms'),
             'cmd_jitter_ms': _stats(nmpc, 'cmd_jitter_ms'),
             'tick_jitter_ms': _stats(nmpc, 'tick_jitter_ms'),
-            **{k: _int(nmpc.get(k)) for k in (
+            **{k: value_int(nmpc.get(k)) for k in (
                 'solves', 'commands', 'deadline_misses', 'state_timeouts', 'safe_commands',
                 'missed_samples', 'stale_previews', 'no_preview', 'rejected_state',
                 'rejected_preview', 'controller_fallback_plan', 'controller_fallback_passive',
@@ -262,7 +261,7 @@ class Monitor(Node):
                 self.diag_values, self.states, self.truth, _stats, self.diag_events,
                 self.finished_rx.get(hil_summary.ECU))
         else:
-            out['plant'] = {k: _int(plant.get(k)) for k in (
+            out['plant'] = {k: value_int(plant.get(k)) for k in (
                 'steps', 'u_from_command', 'u_from_plan', 'u_from_passive', 'late_commands',
                 'road_gaps', 'lockstep_timeouts', 'rejected_road_height',
                 'rejected_damping_cmd')}
@@ -270,11 +269,11 @@ class Monitor(Node):
                 'loop_latency_ms', 'cmd_jitter_ms', 'road_latency_ms', 'step_ms')})
         published = self.published()
         dropped = self.dropped(published)
-        rejected = {'state': _int(nmpc.get('rejected_state')),
-                    'road/preview': _int(nmpc.get('rejected_preview')),
-                    'road/height': _int(plant.get('rejected_road_height')),
+        rejected = {'state': value_int(nmpc.get('rejected_state')),
+                    'road/preview': value_int(nmpc.get('rejected_preview')),
+                    'road/height': value_int(plant.get('rejected_road_height')),
                     'damping_cmd': out['plant'].get('rejected_damping_cmd'),
-                    '/clock': _int(road.get('rejected_clock'))}
+                    '/clock': value_int(road.get('rejected_clock'))}
         if self.hil:   # the ECU ignores absurd road heights without counting them
             del rejected['road/height']
         t0 = min(self.state_rx.values()) if self.state_rx else 0
@@ -296,21 +295,9 @@ def _state(msg: JointState) -> np.ndarray:
     return x
 
 
-def _num(text: Optional[str]) -> float:
-    try:
-        return float(text)
-    except (TypeError, ValueError):
-        return math.nan
-
-
-def _int(text: Optional[str]) -> Optional[int]:
-    value = _num(text)
-    return int(value) if math.isfinite(value) else None
-
-
 def _stats(values: Dict[str, str], prefix: str) -> Dict[str, Any]:
-    out = {k: _num(values.get(f'{prefix}_{k}')) for k in ('p50', 'p99', 'max')}
-    out['samples'] = _int(values.get(f'{prefix}_samples'))
+    out = {k: value_float(values.get(f'{prefix}_{k}')) for k in ('p50', 'p99', 'max')}
+    out['samples'] = value_int(values.get(f'{prefix}_samples'))
     return out
 
 

@@ -176,6 +176,15 @@ def declare_live(node, names: Sequence[str]) -> Dict[str, Any]:
     return out
 
 
+def loop_priority(cfg: Dict[str, Any]) -> int:
+    """Return the SCHED_FIFO priority a loop node asks for (live/realtime.py).
+
+    ``realtime_priority`` in realtime mode; 0 in lock-step, which runs flat out and
+    would starve the other processes at real-time priority.
+    """
+    return cfg['realtime_priority'] if cfg.get('mode', 'realtime') == 'realtime' else 0
+
+
 def declare_erva_params(node) -> ERVAParams:
     """Declare the physical parameters (paper Table I, ERVA_SPECS); return ERVAParams."""
     values = {key: declare_number(node, key, PAPER_VALUES[key], spec)

@@ -47,8 +47,8 @@ from erva_ros.hil.settings import (BRIDGE_DEFAULTS, BRIDGE_NUMERIC, BRIDGE_STRIN
 from erva_ros.hil.transport import open_bus, parse_spec
 from erva_ros.live import diagnostics as diag
 from erva_ros.live.msgs import ns_to_time, time_to_ns
-from erva_ros.live.parameters import (declare_erva_params, declare_number, declare_string,
-                                      LIVE_DEFAULTS, LIVE_NUMERIC)
+from erva_ros.live.parameters import (declare_erva_params, declare_live, declare_number,
+                                      declare_string, loop_priority)
 from erva_ros.live.runtime import run_node
 from erva_ros.params import ParamError
 
@@ -63,10 +63,8 @@ class EcuBridgeNode(Node):
         super().__init__('ecu_bridge_node')
         self.params = declare_erva_params(self)
         self.ts = declare_number(self, 'ts', 0.02, TS_SPEC)
-        # SCHED_FIFO once started (erva_ros/live/realtime.py): the bridge is on the loop.
-        self.realtime_priority = declare_number(
-            self, 'realtime_priority', LIVE_DEFAULTS['realtime_priority'],
-            LIVE_NUMERIC['realtime_priority'], integer=True)
+        # SCHED_FIFO once started (run_node, live/realtime.py): the node is on the loop.
+        self.realtime_priority = loop_priority(declare_live(self, ('realtime_priority',)))
         cfg = {}
         for key, default in BRIDGE_DEFAULTS.items():
             if key in BRIDGE_STRINGS:

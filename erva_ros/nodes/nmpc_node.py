@@ -49,7 +49,7 @@ from erva_ros.controllers.settings import NUMERIC_SPECS
 from erva_ros.live import diagnostics as diag
 from erva_ros.live.msgs import damping_msg, parse_preview, parse_state, s_to_ns
 from erva_ros.live.parameters import (declare_controller_settings, declare_erva_params,
-                                      declare_live)
+                                      declare_live, loop_priority)
 from erva_ros.live.runtime import run_node
 from erva_ros.live.timing import DurationStats, next_grid_delay_ns, PeriodStats
 from erva_ros.live.validation import MessageRejected, Rejections
@@ -71,8 +71,7 @@ class NMPCNode(Node):
         params = declare_erva_params(self)
         settings = declare_controller_settings(self)
         cfg = declare_live(self, LIVE_PARAMETERS)
-        # SCHED_FIFO in realtime mode only: a lock-step loop runs flat out (see live/realtime.py)
-        self.realtime_priority = cfg['realtime_priority'] if cfg['mode'] == 'realtime' else 0
+        self.realtime_priority = loop_priority(cfg)    # applied by run_node once started
         self.cfg = cfg
         self.kind = cfg['model']
         self.lockstep = cfg['mode'] == 'lockstep'

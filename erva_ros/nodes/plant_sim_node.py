@@ -39,7 +39,7 @@ from erva_ros.live import diagnostics as diag
 from erva_ros.live.command_hold import CommandHold
 from erva_ros.live.msgs import (accel_msg, clock_msg, generator_msg, parse_damping,
                                 parse_road_height, s_to_ns, state_msg)
-from erva_ros.live.parameters import declare_erva_params, declare_live
+from erva_ros.live.parameters import declare_erva_params, declare_live, loop_priority
 from erva_ros.live.runtime import run_node
 from erva_ros.live.timing import DurationStats, PeriodStats
 from erva_ros.live.validation import MessageRejected, Rejections
@@ -58,8 +58,7 @@ class PlantSimNode(Node):
         super().__init__('plant_sim_node')
         self.params = declare_erva_params(self)
         cfg = declare_live(self, LIVE_PARAMETERS)
-        # SCHED_FIFO in realtime mode only: a lock-step loop runs flat out (see live/realtime.py)
-        self.realtime_priority = cfg['realtime_priority'] if cfg['mode'] == 'realtime' else 0
+        self.realtime_priority = loop_priority(cfg)    # applied by run_node once started
         self.cfg = cfg
         self.kind = cfg['model']
         self.lockstep = cfg['mode'] == 'lockstep'

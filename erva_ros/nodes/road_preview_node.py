@@ -28,7 +28,7 @@ from trajectory_msgs.msg import JointTrajectory
 from erva_ros import topics
 from erva_ros.live import diagnostics as diag
 from erva_ros.live.msgs import preview_msg, road_height_msg, s_to_ns, time_to_ns
-from erva_ros.live.parameters import declare_live
+from erva_ros.live.parameters import declare_live, loop_priority
 from erva_ros.live.runtime import run_node
 from erva_ros.live.scenario import build_preview_model, build_road
 from erva_ros.live.validation import Rejections
@@ -47,8 +47,7 @@ class RoadPreviewNode(Node):
     def __init__(self):
         super().__init__('road_preview_node')
         cfg = declare_live(self, LIVE_PARAMETERS)
-        # SCHED_FIFO in realtime mode only: a lock-step loop runs flat out (see live/realtime.py)
-        self.realtime_priority = cfg['realtime_priority'] if cfg['mode'] == 'realtime' else 0
+        self.realtime_priority = loop_priority(cfg)    # applied by run_node once started
         self.cfg = cfg
         self.road = build_road(cfg)
         self.error_model = build_preview_model(cfg)

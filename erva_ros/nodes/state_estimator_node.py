@@ -46,8 +46,8 @@ from erva_ros.hil.settings import (ESTIMATOR_DEFAULTS, ESTIMATOR_NUMERIC, INTEGE
 from erva_ros.live import diagnostics as diag
 from erva_ros.live.msgs import NS, state_msg, time_to_ns
 from erva_ros.live.parameters import (declare_bool, declare_choice, declare_erva_params,
-                                      declare_number, LIVE_CHOICES, LIVE_DEFAULTS,
-                                      LIVE_NUMERIC)
+                                      declare_live, declare_number, LIVE_CHOICES,
+                                      loop_priority)
 from erva_ros.live.runtime import run_node
 
 #: Plausibility bounds of the measurements (absurd beyond: rejected, counted); speed is
@@ -95,10 +95,8 @@ class StateEstimatorNode(Node):
         self.ts = declare_number(self, 'ts', 0.02, TS_SPEC)
         choices, doc = LIVE_CHOICES['model']
         self.kind = declare_choice(self, 'model', 'erva', choices, doc)
-        # SCHED_FIFO once started (erva_ros/live/realtime.py): the estimator is on the loop.
-        self.realtime_priority = declare_number(
-            self, 'realtime_priority', LIVE_DEFAULTS['realtime_priority'],
-            LIVE_NUMERIC['realtime_priority'], integer=True)
+        # SCHED_FIFO once started (run_node, live/realtime.py): the node is on the loop.
+        self.realtime_priority = loop_priority(declare_live(self, ('realtime_priority',)))
         cfg = {key: declare_number(self, key, default, ESTIMATOR_NUMERIC[key],
                                    integer=key in INTEGER_KEYS)
                for key, default in ESTIMATOR_DEFAULTS.items()}
