@@ -20,7 +20,12 @@ outcome = set_fifo_priority(7, warnings.append)
 late = []
 t = threading.Thread(target=lambda: late.append(os.sched_getscheduler(0)))
 t.start(); t.join()                # created after: must inherit the policy
-policies = {int(tid): os.sched_getscheduler(int(tid)) for tid in os.listdir('/proc/self/task')}
+policies = {}
+for tid in os.listdir('/proc/self/task'):   # a joined thread may linger in the listing
+    try:
+        policies[int(tid)] = os.sched_getscheduler(int(tid))
+    except ProcessLookupError:
+        pass
 print(json.dumps({'outcome': outcome, 'warnings': warnings, 'policies': policies,
                   'late': late, 'fifo': os.SCHED_FIFO,
                   'prio': os.sched_getparam(0).sched_priority}))
