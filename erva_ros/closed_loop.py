@@ -9,6 +9,11 @@ Per-step semantics (the live lock-step mode reproduces them exactly):
         s = plant.sample(res.damping_cmd, w_k)             # z̈_s(t_k), P(t_k) with u_k
         plant.step(res.damping_cmd, w_k, road.height(t_k + Ts))
     metrics = comfort_power(accels, plant.harvested_j, n·Ts)
+
+With ``actuation_delay_s`` = d > 0 the plant is an actuator behind a delay (as the ECU in
+HIL mode): u_k acts on [t_k + d, t_{k+1} + d), the previous command (c_e0 before the
+first) until then, and z̈_s(t_k), P(t_k) are sampled with that previous command.  The
+controller's ``command_delay_s`` setting compensates it (erva_ros/controllers/delay.py).
 """
 
 from dataclasses import dataclass, field
@@ -34,7 +39,7 @@ class ClosedLoopResult:
     ts: float
     t: np.ndarray               # s, (n,)
     x: np.ndarray               # states at t_k, (n, nx)
-    u: np.ndarray               # Ns/m, command applied on [t_k, t_k + Ts)
+    u: np.ndarray               # Ns/m, command u_k (acts on [t_k + d, t_{k+1} + d), d = delay)
     w: np.ndarray               # m, road height at t_k
     sprung_accel: np.ndarray    # m/s², z̈_s(t_k)
     power: np.ndarray           # W, instantaneous harvested power at t_k
@@ -46,6 +51,7 @@ class ClosedLoopResult:
     wall_time_s: float          # s, wall time of the whole loop
     plans: Optional[np.ndarray] = None   # (n, N) planned commands, if kept
     x_final: Optional[np.ndarray] = None  # state at t_n
+    accel_sq_int: float = float('nan')    # m²/s³, ∫ z̈_s² dt over the run (plant, exact)
     metrics: Dict = field(default_factory=dict)
 
     @property
@@ -58,8 +64,8 @@ def simulate_closed_loop(params: ERVAParams, controller: Controller, road: Road,
                          duration_s: float, ts: Optional[float] = None,
                          preview_model: Optional[PreviewErrorModel] = None,
                          kind: str = 'erva', keep_plans: bool = False,
-                         progress: Optional[Callable[[int, int], None]] = None
-                         ) -> ClosedLoopResult:
+                         progress: Optional[Callable[[int, int], None]] = None,
+                         actuation_delay_s: float = 0.0) -> ClosedLoopResult:
     """Run ``controller`` on the plant over ``road`` for ``duration_s`` (see module doc).
 
     ``ts`` defaults to the controller's; the controller is reset first.
@@ -81,6 +87,10 @@ def simulate_closed_loop(params: ERVAParams, controller: Controller, road: Road,
     iters = np.zeros(n, dtype=int)
     status: List[str] = []
     plans = np.empty((n, big_n)) if keep_plans else None
+    delay = float(actuation_delay_s)
+    if not 0.0 <= delay < ts:
+        raise ValueError(f'actuation delay must be in [0, Ts = {ts:g} s), got {delay:g} s')
+    acting = controller.c_e0          # delayed actuator: the command acting at t_k
     wall0 = time.perf_counter()
     for k in range(n):
         t_k = k * ts
@@ -89,7 +99,7 @@ def simulate_closed_loop(params: ERVAParams, controller: Controller, road: Road,
         if preview_model is not None:
             preview = preview_model.apply(preview, t_k)
         res = controller.compute(plant.x, preview, t_k)
-        s = plant.sample(res.damping_cmd, w_k)
+        s = plant.sample(acting if delay else res.damping_cmd, w_k)
         xs[k] = s.x
         u[k] = res.damping_cmd
         acc[k] = s.sprung_accel
@@ -99,13 +109,17 @@ def simulate_closed_loop(params: ERVAParams, controller: Controller, road: Road,
         status.append(res.status)
         if plans is not None:
             plans[k] = res.plan
-        plant.step(res.damping_cmd, w_k, road.height(t_k + ts))
+        if delay:
+            plant.step_delayed(acting, res.damping_cmd, delay, w_k, road.height(t_k + ts))
+            acting = res.damping_cmd
+        else:
+            plant.step(res.damping_cmd, w_k, road.height(t_k + ts))
         if progress is not None:
             progress(k + 1, n)
     wall = time.perf_counter() - wall0
     result = ClosedLoopResult(controller.name, road.name, ts, t, xs, u, w, acc, pw,
                               plant.harvested_j, solve, iters, status, controller.counters,
-                              wall, plans, plant.x.copy())
+                              wall, plans, plant.x.copy(), plant.accel_sq_int)
     result.metrics = closed_loop_metrics(result)
     return result
 
@@ -113,6 +127,10 @@ def simulate_closed_loop(params: ERVAParams, controller: Controller, road: Road,
 def closed_loop_metrics(r: ClosedLoopResult) -> Dict:
     """Return comfort/power (metrics.comfort_power), solve-time percentiles and fallbacks."""
     m = dict(comfort_power(r.sprung_accel, r.harvested_j, r.duration_s))
+    # Comfort between the samples too: z̈_s jumps where the command switches (at the
+    # samples), and a cost sampled there can trade the instants in between.
+    m['acc_rms_continuous'] = (float(np.sqrt(r.accel_sq_int / r.duration_s))
+                               if np.isfinite(r.accel_sq_int) else None)
     m['solve_ms'] = percentiles_ms(r.solve_time_s)
     m['iterations_mean'] = float(np.mean(r.iterations)) if r.iterations.size else 0.0
     m['fallbacks'] = {k: int(r.counters.get(k, 0))

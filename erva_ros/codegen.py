@@ -14,6 +14,7 @@ import tempfile
 import warnings
 
 import casadi as ca
+import numpy as np
 
 from erva_ros.params import ParamError
 
@@ -97,5 +98,65 @@ def compile_for(setting: str, fns, what: str):
         return list(fns)
 
 
+class BufferedCall:
+    """Call a CasADi Function through preallocated numpy buffers (``Function.buffer``).
+
+    ``fn(*args)`` converts every argument to a DM and every result back: measured on
+    the compiled EKF cycle (10 inputs), 0.19 ms per call around 0.012 ms of arithmetic.
+    Here the inputs are copied into fixed float64 arrays the Function reads directly
+    and the outputs are read from fixed arrays it writes: same results, bit for bit
+    (tested).  Inputs and outputs must be dense; matrices are column-major, as CasADi
+    stores them.  Not thread-safe: one instance per thread.
+
+    ``__call__`` returns numpy copies shaped as the Function's outputs (vectors 1-D,
+    scalars float); a failed evaluation (CasADi's return flag) raises RuntimeError,
+    as ``fn(*args)`` would.
+    """
+
+    def __init__(self, fn: ca.Function):
+        for i in range(fn.n_in()):
+            if not fn.sparsity_in(i).is_dense():
+                raise ValueError(f'{fn.name()}: input {fn.name_in(i)} is sparse')
+        for i in range(fn.n_out()):
+            if not fn.sparsity_out(i).is_dense():
+                raise ValueError(f'{fn.name()}: output {fn.name_out(i)} is sparse')
+        self.fn = fn
+        self._buf, self._eval = fn.buffer()
+        self._in = [np.zeros(fn.nnz_in(i)) for i in range(fn.n_in())]
+        self._out = [np.zeros(fn.nnz_out(i)) for i in range(fn.n_out())]
+        for i, a in enumerate(self._in):
+            self._buf.set_arg(i, memoryview(a))
+        for i, a in enumerate(self._out):
+            self._buf.set_res(i, memoryview(a))
+        self._matrix_in = [fn.size2_in(i) != 1 for i in range(fn.n_in())]
+        self._shape_out = []
+        for i in range(fn.n_out()):
+            rows, cols = fn.size_out(i)
+            self._shape_out.append(None if rows * cols == 1 else
+                                   (rows,) if cols == 1 else (rows, cols))
+
+    def __call__(self, *args):
+        if len(args) != len(self._in):
+            raise TypeError(f'{self.fn.name()}: {len(args)} arguments, '
+                            f'expected {len(self._in)}')
+        for dst, matrix, a in zip(self._in, self._matrix_in, args):
+            if matrix:
+                dst[:] = np.asarray(a, dtype=float).ravel(order='F')
+            else:
+                dst[:] = a
+        self._eval()
+        if self._buf.ret() != 0:
+            raise RuntimeError(f'{self.fn.name()}: evaluation failed')
+        out = []
+        for res, shape in zip(self._out, self._shape_out):
+            if shape is None:
+                out.append(float(res[0]))
+            elif len(shape) == 1:
+                out.append(res.copy())
+            else:
+                out.append(res.reshape(shape[::-1]).T.copy())
+        return out
+
+
 __all__ = ['CODEGEN_FLAGS', 'codegen_cache_dir', 'c_compiler', 'use_codegen',
-           'compile_functions', 'compile_for']
+           'compile_functions', 'compile_for', 'BufferedCall']

@@ -47,7 +47,7 @@ from typing import Dict, Optional, Tuple
 import casadi as ca
 import numpy as np
 
-from erva_ros.codegen import compile_for
+from erva_ros.codegen import BufferedCall, compile_for
 from erva_ros.model import get_model, rk4_stable_substeps
 from erva_ros.params import ERVAParams, Spec
 
@@ -123,6 +123,9 @@ class ExtendedKalmanFilter:
         # As the NMPC: C when a compiler is there (2x faster).
         self._pred, self._meas, self._cycle = compile_for(
             codegen, (self._pred, self._meas, self._cycle), 'the EKF')
+        # The node's per-cycle call through fixed buffers: 0.02 ms instead of 0.14 ms
+        # (erva_ros/codegen.py BufferedCall).
+        self._cycle = BufferedCall(self._cycle)
         self.Q = self._process_noise()
         self.R = np.diag([noise.r_sprung_accel, noise.r_deflection, noise.r_speed]) ** 2
         self._r = np.diag(self.R).copy()

@@ -192,9 +192,10 @@ class QuarterCarModel:
     def plant_step(self, dt: float, substeps: int) -> ca.Function:
         """Like :meth:`rk4_step`, plus the energy harvested over the interval (J).
 
-        (x, u, w0, w1) -> (x⁺, E_h): E_h = ∫ u·v_gen² dt is integrated as an extra
-        RK4 state, so average power is exact to the integrator's order rather than
-        sampled at the control period.
+        (x, u, w0, w1) -> (x⁺, E_h, A): E_h = ∫ u·v_gen² dt (J) and A = ∫ z̈_s² dt
+        (m²/s³) are integrated as extra RK4 states, so average power and the
+        continuous-time RMS acceleration are exact to the integrator's order rather
+        than sampled at the control period (where the command switches).
         """
         return _rk4_step(self, float(dt), int(substeps), True)
 
@@ -234,13 +235,14 @@ def _rk4_step(model: QuarterCarModel, dt: float, substeps: int,
     w0 = ca.SX.sym('w0')
     w1 = ca.SX.sym('w1')
     h = dt / substeps
-    # Augmented state [x; E_h] with Ė_h = P(x, u): one RK4 for both.
+    # Augmented state [x; E_h; A] with Ė_h = P(x, u), Ȧ = z̈_s²: one RK4 for all.
     nx = model.nx
 
     def rhs(z, w):
-        return ca.vertcat(model.ode(z[:nx], u, w), model.power(z[:nx], u))
+        xdot = model.ode(z[:nx], u, w)
+        return ca.vertcat(xdot, model.power(z[:nx], u), xdot[1] ** 2)
 
-    zk = ca.vertcat(x, 0)
+    zk = ca.vertcat(x, 0, 0)
     for i in range(substeps):
         wa = w0 + (w1 - w0) * (i / substeps)
         wm = w0 + (w1 - w0) * ((i + 0.5) / substeps)
@@ -251,8 +253,9 @@ def _rk4_step(model: QuarterCarModel, dt: float, substeps: int,
         k4 = rhs(zk + h * k3, wb)
         zk = zk + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
     if with_energy:
-        return ca.Function(f'plant_step_{model.kind}', [x, u, w0, w1], [zk[:nx], zk[nx]],
-                           ['x', 'u', 'w0', 'w1'], ['xn', 'harvested_j'])
+        return ca.Function(f'plant_step_{model.kind}', [x, u, w0, w1],
+                           [zk[:nx], zk[nx], zk[nx + 1]], ['x', 'u', 'w0', 'w1'],
+                           ['xn', 'harvested_j', 'accel_sq_int'])
     return ca.Function(f'rk4_{model.kind}', [x, u, w0, w1], [zk[:nx]],
                        ['x', 'u', 'w0', 'w1'], ['xn'])
 

@@ -17,7 +17,7 @@ from typing import Optional
 
 import numpy as np
 
-from erva_ros.codegen import compile_for
+from erva_ros.codegen import BufferedCall, compile_for
 from erva_ros.model import get_model, PLANT_SUBSTEP_S
 from erva_ros.params import ERVAParams
 
@@ -46,11 +46,15 @@ class PlantSimulator:
         self.model = get_model(params, kind)
         self.params = params
         self.ts = float(ts)
+        self.substep = float(substep)
         self.substeps = max(1, int(math.ceil(self.ts / substep - 1e-9)))
         self._step = self.model.plant_step(self.ts, self.substeps)
-        # The same arithmetic in C: 2x faster than CasADi's VM.
+        # The same arithmetic in C: 2x faster than CasADi's VM; called through fixed
+        # buffers (erva_ros/codegen.py BufferedCall): the DM conversions cost more.
         self._step, = compile_for(codegen, [self._step], 'the plant')
-        self._outputs = self.model.outputs
+        self._step = BufferedCall(self._step)
+        self._outputs = BufferedCall(self.model.outputs)
+        self._split = None   # (delay, the two partial steps) of step_delayed
         self.reset(x0)
 
     def reset(self, x0: Optional[np.ndarray] = None, t0: float = 0.0) -> None:
@@ -60,6 +64,8 @@ class PlantSimulator:
         self.t = float(t0)
         self.k = 0
         self.harvested_j = 0.0
+        #: ∫ z̈_s² dt since reset (m²/s³): the continuous-time comfort measure.
+        self.accel_sq_int = 0.0
 
     def sample(self, u: float, w: float) -> PlantSample:
         """Return the outputs now if command ``u`` is applied with road height ``w``."""
@@ -69,9 +75,41 @@ class PlantSimulator:
 
     def step(self, u: float, w0: float, w1: float) -> np.ndarray:
         """Advance one period Ts with u held and the road moving from w0 to w1."""
-        xn, e = self._step(self.x, u, w0, w1)
+        xn, e, a2 = self._step(self.x, u, w0, w1)
         self.x = np.asarray(xn).ravel()
         self.harvested_j += float(e)
+        self.accel_sq_int += a2
         self.k += 1
         self.t = self.k * self.ts
         return self.x
+
+    def step_delayed(self, u_old: float, u_new: float, delay_s: float, w0: float,
+                     w1: float) -> np.ndarray:
+        """Advance one period Ts in which the new command acts only after ``delay_s``.
+
+        u_old on [t, t + delay_s), u_new on [t + delay_s, t + Ts); the road linear from
+        w0 to w1 throughout.  An actuator behind a delay, as the ECU in HIL mode.
+        """
+        if delay_s <= 0:
+            return self.step(u_new, w0, w1)
+        first, second = self._split_steps(float(delay_s))
+        wd = w0 + (w1 - w0) * delay_s / self.ts
+        xd, e1, a1 = first(self.x, u_old, w0, wd)
+        xn, e2, a2 = second(xd, u_new, wd, w1)
+        self.x = np.asarray(xn).ravel()
+        self.harvested_j += e1 + e2
+        self.accel_sq_int += a1 + a2
+        self.k += 1
+        self.t = self.k * self.ts
+        return self.x
+
+    def _split_steps(self, delay_s: float):
+        if not delay_s < self.ts:
+            raise ValueError(f'actuation delay {delay_s:g} s must be below Ts = {self.ts:g} s')
+        if self._split is None or self._split[0] != delay_s:
+            steps = []
+            for dt in (delay_s, self.ts - delay_s):
+                n = max(1, math.ceil(dt / self.substep - 1e-9))
+                steps.append(BufferedCall(self.model.plant_step(dt, n)))
+            self._split = (delay_s, steps)
+        return self._split[1]

@@ -299,13 +299,25 @@ def test_estimator_takes_one_message_per_cycle_and_rejects_bad_ones(tmp_path):
 def test_measurements_are_parsed_and_checked():
     from erva_ros.hil.topics import MEASUREMENT_NAMES
     from erva_ros.nodes.state_estimator_node import parse_measurements
+    from rclpy.serialization import serialize_message
     from sensor_msgs.msg import JointState
 
+    def message(values, names=MEASUREMENT_NAMES):
+        msg = JointState(name=list(names), position=values)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = 12, 340_000_000
+        return serialize_message(msg)
+
     def parse(values, names=MEASUREMENT_NAMES):
-        return parse_measurements(JointState(name=list(names), position=values), 0.1)
+        got = parse_measurements(message(values, names), 0.1)
+        if got is not None:
+            assert got[0] == 12_340_000_000
+            return got[1]
 
     assert parse([1e4, 9e3, 0.3, 0.002, 0.05, 40.0]) == pytest.approx(
         (1e4, 9e3, 0.3, 0.002, 0.5))                        # rotor speed v_gen / l
+    good = message([1e4, 9e3, 0.3, 0.002, 0.05, 40.0])
+    assert parse_measurements(good[:-20], 0.1) is None                 # truncated CDR
+    assert parse_measurements(b'\x00\x00' + good[2:], 0.1) is None    # big-endian header
     got = parse([1e4, 9e3, float('nan'), float('nan'), 0.05, 40.0])
     assert np.isnan(got[2]) and np.isnan(got[3]) and got[4] == pytest.approx(0.5)
     assert parse([1e4, 9e3, 0.3, float('nan'), 0.05, 40.0]) is None

@@ -59,3 +59,33 @@ def test_every_thread_switches_or_one_warning_explains_why():
     else:
         assert r['outcome'].startswith('unavailable') and len(r['warnings']) == 1
         assert 'CAP_SYS_NICE' in r['warnings'][0]
+
+
+def _wakeup_latency_us():
+    import struct
+    with open('/dev/cpu_dma_latency', 'rb') as fh:      # the effective PM QoS target
+        return struct.unpack('i', fh.read(4))[0]
+
+
+def test_a_fifo_process_holds_the_cpu_wakeup_latency_at_zero_while_it_lives():
+    if not (fifo_permitted(7) and os.access('/dev/cpu_dma_latency', os.R_OK | os.W_OK)):
+        pytest.skip('needs SCHED_FIFO and /dev/cpu_dma_latency (root)')
+    before = _wakeup_latency_us()
+    script = ('import sys, time\nfrom erva_ros.live.realtime import set_fifo_priority\n'
+              'print(set_fifo_priority(7, print), flush=True)\nsys.stdin.readline()\n')
+    proc = subprocess.Popen([sys.executable, '-c', script], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == 'SCHED_FIFO 7'
+        assert _wakeup_latency_us() == 0                 # idle CPUs poll now
+    finally:
+        proc.communicate('\n', timeout=30)
+    assert proc.returncode == 0
+    assert _wakeup_latency_us() == before                # released with the process
+
+
+def test_the_wakeup_latency_request_reports_a_missing_device(tmp_path, monkeypatch):
+    from erva_ros.live import realtime
+    monkeypatch.setattr(realtime, '_latency_fd', None)     # nothing held in this process
+    out = realtime.hold_cpu_wakeup_latency(0, device=str(tmp_path / 'no_such_device'))
+    assert out.startswith('unavailable: ') and 'No such file' in out

@@ -46,7 +46,7 @@ def start_recorder(bag_dir, node_name, topics=None):
 
 
 def stop(proc):
-    time.sleep(0.3)
+    time.sleep(1.0)   # let DDS deliver what was published (slow under load)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 0, err

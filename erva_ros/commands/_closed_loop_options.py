@@ -73,6 +73,11 @@ def add_settings_options(parser: argparse.ArgumentParser, controller: bool = Tru
                         help='lower bound of the damping command (Ns/m)')
     parser.add_argument('--u-max', type=float, default=None, metavar='NS_PER_M',
                         help='upper bound of the damping command (Ns/m)')
+    parser.add_argument('--command-delay', type=float, default=None, metavar='S',
+                        help='compensate a known delay from the sample to the command '
+                             'acting: plan from the state predicted S seconds ahead '
+                             '(0 <= S < ts; default: command_delay_s in the settings '
+                             'file, 0)')
 
 
 def add_road_options(parser: argparse.ArgumentParser, seed: bool = True) -> None:
@@ -103,7 +108,8 @@ def load_settings(args, **extra):
     overrides = {'controller': getattr(args, 'controller', None), 'cost': args.cost,
                  'long_cost': args.cost, 'codegen': args.codegen,
                  'solver': args.solver, 'horizon': args.horizon, 'max_iter': args.max_iter,
-                 'u_min': args.u_min, 'u_max': args.u_max}
+                 'u_min': args.u_min, 'u_max': args.u_max,
+                 'command_delay_s': args.command_delay}
     overrides.update(extra)
     return load_controller_settings(args.settings, overrides)
 

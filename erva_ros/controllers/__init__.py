@@ -35,12 +35,17 @@ def make_controller(name: Optional[str], params: ERVAParams,
                   u_max=settings.u_max, c_e0=params.c_e0)
     if name == 'passive':
         from erva_ros.controllers.passive import PassiveController
-        return PassiveController(**common)
+        return PassiveController(**common)   # constant: nothing to compensate
     if name == 'skyhook':
         from erva_ros.controllers.skyhook import SkyhookController
-        return SkyhookController(**common)
-    from erva_ros.controllers.nmpc import NMPCController
-    return NMPCController(params, settings.with_(controller=name), kind=kind)
+        ctrl = SkyhookController(**common)
+    else:
+        from erva_ros.controllers.nmpc import NMPCController
+        ctrl = NMPCController(params, settings.with_(controller=name), kind=kind)
+    if settings.command_delay_s > 0:
+        from erva_ros.model import get_model
+        ctrl.compensate_delay(get_model(params, kind), settings.command_delay_s)
+    return ctrl
 
 
 __all__ = ['ControlResult', 'Controller', 'SolveFailure', 'STATUSES', 'CONTROLLER_NAMES',

@@ -59,13 +59,21 @@ class Controller(ABC):
         self.c_e0 = float(min(max(c_e0, self.u_min), self.u_max))
         self.time_budget_s = float(time_budget_s)
         self._counters: Dict[str, int] = {}
+        #: Command-delay compensation (erva_ros/controllers/delay.py), or None.
+        self.delay = None
         self.reset()
+
+    def compensate_delay(self, model, delay_s: float) -> None:
+        """Plan for t_k + ``delay_s`` from now on: the command acts that much late."""
+        from erva_ros.controllers.delay import DelayCompensation
+        self.delay = DelayCompensation(model, self.ts, delay_s)
 
     # -- the interface -----------------------------------------------------------------
     def reset(self) -> None:
         """Forget the previous plan and warm start and zero the counters."""
         self._prev_plan: Optional[np.ndarray] = None
         self._prev_age = 0
+        self._acting = self.c_e0     # the last command returned: acting until the next
         self._counters = {'steps': 0, 'ok': 0, 'fallback_plan': 0, 'fallback_passive': 0,
                           'failures': 0, 'nan_rejections': 0, 'over_budget': 0}
         self._reset_law()
@@ -94,8 +102,14 @@ class Controller(ABC):
             self._counters['nan_rejections'] += 1
             reason = 'non-finite state or preview'
         else:
+            preview = preview[:self.horizon + 1]
+            if self.delay is not None:
+                x, preview = self.delay(x, self._acting, preview)
+                t = t + self.delay.delay_s
             try:
-                plan, iterations = self._compute(x, preview[:self.horizon + 1], float(t))
+                if not np.all(np.isfinite(x)):
+                    raise SolveFailure('delay compensation: non-finite predicted state')
+                plan, iterations = self._compute(x, preview, float(t))
                 plan = np.asarray(plan, dtype=float).ravel()
                 if plan.shape != (self.horizon,) or not np.all(np.isfinite(plan)):
                     self._counters['nan_rejections'] += 1
@@ -118,6 +132,7 @@ class Controller(ABC):
             status, plan = self._fallback_plan()
             self._on_fallback(plan)
         self._counters[status] += 1
+        self._acting = float(plan[0])
         return ControlResult(float(plan[0]), plan, status, time.perf_counter() - t0,
                              int(iterations), reason)
 

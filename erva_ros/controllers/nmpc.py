@@ -54,7 +54,8 @@ Solvers (``solver``):
            qpOASES returns a local solution), and keep the best of the steps 1, ½, 0
            by the true objective -- so the cost never increases.
 ``ipopt``  converged reference on the same collocation NLP (tol 1e-8), solved from
-           the warm start and from constant c_e0, keeping the better local optimum.
+           ``ipopt_starts`` of the SQP's starts (default 2: the warm start and constant
+           c_e0), keeping the best local optimum.
 
 Warm start: the previous plan shifted by one sample (last value repeated).
 Variables are scaled (u by 10 kNs/m, positions by 1 cm, velocities by 0.1 m/s).
@@ -72,7 +73,7 @@ import casadi as ca
 import numpy as np
 
 from erva_ros.controllers.base import Controller, SolveFailure
-from erva_ros.codegen import compile_for
+from erva_ros.codegen import BufferedCall, compile_for
 from erva_ros.controllers.settings import ControllerSettings
 from erva_ros.model import get_model, linearize, QuarterCarModel
 from erva_ros.params import ERVAParams, ParamError
@@ -429,12 +430,14 @@ class NMPCController(Controller):
             self._ipopt = build_ipopt(self.ocp, settings.ipopt_max_iter)
             budget = math.inf      # the reference is not a real-time solver
         else:
-            self._rti = build_rti(self.ocp, settings.max_iter, settings.codegen,
-                                  n_alt=N_ALTERNATIVES)
+            # Called through fixed buffers (erva_ros/codegen.py): no DM conversions.
+            self._rti = BufferedCall(build_rti(self.ocp, settings.max_iter, settings.codegen,
+                                               n_alt=N_ALTERNATIVES))
             budget = settings.time_budget_s
         super().__init__(self.ocp.horizon, settings.ts, settings.u_min, settings.u_max,
                          params.c_e0, budget)
         self._block_start = np.cumsum((0,) + self.blocks[:-1])
+        self._sprung_accel = BufferedCall(self.model.sprung_accel)
         self._u_alt = np.full(len(self.blocks), self.c_e0 / U_SCALE)
         self.last_prediction = None
         #: Set to a list to keep every real-time solve's OCP (for :meth:`reference_gap`).
@@ -467,15 +470,15 @@ class NMPCController(Controller):
     def _a_prev(self, x: np.ndarray, w0: float) -> float:
         """Return x_a(k−1): the previous sample's acceleration (at start: with c_e0)."""
         if self._prev_sample is None:
-            return float(self.model.sprung_accel(x, self.c_e0, w0))
+            return self._sprung_accel(x, self.c_e0, w0)[0]
         xp, up, wp = self._prev_sample
-        return float(self.model.sprung_accel(xp, up, wp))
+        return self._sprung_accel(xp, up, wp)[0]
 
     def _guess_plan(self) -> np.ndarray:
         """Return the warm-start plan: the previous one shifted by a sample, else c_e0."""
         if self.warm_start and self._warm is not None:
             prev = self._warm
-            return np.r_[prev[1:], prev[-1]]
+            return np.append(prev[1:], prev[-1])
         return np.full(self.horizon, self.c_e0)
 
     def _alternatives(self, u_guess: np.ndarray) -> np.ndarray:
@@ -485,15 +488,15 @@ class NMPCController(Controller):
         first sample's jerk term reacts to u_0 at once, so its optimum often sits at
         a bound.
         """
-        hi = np.r_[self.u_max / U_SCALE, u_guess[1:]]
-        lo = np.r_[self.u_min / U_SCALE, u_guess[1:]]
-        return np.column_stack([self._u_alt, hi, lo])
+        alt = np.column_stack([self._u_alt, u_guess, u_guess])
+        alt[0, 1], alt[0, 2] = self.u_max / U_SCALE, self.u_min / U_SCALE
+        return alt
 
     def _compute(self, x, preview, t):
         self._pending = (x.copy(), float(preview[0]))
         w = self.road_prediction(preview)
         a_prev = self._a_prev(x, float(preview[0]))
-        p = np.r_[w, self.settings.alpha1, self.settings.alpha2]
+        p = np.append(w, (self.settings.alpha1, self.settings.alpha2))
         u_guess = self._guess_plan()[self._block_start] / U_SCALE
         try:
             if self.settings.solver == 'ipopt':
@@ -523,10 +526,13 @@ class NMPCController(Controller):
         return plan, iterations
 
     def _solve_ipopt(self, x, a_prev, u_guess, w, p):
-        # Non-convex OCP: converge from the same two starts the real-time SQP compares
-        # (warm start, constant c_e0) and keep the better local optimum, so the
-        # reference is at least as good a solver as the one it judges.
-        starts = [u_guess] if np.allclose(u_guess, self._u_alt) else [u_guess, self._u_alt]
+        # Non-convex OCP: converge from the first ``ipopt_starts`` of the starts the
+        # real-time SQP compares (warm start, constant c_e0, first move at u_max, at
+        # u_min) and keep the best local optimum.
+        alt = self._alternatives(u_guess)
+        starts = [u_guess] + [alt[:, j] for j in range(self.settings.ipopt_starts - 1)]
+        if self.settings.ipopt_starts == 2 and np.allclose(u_guess, self._u_alt):
+            starts = starts[:1]             # the same start twice
         best, status, iterations = converge_from(self.ocp, self._ipopt, x, a_prev, w, p, starts)
         if best is None:
             raise SolveFailure(f'ipopt: {status}')

@@ -41,15 +41,20 @@ NUMERIC_SPECS: Dict[str, Spec] = {
     'u_max': Spec(0.0, 1e6, 'Ns/m', 'upper bound of the electrical damping c_e', lo_open=True),
     'max_iter': Spec(1, 50, 'iterations', 'real-time SQP iterations per sample'),
     'ipopt_max_iter': Spec(1, 100000, 'iterations', 'IPOPT iteration limit (reference)'),
+    'ipopt_starts': Spec(1, 4, 'starts', 'IPOPT reference: converge from the warm start, '
+                         '+ constant c_e0, + first move at u_max, + at u_min; keep the best'),
     'time_budget_s': Spec(0.0, 10.0, 's', 'solve time beyond which the plan is not used'),
+    'command_delay_s': Spec(0.0, 1.0, 's', 'known delay from the sample t_k to the command '
+                            'acting (0: none); plan from x(t_k + delay), < ts',
+                            lo_open=False),
     'collocation_degree': Spec(1, 6, '-', 'Radau collocation points per interval (model)'),
     'long_steps': Spec(0, 200, 'steps', 'preview_long: coarse intervals after the first N'),
     'long_step_s': Spec(1e-3, 1.0, 's', 'preview_long: length of a coarse interval'),
     'terminal_weight': Spec(0.0, 1e6, '-', 'preview_long: weight of the terminal energy cost'),
 }
 #: Settings that must be whole numbers.
-INTEGER_KEYS = frozenset({'horizon', 'max_iter', 'ipopt_max_iter', 'long_steps',
-                          'collocation_degree'})
+INTEGER_KEYS = frozenset({'horizon', 'max_iter', 'ipopt_max_iter', 'ipopt_starts',
+                          'long_steps', 'collocation_degree'})
 #: String settings and their allowed values.
 CHOICE_SPECS: Dict[str, Tuple[Tuple[str, ...], str]] = {
     'controller': (CONTROLLER_NAMES, 'control law'),
@@ -77,7 +82,9 @@ class ControllerSettings:
     solver: str = 'sqp'
     max_iter: int = 2
     ipopt_max_iter: int = 3000
+    ipopt_starts: int = 2
     time_budget_s: float = 0.01
+    command_delay_s: float = 0.0
     collocation_degree: int = 3
     road_prediction: str = 'hold'
     long_steps: int = 0
@@ -152,6 +159,9 @@ def validate_settings(values: Mapping[str, Any], source: str = '') -> Controller
     if not s.u_min < s.u_max:
         raise ParamError(f'{where}parameter \'u_max\' = {s.u_max:g} must exceed '
                          f'u_min = {s.u_min:g} Ns/m')
+    if not s.command_delay_s < s.ts:
+        raise ParamError(f'{where}parameter \'command_delay_s\' = {s.command_delay_s:g} must '
+                         f'be below ts = {s.ts:g} s')
     ratio = s.long_step_s / s.ts
     if s.long_steps and abs(ratio - round(ratio)) > 1e-6:
         raise ParamError(f'{where}parameter \'long_step_s\' = {s.long_step_s:g} must be a whole '

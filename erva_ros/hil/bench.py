@@ -269,8 +269,9 @@ def run_core_bench(samples: int = 2000) -> Dict:
       a loopback UDP bus);
     * bridge CAN→ROS: :meth:`BridgeCore.receive` of a frame waiting in the socket
       (read, E2E check, DBC decode);
-    * estimator: one ECU cycle of the EKF (predict over Ts, output linearisation,
-      three sequential measurement updates).
+    * estimator: one ECU cycle as state_estimator_node runs it: decode the serialized
+      ``ecu/measurements``, the compiled EKF cycle (predict over Ts and update, one
+      buffered call), encode the state message.
     """
     import math
 
@@ -278,7 +279,10 @@ def run_core_bench(samples: int = 2000) -> Dict:
     from erva_ros.hil.bridge import BridgeConfig, BridgeCore
     from erva_ros.hil.codec import Chassis, EcuCodec, Kind
     from erva_ros.hil.hardware import GeneratorHardware
+    from erva_ros.hil.topics import MEASUREMENT_NAMES
     from erva_ros.hil.transport import free_udp_ports, open_bus
+    from erva_ros.live.cdr import decode_joint_state, JointStateEncoder
+    from erva_ros.live.msgs import state_joint_names
     from erva_ros.params import paper_params
 
     codec = EcuCodec()
@@ -288,7 +292,10 @@ def run_core_bench(samples: int = 2000) -> Dict:
                       lambda: open_bus(f'udp:{a}:{b}'))
     core.open()
     tx = codec.sender(Kind.CHASSIS)
-    ekf = ExtendedKalmanFilter(paper_params())
+    params = paper_params()
+    ekf = ExtendedKalmanFilter(params)
+    measurements = JointStateEncoder(MEASUREMENT_NAMES)
+    state = JointStateEncoder(state_joint_names('erva'))
     send, recv, est = [], [], []
     try:
         for k in range(samples):
@@ -303,11 +310,11 @@ def run_core_bench(samples: int = 2000) -> Dict:
             frame = core.receive(1.0)
             recv.append(time.perf_counter() - t0)
             assert frame is not None
+            data = measurements.encode(k * 20_000_000, (c_e, c_e, 0.1, 1e-3, 0.05, 40.0))
             t0 = time.perf_counter()
-            ekf.predict(c_e, 1e-3, 1.1e-3)
-            ekf.linearize_output(c_e, 1.1e-3)
-            for i, y in enumerate((0.1, 1e-3, 0.05)):
-                ekf.correct(i, y)
+            _, _, y, _, _ = decode_joint_state(data)
+            x, _ = ekf.cycle((y[2], y[3], y[4] / params.l), y[1], y[0], 1e-3, 1.1e-3)
+            state.encode(k * 20_000_000, x[0::2].tolist(), x[1::2].tolist())
             est.append(time.perf_counter() - t0)
     finally:
         core.close()

@@ -7,8 +7,9 @@ A thin rclpy adapter around :class:`erva_ros.hil.bridge.BridgeCore` (no ROS insi
   an E2E-protected ERVA_CMD frame; a 4·Ts watchdog timer keeps the frames at Ts,
   follows the NMPC's plan while a command is late, and sends the safe passive c_e0
   with an ERROR diagnostic once no fresh command came for ``command_timeout_periods``.
-  The watchdog and the CAN reception share one thread; the executor only serves
-  ``damping_cmd`` and the periodic diagnostics.
+  The watchdog and the CAN reception share one thread; ``damping_cmd`` is taken by a
+  second one straight from its wait set (:class:`RealtimeSubscription`, subscriber
+  node ``ecu_bridge_node_rt``); the executor only serves the periodic diagnostics.
 * ECU frames (reader thread, E2E-checked) → ``ecu/damping_applied``,
   ``ecu/sprung_accel``, ``ecu/suspension``, ``ecu/generator`` (erva_ros/hil/topics.py),
   each published as soon as its frame arrived, all stamped with the CAN receive time
@@ -46,14 +47,37 @@ from erva_ros.hil.settings import (BRIDGE_DEFAULTS, BRIDGE_NUMERIC, BRIDGE_STRIN
                                    hardware_of, INTEGER_KEYS, TS_SPEC)
 from erva_ros.hil.transport import open_bus, parse_spec
 from erva_ros.live import diagnostics as diag
-from erva_ros.live.msgs import ns_to_time, time_to_ns
+from erva_ros.live.cdr import (CdrError, decode_joint_trajectory, encode_accel_stamped,
+                               JointStateEncoder)
 from erva_ros.live.parameters import (declare_erva_params, declare_live, declare_number,
                                       declare_string, loop_priority)
+from erva_ros.live.rt_subscription import RealtimeSubscription
 from erva_ros.live.runtime import run_node
 from erva_ros.params import ParamError
 
 #: Commands beyond this magnitude (Ns/m) are absurd (a unit error), not just out of range.
 ABSURD_C_E = 1e6
+
+
+def parse_command(data: bytes):
+    """Return (plan Ns/m, time offsets s) of a serialized ``damping_cmd``, or (None, None).
+
+    None for malformed CDR, other joints, no points, a point without exactly one
+    position, or an absurd value (beyond :data:`ABSURD_C_E`, NaN, infinite).
+    """
+    try:
+        _, names, points = decode_joint_trajectory(data)
+    except CdrError:
+        return None, None
+    if names != [topics.DAMPING_JOINT] or not points:
+        return None, None
+    plan, offsets = [], []
+    for positions, (sec, nsec) in points:
+        if len(positions) != 1 or not abs(positions[0]) <= ABSURD_C_E:   # also NaN
+            return None, None
+        plan.append(positions[0])
+        offsets.append((sec * 1_000_000_000 + nsec) * 1e-9)
+    return plan, offsets
 
 
 class EcuBridgeNode(Node):
@@ -103,7 +127,14 @@ class EcuBridgeNode(Node):
                                                  qos)
         self.pub_meas = self.create_publisher(JointState, hil_topics.ECU_MEASUREMENTS, qos)
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
-        self.create_subscription(JointTrajectory, topics.DAMPING_CMD, self._on_command, qos)
+        self.enc_applied = JointStateEncoder(hil_topics.APPLIED_JOINTS)
+        self.enc_susp = JointStateEncoder((hil_topics.SUSPENSION_JOINT,))
+        self.enc_gen = JointStateEncoder((topics.GENERATOR_JOINT,))
+        self.enc_meas = JointStateEncoder(hil_topics.MEASUREMENT_NAMES)
+        # The command is on the loop's critical path: taken by its own thread, not the
+        # executor (erva_ros/live/rt_subscription.py; ~0.5 ms less per command).
+        self.cmd_sub = RealtimeSubscription(self, JointTrajectory, topics.DAMPING_CMD, qos,
+                                            self._on_command, raw=True)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         # The Ts/4 watchdog runs in the CAN thread (below), not as an rclpy timer: the
         # executor then wakes only for commands, and never holds the GIL while a CAN
@@ -118,6 +149,7 @@ class EcuBridgeNode(Node):
         self._stop = threading.Event()
         self._reader = threading.Thread(target=self._can_loop, name='can', daemon=True)
         self._reader.start()
+        self.cmd_sub.start()
         # Start-up objects (CasADi functions, messages, rclpy) are never garbage: keep the
         # collector from scanning them, so a collection cannot stall a cycle for ms.
         gc.freeze()
@@ -129,9 +161,9 @@ class EcuBridgeNode(Node):
             f'{cfg["command_timeout_periods"]} periods')
 
     # -- ROS -> CAN --------------------------------------------------------------------
-    def _on_command(self, msg: JointTrajectory, info) -> None:
+    def _on_command(self, data: bytes, info) -> None:
         t0 = time.perf_counter()
-        plan, offsets = self._parse_command(msg)
+        plan, offsets = parse_command(data)
         if plan is None:
             self.rejected_msgs += 1
             self.core.counts['commands_rejected'] += 1
@@ -140,21 +172,6 @@ class EcuBridgeNode(Node):
         if result in ('sent', 'clamped'):
             self.lat_cmd.add((time.time_ns() - info['received_timestamp']) * 1e-9)
             self.proc_cmd.add(time.perf_counter() - t0)
-
-    def _parse_command(self, msg: JointTrajectory):
-        """Return (plan Ns/m, time offsets s) or (None, None) for a malformed or absurd one."""
-        if list(msg.joint_names) != [topics.DAMPING_JOINT] or not msg.points:
-            return None, None
-        plan, offsets = [], []
-        for p in msg.points:
-            if len(p.positions) != 1:
-                return None, None
-            v = float(p.positions[0])
-            if not abs(v) <= ABSURD_C_E:           # also catches NaN
-                return None, None
-            plan.append(v)
-            offsets.append(time_to_ns(p.time_from_start) * 1e-9)
-        return plan, offsets
 
     def _tick(self) -> None:
         self.core.tick()
@@ -191,27 +208,20 @@ class EcuBridgeNode(Node):
                 done = cyc
             else:
                 self._publish_cycle(cyc)
-        stamp = ns_to_time(int(round(f.stamp * 1e9)))
+        stamp = int(round(f.stamp * 1e9))
         p = f.payload
+        # Serialized here (erva_ros/live/cdr.py): a fraction of rclpy's conversion cost.
         if f.kind is Kind.STATUS:
-            m = JointState(name=list(hil_topics.APPLIED_JOINTS),
-                           position=[float(p.c_e_applied), float(p.c_e_mean)])
-            m.header.stamp = stamp
-            self.pub_applied.publish(m)
+            self.pub_applied.publish(self.enc_applied.encode(
+                stamp, (float(p.c_e_applied), float(p.c_e_mean))))
         elif f.kind is Kind.CHASSIS:
-            a = AccelStamped()
-            a.header.stamp = stamp
-            a.accel.linear.z = float(p.sprung_accel)
-            self.pub_accel.publish(a)
-            m = JointState(name=[hil_topics.SUSPENSION_JOINT], position=[float(p.deflection)])
-            m.header.stamp = stamp
-            self.pub_susp.publish(m)
+            self.pub_accel.publish(encode_accel_stamped(stamp, (0.0, 0.0,
+                                                                float(p.sprung_accel))))
+            self.pub_susp.publish(self.enc_susp.encode(stamp, (float(p.deflection),)))
         else:
-            m = JointState(name=[topics.GENERATOR_JOINT],
-                           velocity=[float(p.speed * self.params.l)],
-                           effort=[float(self.hw.force_from_current(p.current))])
-            m.header.stamp = stamp
-            self.pub_gen.publish(m)
+            self.pub_gen.publish(self.enc_gen.encode(
+                stamp, (), (float(p.speed * self.params.l),),
+                (float(self.hw.force_from_current(p.current)),)))
         if done is not None:                    # the cycle this frame completed: last
             self._publish_cycle(done)
         self.lat_sensor.add(time.time() - f.rx_time)
@@ -227,9 +237,7 @@ class EcuBridgeNode(Node):
             [float(ch.sprung_accel), float(ch.deflection)] if ch else [nan, nan]) + (
             [float(gen.speed * self.params.l), float(self.hw.force_from_current(gen.current))]
             if gen else [nan, nan])
-        m = JointState(name=list(hil_topics.MEASUREMENT_NAMES), position=values)
-        m.header.stamp = ns_to_time(int(round(cyc.stamp * 1e9)))
-        self.pub_meas.publish(m)
+        self.pub_meas.publish(self.enc_meas.encode(int(round(cyc.stamp * 1e9)), values))
 
     # -- diagnostics -------------------------------------------------------------------
     def _publish_diagnostics(self) -> None:
@@ -259,10 +267,13 @@ class EcuBridgeNode(Node):
 
     def destroy_node(self):
         self._stop.set()
-        if self._reader.is_alive():
-            self._reader.join(timeout=1.0)
-        self.core.close()
-        return super().destroy_node()
+        try:
+            self.cmd_sub.destroy()
+        finally:
+            if self._reader.is_alive():
+                self._reader.join(timeout=1.0)
+            self.core.close()
+            super().destroy_node()
 
 
 def main(args=None):

@@ -9,14 +9,15 @@ t_{k-1} with the ECU's cycle-mean c_e and the road w(t_{k-1}) → w(t_k), the co
 with the measurements present (a lost CAN frame's values are NaN: that channel is left
 out, the cycle counted ``incomplete``; a lost status frame holds the last applied c_e),
 and the estimate published on ``state`` with stamp t_k; predict and update are one
-compiled CasADi call (:meth:`ExtendedKalmanFilter.cycle`), and 4 ms before the next
-cycle is due a timer runs that computation once on scratch copies, so the real one
-finds the CPU caches warm (cold, after ~Ts asleep, it costs ~4x).  A malformed
-message (names, sizes), an absurd value or a NaN that is not a whole channel is
-rejected and counted, and never reaches the filter.  (The four per-frame topics
-``ecu/damping_applied``, ``ecu/sprung_accel``, ``ecu/suspension``, ``ecu/generator``
-are only listened to by a second, never-spun node of this process, so that the graph
-shows the estimator listening to the bridge as before: they cost this node nothing.)
+compiled CasADi call (:meth:`ExtendedKalmanFilter.cycle`).  ``ecu/measurements`` is taken
+by its own thread straight from its wait set, not by the executor
+(:class:`~erva_ros.live.rt_subscription.RealtimeSubscription`, subscriber node
+``state_estimator_node_rt``), and 4 ms before the next cycle is due that thread runs the
+cycle's computation once on scratch copies, so the real one finds the CPU caches warm
+(cold, after ~Ts asleep, it costs ~4x).  A malformed message (names, sizes), an absurd
+value or a NaN that is not a whole channel is rejected and counted, and never reaches
+the filter.  (The per-frame topics ``ecu/sprung_accel`` etc. are for users and the
+recorder; the estimator does not listen to them.)
 With ``stamp_on_road_grid`` (`erva run --ecu virtual` sets it) a cycle's stamp is the
 road's sample instant t_k at or before its CAN receive time: the simulated ECU samples
 on that grid, and the NMPC pairs each state with the road preview of the same t_k.
@@ -27,6 +28,7 @@ state published, p50/p99/max in ms) with, inside it, its own processing (compute
 
 import gc
 import math
+import threading
 import time
 from typing import Optional, Tuple
 
@@ -44,10 +46,12 @@ from erva_ros.hil.road_buffer import RoadBuffer
 from erva_ros.hil.settings import (ESTIMATOR_DEFAULTS, ESTIMATOR_NUMERIC, INTEGER_KEYS,
                                    noise_of, TS_SPEC)
 from erva_ros.live import diagnostics as diag
-from erva_ros.live.msgs import NS, state_msg, time_to_ns
+from erva_ros.live.cdr import CdrError, decode_joint_state, JointStateEncoder
+from erva_ros.live.msgs import NS, state_joint_names, time_to_ns
 from erva_ros.live.parameters import (declare_bool, declare_choice, declare_erva_params,
                                       declare_live, declare_number, LIVE_CHOICES,
                                       loop_priority)
+from erva_ros.live.rt_subscription import RealtimeSubscription
 from erva_ros.live.runtime import run_node
 
 #: Plausibility bounds of the measurements (absurd beyond: rejected, counted); speed is
@@ -60,17 +64,22 @@ _NAMES = list(hil_topics.MEASUREMENT_NAMES)
 _CHANNELS = tuple(hil_topics.MEASUREMENT_CHANNELS.values())
 
 
-def parse_measurements(msg: JointState, l_gen: float) -> Optional[Tuple[float, ...]]:
-    """Return (c_e, c_e_mean, accel, deflection, rotor speed) of ``ecu/measurements``.
+def parse_measurements(data: bytes, l_gen: float
+                       ) -> Optional[Tuple[int, Tuple[float, ...]]]:
+    """Return (stamp ns, (c_e, c_e_mean, accel, deflection, rotor speed)) of a message.
 
-    NaN marks a lost frame's values; None if the message is malformed (names, sizes), a
-    value is absurd (beyond :data:`LIMITS`, infinite) or a frame's values are only partly
-    NaN.
+    ``data`` is a serialized ``ecu/measurements`` JointState.
+    NaN marks a lost frame's values; None if the message is malformed (CDR, names,
+    sizes), a value is absurd (beyond :data:`LIMITS`, infinite) or a frame's values are
+    only partly NaN.
     """
-    if list(msg.name) != _NAMES or len(msg.position) != len(_NAMES) or len(
-            msg.velocity) or len(msg.effort):
+    try:
+        stamp, names, position, velocity, effort = decode_joint_state(data)
+    except CdrError:
         return None
-    v = [float(x) for x in msg.position]
+    if names != _NAMES or len(position) != len(_NAMES) or velocity or effort:
+        return None
+    v = position
     for channel in _CHANNELS:
         nans = sum(math.isnan(v[i]) for i in channel)
         if 0 < nans < len(channel):
@@ -83,7 +92,7 @@ def parse_measurements(msg: JointState, l_gen: float) -> Optional[Tuple[float, .
             (accel, abs(accel) <= LIMITS['accel']), (defl, abs(defl) <= LIMITS['deflection']),
             (speed, abs(speed) <= LIMITS['speed']), (force, abs(force) <= LIMITS['force']))):
         return None
-    return c_e, c_e_mean, accel, defl, speed
+    return stamp, (c_e, c_e_mean, accel, defl, speed)
 
 
 class StateEstimatorNode(Node):
@@ -121,19 +130,27 @@ class StateEstimatorNode(Node):
         qos = topics.control_qos()
         self.pub_state = self.create_publisher(JointState, topics.STATE, qos)
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
-        self.create_subscription(JointState, hil_topics.ECU_MEASUREMENTS, self._on_measurements,
-                                 qos)
+        # The road (executor thread) and the measurements (their own thread) share the
+        # filter's inputs and counters: one lock (re-entrant: a cycle may publish
+        # diagnostics).
+        self.lock = threading.RLock()
+        # ecu/measurements is on the loop's critical path: taken by its own thread, not
+        # the executor (erva_ros/live/rt_subscription.py; ~0.5 ms less per cycle).  That
+        # thread also warms the caches WARM_LEAD_S before the next cycle is due: it runs
+        # the cycle's computation once on scratch copies (armed by every cycle, so it
+        # follows the ECU's phase).
+        self.meas_sub = RealtimeSubscription(self, JointState, hil_topics.ECU_MEASUREMENTS,
+                                             qos, self._on_measurements, idle=self._warm,
+                                             raw=True)
+        self.state_encoder = JointStateEncoder(state_joint_names(self.kind))
+        self.warm_after_s = max(self.ts - WARM_LEAD_S, 0.5 * self.ts)
         self.create_subscription(PointStamped, topics.ROAD_HEIGHT, self._on_road, qos)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
-        # Cache warming: WARM_LEAD_S before the next cycle is due, run its computation once
-        # on scratch copies (re-armed by every cycle, so it follows the ECU's phase).
-        self.warm_timer = self.create_timer(max(self.ts - WARM_LEAD_S, 0.5 * self.ts),
-                                            self._warm, clock=steady)
-        self.warm_timer.cancel()
         self.create_timer(cfg['diagnostics_period_s'], self._publish_diagnostics, clock=steady)
         # Start-up objects (CasADi functions, messages, rclpy) are never garbage: keep the
         # collector from scanning them, so a collection cannot stall a cycle for ms.
         gc.freeze()
+        self.meas_sub.start()
         self.get_logger().info(
             f'EKF on the {self.kind} model, Ts = {self.ts:g} s, {self.ekf.substeps} RK4 '
             f'sub-steps (stable to c_e = {cfg["u_max"]:g} Ns/m), noise {noise_of(cfg)}')
@@ -141,21 +158,27 @@ class StateEstimatorNode(Node):
     # -- inputs --------------------------------------------------------------------------
     def _on_road(self, msg: PointStamped) -> None:
         w = float(msg.point.z)
-        if not abs(w) <= 1.0:
-            self.count['rejected'] += 1
-            return
         stamp = time_to_ns(msg.header.stamp)
-        if self.on_road_grid and self.grid_ns is None:
-            self.grid_ns = stamp
-        self.road.add(stamp / NS, w)
+        with self.lock:
+            if not abs(w) <= 1.0:
+                self.count['rejected'] += 1
+                return
+            if self.on_road_grid and self.grid_ns is None:
+                self.grid_ns = stamp
+            self.road.add(stamp / NS, w)
 
-    def _on_measurements(self, msg: JointState, info) -> None:
+    def _on_measurements(self, data: bytes, info) -> None:
         t0 = time.perf_counter()
-        y = parse_measurements(msg, self.params.l)
-        if y is None:
+        with self.lock:
+            self._measurement(data, info, t0)
+
+    def _measurement(self, data: bytes, info, t0: float) -> None:
+        parsed = parse_measurements(data, self.params.l)
+        if parsed is None:
             self.count['rejected'] += 1
             return
-        stamp = self._stamp(msg)
+        stamp, y = parsed
+        stamp = self._stamp(stamp)
         if self.last_ns is not None and stamp <= self.last_ns:
             self.count['late_or_repeated'] += 1
             return
@@ -168,7 +191,7 @@ class StateEstimatorNode(Node):
         self._publish(stamp)
         self.latency.add((time.time_ns() - info['received_timestamp']) * 1e-9)
         self.compute.add(time.perf_counter() - t0)
-        self.warm_timer.reset()
+        self.meas_sub.idle_at = time.monotonic() + self.warm_after_s
 
     def _warm(self) -> None:
         """Run a cycle's computation on scratch copies, so the due one finds warm caches.
@@ -177,16 +200,18 @@ class StateEstimatorNode(Node):
         node's code and data are out of the CPU caches: the cycle then costs several
         times its warm time (measured: the compiled EKF cycle 0.4 ms instead of 0.1 ms).
         """
-        self.warm_timer.cancel()
-        ekf = self.ekf
-        x, p, k = ekf.x, ekf.P, ekf.k
-        ekf.cycle(_WARM_Y, self.u_now, self.u_now, 0.0, 0.0)
-        state_msg(self.last_ns or 0, ekf.x, self.kind)
-        ekf.x, ekf.P, ekf.k = x, p, k
+        with self.lock:
+            ekf = self.ekf
+            x, p, k = ekf.x, ekf.P, ekf.k
+            ekf.cycle(_WARM_Y, self.u_now, self.u_now, 0.0, 0.0)
+            self._state_bytes(self.last_ns or 0)
+            ekf.x, ekf.P, ekf.k = x, p, k
 
-    def _stamp(self, msg) -> int:
-        """Return the cycle stamp of an ECU message (ns): see stamp_on_road_grid."""
-        stamp = time_to_ns(msg.header.stamp)
+    def _stamp(self, stamp: int) -> int:
+        """Return the cycle stamp (ns) of an ECU message stamped ``stamp`` (ns).
+
+        See ``stamp_on_road_grid``.
+        """
         if self.grid_ns is not None:
             stamp -= (stamp - self.grid_ns) % self.ts_ns
         return stamp
@@ -222,15 +247,24 @@ class StateEstimatorNode(Node):
         return self.ekf.update(y, u_now, w1).nis
 
     def _publish(self, stamp_ns: int) -> None:
-        self.pub_state.publish(state_msg(stamp_ns, self.ekf.x, self.kind))
+        self.pub_state.publish(self._state_bytes(stamp_ns))
         self.count['updates'] += 1
         self.last_ns = stamp_ns
         if self.status_level != diag.OK:
             self.status_level, self.status_text = diag.OK, 'estimating'
             self._publish_diagnostics()
 
+    def _state_bytes(self, stamp_ns: int) -> bytes:
+        """Return the estimate serialized as erva_ros.live.msgs.state_msg's JointState."""
+        x = self.ekf.x
+        return self.state_encoder.encode(stamp_ns, x[0::2].tolist(), x[1::2].tolist())
+
     # -- diagnostics ---------------------------------------------------------------------
     def _publish_diagnostics(self) -> None:
+        with self.lock:
+            self._diagnostics()
+
+    def _diagnostics(self) -> None:
         values = dict(self.count)
         n = max(self.count['updates'], 1)
         values['nis_mean'] = self.nis_sum / n
@@ -248,6 +282,12 @@ class StateEstimatorNode(Node):
         arr.status = [diag.status_msg(self.get_fully_qualified_name(), level, text, values,
                                       f'ekf:{self.kind}')]
         self.pub_diag.publish(arr)
+
+    def destroy_node(self):
+        try:
+            self.meas_sub.destroy()
+        finally:
+            super().destroy_node()
 
 
 def main(args=None):

@@ -1,0 +1,175 @@
+"""Direct CDR decoding and encoding of the two message types on the HIL loop's hot path.
+
+Converting a message between its CDR bytes and an rclpy Python object costs more than
+anything the bridge or the estimator does with it (measured in the live loop: taking a
+10-point ``trajectory_msgs/JointTrajectory`` 0.36 ms p50, a ``sensor_msgs/JointState``
+0.16 ms).  The hot-path subscriptions therefore take the serialized message
+(``raw=True``) and read the few fields they need with ``struct`` here, and the
+estimator publishes its state as bytes encoded here (rclpy's ``publish`` accepts them).
+
+Format: plain CDR (XCDR1) little-endian, as rmw_fastrtps_cpp writes it: a 4-byte
+encapsulation header ``00 01 00 00``, then the fields in order, each primitive aligned
+to its size counted from the end of that header; strings are a uint32 length (with the
+terminating NUL) and the bytes; sequences a uint32 count and the elements.  Only the
+little-endian CDR encapsulation is accepted; anything truncated, oversized or
+inconsistent raises :class:`CdrError` (the caller counts and drops it).  The tests
+check both directions against rclpy's own (de)serialization.
+"""
+
+import struct
+from typing import List, Sequence, Tuple
+
+#: Encapsulation header of plain little-endian CDR.
+CDR_LE = b'\x00\x01\x00\x00'
+#: Refuse sequences longer than this (a corrupt count must not allocate gigabytes).
+MAX_ELEMENTS = 4096
+
+_U32 = struct.Struct('<I')
+_TIME = struct.Struct('<iI')
+_ACCEL = struct.Struct('<iII4x6d')
+
+
+class CdrError(ValueError):
+    """The bytes are not a well-formed message of the expected type."""
+
+
+class _Reader:
+    """Sequential CDR reader over one message (offsets relative to the payload)."""
+
+    __slots__ = ('buf', 'pos', 'end')
+
+    def __init__(self, data: bytes):
+        if len(data) < 4 or data[:4] != CDR_LE:
+            raise CdrError('not little-endian plain CDR (encapsulation header)')
+        self.buf = memoryview(data)[4:]
+        self.pos = 0
+        self.end = len(self.buf)
+
+    def _align(self, n: int) -> None:
+        self.pos += -self.pos % n
+
+    def _need(self, n: int) -> None:
+        if self.pos + n > self.end:
+            raise CdrError(f'truncated at byte {self.pos + 4} (need {n} more)')
+
+    def u32(self) -> int:
+        self._align(4)
+        self._need(4)
+        (v,) = _U32.unpack_from(self.buf, self.pos)
+        self.pos += 4
+        return v
+
+    def count(self) -> int:
+        n = self.u32()
+        if n > MAX_ELEMENTS:
+            raise CdrError(f'sequence of {n} elements (limit {MAX_ELEMENTS})')
+        return n
+
+    def time_ns(self) -> Tuple[int, int]:
+        """builtin_interfaces/Time or Duration: (sec, nanosec)."""
+        self._align(4)
+        self._need(8)
+        sec, nsec = _TIME.unpack_from(self.buf, self.pos)
+        self.pos += 8
+        return sec, nsec
+
+    def string(self) -> str:
+        n = self.u32()
+        if n == 0 or n > MAX_ELEMENTS:
+            raise CdrError(f'string of length {n}')
+        self._need(n)
+        raw = bytes(self.buf[self.pos:self.pos + n - 1])
+        self.pos += n
+        try:
+            return raw.decode()
+        except UnicodeDecodeError:
+            raise CdrError('string is not UTF-8') from None
+
+    def strings(self) -> List[str]:
+        return [self.string() for _ in range(self.count())]
+
+    def doubles(self) -> Tuple[float, ...]:
+        n = self.count()
+        if n == 0:
+            return ()
+        self._align(8)
+        self._need(8 * n)
+        v = struct.unpack_from(f'<{n}d', self.buf, self.pos)
+        self.pos += 8 * n
+        return v
+
+    def header(self) -> int:
+        """std_msgs/Header: return the stamp in ns (frame_id is read and dropped)."""
+        sec, nsec = self.time_ns()
+        self.string()
+        return sec * 1_000_000_000 + nsec
+
+
+def decode_joint_state(data: bytes):
+    """Return (stamp_ns, name, position, velocity, effort) of a sensor_msgs/JointState."""
+    r = _Reader(data)
+    stamp = r.header()
+    return stamp, r.strings(), r.doubles(), r.doubles(), r.doubles()
+
+
+def decode_joint_trajectory(data: bytes):
+    """Return (stamp_ns, joint_names, [(positions, (sec, nanosec)), ...]) of a trajectory.
+
+    trajectory_msgs/JointTrajectory; velocities, accelerations and effort are skipped.
+    """
+    r = _Reader(data)
+    stamp = r.header()
+    names = r.strings()
+    points = []
+    for _ in range(r.count()):
+        positions = r.doubles()
+        r.doubles()                     # velocities
+        r.doubles()                     # accelerations
+        r.doubles()                     # effort
+        points.append((positions, r.time_ns()))
+    return stamp, names, points
+
+
+class JointStateEncoder:
+    """Encode sensor_msgs/JointState messages with fixed names and an empty frame_id.
+
+    The names are encoded once; each call packs the stamp and the value arrays.
+    """
+
+    def __init__(self, names: Sequence[str]):
+        self.names = tuple(names)
+        head = bytearray()
+        head += _U32.pack(1) + b'\x00'  # frame_id '' (length 1: the NUL)
+        head += b'\x00' * (-len(head) % 4)
+        head += _U32.pack(len(self.names))
+        for name in self.names:
+            raw = name.encode() + b'\x00'
+            head += _U32.pack(len(raw)) + raw
+            head += b'\x00' * (-len(head) % 4)
+        self._names = bytes(head)        # from payload offset 8 (after the stamp)
+
+    def encode(self, stamp_ns: int, position: Sequence[float] = (),
+               velocity: Sequence[float] = (), effort: Sequence[float] = ()) -> bytes:
+        sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+        out = bytearray(CDR_LE)
+        out += _TIME.pack(sec, nsec)
+        out += self._names
+        for values in (position, velocity, effort):
+            n = len(values)
+            out += _U32.pack(n)
+            if n:
+                out += b'\x00' * (-(len(out) - 4) % 8)
+                out += struct.pack(f'<{n}d', *values)
+        return bytes(out)
+
+
+def encode_accel_stamped(stamp_ns: int, linear=(0.0, 0.0, 0.0), angular=(0.0, 0.0, 0.0)
+                         ) -> bytes:
+    """Encode a geometry_msgs/AccelStamped with an empty frame_id (m/s², rad/s²)."""
+    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    # payload: stamp 0-7, frame_id length 8-11 and its NUL 12, padding to 16, 6 doubles
+    return CDR_LE + _ACCEL.pack(sec, nsec, 1, *linear, *angular)
+
+
+__all__ = ['CdrError', 'JointStateEncoder', 'encode_accel_stamped', 'decode_joint_state',
+           'decode_joint_trajectory', 'CDR_LE', 'MAX_ELEMENTS']
