@@ -142,6 +142,8 @@ class BufferedCall:
         for dst, matrix, a in zip(self._in, self._matrix_in, args):
             if matrix:
                 dst[:] = np.asarray(a, dtype=float).ravel(order='F')
+            elif np.ndim(a) > 1:         # a column (n, 1) or row (1, n) vector
+                dst[:] = np.ravel(a)
             else:
                 dst[:] = a
         self._eval()

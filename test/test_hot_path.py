@@ -36,6 +36,8 @@ def test_buffered_call_equals_the_plain_call_bit_for_bit():
         assert np.array_equal(got[0], want[0].ravel()) and np.array_equal(got[1],
                                                                           want[1].ravel())
         assert got[2] == want[2].item() and np.array_equal(got[3], want[3])
+    col = fast(np.arange(3.0).reshape(3, 1), np.ones((2, 3)), np.array([[2.0]]))
+    assert np.array_equal(col[0], fast(np.arange(3.0), np.ones((2, 3)), 2.0)[0])
     out = fast(np.ones(3), np.ones((2, 3)), 1.0)
     again = fast(np.zeros(3), np.zeros((2, 3)), 0.0)
     assert not np.array_equal(out[0], again[0])        # results are copies, not the buffer
