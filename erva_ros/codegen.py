@@ -142,10 +142,11 @@ class BufferedCall:
         for dst, matrix, a in zip(self._in, self._matrix_in, args):
             if matrix:
                 dst[:] = np.asarray(a, dtype=float).ravel(order='F')
-            elif np.ndim(a) > 1:         # a column (n, 1) or row (1, n) vector
-                dst[:] = np.ravel(a)
             else:
-                dst[:] = a
+                try:
+                    dst[:] = a
+                except ValueError:       # a column (n, 1) or row (1, n) vector
+                    dst[:] = np.ravel(a)
         self._eval()
         if self._buf.ret() != 0:
             raise RuntimeError(f'{self.fn.name()}: evaluation failed')
