@@ -114,3 +114,11 @@ def test_erva_sim_reports_the_delay_options(erva):
     assert bad.returncode == 2 and 'actuation delay' in bad.stderr
     bad = erva('sim', '--duration', '0.4', '--command-delay', '0.03')
     assert bad.returncode == 2 and "'command_delay_s'" in bad.stderr
+
+
+def test_a_diverging_prediction_falls_back_instead_of_reaching_the_law():
+    ctrl = make_controller('skyhook', P, S.with_(command_delay_s=D))
+    x_absurd = np.array([1e300, 1e300, -1e300, 1e300, 1e300, -1e300])
+    res = ctrl.compute(x_absurd, np.zeros(11), 0.0)
+    assert res.status == 'fallback_passive' and 'delay compensation' in res.reason
+    assert ctrl.counters['failures'] == 1 and res.damping_cmd == P.c_e0

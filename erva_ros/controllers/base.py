@@ -103,12 +103,9 @@ class Controller(ABC):
             reason = 'non-finite state or preview'
         else:
             preview = preview[:self.horizon + 1]
-            if self.delay is not None:
-                x, preview = self.delay(x, self._acting, preview)
-                t = t + self.delay.delay_s
             try:
-                if not np.all(np.isfinite(x)):
-                    raise SolveFailure('delay compensation: non-finite predicted state')
+                if self.delay is not None:
+                    x, preview, t = self._compensate(x, preview, t)
                 plan, iterations = self._compute(x, preview, float(t))
                 plan = np.asarray(plan, dtype=float).ravel()
                 if plan.shape != (self.horizon,) or not np.all(np.isfinite(plan)):
@@ -135,6 +132,16 @@ class Controller(ABC):
         self._acting = float(plan[0])
         return ControlResult(float(plan[0]), plan, status, time.perf_counter() - t0,
                              int(iterations), reason)
+
+    def _compensate(self, x, preview, t):
+        """Return (x, preview, t) moved to when the command acts; SolveFailure if not finite."""
+        try:
+            x, preview = self.delay(x, self._acting, preview)
+        except RuntimeError as exc:   # evaluation error inside CasADi
+            raise SolveFailure(f'delay compensation: {str(exc).splitlines()[0]}') from None
+        if not np.all(np.isfinite(x)):
+            raise SolveFailure('delay compensation: non-finite predicted state')
+        return x, preview, t + self.delay.delay_s
 
     # -- for subclasses ----------------------------------------------------------------
     @abstractmethod
