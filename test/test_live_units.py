@@ -243,3 +243,26 @@ def test_summary_json_has_no_nan_and_text_names_the_errors():
         'errors': ['nmpc_node died (exit status -9) while running'], 'wall_time_s': 1.0}
     text = format_summary(summary)
     assert 'ERROR     nmpc_node died' in text
+
+
+def test_duration_stats_are_exact_then_binned_for_a_long_session():
+    from erva_ros.live.timing import DurationStats, EXACT_SAMPLES
+    from erva_ros.metrics import percentiles_ms
+    rng = np.random.default_rng(5)
+    samples = rng.lognormal(np.log(1e-3), 0.5, 3 * EXACT_SAMPLES)   # ~1 ms, long tail
+    stats = DurationStats()
+    for s in samples[:EXACT_SAMPLES]:
+        stats.add(s)
+    assert stats.summary() == percentiles_ms(samples[:EXACT_SAMPLES])   # exact so far
+    for s in samples[EXACT_SAMPLES:]:
+        stats.add(s)
+    got, want = stats.summary(), percentiles_ms(samples)
+    assert got['samples'] == want['samples'] == 3 * EXACT_SAMPLES == len(stats)
+    assert got['max'] == want['max']                                     # exact
+    for key in ('p50', 'p99'):                                           # every sample counts
+        assert got[key] == pytest.approx(want[key], rel=0.003), key
+    assert len(stats._samples) == EXACT_SAMPLES                          # memory bounded
+    edge = DurationStats(maxlen=3)
+    for s in (0.0, 5e3, 1e-12, 0.002, 0.003):                            # out of the bins' range
+        edge.add(s)
+    assert edge.summary()['max'] == 5e6 and edge.summary()['samples'] == 5

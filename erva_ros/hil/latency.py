@@ -1,6 +1,6 @@
 """Latency statistics of the HIL nodes, without the start-up transient."""
 
-from erva_ros.live.timing import DurationStats
+from erva_ros.live.timing import DurationStats, EXACT_SAMPLES
 
 #: Samples ignored after start-up (DDS discovery, first-call allocations): 0.5 s at 50 Hz.
 WARMUP_SAMPLES = 25
@@ -9,7 +9,7 @@ WARMUP_SAMPLES = 25
 class LatencyStats(DurationStats):
     """:class:`~erva_ros.live.timing.DurationStats` that ignores the first ``warmup`` samples."""
 
-    def __init__(self, warmup: int = WARMUP_SAMPLES, maxlen: int = 200_000):
+    def __init__(self, warmup: int = WARMUP_SAMPLES, maxlen: int = EXACT_SAMPLES):
         super().__init__(maxlen)
         self._skip = int(warmup)
 

@@ -261,21 +261,19 @@ class StateEstimatorNode(Node):
 
     # -- diagnostics ---------------------------------------------------------------------
     def _publish_diagnostics(self) -> None:
+        # Only the snapshot holds the lock: the statistics and the message are built
+        # outside it, so a long run's percentiles never delay a cycle's filter step.
         with self.lock:
-            self._diagnostics()
-
-    def _diagnostics(self) -> None:
-        values = dict(self.count)
-        n = max(self.count['updates'], 1)
-        values['nis_mean'] = self.nis_sum / n
+            values = dict(self.count)
+            values['nis_mean'] = self.nis_sum / max(self.count['updates'], 1)
+            std = self.ekf.std()
+            level, text = self.status_level, self.status_text
         values['scheduling'] = getattr(self, 'scheduling', 'off')
         values.update(diag.flatten('latency_ms', self.latency.summary()))
         values.update(diag.flatten('compute_ms', self.compute.summary()))
-        std = self.ekf.std()
         for name, s in zip(self.ekf.model.state_names, std):
             values[f'std_{name}'] = float(s)
-        level, text = self.status_level, self.status_text
-        if self.count['no_road'] and level == diag.OK:
+        if values['no_road'] and level == diag.OK:
             level, text = diag.WARN, 'no road height received: assuming w = 0'
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
