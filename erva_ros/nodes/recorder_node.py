@@ -74,6 +74,9 @@ CONTRACT_TYPES = {name: contract.TOPIC_TYPES[f'{contract.NAMESPACE}/{name}']
 CONTRACT_TYPES.update({name: contract.TOPIC_TYPES[name]
                        for name in DEFAULT_TOPICS if name.startswith('/')})
 DISCOVERY_PERIOD_S = 0.1   # rosbag2's default topic polling interval
+#: Reader history of every recorded topic: a stall of the recorder (seconds of 50 Hz topics)
+#: must not overflow it.
+RECORDER_DEPTH = 1000
 
 
 def _range(lo, hi, integer=False):
@@ -182,7 +185,7 @@ class RecorderNode(Node):
         events = SubscriptionEventCallbacks(message_lost=self._on_lost)
         self._subs[topic] = self.create_subscription(
             cls, topic, functools.partial(self._on_message, topic, type_name),
-            contract.control_qos(), raw=True, event_callbacks=events)
+            contract.control_qos(RECORDER_DEPTH), raw=True, event_callbacks=events)
 
     def _on_lost(self, info) -> None:
         """Count messages the middleware reports lost before this node took them."""
@@ -265,10 +268,14 @@ class RecorderNode(Node):
                                   KeyValue(key='lost_in_transport',
                                            value=str(self.lost_in_transport))]
         if self.writer is not None:
+            counts = self.writer.counts
             values += [KeyValue(key='written', value=str(self.writer.message_count)),
                        KeyValue(key='bytes', value=str(self.writer.bytes_written)),
                        KeyValue(key='flushes', value=str(self.writer.flushes)),
-                       KeyValue(key='topics', value=str(len(self.writer.counts)))]
+                       KeyValue(key='topics', value=str(len(counts)))]
+            # Per topic, so `erva run` can wait until the bag holds what was published.
+            values += [KeyValue(key=f'count:{topic}', value=str(n))
+                       for topic, n in sorted(counts.items())]
         if self.error:
             status.level, status.message = DiagnosticStatus.ERROR, self.error
         else:
