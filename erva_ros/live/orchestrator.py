@@ -65,7 +65,7 @@ HIL_DRAIN_S = 1.5
 #: How long, after that, `erva run` waits for the recorder to report every message the nodes
 #: published (its status comes every 0.5 s) before stopping them: a publisher that exits
 #: takes the samples not yet delivered with it.  (A known defect is not cured by waiting:
-#: in ~1 run in 8 the recorder misses the plant's last samples for good; README.)
+#: in ~1 run in 4 the recorder misses the plant's last samples for good; README.)
 RECORDER_DRAIN_S = 2.0
 #: The end of the recorder's /diagnostics status name ('<its node name>: bag recorder').
 RECORDER_STATUS = ': bag recorder'
