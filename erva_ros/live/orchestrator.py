@@ -515,7 +515,11 @@ class _Supervisor:
             fresh = all(self.monitor.diag_rx(n) > finish_ns for n in hil_summary.PERIODIC
                         if n.split(':')[0] not in self.dead)
             done = elapsed > HIL_DRAIN_S or (fresh and _all_received(self.monitor))
-        if not done or not self.recording or 'recorder_node' in self.dead:
+        # The recorder is waited for only after a clean ending (every count in, nothing
+        # missing): a node still publishing (safe commands without states) would keep it
+        # behind and only add commands to the summary.
+        if (not done or not self.recording or 'recorder_node' in self.dead
+                or not _all_received(self.monitor)):
             return done
         return elapsed > RECORDER_DRAIN_S or self._recorder_caught_up()
 
