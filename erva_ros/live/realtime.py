@@ -43,8 +43,6 @@ def hold_cpu_wakeup_latency(microseconds: int = 0, device: str = CPU_DMA_LATENCY
     Returns 'cpu_dma_latency <us> us' (held; idempotent) or 'unavailable: <why>'.
     """
     global _latency_fd
-    if os.environ.get('ERVA_NO_DMA'):
-        return 'skipped'
     if _latency_fd is None:
         try:
             fd = os.open(device, os.O_WRONLY)
