@@ -135,7 +135,7 @@ def closed_loop_metrics(r: ClosedLoopResult) -> Dict:
     m['iterations_mean'] = float(np.mean(r.iterations)) if r.iterations.size else 0.0
     m['fallbacks'] = {k: int(r.counters.get(k, 0))
                       for k in ('fallback_plan', 'fallback_passive', 'failures',
-                                'nan_rejections', 'over_budget')}
+                                'nan_rejections', 'late')}
     m['realtime_factor'] = float(r.duration_s / r.wall_time_s) if r.wall_time_s > 0 else None
     return m
 

@@ -24,6 +24,8 @@ damping_cmd    trajectory_msgs/JointTrajectory   joint [c_e]: points[0] = comman
 /clock         rosgraph_msgs/Clock               lock-step mode only
 """
 
+import math
+
 NAMESPACE = '/erva'
 
 STATE = 'state'
@@ -57,9 +59,26 @@ def control_qos(depth: int = 10):
     """Return the control topics' QoS: reliable, volatile, keep-last ``depth``.
 
     Reliable so that nothing published is silently lost (the recorder's counts must
-    equal the publishers'); depth 10 absorbs a 200 ms stall at 50 Hz.
+    equal the publishers'); a subscriber's depth 10 absorbs a 200 ms stall at 50 Hz
+    (a controller wants the newest sample, not a backlog).
     """
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
                       reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
+
+
+def publisher_depth(history_s: float, ts: float) -> int:
+    """Return the keep-last depth that holds ``history_s`` of samples every ``ts`` (>= 10)."""
+    return max(10, int(math.ceil(history_s / ts - 1e-9)))
+
+
+def publisher_qos(history_s: float, ts: float):
+    """Return the QoS of a loop publisher: as :func:`control_qos`, keeping ``history_s`` of samples.
+
+    A reliable writer repairs what a subscriber missed only from its own history: with
+    keep-last 10, a recorder that stalls longer than the transports buffer (~1.5 s
+    measured) loses those samples for good.  A deeper history costs the writer memory,
+    not latency: a keep-last writer never waits for a slow reader.
+    """
+    return control_qos(publisher_depth(history_s, ts))

@@ -7,13 +7,13 @@ def test_bench_json_shape(erva):
     proc = erva('bench', '--steps', 60, '--json')
     assert proc.returncode == 0, proc.stderr
     res = json.loads(proc.stdout)
-    for key in ('solver', 'controller', 'samples', 'solve_ms', 'over_budget',
+    for key in ('solver', 'controller', 'samples', 'solve_ms', 'late',
                 'suboptimality_pct', 'realtime_factor'):
         assert key in res
     assert (res['solver'], res['controller'], res['samples']) == ('sqp', 'preview', 60)
     assert set(res['solve_ms']) == {'p50', 'p99', 'max'}
     assert 0 < res['solve_ms']['p50'] <= res['solve_ms']['p99'] <= res['solve_ms']['max']
-    assert isinstance(res['over_budget'], int)
+    assert isinstance(res['late'], int)
     assert isinstance(res['suboptimality_pct'], float)
     assert res['reference']['solver'] == 'ipopt'
     assert res['realtime_factor'] > 1

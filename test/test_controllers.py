@@ -16,7 +16,7 @@ P = paper_params()
 
 def test_controller_names_and_status_values():
     assert CONTROLLER_NAMES == ('passive', 'skyhook', 'no_preview', 'preview', 'preview_long')
-    assert STATUSES == ('ok', 'fallback_plan', 'fallback_passive')
+    assert STATUSES == ('ok', 'late', 'fallback_plan', 'fallback_passive')
 
 
 def test_shipped_settings_file_loads_and_spec_tables_cover_every_field():

@@ -55,7 +55,7 @@ def test_sim_json_and_files(erva, tmp_path):
         assert res[key] > 0
     assert set(res['solve_ms']) == {'p50', 'p99', 'max'}
     assert set(res['fallbacks']) == {'fallback_plan', 'fallback_passive', 'failures',
-                                     'nan_rejections', 'over_budget'}
+                                     'nan_rejections', 'late'}
     assert res['samples'] == 50 and res['weights'] == [0.0, 1.0]
     assert (tmp_path / 'timeseries.png').stat().st_size > 10000
     lines = (tmp_path / 'timeseries.csv').read_text().splitlines()

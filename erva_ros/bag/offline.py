@@ -129,7 +129,7 @@ def diagnostics_message(stamp_ns: int, harvested_j: float, solve_s: List[float],
     """Return the offline session's DiagnosticArray, keyed as the live nodes key theirs.
 
     Plant: ``harvested_j``, ``steps``; controller: ``solve_ms_p50/p99/max/samples``,
-    ``commands``, ``deadline_misses`` (the controller's over-budget solves) and
+    ``commands``, ``deadline_misses`` (the controller's late solves) and
     ``controller_<counter>`` for each controller counter.
     """
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -143,7 +143,7 @@ def diagnostics_message(stamp_ns: int, harvested_j: float, solve_s: List[float],
                                      kv('steps', int(counters.get('steps', 0)))])
     p = percentiles_ms(solve_s)
     values = [kv('controller', controller), kv('commands', len(solve_s)),
-              kv('deadline_misses', int(counters.get('over_budget', 0)))]
+              kv('deadline_misses', int(counters.get('late', 0)))]
     values += [kv(f'solve_ms_{k}', float(p[k])) for k in ('p50', 'p99', 'max')]
     values += [kv('solve_ms_samples', int(p['samples']))]
     values += [kv(f'controller_{k}', int(v)) for k, v in sorted(counters.items())]
@@ -161,7 +161,7 @@ def write_session(bag_dir: str, steps: List[StepLog], ts: float, controller: str
     """Write ``steps`` as a session bag at ``bag_dir``; return its metadata.
 
     The controller counters on /diagnostics count step statuses as they go; the last
-    message carries ``final_counters`` (the controller's own, e.g. over_budget) too.
+    message carries ``final_counters`` (the controller's own, e.g. late) too.
     """
     from erva_ros.bag.qos import profile_to_dict
     t0_ns = time.time_ns() if t0_ns is None else int(t0_ns)

@@ -6,9 +6,14 @@ on (paper §III.A).  :meth:`Controller.compute` wraps the concrete law with the
 safety net every controller shares:
 
 * non-finite state or preview → the measurement is rejected (``nan_rejections``);
-* the law raises, reports failure, returns NaN or exceeds ``time_budget_s`` →
-  fall back to the previous plan shifted by one step (``fallback_plan``), and when
-  that plan is used up, to the passive damping c_e0 (``fallback_passive``);
+* the law raises, reports failure or returns NaN → fall back to the previous plan
+  shifted by one step (``fallback_plan``), and when that plan is used up, to the
+  passive damping c_e0 (``fallback_passive``);
+* a valid solution that took longer than ``time_budget_s`` is still used (status
+  ``late``, counted): it is the freshest answer there is -- the previous plan shifted
+  was computed from an older state, and replacing a late answer by it did the damage
+  under load, not the lateness.  Whether a newer state has arrived meanwhile is for the
+  caller to know (the node); the plant's command hold then uses the plan's next point;
 * the command is always clipped into the input box [u_min, u_max].
 """
 
@@ -21,7 +26,7 @@ from typing import Dict, Optional
 import numpy as np
 
 #: Values of :attr:`ControlResult.status`.
-STATUSES = ('ok', 'fallback_plan', 'fallback_passive')
+STATUSES = ('ok', 'late', 'fallback_plan', 'fallback_passive')
 
 
 @dataclass
@@ -74,8 +79,8 @@ class Controller(ABC):
         self._prev_plan: Optional[np.ndarray] = None
         self._prev_age = 0
         self._acting = self.c_e0     # the last command returned: acting until the next
-        self._counters = {'steps': 0, 'ok': 0, 'fallback_plan': 0, 'fallback_passive': 0,
-                          'failures': 0, 'nan_rejections': 0, 'over_budget': 0}
+        self._counters = {'steps': 0, 'ok': 0, 'late': 0, 'fallback_plan': 0,
+                          'fallback_passive': 0, 'failures': 0, 'nan_rejections': 0}
         self._reset_law()
 
     @property
@@ -117,12 +122,12 @@ class Controller(ABC):
                 reason = str(exc) or 'solver failure'
                 plan = None
         elapsed = time.perf_counter() - t0
-        if plan is not None and elapsed > self.time_budget_s:
-            self._counters['over_budget'] += 1
-            reason = f'solve took {elapsed * 1e3:.2f} ms > budget {self.time_budget_s * 1e3:g} ms'
-            plan = None
         if plan is not None:
             status = 'ok'
+            if elapsed > self.time_budget_s:
+                status = 'late'
+                reason = (f'solve took {elapsed * 1e3:.2f} ms > budget '
+                          f'{self.time_budget_s * 1e3:g} ms')
             plan = np.clip(plan, self.u_min, self.u_max)
             self._prev_plan, self._prev_age = plan, 0
         else:

@@ -251,7 +251,7 @@ class Monitor(Node):
                 'solves', 'commands', 'deadline_misses', 'state_timeouts', 'safe_commands',
                 'missed_samples', 'stale_previews', 'no_preview', 'rejected_state',
                 'rejected_preview', 'controller_fallback_plan', 'controller_fallback_passive',
-                'controller_failures', 'controller_over_budget')}}
+                'controller_failures', 'controller_late')}}
         # What each node's threads got from realtime_priority (live/realtime.py).
         out['scheduling'] = {node: entry[2]['scheduling'] for node, entry in self.diag.items()
                              if 'scheduling' in entry[2]}

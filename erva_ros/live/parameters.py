@@ -22,6 +22,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from erva_ros.controllers.settings import (CHOICE_SPECS, ControllerSettings, DEFAULTS,
                                            INTEGER_KEYS, NUMERIC_SPECS, validate_settings)
 from erva_ros.live.realtime import DEFAULT_PRIORITY, MAX_PRIORITY
+from erva_ros.live.validation import StampWindow
 from erva_ros.model import MODEL_KINDS
 from erva_ros.params import (check_number, ERVA_SPECS, ERVAParams, PAPER_VALUES, ParamError,
                              Spec, validate_erva)
@@ -54,6 +55,16 @@ LIVE_NUMERIC: Dict[str, Spec] = {
     'start_delay_s': Spec(0.0, 600.0, 's', 'time master: settling time before the first sample'),
     'diagnostics_period_s': Spec(0.05, 3600.0, 's', 'period of the /diagnostics status'),
     'reject_log_period_s': Spec(0.0, 3600.0, 's', 'rejected messages are logged once per period'),
+    'max_stamp_lead_s': Spec(0.0, 3600.0, 's',
+                             'inputs stamped further ahead of the node\'s clock are rejected '
+                             '(clock skew between hosts; at least Ts)'),
+    'max_stamp_age_s': Spec(0.0, 86400.0, 's',
+                            'inputs stamped longer ago than this are rejected as stale',
+                            lo_open=True),
+    'publisher_history_s': Spec(0.0, 3600.0, 's',
+                                'history each loop publisher keeps for reliable repair: a '
+                                'subscriber (the recorder) may stall this long losing nothing',
+                                lo_open=True),
     'realtime_priority': Spec(0, MAX_PRIORITY, '-',
                               'realtime mode: SCHED_FIFO priority of the node\'s threads, '
                               '0 = normal scheduling (needs CAP_SYS_NICE, else a warning)'),
@@ -77,6 +88,7 @@ LIVE_DEFAULTS: Dict[str, Any] = {
     'preview_delay_s': 0.0, 'command_timeout_s': 0.2, 'lockstep_timeout_s': 5.0,
     'state_timeout_periods': 3, 'wait_for_subscribers': 1, 'start_delay_s': 0.5,
     'diagnostics_period_s': 0.5, 'reject_log_period_s': 1.0, 'realtime_priority': DEFAULT_PRIORITY,
+    'max_stamp_lead_s': 0.05, 'max_stamp_age_s': 1.0, 'publisher_history_s': 10.0,
 }
 #: Descriptions of the live parameters that are neither numbers nor choices.
 LIVE_OTHER = {
@@ -185,6 +197,16 @@ def loop_priority(cfg: Dict[str, Any]) -> int:
     return cfg['realtime_priority'] if cfg.get('mode', 'realtime') == 'realtime' else 0
 
 
+def stamp_window(cfg: Dict[str, Any], ts: float, lockstep: bool = False) -> StampWindow:
+    """Return the input stamp window of a node from its live parameters.
+
+    In lock-step the node's clock is /clock, which may reach a node after the sample it
+    stamps: two periods more lead are allowed there.
+    """
+    lead = cfg['max_stamp_lead_s'] + (2 * ts if lockstep else 0.0)
+    return StampWindow(int(round(lead * 1e9)), int(round(cfg['max_stamp_age_s'] * 1e9)))
+
+
 def declare_erva_params(node) -> ERVAParams:
     """Declare the physical parameters (paper Table I, ERVA_SPECS); return ERVAParams."""
     values = {key: declare_number(node, key, PAPER_VALUES[key], spec)
@@ -209,4 +231,5 @@ def declare_controller_settings(node, skip: Sequence[str] = ()) -> ControllerSet
 
 __all__ = ['MODES', 'LIVE_NUMERIC', 'LIVE_INTEGERS', 'LIVE_CHOICES', 'LIVE_DEFAULTS',
            'LIVE_OTHER', 'declare_number', 'declare_choice', 'declare_string', 'declare_bool',
-           'declare_live', 'declare_erva_params', 'declare_controller_settings']
+           'declare_live', 'declare_erva_params', 'declare_controller_settings',
+           'stamp_window']

@@ -41,6 +41,34 @@ def check_values(what: str, values: Iterable[float], limit: str) -> None:
                                   f'(allowed {spec.describe()})')
 
 
+class StampWindow:
+    """Reject stamps outside a window around the receiving node's own clock.
+
+    A sample stamp is the instant the sample was taken, so in a working loop it lies
+    slightly in the past of every node's clock.  A stamp from the far future (a foreign
+    or corrupt message) would otherwise become "the newest" and block every real one
+    behind it, or end a scenario early; one from long ago is useless to a controller.
+    ``max_lead_ns`` allows clock skew between hosts and the NMPC's safe commands, which
+    are stamped for the sample they stand in for (at most one period ahead);
+    ``max_age_ns`` bounds how stale an input may be.
+    """
+
+    def __init__(self, max_lead_ns: int, max_age_ns: int):
+        self.max_lead_ns = int(max_lead_ns)
+        self.max_age_ns = int(max_age_ns)
+
+    def check(self, what: str, stamp_ns: int, now_ns: int) -> None:
+        """Raise :class:`MessageRejected` if ``stamp_ns`` is outside the window of ``now_ns``."""
+        lead = stamp_ns - now_ns
+        if lead > self.max_lead_ns:
+            raise MessageRejected(f'{what} stamp is {lead * 1e-9:.3f} s in the future of this '
+                                  f'node\'s clock (allowed {self.max_lead_ns * 1e-9:g} s; '
+                                  f'clocks not synchronised?)')
+        if -lead > self.max_age_ns:
+            raise MessageRejected(f'{what} stamp is {-lead * 1e-9:.3f} s old '
+                                  f'(allowed {self.max_age_ns * 1e-9:g} s)')
+
+
 class Rejections:
     """Count rejected messages per topic and log them at a limited rate.
 
@@ -78,4 +106,4 @@ class Rejections:
         return sum(self.counts.values())
 
 
-__all__ = ['LIMITS', 'MessageRejected', 'check_values', 'Rejections']
+__all__ = ['LIMITS', 'MessageRejected', 'check_values', 'Rejections', 'StampWindow']

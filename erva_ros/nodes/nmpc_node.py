@@ -15,25 +15,28 @@ Modes:
   solved the moment it arrives (with its preview, which the road node publishes
   just after the height), so the state-to-command latency is the solve time plus
   message transport; at most one such early solve per tick keeps the rate at 1/Ts
-  even if states come faster.  A solve over
-  ``time_budget_s`` is replaced by the controller's fallback (shifted plan, then
-  passive) and counted as a deadline miss, as is a command published later than
-  t_k + Ts.  After ``state_timeout_periods`` periods without a state, each tick
+  even if states come faster (the scheduling is
+  :class:`erva_ros.live.sample_schedule.SampleScheduler`, ROS-free).  A solve over
+  ``time_budget_s`` still publishes its own plan -- the freshest answer there is --
+  counted ``late`` and as a deadline miss, as is a command published later than
+  t_k + Ts; a failed or non-finite solve publishes the controller's fallback
+  (shifted plan, then passive).  After ``state_timeout_periods`` periods without a state, each tick
   publishes the safe passive command c_e0 (stamped with the sample time it is for,
   on the grid of the last state) and the status is ERROR until states return.
 * ``lockstep``: solves each state as soon as the preview with the same stamp is
   there; the wall-clock budget is disabled (time is simulated) so the run is
   deterministic.
 
-After the scenario's last sample (``duration_s``) it stops and reports ``finished``,
-so the end of the road is not mistaken for a lost plant.
+After the scenario's last sample (``duration_s``, by the state stamps *and* the node's
+own clock) it stops and reports ``finished``, so the end of the road is not mistaken
+for a lost plant.
 
 Incoming states and previews are validated (erva_ros.live.validation): a non-finite
-or absurd value is rejected, counted and logged at a limited rate, and never reaches
-the controller.  Timings and counters are published on ``/diagnostics``.
+or absurd value, or a stamp outside ``[now - max_stamp_age_s, now + max_stamp_lead_s]``
+of the node's clock or off the sample grid, is rejected, counted and logged at a
+limited rate, and never reaches the controller.  Timings and counters are published on ``/diagnostics``.
 """
 
-from collections import deque
 import time
 
 import numpy as np
@@ -49,16 +52,16 @@ from erva_ros.controllers.settings import NUMERIC_SPECS
 from erva_ros.live import diagnostics as diag
 from erva_ros.live.msgs import damping_msg, parse_preview, parse_state, s_to_ns
 from erva_ros.live.parameters import (declare_controller_settings, declare_erva_params,
-                                      declare_live, loop_priority)
+                                      declare_live, loop_priority, stamp_window)
 from erva_ros.live.runtime import run_node
+from erva_ros.live.sample_schedule import Job, SampleScheduler
 from erva_ros.live.timing import DurationStats, next_grid_delay_ns, PeriodStats
 from erva_ros.live.validation import MessageRejected, Rejections
+from erva_ros.model import STATE_NAMES
 
 LIVE_PARAMETERS = ('mode', 'model', 'duration_s', 'state_timeout_periods',
-                   'diagnostics_period_s', 'reject_log_period_s',
-                   'realtime_priority')
-#: A preview at most this many samples older than the state is shifted and used.
-MAX_PREVIEW_AGE = 3
+                   'diagnostics_period_s', 'reject_log_period_s', 'max_stamp_lead_s',
+                   'max_stamp_age_s', 'publisher_history_s', 'realtime_priority')
 #: How long (s) a deadline miss or fallback keeps the status at WARN.
 WARN_HOLD_S = 1.0
 
@@ -85,23 +88,17 @@ class NMPCNode(Node):
         self.passive_plan = np.full(self.controller.horizon, self.controller.c_e0)
         self._warm_up()
 
-        self.state = None            # (stamp_ns, x) of the newest valid state
-        self.state_rx_ns = 0         # wall time it arrived
-        self.last_state_mono = None
-        self.previews = deque(maxlen=2 * MAX_PREVIEW_AGE + 2)  # (stamp_ns, heights)
-        self.last_solved = -1
-        self.first_stamp = None
-        self.n_samples = int(round(cfg['duration_s'] / self.ts)) + 1
-        self.finished = False
-        self.armed = True               # the next state is solved the moment it arrives
-        self._awaiting_preview = None   # stamp of a state waiting for its preview
-        self.timed_out = False
+        self.sched = SampleScheduler(
+            self.ts_ns, int(round(cfg['duration_s'] / self.ts)) + 1, self.n_preview,
+            realtime=not self.lockstep, window=stamp_window(cfg, self.ts, self.lockstep),
+            state_timeout_ns=s_to_ns(cfg['state_timeout_periods'] * self.ts))
+        self.state_rx_ns = 0         # wall time the state being solved arrived
         self._warn_until = 0.0
+        self._outages_logged = 0
         self._tick_timer = None
         self._align_timer = None
-        self.count = {'commands': 0, 'solves': 0, 'deadline_misses': 0, 'state_timeouts': 0,
-                      'safe_commands': 0, 'missed_samples': 0, 'stale_previews': 0,
-                      'no_preview': 0, 'out_of_order': 0}
+        self.count = {'commands': 0, 'solves': 0, 'late': 0, 'deadline_misses': 0,
+                      'safe_commands': 0}
         self.solve = DurationStats()
         self.latency = DurationStats()      # sample time t_k -> command published
         self.rx_latency = DurationStats()   # state received -> command published
@@ -113,7 +110,9 @@ class NMPCNode(Node):
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
 
         qos = topics.control_qos()
-        self.pub_cmd = self.create_publisher(JointTrajectory, topics.DAMPING_CMD, qos)
+        self.pub_cmd = self.create_publisher(
+            JointTrajectory, topics.DAMPING_CMD,
+            topics.publisher_qos(cfg['publisher_history_s'], self.ts))
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
         self.status = diag.StatusReporter(
             self.get_fully_qualified_name(), f'controller:{self.controller.name}',
@@ -131,68 +130,43 @@ class NMPCNode(Node):
 
     def _warm_up(self) -> None:
         """Solve once at rest so the first real sample does not pay for first-call set-up."""
-        self.controller.compute(np.zeros(4 if self.kind == 'benchmark' else 6),
-                                np.zeros(self.n_preview), 0.0)
+        self.controller.compute(np.zeros(len(STATE_NAMES[self.kind])), np.zeros(self.n_preview), 0.0)
         self.controller.reset()
+
+    def _now(self) -> int:
+        """Return the node's clock (ns): wall time, or simulated time in lock-step."""
+        return self.get_clock().now().nanoseconds
 
     # -- inputs ------------------------------------------------------------------------
     def _on_state(self, msg: JointState) -> None:
         rx_ns = time.time_ns()
-        if self.finished:
+        if self.sched.finished:
             return
+        was_timed_out = self.sched.timed_out
         try:
             stamp, x = parse_state(msg, self.kind)
+            job = self.sched.on_state(stamp, x, self._now())
         except MessageRejected as exc:
             self.rejections.reject(topics.STATE, str(exc))
             return
-        if self.state is not None and stamp <= self.state[0]:
-            self.count['out_of_order'] += 1
-            return
-        self.state, self.state_rx_ns = (stamp, x), rx_ns
-        if self.first_stamp is None:
-            self.first_stamp = stamp
-        self.last_state_mono = time.monotonic()
-        if self.timed_out:
-            self.timed_out = False
+        self.state_rx_ns = rx_ns
+        if was_timed_out:
             self.cmd_period.restart()
             self.get_logger().info('states are back: controller running again')
-        if self.lockstep:
-            self._solve_if_ready()
-        else:
-            if self._tick_timer is None and self._align_timer is None:
-                self._align(stamp)
-            if self.armed:
-                # This period's tick came first: solve on arrival (once its preview is
-                # here).  Disarmed until the next tick, so at most one such solve a period.
-                self.armed = False
-                self._awaiting_preview = stamp
-                self._solve_if_ready()
+        if not self.lockstep and self._tick_timer is None and self._align_timer is None:
+            self._align(stamp)
+        if job is not None:
+            self._run(job)
 
     def _on_preview(self, msg: JointTrajectory) -> None:
         try:
             stamp, heights = parse_preview(msg, self.ts_ns, self.n_preview)
+            job = self.sched.on_preview(stamp, heights, self._now())
         except MessageRejected as exc:
             self.rejections.reject(topics.ROAD_PREVIEW, str(exc))
             return
-        if self.previews and stamp <= self.previews[-1][0]:
-            self.count['out_of_order'] += 1
-            return
-        self.previews.append((stamp, heights[:self.n_preview]))
-        if self.lockstep or self._awaiting_preview == stamp:
-            self._solve_if_ready()
-
-    def _preview_for(self, stamp: int):
-        """Return the preview for sample ``stamp``: exact, else a recent one shifted, else None."""
-        for p_stamp, heights in reversed(self.previews):
-            if p_stamp == stamp:
-                return heights
-            if p_stamp < stamp:
-                age, rest = divmod(stamp - p_stamp, self.ts_ns)
-                if rest or age > MAX_PREVIEW_AGE:
-                    return None
-                self.count['stale_previews'] += 1
-                return np.r_[heights[age:], np.full(age, heights[-1])]
-        return None
+        if job is not None:
+            self._run(job)
 
     # -- realtime scheduling -----------------------------------------------------------
     def _align(self, stamp: int) -> None:
@@ -205,88 +179,68 @@ class NMPCNode(Node):
         self._align_timer.cancel()
         self.destroy_timer(self._align_timer)
         self._tick_timer = self.create_timer(self.ts, self._on_tick)
-        self.armed = True   # the timer's first tick is a period away: the next state is due
+        self.sched.armed = True   # the timer's first tick is a period away: the next state is due
 
     def _on_tick(self) -> None:
         now_ns = time.time_ns()
         self.tick_period.mark(now_ns * 1e-9)
-        self.tick_phase.add(((now_ns - self.first_stamp) % self.ts_ns) * 1e-9)
-        if self.state is not None and self.state[0] > self.last_solved:
-            # Arrived before this tick while disarmed, or its preview never came (then
-            # the newest preview, shifted, is used).
-            self._solve_newest()
-        # Re-arm every tick, also after solving here: a late period must not make every
-        # following state wait for the next tick.
-        self.armed = True
-        silent = time.monotonic() - self.last_state_mono
-        if silent > self.cfg['state_timeout_periods'] * self.ts:
-            self._publish_safe(silent)
+        self.tick_phase.add(((now_ns - self.sched.first_stamp) % self.ts_ns) * 1e-9)
+        job, safe = self.sched.on_tick(self._now())
+        if job is not None:
+            self._run(job)
+        if safe is not None:
+            self._publish_safe(safe)
 
-    def _publish_safe(self, silent_s: float) -> None:
+    def _publish_safe(self, stamp: int) -> None:
         """Publish the passive command c_e0 (and its plan) with ERROR: no state is coming."""
-        if not self.timed_out:
-            self.timed_out = True
-            self.count['state_timeouts'] += 1
-            self.get_logger().error(f'no state for {silent_s * 1e3:.0f} ms: publishing the '
-                                    f'passive command {self.controller.c_e0:g} Ns/m')
-        # Stamped with the sample it is for (on the grid of the last state), so the
-        # command computed from the next state that does arrive supersedes it.
-        last = self.state[0]
-        stamp = last + max(1, (time.time_ns() - last) // self.ts_ns) * self.ts_ns
+        if self.sched.count['state_timeouts'] > self._outages_logged:
+            self._outages_logged = self.sched.count['state_timeouts']
+            self.get_logger().error(f'no state for {self.cfg["state_timeout_periods"]} '
+                                    f'periods: publishing the passive command '
+                                    f'{self.controller.c_e0:g} Ns/m')
         self.pub_cmd.publish(damping_msg(stamp, self.passive_plan, self.ts_ns))
         self.count['safe_commands'] += 1
         self.status.set(diag.ERROR, f'no state for more than '
                         f'{self.cfg["state_timeout_periods"]} periods: passive command')
 
     # -- solving -----------------------------------------------------------------------
-    def _solve_if_ready(self) -> None:
-        """Solve the newest state once the preview of the same sample is here too."""
-        if self.state is None or self.state[0] <= self.last_solved:
-            return
-        if any(p_stamp == self.state[0] for p_stamp, _ in self.previews):
-            self._solve_newest()
-
-    def _solve_newest(self) -> None:
-        stamp, x = self.state
-        self._awaiting_preview = None
-        if self.last_solved >= 0 and stamp - self.last_solved > self.ts_ns:
-            self.count['missed_samples'] += (stamp - self.last_solved) // self.ts_ns - 1
-        self.last_solved = stamp
-        preview = self._preview_for(stamp)
-        over_before = self.controller.counters.get('over_budget', 0)
-        if preview is None:
-            self.count['no_preview'] += 1
+    def _run(self, job: Job) -> None:
+        """Solve one sample and publish its command with the plan."""
+        stamp = job.stamp_ns
+        if job.preview is None:
             plan, status, solve_s = self.passive_plan, 'no_preview', 0.0
         else:
             t = (stamp // self.ts_ns) * self.ts if self.lockstep else stamp * 1e-9
-            res = self.controller.compute(x, preview, t)
+            res = self.controller.compute(job.x, job.preview, t)
             plan, status, solve_s = res.plan, res.status, res.solve_time_s
             self.count['solves'] += 1
         self.pub_cmd.publish(damping_msg(stamp, plan, self.ts_ns))
         pub_ns = time.time_ns()
         self.count['commands'] += 1
         self.solve.add(solve_s)
-        missed = self.controller.counters.get('over_budget', 0) > over_before
+        # A late solve publishes its own plan (the freshest answer there is) and counts.
+        missed = status == 'late'
         if not self.lockstep:
             self.cmd_period.mark(pub_ns * 1e-9)
-            self.latency.add((pub_ns - stamp) * 1e-9)
+            self.latency.add(max(0, pub_ns - stamp) * 1e-9)
             self.rx_latency.add((pub_ns - self.state_rx_ns) * 1e-9)
             missed = missed or pub_ns - stamp > self.ts_ns
+        if status == 'late':
+            self.count['late'] += 1
         if missed:
             self.count['deadline_misses'] += 1
         if missed or status != 'ok':
             self._warn_until = time.monotonic() + WARN_HOLD_S
             why = f'last {status}' + (', deadline missed' if missed else '')
             self.status.set(diag.WARN, why)
-        elif not self.timed_out and time.monotonic() > self._warn_until:
+        elif not self.sched.timed_out and time.monotonic() > self._warn_until:
             self.status.set(diag.OK, 'running')
-        if stamp >= self.first_stamp + (self.n_samples - 1) * self.ts_ns:
+        if self.sched.finished:
             self._finish()
         self.status.after_sample()
 
     def _finish(self) -> None:
         """Stop after the scenario's last sample (duration_s): no timeout at the road's end."""
-        self.finished = True
         if self._tick_timer is not None:
             self._tick_timer.cancel()
         self.status.set(diag.OK, f'finished: {self.count["commands"]} commands')
@@ -294,18 +248,19 @@ class NMPCNode(Node):
 
     # -- diagnostics -------------------------------------------------------------------
     def _on_diag_timer(self) -> None:
-        if (not self.timed_out and not self.finished and self.state is not None
-                and time.monotonic() > self._warn_until):
+        if (not self.sched.timed_out and not self.sched.finished
+                and self.sched.state is not None and time.monotonic() > self._warn_until):
             self.status.set(diag.OK, 'running')
         self.status.on_timer(2 * self.ts)
 
     def _diag_values(self):
         vals = {'mode': self.cfg['mode'], 'controller': self.controller.name,
-                'finished': self.finished,
+                'finished': self.sched.finished,
                 'model': self.kind, 'horizon': self.controller.horizon,
                 'time_budget_s': self.settings.time_budget_s,
                 'scheduling': getattr(self, 'scheduling', 'off')}
         vals.update(self.count)
+        vals.update(self.sched.count)
         vals.update(diag.flatten('solve_ms', self.solve.summary()))
         vals.update(diag.flatten('latency_ms', self.latency.summary()))
         vals.update(diag.flatten('rx_latency_ms', self.rx_latency.summary()))

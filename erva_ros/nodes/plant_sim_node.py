@@ -39,7 +39,8 @@ from erva_ros.live import diagnostics as diag
 from erva_ros.live.command_hold import CommandHold
 from erva_ros.live.msgs import (accel_msg, clock_msg, generator_msg, parse_damping,
                                 parse_road_height, s_to_ns, state_msg)
-from erva_ros.live.parameters import declare_erva_params, declare_live, loop_priority
+from erva_ros.live.parameters import (declare_erva_params, declare_live, loop_priority,
+                                      stamp_window)
 from erva_ros.live.runtime import run_node
 from erva_ros.live.timing import DurationStats, PeriodStats
 from erva_ros.live.validation import MessageRejected, Rejections
@@ -47,8 +48,8 @@ from erva_ros.plant import PlantSimulator
 
 LIVE_PARAMETERS = ('mode', 'model', 'ts', 'duration_s', 'command_timeout_s',
                    'lockstep_timeout_s', 'wait_for_subscribers', 'start_delay_s',
-                   'diagnostics_period_s', 'reject_log_period_s',
-                   'realtime_priority')
+                   'diagnostics_period_s', 'reject_log_period_s', 'max_stamp_lead_s',
+                   'max_stamp_age_s', 'publisher_history_s', 'realtime_priority')
 
 
 class PlantSimNode(Node):
@@ -66,6 +67,10 @@ class PlantSimNode(Node):
         self.n_steps = int(round(cfg['duration_s'] / cfg['ts']))
         self.plant = PlantSimulator(self.params, self.kind, cfg['ts'])
         self.hold = CommandHold(self.ts_ns, self.params.c_e0, s_to_ns(cfg['command_timeout_s']))
+        # A road height or command stamped far from this node's clock is foreign or corrupt:
+        # one from the future would otherwise make the plant integrate up to it, or hold
+        # back every real command as "older".
+        self.window = stamp_window(cfg, cfg['ts'], self.lockstep)
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
 
         self.k = None            # index of the current sample (state x_k published)
@@ -89,11 +94,12 @@ class PlantSimNode(Node):
         self._state_pub_ns = 0
 
         qos = topics.control_qos()
-        self.pub_state = self.create_publisher(JointState, topics.STATE, qos)
-        self.pub_accel = self.create_publisher(AccelStamped, topics.SPRUNG_ACCEL, qos)
-        self.pub_gen = self.create_publisher(JointState, topics.GENERATOR, qos)
+        pub_qos = topics.publisher_qos(cfg['publisher_history_s'], cfg['ts'])
+        self.pub_state = self.create_publisher(JointState, topics.STATE, pub_qos)
+        self.pub_accel = self.create_publisher(AccelStamped, topics.SPRUNG_ACCEL, pub_qos)
+        self.pub_gen = self.create_publisher(JointState, topics.GENERATOR, pub_qos)
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
-        self.pub_clock = (self.create_publisher(ClockMsg, topics.CLOCK, qos)
+        self.pub_clock = (self.create_publisher(ClockMsg, topics.CLOCK, pub_qos)
                           if self.lockstep else None)
         self.status = diag.StatusReporter(
             self.get_fully_qualified_name(), f'plant:{self.kind}', self.pub_diag.publish,
@@ -117,6 +123,7 @@ class PlantSimNode(Node):
         rx_ns = time.time_ns()
         try:
             stamp, _, w = parse_road_height(msg)
+            self.window.check('road height', stamp, self.get_clock().now().nanoseconds)
         except MessageRejected as exc:
             self.rejections.reject(topics.ROAD_HEIGHT, str(exc))
             return
@@ -191,6 +198,7 @@ class PlantSimNode(Node):
         rx_ns = time.time_ns()
         try:
             stamp, plan = parse_damping(msg, self.ts_ns)
+            self.window.check('command', stamp, self.get_clock().now().nanoseconds)
         except MessageRejected as exc:
             self.rejections.reject(topics.DAMPING_CMD, str(exc))
             return

@@ -37,8 +37,7 @@ LIVE_PARAMETERS = ('mode', 'ts', 'duration_s', 'road', 'road_file', 'seed', 'roa
                    'speed_mps', 'bump_height_m', 'bump_length_m', 'bump_start_s',
                    'preview_steps', 'preview_noise', 'preview_snr_db', 'preview_delay_s',
                    'wait_for_subscribers', 'start_delay_s', 'diagnostics_period_s',
-                   'reject_log_period_s',
-                   'realtime_priority')
+                   'reject_log_period_s', 'publisher_history_s', 'realtime_priority')
 
 
 class RoadPreviewNode(Node):
@@ -56,6 +55,7 @@ class RoadPreviewNode(Node):
         self.n_samples = int(round(cfg['duration_s'] / self.ts)) + 1
         self.last_k = -1
         self.published = 0
+        self.skipped = 0
         self.start_ns = None
         self.finished = False
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -69,8 +69,9 @@ class RoadPreviewNode(Node):
         if cfg['mode'] == 'lockstep':
             # Subscribed before the publishers exist: the plant waits for them to appear.
             self.create_subscription(ClockMsg, topics.CLOCK, self._on_clock, qos)
-        self.pub_preview = self.create_publisher(JointTrajectory, topics.ROAD_PREVIEW, qos)
-        self.pub_height = self.create_publisher(PointStamped, topics.ROAD_HEIGHT, qos)
+        pub_qos = topics.publisher_qos(cfg['publisher_history_s'], self.ts)
+        self.pub_preview = self.create_publisher(JointTrajectory, topics.ROAD_PREVIEW, pub_qos)
+        self.pub_height = self.create_publisher(PointStamped, topics.ROAD_HEIGHT, pub_qos)
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
         self.status = diag.StatusReporter(
             self.get_fully_qualified_name(), f'road:{self.road.name}', self.pub_diag.publish,
@@ -122,14 +123,26 @@ class RoadPreviewNode(Node):
         if now - self._ready_since < self.cfg['start_delay_s']:
             return
         self._start_timer.cancel()
-        # rcl timers fire at creation + m·period without drift: sample k is due at start + k·Ts.
-        self.start_ns = self.get_clock().now().nanoseconds + self.ts_ns
+        # rcl timers fire at creation + m·period without drift; the grid is anchored at the
+        # first firing's scheduled instant (below), so no sample is stamped ahead of its time.
         self._sample_timer = self.create_timer(self.ts, self._on_sample_timer)
         self.status.set(diag.OK, 'running')
 
     def _on_sample_timer(self) -> None:
         now = self.get_clock().now().nanoseconds
-        k = max(self.last_k + 1, int(round((now - self.start_ns) / self.ts_ns)))
+        if self.start_ns is None:
+            # This firing's scheduled instant (the next one minus a period): later firings
+            # are never before their own scheduled instant, so they never land in the
+            # previous period however late this one was.
+            self.start_ns = now + self._sample_timer.time_until_next_call() - self.ts_ns
+        # The newest grid instant that has passed: t_k <= now always, so a sample is
+        # stamped with when it was taken, never later (rounding a late firing up made
+        # stamps up to Ts ahead of the clock and latencies negative).
+        k = (now - self.start_ns) // self.ts_ns
+        if k <= self.last_k:
+            return
+        if k > self.last_k + 1:
+            self.skipped += k - self.last_k - 1   # the timer fell behind by whole periods
         if k >= self.n_samples:
             self._finish()
             return
@@ -158,6 +171,7 @@ class RoadPreviewNode(Node):
     def _diag_values(self):
         return {'mode': self.cfg['mode'], 'road': self.road.name, 'seed': self.cfg['seed'],
                 'samples_published': self.published, 'samples_total': self.n_samples,
+                'samples_skipped': self.skipped,
                 'preview_points': self.cfg['preview_steps'] + 1,
                 'preview_error': 'perfect' if self.error_model.is_perfect else
                 f'snr={self.error_model.snr_db} dB delay={self.error_model.delay_s:g} s',
