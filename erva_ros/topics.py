@@ -68,6 +68,15 @@ def control_qos(depth: int = 10):
                       durability=DurabilityPolicy.VOLATILE)
 
 
+def diagnostics_qos():
+    """Return the QoS of a node's /diagnostics publisher: :func:`control_qos`, keep-last 100.
+
+    A status comes about twice a second: 100 of them (~50 s) let reliable delivery repair
+    a stalled recorder, as :func:`publisher_qos` does for the data.
+    """
+    return control_qos(100)
+
+
 def publisher_depth(history_s: float, ts: float) -> int:
     """Return the keep-last depth that holds ``history_s`` of samples every ``ts`` (>= 10)."""
     return max(10, int(math.ceil(history_s / ts - 1e-9)))

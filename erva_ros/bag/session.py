@@ -100,10 +100,12 @@ def session_metadata(scenario: str, parameters: Optional[Mapping[str, Any]] = No
 def recorder_ros_args(bag_dir: str, metadata: Optional[Mapping[str, Any]] = None,
                       topics: Optional[Sequence[str]] = None, namespace: Optional[str] = None,
                       node_name: Optional[str] = None, flush_period_s: Optional[float] = None,
-                      use_sim_time: bool = False) -> List[str]:
+                      use_sim_time: bool = False,
+                      parameters: Optional[Mapping[str, Any]] = None) -> List[str]:
     """Return the ``--ros-args ...`` that start recorder_node on ``bag_dir``.
 
-    The JSON metadata goes in as a double-quoted YAML scalar, so rcl keeps it a string.
+    The JSON metadata goes in as a double-quoted YAML scalar, so rcl keeps it a string;
+    ``parameters`` are further numeric or boolean recorder parameters.
     """
     args = ['--ros-args']
     if node_name:
@@ -120,6 +122,8 @@ def recorder_ros_args(bag_dir: str, metadata: Optional[Mapping[str, Any]] = None
         args += ['-p', f'flush_period_s:={float(flush_period_s)!r}']
     if use_sim_time:
         args += ['-p', 'use_sim_time:=true']
+    for key, value in (parameters or {}).items():
+        args += ['-p', f'{key}:={json.dumps(value)}']
     return args
 
 

@@ -52,7 +52,8 @@ class EcuSimRos:
         self.pub_accel = self.node.create_publisher(AccelStamped, topics.SPRUNG_ACCEL, qos)
         self.pub_gen = self.node.create_publisher(JointState, topics.GENERATOR, qos)
         self.pub_state = self.node.create_publisher(JointState, hil_topics.TRUE_STATE, qos)
-        self.pub_diag = self.node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
+        self.pub_diag = self.node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
+                                                   topics.diagnostics_qos())
         self.diag_period = diagnostics_period_s
         self._last_diag = 0.0
         self.name = self.node.get_fully_qualified_name()

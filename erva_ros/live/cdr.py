@@ -73,6 +73,12 @@ class _Reader:
         self.pos += 8
         return sec, nsec
 
+    def byte(self) -> int:
+        self._need(1)
+        v = self.buf[self.pos]
+        self.pos += 1
+        return v
+
     def string(self) -> str:
         n = self.u32()
         if n == 0 or n > MAX_ELEMENTS:
@@ -130,6 +136,37 @@ def decode_joint_trajectory(data: bytes):
     return stamp, names, points
 
 
+def header_stamp_ns(data: bytes) -> int:
+    """Return the stamp (ns) of a message that starts with a std_msgs/Header or a Time.
+
+    Every topic of the loop is such a message (rosgraph_msgs/Clock starts with its Time).
+    """
+    sec, nsec = _Reader(data).time_ns()
+    return sec * 1_000_000_000 + nsec
+
+
+def status_seqs(data: bytes) -> List[Tuple[str, int]]:
+    """Return (node, status_seq) of each status in a diagnostic_msgs/DiagnosticArray.
+
+    ``node`` is the status name's last path element (``/erva/nmpc_node`` -> ``nmpc_node``);
+    statuses without a ``status_seq`` value are left out.
+    """
+    r = _Reader(data)
+    r.header()
+    out = []
+    for _ in range(r.count()):
+        r.byte()                                    # level
+        name, _, _ = r.string(), r.string(), r.string()
+        seq = None
+        for _ in range(r.count()):
+            key, value = r.string(), r.string()
+            if key == 'status_seq':
+                seq = int(value)
+        if seq is not None:
+            out.append((name.rsplit('/', 1)[-1], seq))
+    return out
+
+
 class JointStateEncoder:
     """Encode sensor_msgs/JointState messages with fixed names and an empty frame_id.
 
@@ -172,4 +209,5 @@ def encode_accel_stamped(stamp_ns: int, linear=(0.0, 0.0, 0.0), angular=(0.0, 0.
 
 
 __all__ = ['CdrError', 'JointStateEncoder', 'encode_accel_stamped', 'decode_joint_state',
-           'decode_joint_trajectory', 'CDR_LE', 'MAX_ELEMENTS']
+           'decode_joint_trajectory', 'header_stamp_ns', 'status_seqs', 'CDR_LE',
+           'MAX_ELEMENTS']

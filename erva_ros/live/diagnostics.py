@@ -14,7 +14,7 @@ between a sample's arrival and its result: the period timer only marks it due
 
 import math
 import time
-from typing import Any, Callable, Dict, Optional, Tuple
+from typing import Any, Callable, Dict, Optional, Sequence, Tuple
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
@@ -71,21 +71,48 @@ def flatten(prefix: str, stats: Dict[str, Any]) -> Dict[str, Any]:
     return {f'{prefix}_{k}': v for k, v in stats.items()}
 
 
+class CountedPublisher:
+    """A publisher that counts what it published, for the session's loss accounting.
+
+    ``erva run`` compares, per topic, what every node says it published with what the
+    recorder and the bag hold; the node's status carries ``published:<topic>`` and the
+    subscriptions its writer has matched, ``subscribers:<topic>`` (the start gate).
+    """
+
+    def __init__(self, publisher):
+        self.publisher = publisher
+        self.topic = publisher.topic_name
+        self.count = 0
+
+    def publish(self, msg) -> None:
+        """Publish ``msg`` (a message or its CDR bytes) and count it."""
+        self.publisher.publish(msg)
+        self.count += 1
+
+    def get_subscription_count(self) -> int:
+        """Return the subscriptions this writer has matched."""
+        return self.publisher.get_subscription_count()
+
+
 class StatusReporter:
     """Publish a node's status periodically and immediately on a level or message change.
 
     ``values`` is called at every publication and returns the current counters and
     timings; ``publish`` is the /diagnostics publisher's publish method, ``now_ns``
-    the node clock.
+    the node clock.  Every status also carries ``status_seq`` (1, 2, ... per node: a
+    recording can show that none is missing) and, for each of ``publishers``
+    (:class:`CountedPublisher`), ``published:<topic>`` and ``subscribers:<topic>``.
     """
 
     def __init__(self, name: str, hardware_id: str, publish: Callable[[DiagnosticArray], None],
-                 now_ns: Callable[[], int], values: Callable[[], Dict[str, Any]]):
+                 now_ns: Callable[[], int], values: Callable[[], Dict[str, Any]],
+                 publishers: Sequence['CountedPublisher'] = ()):
         self.name = name
         self.hardware_id = hardware_id
         self._publish = publish
         self._now_ns = now_ns
         self._values = values
+        self.publishers = list(publishers)
         self.level = OK
         self.message = 'starting'
         self.published = 0
@@ -116,7 +143,12 @@ class StatusReporter:
         """Publish the current status with fresh values."""
         arr = DiagnosticArray()
         arr.header.stamp = ns_to_time(self._now_ns())
-        arr.status = [status_msg(self.name, self.level, self.message, self._values(),
+        values = dict(self._values())
+        values['status_seq'] = self.published + 1
+        for pub in self.publishers:
+            values[f'published:{pub.topic}'] = pub.count
+            values[f'subscribers:{pub.topic}'] = pub.get_subscription_count()
+        arr.status = [status_msg(self.name, self.level, self.message, values,
                                  self.hardware_id)]
         self._publish(arr)
         self.published += 1
@@ -124,4 +156,5 @@ class StatusReporter:
 
 
 __all__ = ['OK', 'WARN', 'ERROR', 'STALE', 'LEVEL_NAMES', 'format_value', 'status_msg',
-           'parse_status', 'value_float', 'value_int', 'flatten', 'StatusReporter']
+           'parse_status', 'value_float', 'value_int', 'flatten', 'CountedPublisher',
+           'StatusReporter']

@@ -48,7 +48,7 @@ class Monitor(Node):
                  hil: bool = False):
         super().__init__(name, namespace=namespace, context=context,
                          start_parameter_services=False)
-        self._qos = topics.control_qos(depth=100)
+        self._qos = topics.control_qos(depth=1000)   # a stalled erva run loses nothing
         self._types = {topics.STATE: JointState, topics.SPRUNG_ACCEL: AccelStamped,
                        topics.GENERATOR: JointState, topics.ROAD_HEIGHT: PointStamped,
                        topics.ROAD_PREVIEW: JointTrajectory, topics.DAMPING_CMD: JointTrajectory}
@@ -57,6 +57,8 @@ class Monitor(Node):
             from erva_ros.hil.topics import TRUE_STATE
             self._types[TRUE_STATE] = JointState
             self.truth_topic = TRUE_STATE
+        #: Every topic this monitor subscribes to (relative names, as in topics.py).
+        self.watched = (*self._types, topics.DIAGNOSTICS)
         self._raw: Dict[str, List[Tuple[int, bytes]]] = {t: [] for t in self._types}
         self._decoded = -1
         self.received = {t: 0 for t in (*self._types, topics.DIAGNOSTICS)}

@@ -42,7 +42,7 @@ import yaml
 from erva_ros import topics
 from erva_ros.controllers.settings import load_controller_settings
 from erva_ros.errors import CLIError
-from erva_ros.live import hil_summary
+from erva_ros.live import accounting, hil_summary
 from erva_ros.live.parameters import (LIVE_CHOICES, LIVE_DEFAULTS, LIVE_INTEGERS,
                                       LIVE_NUMERIC, LIVE_OTHER)
 from erva_ros.live.scenario import build_road, required_preview_steps
@@ -62,11 +62,15 @@ HIL_START_DELAY_S = 1.5
 #: HIL: the bridge and the estimator send no final status; after the finish, wait up to
 #: this long for their next periodic one (period 0.5 s, config/hil.yaml).
 HIL_DRAIN_S = 1.5
-#: How long, after that, `erva run` waits for the recorder to report every message the nodes
-#: published (its status comes every 0.5 s) before stopping them: a publisher that exits
-#: takes the samples not yet delivered with it.  (A known defect is not cured by waiting:
-#: in ~1 run in 4 the recorder misses the plant's last samples for good; README.)
-RECORDER_DRAIN_S = 2.0
+#: After that, `erva run` waits for the recorder to report every message the nodes
+#: published (its status comes every RECORDER_STATUS_S) before stopping them, while it
+#: makes progress, giving up after this long without any (the reason goes in the summary).
+RECORDER_STALL_S = 5.0
+#: The recorder's status period in a session (the start gate and the drain read it).
+RECORDER_STATUS_S = 0.25
+#: The recorder runs at SCHED_FIFO this much below the loop's nodes: above other work on
+#: the machine, so the record is not starved, below the loop, so the loop goes first.
+RECORDER_PRIORITY_BELOW = 10
 #: The end of the recorder's /diagnostics status name ('<its node name>: bag recorder').
 RECORDER_STATUS = ': bag recorder'
 #: Live parameters that belong to one node's section of the session params file.
@@ -341,13 +345,18 @@ def _recorder(cfg: RunConfig, session: Session, bag_parent: str, env, log) -> No
     if session.hil:
         from erva_ros.hil.topics import RECORD_TOPICS
         record += RECORD_TOPICS
+    loop_priority = session.live['realtime_priority'] if session.realtime else 0
     argv = [sys.executable, '-m', 'erva_ros.nodes.recorder_node',
-            *bag_session.recorder_ros_args(bag_dir, meta, topics=record,
-                                           namespace=cfg.namespace,
-                                           use_sim_time=not session.realtime)]
+            *bag_session.recorder_ros_args(
+                bag_dir, meta, topics=record, namespace=cfg.namespace,
+                use_sim_time=not session.realtime,
+                parameters={'diagnostics_period_s': RECORDER_STATUS_S,
+                            'realtime_priority': max(0, loop_priority - RECORDER_PRIORITY_BELOW)
+                            if loop_priority > 1 else 0})]
     proc = NodeProcess('recorder_node', argv,
                        os.path.join(session.directory, 'recorder_node.log'), env)
     proc.bag_dir = bag_dir
+    proc.topics = record
     log(f'recording to {bag_dir}')
     return proc
 
@@ -381,6 +390,7 @@ class _Supervisor:
         self.caught: List[int] = []
         self.phase = 'starting'
         self.t_start = time.monotonic()
+        self.t_start_ns = time.time_ns()
         self.needed = set(self.NEEDED) | (set() if session.realtime else {'nmpc_node'})
         # Processes run, and those that report `finished` on /diagnostics.
         self.node_names, self.finishers = NODES, NODES
@@ -393,13 +403,36 @@ class _Supervisor:
         self.context = rclpy.Context()
         rclpy.init(args=[], context=self.context,
                    signal_handler_options=SignalHandlerOptions.NO)
-        # The monitor subscribes to the time master's topics last (see Monitor).
-        gate = ((topics.ROAD_HEIGHT, topics.ROAD_PREVIEW) if session.realtime
-                else (topics.STATE,))
-        self.monitor = Monitor(cfg.namespace, context=self.context, gate=gate,
+        # The monitor subscribes to the time master's gate topic last (see Monitor): the
+        # time master starts only once that subscription is matched too.
+        self.gate = (topics.ROAD_PREVIEW,) if session.realtime else (topics.STATE,)
+        self.monitor = Monitor(cfg.namespace, context=self.context, gate=self.gate,
                                hil=session.hil)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.monitor)
+        self.recording_report: Dict[str, Any] = {}
+        self._unmatched: List[str] = []
+        self._expect_matches()
+
+    def _expect_matches(self) -> None:
+        """Work out how many subscribers each loop writer must match before the start."""
+        ns = self.cfg.namespace
+        loop = accounting.hil_loop_subscribers() if self.session.hil else dict(
+            accounting.LOOP_SUBSCRIBERS)
+        observers = [self.monitor.watched]
+        if self.recording:
+            from erva_ros.nodes.recorder_node import DEFAULT_TOPICS
+            record = list(DEFAULT_TOPICS)
+            if self.session.hil:
+                from erva_ros.hil.topics import RECORD_TOPICS
+                record += RECORD_TOPICS
+            observers.append(record)
+            # One writer per data topic; /diagnostics: every node and the recorder itself.
+            self.record_writers = {accounting.qualify(t, ns): 1 for t in record
+                                   if t not in (topics.CLOCK, topics.DIAGNOSTICS)}
+            self.record_writers[topics.DIAGNOSTICS] = len(self.node_names) + 1
+        self.expected = accounting.expected_subscribers(loop, observers, ns)
+        self.later = {accounting.qualify(t, ns): 1 for t in self.gate}
 
     def start(self) -> None:
         """Start the recorder (when recording) and the nodes, slowest first."""
@@ -441,15 +474,17 @@ class _Supervisor:
                 return
             now = time.monotonic()
             if self.phase == 'connecting':
-                if self._graph_ready() and self.monitor.connect(
+                if self._graph_ready() and self._matched() and self.monitor.connect(
                         n_diagnostics=len(self.node_names)):
                     self.phase = 'running'
                     self.log(f'connected in {now - self.t_start:.1f} s; running '
                              f'{self.session.live["duration_s"]:g} s '
                              f'({self.session.live["mode"]})')
                 elif now - self.t_start > self.cfg.startup_timeout_s:
+                    waiting = '; '.join(self._unmatched[:4]) or 'the monitor\'s subscriptions'
                     self.errors.append(f'the nodes did not connect within '
-                                       f'{self.cfg.startup_timeout_s:g} s')
+                                       f'{self.cfg.startup_timeout_s:g} s (waiting for: '
+                                       f'{waiting})')
                     return
             elif self.phase == 'running':
                 states = self.monitor.received[topics.STATE]
@@ -465,6 +500,21 @@ class _Supervisor:
                     return
             elif self._drained(now - finish_seen, finish_ns):
                 return   # drained: the final diagnostics and messages in flight arrived
+
+    def _matched(self) -> bool:
+        """Return True once every loop writer and the recorder have matched all their peers.
+
+        Before the monitor's gate subscription exists (it opens the start), so the gate
+        topic's writer needs one subscriber less here.
+        """
+        statuses = {n: v[2] for n, v in self.monitor.diag.items()}
+        nodes = list(self.node_names) + (['recorder'] if self.recording else [])
+        missing = accounting.unmatched(statuses, nodes, self.expected, self.later)
+        if self.recording:
+            recorder = next((v for n, v in statuses.items() if n.endswith(RECORDER_STATUS)), {})
+            missing += accounting.recorder_unmatched(recorder, self.record_writers)
+        self._unmatched = missing
+        return not missing
 
     def _graph_ready(self) -> bool:
         """HIL: return True once the ROS graph shows the whole loop (always True otherwise).
@@ -515,27 +565,36 @@ class _Supervisor:
             fresh = all(self.monitor.diag_rx(n) > finish_ns for n in hil_summary.PERIODIC
                         if n.split(':')[0] not in self.dead)
             done = elapsed > HIL_DRAIN_S or (fresh and _all_received(self.monitor))
-        # The recorder is waited for only after a clean ending (every count in, nothing
-        # missing): a node still publishing (safe commands without states) would keep it
-        # behind and only add commands to the summary.
-        if (not done or not self.recording or 'recorder_node' in self.dead
-                or not _all_received(self.monitor)):
+        if not done or not self.recording or 'recorder_node' in self.dead:
             return done
-        return elapsed > RECORDER_DRAIN_S or self._recorder_caught_up()
+        return self._recorder_caught_up()
 
     def _recorder_caught_up(self) -> bool:
-        """Return True once the recorder's status counts every message the nodes published."""
-        counts = next((self.monitor.diag_values(name) for name in list(self.monitor.diag)
-                       if name.endswith(RECORDER_STATUS)), {})
-        ns = self.cfg.namespace.rstrip('/')
-        for topic, n in self.monitor.published().items():
-            if n is None:         # that node's final count is unknown: nothing to wait for
-                continue
-            name = topic if topic.startswith('/') else f'{ns}/{topic}'
-            got = counts.get(f'count:{name}')
-            if got is not None and int(got) < n:
-                return False
-        return bool(counts)
+        """Return True once the recorder holds every message the nodes published (so far).
+
+        A publisher that exits takes what it has not delivered with it, so the nodes stay
+        up until then -- as long as the recorder makes progress; after RECORDER_STALL_S
+        without any, give up and say why in the summary.
+        """
+        recorder = next((self.monitor.diag_values(name) for name in list(self.monitor.diag)
+                         if name.endswith(RECORDER_STATUS)), {})
+        statuses = {n: v[2] for n, v in self.monitor.diag.items()
+                    if not n.endswith(RECORDER_STATUS)}
+        behind = accounting.recorder_behind(recorder, accounting.published_counts(statuses))
+        if not behind:
+            return True
+        total = sum(got for got, _ in behind.values())
+        now = time.monotonic()
+        if total != getattr(self, '_drain_total', None):
+            self._drain_total, self._drain_progress = total, now
+        if now - self._drain_progress > RECORDER_STALL_S:
+            topic, (got, n) = next(iter(behind.items()))
+            self.recording_report['gave_up'] = (
+                f'the recorder made no progress for {RECORDER_STALL_S:g} s with {topic} at '
+                f'{got} of {n} messages; the nodes were stopped')
+            self.log(self.recording_report['gave_up'])
+            return True
+        return False
 
     def _check_deaths(self) -> bool:
         """Record nodes that exited on their own; return True if the run must stop."""
@@ -591,6 +650,7 @@ class _Supervisor:
                                    + (f': {p.tail(1)}' if p.tail(1) else ''))
         if 'recorder_node' in self.procs:
             summary['bag'] = self.procs['recorder_node'].bag_dir
+            summary['recording'] = self._check_recording()
         if summary['commands']['received'] == 0 and not self.caught:
             self.errors.append('no damping commands were received')
         summary.update({
@@ -605,6 +665,37 @@ class _Supervisor:
             'session_dir': s.directory,
         })
         return summary
+
+    def _check_recording(self) -> Dict[str, Any]:
+        """Compare the bag file with what every node published; add an error per loss."""
+        report = dict(self.recording_report)
+        rec = self.procs['recorder_node']
+        statuses = {n: v[2] for n, v in self.monitor.diag.items()}
+        recorder = next((v for n, v in statuses.items() if n.endswith(RECORDER_STATUS)), {})
+        report['lost_in_transport'] = int(recorder.get('lost_in_transport', 0))
+        published = accounting.published_counts(
+            {n: v for n, v in statuses.items() if not n.endswith(RECORDER_STATUS)})
+        seqs = {n: int(v['status_seq']) for n, v in statuses.items() if 'status_seq' in v}
+        if self.session.realtime:   # stamps outside `erva run`'s lifetime are not the loop's
+            window = (self.t_start_ns, time.time_ns())
+        else:
+            window = (0, int((self.session.live['duration_s'] + 10.0) * 1e9))
+        try:
+            report.update(accounting.check_bag(rec.bag_dir, published, seqs, window))
+        except Exception as exc:    # BagError, CdrError: the file itself is the problem
+            report['error'] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            self.errors.append(f'the bag cannot be checked: {report["error"]}')
+            return report
+        for topic, c in report['topics'].items():
+            if c['lost']:
+                self.errors.append(f'the bag lost {c["lost"]} of {c["published"]} messages '
+                                   f'on {topic}')
+        for name, gaps in report['diagnostics_missing'].items():
+            self.errors.append(f'the bag lacks /diagnostics statuses of {name}: {gaps}')
+        if report['lost_in_transport']:
+            self.errors.append(f'the middleware reported {report["lost_in_transport"]} '
+                               f'messages lost before the recorder took them')
+        return report
 
     def exit_code(self) -> int:
         """Return 128 + signal if interrupted, 1 on any error, else 0."""

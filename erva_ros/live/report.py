@@ -53,7 +53,8 @@ def format_summary(s: Dict[str, Any]) -> str:
                      f'({m["harvested_j"]:.4g} J)')
     if m.get('realtime_factor'):
         lines.append(f'  pace      {m["realtime_factor"]:.2f}x real time')
-    rate = f'{cmd["rate_hz"]:.2f} Hz' if cmd.get('rate_hz') else 'n/a (lock-step)'
+    rate = (f'{cmd["rate_hz"]:.2f} Hz' if cmd.get('rate_hz') else
+            'n/a (lock-step)' if sc['mode'] == 'lockstep' else 'n/a')
     lines.append(f'  commands  {cmd["received"]} received, rate {rate}')
     if 'period_jitter_ms' in cmd:
         lines.append(f'  jitter    command period |Δt - Ts| at the plant '
@@ -85,6 +86,7 @@ def format_summary(s: Dict[str, Any]) -> str:
                      f'({len(s["scheduling"])} node{"s" if len(s["scheduling"]) > 1 else ""})')
     if s.get('bag'):
         lines.append(f'  bag       {s["bag"]}')
+        lines.extend(_recording_lines(s.get('recording') or {}))
     if s['errors']:
         for e in s['errors']:
             lines.append(f'  ERROR     {e}')
@@ -92,6 +94,21 @@ def format_summary(s: Dict[str, Any]) -> str:
         lines.append(f'  ok        all nodes ran and stopped cleanly ({s["wall_time_s"]:.1f} s '
                      'wall)')
     return '\n'.join(lines)
+
+
+def _recording_lines(r: Dict[str, Any]) -> List[str]:
+    if 'topics' not in r:
+        return []
+    pub = sum(c['published'] for c in r['topics'].values())
+    rec = sum(c['recorded'] for c in r['topics'].values())
+    foreign = sum(c['foreign'] for c in r['topics'].values())
+    line = (f'  recorded  {rec} of {pub} published messages on {len(r["topics"])} topics, '
+            f'{r["lost"]} lost')
+    if foreign:
+        line += f'; {foreign} foreign (stamped outside the session)'
+    if r.get('lost_in_transport'):
+        line += f'; the middleware reported {r["lost_in_transport"]} lost in transport'
+    return [line]
 
 
 def _hil_lines(h: Dict[str, Any]) -> List[str]:

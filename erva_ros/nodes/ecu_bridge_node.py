@@ -126,7 +126,8 @@ class EcuBridgeNode(Node):
         self.pub_applied = self.create_publisher(JointState, hil_topics.ECU_DAMPING_APPLIED,
                                                  qos)
         self.pub_meas = self.create_publisher(JointState, hil_topics.ECU_MEASUREMENTS, qos)
-        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
+        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
+                                              topics.diagnostics_qos())
         self.enc_applied = JointStateEncoder(hil_topics.APPLIED_JOINTS)
         self.enc_susp = JointStateEncoder((hil_topics.SUSPENSION_JOINT,))
         self.enc_gen = JointStateEncoder((topics.GENERATOR_JOINT,))

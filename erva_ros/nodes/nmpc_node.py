@@ -110,14 +110,15 @@ class NMPCNode(Node):
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
 
         qos = topics.control_qos()
-        self.pub_cmd = self.create_publisher(
+        self.pub_cmd = diag.CountedPublisher(self.create_publisher(
             JointTrajectory, topics.DAMPING_CMD,
-            topics.publisher_qos(cfg['publisher_history_s'], self.ts))
-        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
+            topics.publisher_qos(cfg['publisher_history_s'], self.ts)))
+        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
+                                              topics.diagnostics_qos())
         self.status = diag.StatusReporter(
             self.get_fully_qualified_name(), f'controller:{self.controller.name}',
             self.pub_diag.publish, lambda: self.get_clock().now().nanoseconds,
-            self._diag_values)
+            self._diag_values, publishers=[self.pub_cmd])
         # Subscribed last: a subscriber seen by the road node means the controller is built.
         self.create_subscription(JointTrajectory, topics.ROAD_PREVIEW, self._on_preview, qos)
         self.create_subscription(JointState, topics.STATE, self._on_state, qos)

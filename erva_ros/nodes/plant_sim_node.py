@@ -95,15 +95,20 @@ class PlantSimNode(Node):
 
         qos = topics.control_qos()
         pub_qos = topics.publisher_qos(cfg['publisher_history_s'], cfg['ts'])
-        self.pub_state = self.create_publisher(JointState, topics.STATE, pub_qos)
-        self.pub_accel = self.create_publisher(AccelStamped, topics.SPRUNG_ACCEL, pub_qos)
-        self.pub_gen = self.create_publisher(JointState, topics.GENERATOR, pub_qos)
-        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
-        self.pub_clock = (self.create_publisher(ClockMsg, topics.CLOCK, pub_qos)
+        counted = diag.CountedPublisher
+        self.pub_state = counted(self.create_publisher(JointState, topics.STATE, pub_qos))
+        self.pub_accel = counted(self.create_publisher(AccelStamped, topics.SPRUNG_ACCEL,
+                                                       pub_qos))
+        self.pub_gen = counted(self.create_publisher(JointState, topics.GENERATOR, pub_qos))
+        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
+                                              topics.diagnostics_qos())
+        self.pub_clock = (counted(self.create_publisher(ClockMsg, topics.CLOCK, pub_qos))
                           if self.lockstep else None)
         self.status = diag.StatusReporter(
             self.get_fully_qualified_name(), f'plant:{self.kind}', self.pub_diag.publish,
-            lambda: self.get_clock().now().nanoseconds, self._diag_values)
+            lambda: self.get_clock().now().nanoseconds, self._diag_values,
+            publishers=[self.pub_state, self.pub_accel, self.pub_gen]
+            + ([self.pub_clock] if self.pub_clock else []))
         self.sub_cmd = self.create_subscription(JointTrajectory, topics.DAMPING_CMD,
                                                 self._on_command, qos)
         self.sub_height = self.create_subscription(PointStamped, topics.ROAD_HEIGHT,

@@ -25,10 +25,23 @@ Parameters (read at start-up):
 ``compression``     string        MCAP chunk compression: none (rosbag2 default), zstd, lz4
 ``fsync``           bool          also fsync at each flush (survives power loss)
 ``diagnostics_period_s`` double   period of the recorder's own /diagnostics status
-``nice``            int           CPU niceness added to this process (default 10): the
-                                  control loop's nodes get the CPU first; DDS keeps 10
-                                  messages per topic (200 ms at 50 Hz) for the recorder
+``realtime_priority`` int         SCHED_FIFO priority of every thread of the recorder
+                                  (its DDS receive threads too); 0 = normal scheduling.
+                                  `erva run` sets it below the loop's, so the record of a
+                                  real-time loop is not starved by other work on the
+                                  machine while the loop still goes first
+``nice``            int           CPU niceness added to this process with normal
+                                  scheduling (default 10)
 ==================  ============  =========================================================
+
+What survives a recorder stall: the loop's publishers keep ``publisher_history_s``
+(10 s) of samples for reliable repair, and each subscription here keeps
+``RECORDER_DEPTH`` samples, so a recorder stopped for seconds (SIGSTOP, a slow disk)
+receives everything once it runs again.  The status on ``/diagnostics`` (every
+``diagnostics_period_s``) reports per topic ``count:<topic>`` (messages written) and
+``publishers:<topic>`` (writers this subscription has matched: `erva run` starts the
+loop only when every one is), and ``lost_in_transport`` (samples the middleware
+reports lost before the recorder took them).
 
 SIGINT/SIGTERM: pending messages are taken, the file is finished (summary, indexes,
 metadata.yaml) and the node exits 0.  A bag that cannot be written (directory exists
@@ -63,6 +76,7 @@ from erva_ros.bag.qos import profile_to_dict
 from erva_ros.bag.schemas import message_class
 from erva_ros.bag.session import session_metadata
 from erva_ros.bag.writer import BagWriter, COMPRESSIONS, DEFAULT_CHUNK_SIZE
+from erva_ros.live.realtime import MAX_PRIORITY, set_fifo_priority
 
 #: Default topics: relative names resolve against the node namespace (default /erva).
 DEFAULT_TOPICS = [contract.STATE, contract.SPRUNG_ACCEL, contract.GENERATOR,
@@ -106,8 +120,11 @@ PARAMETERS = {
                              'period of the recorder status on /diagnostics (s)',
                              _range(0.1, 60.0)),
     'nice': (10, ParameterType.PARAMETER_INTEGER,
-             'CPU niceness added to the recorder process, so the control loop goes first',
+             'CPU niceness added to the recorder process with normal scheduling',
              _range(0, 19, integer=True)),
+    'realtime_priority': (0, ParameterType.PARAMETER_INTEGER,
+                          'SCHED_FIFO priority of the recorder\'s threads (0: normal '
+                          'scheduling); below the loop\'s', _range(0, MAX_PRIORITY, integer=True)),
 }
 
 
@@ -124,8 +141,10 @@ class RecorderNode(Node):
         if p['compression'] not in COMPRESSIONS:
             raise ValueError(f'parameter compression={p["compression"]!r}: choose from '
                              f'{", ".join(COMPRESSIONS)}')
-        if p['nice']:
+        if p['nice'] and not p['realtime_priority']:
             os.nice(p['nice'])
+        #: Applied once the node exists (main): its DDS threads are running by then.
+        self.realtime_priority = p['realtime_priority']
         self.bag_dir = p['bag_dir']
         session = self._session(p['session_metadata'])
         self._use_sim_time = bool(self.get_parameter('use_sim_time').value)
@@ -138,7 +157,8 @@ class RecorderNode(Node):
         self._subs: Dict[str, object] = {}
         self._pending: Dict[str, Optional[str]] = {}   # topic -> type (None: from graph)
         self._status_pub = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS,
-                                                 contract.control_qos())
+                                                 contract.diagnostics_qos())
+        self._status_seq = 0
         try:
             self.writer = BagWriter(self.bag_dir, chunk_size=p['chunk_size'],
                                     compression=p['compression'],
@@ -273,9 +293,17 @@ class RecorderNode(Node):
                        KeyValue(key='bytes', value=str(self.writer.bytes_written)),
                        KeyValue(key='flushes', value=str(self.writer.flushes)),
                        KeyValue(key='topics', value=str(len(counts)))]
-            # Per topic, so `erva run` can wait until the bag holds what was published.
+            # Per topic, so `erva run` can wait until the bag holds what was published,
+            # and start the loop only when every writer is matched.
             values += [KeyValue(key=f'count:{topic}', value=str(n))
                        for topic, n in sorted(counts.items())]
+            values += [KeyValue(key=f'publishers:{topic}', value=str(sub.get_publisher_count()))
+                       for topic, sub in sorted(self._subs.items())]
+        self._status_seq += 1
+        values += [KeyValue(key='status_seq', value=str(self._status_seq)),
+                   KeyValue(key='subscribers:' + contract.DIAGNOSTICS,
+                            value=str(self._status_pub.get_subscription_count())),
+                   KeyValue(key='scheduling', value=getattr(self, 'scheduling', 'off'))]
         if self.error:
             status.level, status.message = DiagnosticStatus.ERROR, self.error
         else:
@@ -325,6 +353,7 @@ def main(args=None) -> int:
             return 2
         executor = SingleThreadedExecutor()
         executor.add_node(node)
+        node.scheduling = set_fifo_priority(node.realtime_priority, node.get_logger().warning)
         while not stop.is_set() and rclpy.ok():
             executor.spin_once(timeout_sec=0.1)
         node.drain(executor)

@@ -70,12 +70,16 @@ class RoadPreviewNode(Node):
             # Subscribed before the publishers exist: the plant waits for them to appear.
             self.create_subscription(ClockMsg, topics.CLOCK, self._on_clock, qos)
         pub_qos = topics.publisher_qos(cfg['publisher_history_s'], self.ts)
-        self.pub_preview = self.create_publisher(JointTrajectory, topics.ROAD_PREVIEW, pub_qos)
-        self.pub_height = self.create_publisher(PointStamped, topics.ROAD_HEIGHT, pub_qos)
-        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
+        self.pub_preview = diag.CountedPublisher(
+            self.create_publisher(JointTrajectory, topics.ROAD_PREVIEW, pub_qos))
+        self.pub_height = diag.CountedPublisher(
+            self.create_publisher(PointStamped, topics.ROAD_HEIGHT, pub_qos))
+        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
+                                              topics.diagnostics_qos())
         self.status = diag.StatusReporter(
             self.get_fully_qualified_name(), f'road:{self.road.name}', self.pub_diag.publish,
-            lambda: self.get_clock().now().nanoseconds, self._diag_values)
+            lambda: self.get_clock().now().nanoseconds, self._diag_values,
+            publishers=[self.pub_height, self.pub_preview])
         self.create_timer(cfg['diagnostics_period_s'],
                           lambda: self.status.on_timer(2 * self.ts), clock=self.steady)
         if cfg['mode'] == 'realtime':

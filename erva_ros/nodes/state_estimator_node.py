@@ -129,7 +129,8 @@ class StateEstimatorNode(Node):
 
         qos = topics.control_qos()
         self.pub_state = self.create_publisher(JointState, topics.STATE, qos)
-        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
+        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
+                                              topics.diagnostics_qos())
         # The road (executor thread) and the measurements (their own thread) share the
         # filter's inputs and counters: one lock (re-entrant: a cycle may publish
         # diagnostics).
