@@ -135,6 +135,11 @@ def load_params_yaml(path: str) -> Dict[str, Any]:
         mark = getattr(exc, 'problem_mark', None)
         at = f' at line {mark.line + 1}' if mark is not None else ''
         raise ParamError(f'{path}: not valid YAML{at}') from None
+    except UnicodeDecodeError as exc:
+        raise ParamError(f'{path}: not a UTF-8 text file (byte {exc.start}: {exc.reason})'
+                         ) from None
+    except OSError as exc:
+        raise ParamError(f'{path}: cannot be read ({exc.strerror or exc})') from None
     if not isinstance(doc, dict):
         raise ParamError(f'{path}: expected a mapping of node names to ros__parameters')
     return doc

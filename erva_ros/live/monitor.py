@@ -82,6 +82,19 @@ class Monitor(Node):
             t: self._subscribe(t) for t in (*self._types, topics.DIAGNOSTICS)
             if t not in self.gate}
 
+    @staticmethod
+    def _types_of(hil: bool) -> Tuple[str, ...]:
+        loop = (topics.STATE, topics.SPRUNG_ACCEL, topics.GENERATOR, topics.ROAD_HEIGHT,
+                topics.ROAD_PREVIEW, topics.DAMPING_CMD)
+        if hil:
+            from erva_ros.hil.topics import TRUE_STATE
+            loop += (TRUE_STATE,)
+        return loop
+
+    def _in_window(self, stamp: int) -> bool:
+        lo, hi = self.window_ns
+        return lo <= stamp and (hi is None or stamp <= hi)
+
     def _subscribe(self, topic: str):
         if topic == topics.DIAGNOSTICS:
             return self.create_subscription(DiagnosticArray, topic, self._on_diag, self._qos)
@@ -117,9 +130,20 @@ class Monitor(Node):
         self.commands.clear()
 
         def each(topic):
+            seen = set()
             for rx, data in self._raw[topic]:
                 msg = deserialize_message(data, self._types[topic])
-                yield rx, time_to_ns(msg.header.stamp), msg
+                stamp = time_to_ns(msg.header.stamp)
+                # The loop publishes each stamp once per topic, inside the session
+                # (the NMPC's safe commands may repeat a stamp: kept, as commands).
+                if not self._in_window(stamp) or (stamp in seen
+                                                  and topic != topics.DAMPING_CMD):
+                    foreign[topic] += 1
+                    continue
+                seen.add(stamp)
+                yield rx, stamp, msg
+
+        foreign = {t: 0 for t in self._types}
 
         for rx, stamp, msg in each(topics.STATE):
             self.states[stamp], self.state_rx[stamp] = _state(msg), rx
@@ -133,6 +157,7 @@ class Monitor(Node):
                          for _, stamp, m in each(topics.ROAD_PREVIEW)}
         self.commands = [(stamp, rx, np.array([p.positions[0] for p in m.points]))
                          for rx, stamp, m in each(topics.DAMPING_CMD)]
+        self.foreign = foreign
 
     # -- queries -----------------------------------------------------------------------
     def connect(self, n_diagnostics: int) -> bool:
@@ -183,7 +208,9 @@ class Monitor(Node):
 
     def dropped(self, published: Dict[str, Optional[int]]) -> Dict[str, Optional[int]]:
         """Return, per topic, the messages published but not received here."""
-        return {t: (max(0, n - self.received[t]) if n is not None else None)
+        self._decode()
+        return {t: (max(0, n - self.received[t] + self.foreign.get(t, 0))
+                    if n is not None else None)
                 for t, n in published.items()}
 
     # -- summary -----------------------------------------------------------------------
@@ -250,9 +277,10 @@ class Monitor(Node):
             'cmd_jitter_ms': _stats(nmpc, 'cmd_jitter_ms'),
             'tick_jitter_ms': _stats(nmpc, 'tick_jitter_ms'),
             **{k: value_int(nmpc.get(k)) for k in (
-                'solves', 'commands', 'deadline_misses', 'state_timeouts', 'safe_commands',
-                'missed_samples', 'stale_previews', 'no_preview', 'rejected_state',
-                'rejected_preview', 'controller_fallback_plan', 'controller_fallback_passive',
+                'solves', 'commands', 'late', 'deadline_misses', 'state_timeouts',
+                'safe_commands', 'missed_samples', 'superseded_states', 'out_of_order',
+                'stale_previews', 'no_preview', 'rejected_state', 'rejected_preview',
+                'controller_fallback_plan', 'controller_fallback_passive',
                 'controller_failures', 'controller_late')}}
         # What each node's threads got from realtime_priority (live/realtime.py).
         out['scheduling'] = {node: entry[2]['scheduling'] for node, entry in self.diag.items()
@@ -278,11 +306,16 @@ class Monitor(Node):
                     '/clock': value_int(road.get('rejected_clock'))}
         if self.hil:   # the ECU ignores absurd road heights without counting them
             del rejected['road/height']
+        # Inputs dropped for a stamp not newer than the newest (stamps going back).
+        rejected['out_of_order'] = ((value_int(nmpc.get('out_of_order')) or 0)
+                                    + (value_int(plant.get('out_of_order_commands')) or 0))
         t0 = min(self.state_rx.values()) if self.state_rx else 0
         out['events'] = [{'t_s': round((rx - t0) * 1e-9, 3), 'node': node,
                           'level': LEVEL_NAMES.get(level, str(level)), 'message': text}
                          for rx, node, level, text in self.diag_events[:MAX_EVENTS]]
         out['messages'] = {'published': published, 'received': dict(self.received),
+                           'foreign': dict(self.foreign),
+                           'foreign_total': sum(self.foreign.values()),
                            'dropped': dropped,
                            'dropped_total': sum(v for v in dropped.values() if v),
                            'rejected': rejected,

@@ -46,7 +46,7 @@ from erva_ros.live import accounting, hil_summary
 from erva_ros.live.parameters import (LIVE_CHOICES, LIVE_DEFAULTS, LIVE_INTEGERS,
                                       LIVE_NUMERIC, LIVE_OTHER)
 from erva_ros.live.scenario import build_road, required_preview_steps
-from erva_ros.params import check_number, load_erva_params, ParamError
+from erva_ros.params import check_number, load_erva_params, load_params_yaml, ParamError
 
 #: The live nodes in start order (the slowest to start first).
 NODES = ('nmpc_node', 'plant_sim_node', 'road_preview_node')
@@ -107,13 +107,7 @@ def read_live_file(path: Optional[str]) -> Dict[str, Any]:
     path = path or default_config_file('live.yaml')
     if not os.path.isfile(path):
         raise ParamError(f'live parameter file {path!r} does not exist')
-    try:
-        with open(path, encoding='utf-8') as fh:
-            doc = yaml.safe_load(fh) or {}
-    except yaml.YAMLError:
-        raise ParamError(f'{path}: not valid YAML') from None
-    if not isinstance(doc, dict):
-        raise ParamError(f'{path}: expected a mapping of node names to ros__parameters')
+    doc = load_params_yaml(path)
     out: Dict[str, Any] = {}
     for section in ('/**', *(f'/**/{n}' for n in NODES)):
         params = (doc.get(section) or {}).get('ros__parameters') or {}
@@ -406,8 +400,10 @@ class _Supervisor:
         # The monitor subscribes to the time master's gate topic last (see Monitor): the
         # time master starts only once that subscription is matched too.
         self.gate = (topics.ROAD_PREVIEW,) if session.realtime else (topics.STATE,)
+        window = None if session.realtime else (
+            0, int((session.live['duration_s'] + 10.0) * 1e9))   # simulated time from 0
         self.monitor = Monitor(cfg.namespace, context=self.context, gate=self.gate,
-                               hil=session.hil)
+                               hil=session.hil, window_ns=window)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.monitor)
         self.recording_report: Dict[str, Any] = {}
@@ -480,6 +476,10 @@ class _Supervisor:
                     self.log(f'connected in {now - self.t_start:.1f} s; running '
                              f'{self.session.live["duration_s"]:g} s '
                              f'({self.session.live["mode"]})')
+                elif now - self.t_start > 10.0 and not getattr(self, '_told_waiting', False):
+                    self._told_waiting = True     # say once what a slow start waits for
+                    self.log('still connecting; waiting for: '
+                             + ('; '.join(self._unmatched[:6]) or 'the graph'))
                 elif now - self.t_start > self.cfg.startup_timeout_s:
                     waiting = '; '.join(self._unmatched[:4]) or 'the monitor\'s subscriptions'
                     self.errors.append(f'the nodes did not connect within '
@@ -508,7 +508,10 @@ class _Supervisor:
         topic's writer needs one subscriber less here.
         """
         statuses = {n: v[2] for n, v in self.monitor.diag.items()}
-        nodes = list(self.node_names) + (['recorder'] if self.recording else [])
+        # The ECU simulator reports only once it runs (the bridge and estimator are
+        # covered by _graph_ready): every other node must have said what it matched.
+        nodes = [n for n in self.node_names if n not in HIL_PROCESSES]
+        nodes += ['recorder'] if self.recording else []
         missing = accounting.unmatched(statuses, nodes, self.expected, self.later)
         if self.recording:
             recorder = next((v for n, v in statuses.items() if n.endswith(RECORDER_STATUS)), {})
@@ -653,6 +656,7 @@ class _Supervisor:
             summary['recording'] = self._check_recording()
         if summary['commands']['received'] == 0 and not self.caught:
             self.errors.append('no damping commands were received')
+        self._check_rejections(summary)
         summary.update({
             'scenario': {'controller': s.settings.controller,
                          'weights': list(s.settings.weights), 'road': s.scenario,
@@ -665,6 +669,17 @@ class _Supervisor:
             'session_dir': s.directory,
         })
         return summary
+
+    def _check_rejections(self, summary: Dict[str, Any]) -> None:
+        """Fail the run if rejected inputs cost the loop a sample of control."""
+        rejected = summary['messages']['rejected_total']
+        nm = summary['nmpc']
+        # Samples whose state never became the controller's (a busy controller's
+        # superseded states are load, not rejection).
+        unseen = (nm.get('missed_samples') or 0) - (nm.get('superseded_states') or 0)
+        if rejected and unseen > 0:
+            self.errors.append(f'{unseen} samples went without a command of their own while '
+                               f'{rejected} input messages were rejected')
 
     def _check_recording(self) -> Dict[str, Any]:
         """Compare the bag file with what every node published; add an error per loss."""
@@ -710,6 +725,8 @@ def run_session(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> 
     if cfg.record_dir is not None and not recording:
         log('recorder not available yet: summary only')
     session = prepare_session(cfg, recording)
+    if recording:
+        check_record_dir(cfg.record_dir)
     sup = _Supervisor(cfg, session, recording, log)
     handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     for sig in handlers:   # Ctrl-C / SIGTERM: stop the nodes cleanly, then summarise
@@ -733,6 +750,23 @@ def run_session(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> 
     elif summary['errors']:
         log(f'node logs and the session params file are in {session.directory}')
     return RunResult(summary, code, sup.monitor.trajectory(session.n_steps), session)
+
+
+def check_record_dir(parent: str) -> None:
+    """Raise CLIError unless bags can be written under ``parent`` (created if missing).
+
+    Refused before anything starts: a session whose record cannot be written is not
+    the session the user asked for (a disk that fills up *during* the run is reported
+    by the recorder and fails the run's bag check instead).
+    """
+    try:
+        os.makedirs(parent, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=parent, prefix='.erva-write-test-'):
+            pass
+    except OSError as exc:
+        raise CLIError(f'--record {parent}: cannot write bags there '
+                       f'({exc.strerror or exc}); pick another directory or --no-record'
+                       ) from None
 
 
 def _all_received(monitor) -> bool:
