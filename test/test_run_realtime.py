@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from conftest import assert_recorded, fifo_permitted, REPO, ros_env
+from conftest import fifo_permitted, REPO, ros_env
 
 
 def _start(*args):
@@ -68,18 +68,22 @@ def test_erva_run_realtime_records_and_summarises(tmp_path, erva):
     assert s['metrics']['power_w'] > 0
     cmd = s['commands']
     # One command per state, t_0..t_100, except where a loaded machine made the NMPC
-    # skip to the newest state (counted as missed samples).
+    # skip to the newest state (counted as missed samples).  The rate itself is a
+    # benchmark figure (erva bench --live), not a pass/fail one.
     assert cmd['for_samples'] + s['nmpc']['missed_samples'] == 101
-    assert cmd['for_samples'] >= 95
-    assert abs(cmd['rate_hz'] - 50.0) < 2.5
+    assert s['nmpc']['missed_samples'] == s['nmpc']['superseded_states']
+    assert cmd['rate_hz'] > 0
     # Timing figures are there (their values depend on the machine's load: erva bench).
     assert cmd['sample_to_command_ms']['samples'] == cmd['for_samples']
     for key in ('period_jitter_ms', 'state_to_command_ms'):
         assert cmd[key]['samples'] > 0 and cmd[key]['p50'] >= 0
+    # No figure is impossible: a command comes after its sample.
+    assert cmd['sample_to_command_ms']['p50'] >= 0
     plant = s['plant']
     assert plant['u_from_command'] + plant['u_from_plan'] + plant['u_from_passive'] == 100
-    if plant['u_from_command'] == 100 and s['nmpc']['controller_fallback_plan'] == 0:
-        # Every command in time (the usual case): the real-time loop is the offline one.
+    if plant['u_from_command'] == 100 and s['nmpc']['missed_samples'] == 0:
+        # Every command in time (the usual case): the real-time loop is the offline one
+        # (a late solve publishes its own plan, so lateness alone changes nothing).
         sim = json.loads(erva('sim', '--duration', 2, '--json', check=True).stdout)
         assert s['metrics']['acc_2norm'] == pytest.approx(sim['acc_2norm'], rel=1e-9)
         assert s['metrics']['power_w'] == pytest.approx(sim['power_w'], rel=1e-6)
@@ -87,21 +91,28 @@ def test_erva_run_realtime_records_and_summarises(tmp_path, erva):
     assert s['messages']['dropped_total'] == 0
     assert all(n['stopped_cleanly'] for n in s['nodes'].values()), s['nodes']
     # realtime_priority 20 (config/live.yaml): every loop node got SCHED_FIFO, or says why not.
+    # The recorder runs 10 levels below the loop: above other work, below the loop.
     sched = s['scheduling']
-    assert set(sched) == {'nmpc_node', 'plant_sim_node', 'road_preview_node'}, sched
+    assert set(sched) == {'nmpc_node', 'plant_sim_node', 'road_preview_node', 'recorder'}, sched
     fifo = fifo_permitted(20)
     for node, got in sched.items():
-        assert got == 'SCHED_FIFO 20' if fifo else got.startswith('unavailable'), (node, got)
-    # The bag holds what the nodes published (read by the mcap reader, not ours).
+        want = 'SCHED_FIFO 10' if node == 'recorder' else 'SCHED_FIFO 20'
+        assert got == want if fifo else got.startswith('unavailable'), (node, got)
+    # The bag holds exactly what the nodes published (read by the mcap reader, not ours),
+    # and erva run says so.
     bag = s['bag']
     assert os.path.dirname(bag) == str(tmp_path)
     assert re.fullmatch(r'\d{8}T\d{6}Z_paper', os.path.basename(bag))
     counts = _count_bag_messages(bag)
     published = s['messages']['published']
-    assert published['state'] == 101
-    assert_recorded(counts['/erva/state'], published['state'], 'state')
-    assert counts['/erva/damping_cmd'] == published['damping_cmd']
-    assert counts['/erva/road/preview'] == published['road/preview'] == 101
+    assert published['state'] == published['road/preview'] == 101
+    assert published['sprung_accel'] == published['generator'] == 100
+    for topic, n in published.items():
+        assert counts[f'/erva/{topic}'] == n, (topic, counts)
+    rec = s['recording']
+    assert rec['lost'] == 0 and rec['lost_in_transport'] == 0 and not rec['diagnostics_missing']
+    assert {t: c['recorded'] for t, c in rec['topics'].items()} == {
+        f'/erva/{t}': n for t, n in published.items()}
 
 
 def test_killed_nmpc_plant_holds_plan_then_passive_and_run_fails(tmp_path):

@@ -45,9 +45,13 @@ class Monitor(Node):
 
     def __init__(self, namespace: str = topics.NAMESPACE, name: str = 'erva_run_monitor',
                  context=None, gate: Sequence[str] = (topics.ROAD_HEIGHT, topics.ROAD_PREVIEW),
-                 hil: bool = False):
+                 hil: bool = False, window_ns: Optional[Tuple[int, int]] = None):
         super().__init__(name, namespace=namespace, context=context,
                          start_parameter_services=False)
+        # Only the loop's own messages count: anything stamped outside the session's span
+        # (from another process on the domain, or corrupt) is counted as foreign instead.
+        # None: from this monitor's creation on, in wall time (a realtime session).
+        self.window_ns = window_ns or (time.time_ns(), None)
         self._qos = topics.control_qos(depth=1000)   # a stalled erva run loses nothing
         self._types = {topics.STATE: JointState, topics.SPRUNG_ACCEL: AccelStamped,
                        topics.GENERATOR: JointState, topics.ROAD_HEIGHT: PointStamped,
@@ -60,6 +64,7 @@ class Monitor(Node):
         #: Every topic this monitor subscribes to (relative names, as in topics.py).
         self.watched = (*self._types, topics.DIAGNOSTICS)
         self._raw: Dict[str, List[Tuple[int, bytes]]] = {t: [] for t in self._types}
+        self.foreign = {t: 0 for t in self._types}
         self._decoded = -1
         self.received = {t: 0 for t in (*self._types, topics.DIAGNOSTICS)}
         self.diag: Dict[str, Tuple[int, str, Dict[str, str], int]] = {}
@@ -81,15 +86,6 @@ class Monitor(Node):
         self.subscriptions_by_topic = {
             t: self._subscribe(t) for t in (*self._types, topics.DIAGNOSTICS)
             if t not in self.gate}
-
-    @staticmethod
-    def _types_of(hil: bool) -> Tuple[str, ...]:
-        loop = (topics.STATE, topics.SPRUNG_ACCEL, topics.GENERATOR, topics.ROAD_HEIGHT,
-                topics.ROAD_PREVIEW, topics.DAMPING_CMD)
-        if hil:
-            from erva_ros.hil.topics import TRUE_STATE
-            loop += (TRUE_STATE,)
-        return loop
 
     def _in_window(self, stamp: int) -> bool:
         lo, hi = self.window_ns
@@ -283,8 +279,8 @@ class Monitor(Node):
                 'controller_fallback_plan', 'controller_fallback_passive',
                 'controller_failures', 'controller_late')}}
         # What each node's threads got from realtime_priority (live/realtime.py).
-        out['scheduling'] = {node: entry[2]['scheduling'] for node, entry in self.diag.items()
-                             if 'scheduling' in entry[2]}
+        out['scheduling'] = {node.replace(': bag recorder', ''): entry[2]['scheduling']
+                             for node, entry in self.diag.items() if 'scheduling' in entry[2]}
         if self.hil:
             out['plant'] = hil_summary.plant_equivalents(self.diag_values)
             out['hil'] = hil_summary.hil_block(
