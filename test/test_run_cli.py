@@ -25,12 +25,30 @@ def test_run_help_lists_the_options(erva):
     (['--params', '/no/such.yaml'], r"parameter file '/no/such.yaml' does not exist"),
     (['--live', '{bad}'], r'live parameter file'),
     (['--seed', '3', '--live', 'BADLIVE'], r"unknown live parameter\(s\) speeed_mps"),
+    (['--road-file', 'BINARY'], r"road_file '.*' is not a UTF-8 text CSV \(byte \d+"),
+    (['--road-file', 'LATIN1'], r"road_file '.*' is not a UTF-8 text CSV"),
+    (['--road-file', 'NANROW'], r'road_file .*:3: .* is not a finite "time_s, height_m" row'),
+    (['--params', 'BINARY'], r'not a UTF-8 text file \(byte \d+'),
+    (['--nmpc', 'BINARY'], r'not a UTF-8 text file'),
+    (['--live', 'BINARY'], r'not a UTF-8 text file'),
+    (['--record', 'FILE/bags'], r'--record .*: cannot write bags there \(Not a directory\)'),
 ])
 def test_bad_input_is_one_line_and_no_node_starts(erva, tmp_path, args, message):
     bad = tmp_path / 'live.yaml'
     bad.write_text('/**/road_preview_node:\n  ros__parameters:\n    speeed_mps: 3.0\n')
-    args = [str(bad) if a == 'BADLIVE' else a for a in args]
-    proc = erva('run', '--no-record', *args)
+    files = {'BADLIVE': bad, 'BINARY': tmp_path / 'binary.csv',
+             'LATIN1': tmp_path / 'latin1.csv', 'NANROW': tmp_path / 'nan.csv',
+             'FILE/bags': tmp_path / 'file'}
+    files['BINARY'].write_bytes(bytes(range(256)) * 8)
+    files['LATIN1'].write_bytes('time_s, höhe_m\n0, 0\n1, 0.01\n'.encode('latin-1'))
+    files['NANROW'].write_text('time_s, height_m\n0, 0\n1, nan\n')
+    files['FILE/bags'].write_text('a file, not a directory')
+    args = [str(files[a]) if a in files else a for a in args]
+    if args[0] == '--record':
+        args[1] = os.path.join(args[1], 'bags')
+    else:
+        args.append('--no-record')
+    proc = erva('run', *args)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and re.search(message, lines[0]), proc.stderr

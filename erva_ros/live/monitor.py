@@ -50,7 +50,7 @@ class Monitor(Node):
                          start_parameter_services=False)
         # Only the loop's own messages count: anything stamped outside the session's span
         # (from another process on the domain, or corrupt) is counted as foreign instead.
-        # None: from this monitor's creation on, in wall time (a realtime session).
+        # None: from this monitor's creation until now, in wall time (a realtime session).
         self.window_ns = window_ns or (time.time_ns(), None)
         self._qos = topics.control_qos(depth=1000)   # a stalled erva run loses nothing
         self._types = {topics.STATE: JointState, topics.SPRUNG_ACCEL: AccelStamped,
@@ -89,7 +89,8 @@ class Monitor(Node):
 
     def _in_window(self, stamp: int) -> bool:
         lo, hi = self.window_ns
-        return lo <= stamp and (hi is None or stamp <= hi)
+        # A realtime session's samples are all in the past when they are decoded.
+        return lo <= stamp <= (time.time_ns() if hi is None else hi)
 
     def _subscribe(self, topic: str):
         if topic == topics.DIAGNOSTICS:

@@ -1,0 +1,90 @@
+"""A message from outside the loop cannot stop or steer it (`erva run`).
+
+One valid ``/erva/state`` stamped an hour ahead, published by another process on the
+domain, used to make nmpc_node report ``finished`` and stop controlling.  Now every
+input stamp is checked against a window around the receiving node's clock: the
+foreign state is rejected and counted, the monitor counts it as foreign, and the loop
+runs as if it had never been sent -- in lock-step exactly as `erva sim`.
+"""
+
+import json
+import subprocess
+import sys
+import time
+
+import pytest
+
+from conftest import REPO, ros_env
+
+pytestmark = pytest.mark.ros
+
+HOUR_NS = 3600 * 10**9
+
+
+def _inject_state(stamp_ns_of, timeout_s=60.0):
+    """Publish one valid JointState on /erva/state once the loop's nodes listen."""
+    import rclpy
+    from rclpy.duration import Duration
+    from sensor_msgs.msg import JointState
+
+    from erva_ros.live.msgs import state_msg
+    from erva_ros import topics
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = rclpy.create_node('foreign_publisher', context=context)
+        pub = node.create_publisher(JointState, '/erva/state', topics.control_qos())
+        end = time.monotonic() + timeout_s
+        while pub.get_subscription_count() < 2 and time.monotonic() < end:   # nmpc, monitor
+            time.sleep(0.05)
+        assert pub.get_subscription_count() >= 2
+        time.sleep(1.0)         # well into the run
+        pub.publish(state_msg(stamp_ns_of(), [1e-3, 0.0, 0.0, 0.0, 0.0, 0.0], 'erva'))
+        assert pub.wait_for_all_acked(Duration(seconds=10))
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+def _run_with_foreign_state(mode, duration, stamp_ns_of):
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'erva_ros.cli', 'run', '--mode', mode, '--duration',
+         str(duration), '--no-record', '--json'], stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True, env=ros_env(), cwd=REPO)
+    try:
+        _inject_state(stamp_ns_of)
+        out, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.returncode, json.loads(out), err
+
+
+def test_lockstep_a_future_stamped_foreign_state_changes_nothing(erva):
+    # Simulated time starts at 0: a stamp an hour ahead is far outside the window.
+    code, s, err = _run_with_foreign_state('lockstep', 3, lambda: HOUR_NS)
+    assert code == 0 and s['ok'], (s['errors'], err[-1500:])
+    assert s['messages']['rejected']['state'] == 1
+    assert s['messages']['foreign']['state'] == 1
+    assert s['nmpc']['missed_samples'] == 0 and s['commands']['for_samples'] == 151
+    # The loop is exactly the offline one: the foreign state left no trace.
+    sim = json.loads(erva('sim', '--duration', 3, '--json', check=True).stdout)
+    assert s['metrics']['acc_2norm'] == pytest.approx(sim['acc_2norm'], rel=1e-9)
+    assert s['metrics']['power_w'] == pytest.approx(sim['power_w'], rel=1e-6)
+
+
+def test_realtime_a_future_stamped_foreign_state_is_rejected_and_reported():
+    code, s, err = _run_with_foreign_state('realtime', 4, lambda: time.time_ns() + HOUR_NS)
+    assert code == 0 and s['ok'], (s['errors'], err[-1500:])
+    assert s['messages']['rejected']['state'] == 1
+    assert s['messages']['foreign']['state'] == 1
+    nm = s['nmpc']
+    # Every sample's state reached the controller (a busy controller may still skip to
+    # the newest one: superseded, counted apart), and it ran to the scenario's end.
+    assert s['commands']['for_samples'] + nm['missed_samples'] == 201
+    assert nm['missed_samples'] == nm['superseded_states']
+    assert nm['state_timeouts'] == 0 and nm['out_of_order'] == 0
+    # The summary's figures are the loop's own: one state per sample, realtime pace.
+    assert s['metrics']['samples'] == 200
+    assert s['metrics']['realtime_factor'] < 1.5

@@ -1,0 +1,104 @@
+"""`erva run` records everything even when the recorder stalls (fault injection with SIGSTOP).
+
+The loop's writers keep ``publisher_history_s`` (10 s) of samples for reliable repair,
+so a recorder stopped for seconds -- in the middle of the run or across its end --
+catches up once it runs again, and `erva run` waits for it before stopping the nodes.
+Checked by counts: every message each node published is in the bag (read with the
+mcap reader, not ours), and `erva run` says so.
+"""
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from conftest import REPO, ros_env
+
+pytestmark = pytest.mark.ros
+
+
+def _start(*args):
+    return subprocess.Popen([sys.executable, '-m', 'erva_ros.cli', 'run', *map(str, args)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=ros_env(), cwd=REPO, start_new_session=True)
+
+
+def _wait_connected(proc, timeout=120.0):
+    pids, lines = {}, []
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        line = proc.stderr.readline()
+        if not line:
+            break
+        lines.append(line)
+        pids.update({n: int(p) for n, p in re.findall(r'(\w+_node) \(pid (\d+)\)', line)})
+        if 'connected in' in line:
+            return pids
+    raise AssertionError('erva run did not connect:\n' + ''.join(lines))
+
+
+def _bag_counts(bag_dir):
+    from mcap.reader import make_reader
+    (name,) = [f for f in os.listdir(bag_dir) if f.endswith('.mcap')]
+    counts = {}
+    with open(os.path.join(bag_dir, name), 'rb') as fh:
+        for _, channel, _ in make_reader(fh).iter_messages():
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+    return counts
+
+
+def _stalled_run(tmp_path, duration, stop_after_s, stop_for_s):
+    """Run erva run, SIGSTOP the recorder ``stop_after_s`` after the start for ``stop_for_s``."""
+    proc = _start('--duration', duration, '--record', tmp_path, '--json')
+    try:
+        pids = _wait_connected(proc)
+        time.sleep(stop_after_s)
+        os.kill(pids['recorder_node'], signal.SIGSTOP)
+        try:
+            time.sleep(stop_for_s)
+        finally:
+            os.kill(pids['recorder_node'], signal.SIGCONT)
+        out, err = proc.communicate(timeout=240)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    return proc.returncode, json.loads(out), err
+
+
+@pytest.mark.parametrize('duration, stop_after_s, where', [
+    (6, 1.0, 'in the middle'),
+    (3, 2.0, 'across the end'),
+])
+def test_a_recorder_stopped_for_three_seconds_loses_nothing(tmp_path, duration, stop_after_s,
+                                                           where):
+    code, s, err = _stalled_run(tmp_path, duration, stop_after_s, 3.0)
+    assert code == 0 and s['ok'], (where, s['errors'], err[-2000:])
+    rec = s['recording']
+    assert rec['lost'] == 0 and rec['lost_in_transport'] == 0, rec
+    assert not rec['diagnostics_missing'] and 'gave_up' not in rec, rec
+    counts = _bag_counts(s['bag'])
+    n = int(round(duration / 0.02))
+    published = s['messages']['published']
+    assert published['state'] == published['road/height'] == n + 1
+    assert published['sprung_accel'] == published['generator'] == n
+    for topic, count in published.items():
+        assert counts[f'/erva/{topic}'] == count, (where, topic, counts)
+
+
+def test_a_stall_longer_than_the_writers_history_is_reported_as_a_loss(tmp_path):
+    # 12 s stopped: the writers keep 10 s (publisher_history_s), so about 2 s of samples
+    # are gone for good -- and erva run must say so, with exit status 1.
+    code, s, _ = _stalled_run(tmp_path, 13, 0.5, 12.0)
+    assert code == 1 and not s['ok']
+    rec = s['recording']
+    assert rec['lost'] > 0
+    lost = [e for e in s['errors'] if e.startswith('the bag lost')]
+    assert lost and re.fullmatch(r'the bag lost \d+ of \d+ messages on /erva/\S+', lost[0])
+    counts = _bag_counts(s['bag'])
+    for topic, c in rec['topics'].items():
+        assert counts.get(topic, 0) == c['recorded'] == c['published'] - c['lost'], topic
