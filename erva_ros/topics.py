@@ -83,7 +83,7 @@ def publisher_depth(history_s: float, ts: float) -> int:
 
 
 def publisher_qos(history_s: float, ts: float):
-    """Return the QoS of a loop publisher: as :func:`control_qos`, keeping ``history_s`` of samples.
+    """Return a loop publisher's QoS: :func:`control_qos` keeping ``history_s`` of samples.
 
     A reliable writer repairs what a subscriber missed only from its own history: with
     keep-last 10, a recorder that stalls longer than the transports buffer (~1.5 s

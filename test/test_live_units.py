@@ -223,7 +223,8 @@ def test_status_reporter_publishes_on_change_and_when_due():
     rep.set(ERROR, 'no state')             # unchanged: no second message
     assert len(sent) == 1
     name, level, text, values = parse_status(sent[0].status[0])
-    assert (name, level, text, values) == ('/erva/nmpc_node', ERROR, 'no state', {'n': '1.5'})
+    assert (name, level, text, values) == ('/erva/nmpc_node', ERROR, 'no state',
+                                           {'n': '1.5', 'status_seq': '1'})
     rep.after_sample()
     rep.on_timer(busy_window_s=10.0)       # busy: only marked due
     assert len(sent) == 1

@@ -171,13 +171,19 @@ def test_sigkill_then_repair_keeps_everything_flushed(tmp_path, erva):
     rec = start_recorder(bag, {'scenario': 'kill'}, params=['flush_period_s:=0.2'])
     wait_for(bag, rec)
     pub = subprocess.Popen([sys.executable, '-m', 'erva_ros.bag.traffic', 'contract',
-                            '--duration', '4', '--ack-timeout', '0.2'], env=ros_env(),
+                            '--duration', '60', '--ack-timeout', '0.2'], env=ros_env(),
                            cwd=REPO, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     STARTED.append(pub)
-    time.sleep(3.5)
+    # Killed once a good part is on disk (however slowly a loaded machine got there).
+    mcap = os.path.join(bag, os.path.basename(bag) + '_0.mcap')
+    end = time.monotonic() + 120
+    while time.monotonic() < end and os.path.getsize(mcap) < 60_000:
+        assert pub.poll() is None, pub.communicate()
+        time.sleep(0.05)
     rec.kill()
     killed_ns = time.time_ns()
     rec.communicate(timeout=10)
+    pub.kill()
     pub.communicate(timeout=60)
     assert not os.path.exists(os.path.join(bag, 'metadata.yaml'))
     out = erva('bag', 'repair', bag, check=True).stdout

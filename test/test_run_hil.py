@@ -97,9 +97,9 @@ def test_hil_block_reports_a_clean_link_latencies_and_estimation_error(hil_run):
     fifo = fifo_permitted(20)
     sched = s['scheduling']
     assert set(sched) == {'nmpc_node', 'road_preview_node', 'ecu_sim', 'state_estimator_node',
-                          'ecu_bridge_node: command'}, sched
-    assert all(v == 'SCHED_FIFO 20' if fifo else v.startswith('unavailable')
-               for v in sched.values()), sched
+                          'ecu_bridge_node: command', 'recorder'}, sched
+    assert all(v == ('SCHED_FIFO 10' if n == 'recorder' else 'SCHED_FIFO 20') if fifo
+               else v.startswith('unavailable') for n, v in sched.items()), sched
     est = hil['estimator']
     assert est['updates'] == s['messages']['published']['state']
     assert est['error']['matched'] > 100

@@ -5,34 +5,12 @@ import os
 import re
 import shutil
 import signal
-import subprocess
-import sys
 import time
 
 import pytest
 
-from conftest import fifo_permitted, REPO, ros_env
-
-
-def _start(*args):
-    return subprocess.Popen([sys.executable, '-m', 'erva_ros.cli', 'run', *map(str, args)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=ros_env(), cwd=REPO, start_new_session=True)
-
-
-def _wait_connected(proc, timeout=90.0):
-    """Read erva run's stderr until it is connected; return {node: pid} it reported."""
-    pids, lines = {}, []
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        line = proc.stderr.readline()
-        if not line:
-            break
-        lines.append(line)
-        pids.update({n: int(p) for n, p in re.findall(r'(\w+_node) \(pid (\d+)\)', line)})
-        if 'connected in' in line:
-            return pids
-    raise AssertionError('erva run did not connect:\n' + ''.join(lines))
+from conftest import fifo_permitted
+from run_helpers import bag_counts, start_run as _start, wait_connected as _wait_connected
 
 
 def _gone(pid):
@@ -41,20 +19,6 @@ def _gone(pid):
     except ProcessLookupError:
         return True
     return False
-
-
-def _count_bag_messages(bag_dir):
-    from mcap.reader import make_reader
-    from mcap_ros2.decoder import DecoderFactory
-    mcaps = [f for f in os.listdir(bag_dir) if f.endswith('.mcap')]
-    assert len(mcaps) == 1, os.listdir(bag_dir)
-    counts = {}
-    with open(os.path.join(bag_dir, mcaps[0]), 'rb') as fh:
-        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
-        for _, channel, _, decoded in reader.iter_decoded_messages():
-            counts[channel.topic] = counts.get(channel.topic, 0) + 1
-            assert decoded is not None
-    return counts
 
 
 def test_erva_run_realtime_records_and_summarises(tmp_path, erva):
@@ -103,7 +67,7 @@ def test_erva_run_realtime_records_and_summarises(tmp_path, erva):
     bag = s['bag']
     assert os.path.dirname(bag) == str(tmp_path)
     assert re.fullmatch(r'\d{8}T\d{6}Z_paper', os.path.basename(bag))
-    counts = _count_bag_messages(bag)
+    counts = bag_counts(bag, decode=True)
     published = s['messages']['published']
     assert published['state'] == published['road/preview'] == 101
     assert published['sprung_accel'] == published['generator'] == 100

@@ -11,45 +11,14 @@ import json
 import os
 import re
 import signal
-import subprocess
-import sys
 import time
 
 import pytest
 
-from conftest import REPO, ros_env
+from run_helpers import bag_counts as _bag_counts, start_run as _start
+from run_helpers import wait_connected as _wait_connected
 
 pytestmark = pytest.mark.ros
-
-
-def _start(*args):
-    return subprocess.Popen([sys.executable, '-m', 'erva_ros.cli', 'run', *map(str, args)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=ros_env(), cwd=REPO, start_new_session=True)
-
-
-def _wait_connected(proc, timeout=120.0):
-    pids, lines = {}, []
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        line = proc.stderr.readline()
-        if not line:
-            break
-        lines.append(line)
-        pids.update({n: int(p) for n, p in re.findall(r'(\w+_node) \(pid (\d+)\)', line)})
-        if 'connected in' in line:
-            return pids
-    raise AssertionError('erva run did not connect:\n' + ''.join(lines))
-
-
-def _bag_counts(bag_dir):
-    from mcap.reader import make_reader
-    (name,) = [f for f in os.listdir(bag_dir) if f.endswith('.mcap')]
-    counts = {}
-    with open(os.path.join(bag_dir, name), 'rb') as fh:
-        for _, channel, _ in make_reader(fh).iter_messages():
-            counts[channel.topic] = counts.get(channel.topic, 0) + 1
-    return counts
 
 
 def _stalled_run(tmp_path, duration, stop_after_s, stop_for_s):
@@ -74,8 +43,8 @@ def _stalled_run(tmp_path, duration, stop_after_s, stop_for_s):
     (6, 1.0, 'in the middle'),
     (3, 2.0, 'across the end'),
 ])
-def test_a_recorder_stopped_for_three_seconds_loses_nothing(tmp_path, duration, stop_after_s,
-                                                           where):
+def test_a_recorder_stopped_for_three_seconds_loses_nothing(
+        tmp_path, duration, stop_after_s, where):
     code, s, err = _stalled_run(tmp_path, duration, stop_after_s, 3.0)
     assert code == 0 and s['ok'], (where, s['errors'], err[-2000:])
     rec = s['recording']

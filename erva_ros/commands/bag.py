@@ -7,7 +7,8 @@ from erva_ros.commands._common import (add_json_option, positive_float, positive
 from erva_ros.errors import CLIError
 
 COMMAND = 'bag'
-HELP = 'session bags: info (topics, counts, session), repair (after a crash), bench (recorder)'
+HELP = ('session bags: info (topics, counts, session), repair (after a crash), bench '
+        '(recorder), soak (loss under load)')
 DESCRIPTION = """\
 Session bags are rosbag2 directories (metadata.yaml, bag format version 9) holding one
 MCAP file (profile ros2, ros2msg schemas, cdr messages), as ros2 bag record writes
@@ -18,6 +19,7 @@ them: ros2 bag info/play and Foxglove open them directly.
   erva bag repair BAG    after the recorder was killed: rebuild the MCAP summary and
                          index from every flushed chunk and write metadata.yaml
   erva bag bench         recorder throughput and the latency it adds to a 50 Hz loop
+  erva bag soak          many `erva run` sessions on a loaded machine: anything lost?
 
 BAG is a bag directory or its .mcap file."""
 
@@ -63,6 +65,54 @@ def add_arguments(parser):
     p.add_argument('--flood-duration', type=positive_float, default=4.0, metavar='S',
                    help='seconds of each throughput run (default 4)')
     add_json_option(p)
+    _add_soak(sub)
+
+
+def _add_soak(sub) -> None:
+    import os
+    p = sub.add_parser('soak', help='consecutive erva run sessions under load: messages lost?',
+                       description='Run N consecutive `erva run --record` sessions while K '
+                                   'busy processes load the cores, read every bag back '
+                                   '(mcap\'s reader) and compare each topic with what the '
+                                   'nodes published.  Exit status 1 if any message is '
+                                   'missing or any run failed.  Uses $ROS_DOMAIN_ID.')
+    p.add_argument('--runs', type=positive_int, default=30, help='sessions (default 30)')
+    p.add_argument('--duration', type=positive_float, default=5.0, metavar='S',
+                   help='scenario length of each session (default 5 s)')
+    p.add_argument('--busy', type=int, default=os.cpu_count() or 1, metavar='K',
+                   help='busy-looping processes beside the runs (default: one per core, '
+                        f'{os.cpu_count()}); 0 for a quiet machine')
+    p.add_argument('--ecu', choices=('none', 'virtual'), default='none',
+                   help='virtual: the hardware-in-the-loop session (erva run --ecu virtual)')
+    p.add_argument('--keep-bags', metavar='DIR', default=None,
+                   help='keep the bags under DIR (default: deleted after each run)')
+    add_json_option(p)
+
+
+def _soak(args) -> int:
+    import sys
+
+    from erva_ros.live import soak
+    if args.busy < 0:
+        raise CLIError(f'--busy {args.busy}: give 0 or more processes')
+    run_args = ['--ecu', args.ecu] if args.ecu != 'none' else []
+    result = soak.soak(args.runs, args.duration, args.busy, run_args, args.keep_bags,
+                       progress=lambda s: print(f'erva bag soak: {s}', file=sys.stderr,
+                                                flush=True))
+    if args.json:
+        print_json(result)
+    else:
+        print(f'{result["runs"]} runs x {result["duration_s"]:g} s'
+              f'{" --ecu virtual" if run_args else ""}, {result["busy_processes"]} busy '
+              f'processes on {result["cores"]} cores ({result["wall_s"]:.0f} s)')
+        print(f'  messages published {result["published"]}, in the bags {result["in_bags"]}, '
+              f'lost {result["lost"]} ({result["runs_with_loss"]} runs with a loss)')
+        print(f'  runs failed (exit status != 0): {result["runs_failed"]}')
+        for i, r in enumerate(result['per_run'], 1):
+            if r['exit_status'] != 0 or r.get('lost'):
+                print(f'  run {i}: exit {r["exit_status"]}; '
+                      + '; '.join(r.get('errors') or [r.get('error', '')]))
+    return 1 if result['lost'] or result['runs_failed'] else 0
 
 
 def _size(n: int) -> str:
@@ -181,5 +231,6 @@ def _bench(args) -> int:
 
 
 def main(args) -> int:
-    handler = {'info': _info, 'repair': _repair, 'bench': _bench}[args.bag_command]
+    handler = {'info': _info, 'repair': _repair, 'bench': _bench,
+               'soak': _soak}[args.bag_command]
     return handler(args)

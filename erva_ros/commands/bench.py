@@ -59,10 +59,25 @@ def add_arguments(parser):
                         default=None, metavar='P',
                         help='--live only: SCHED_FIFO priority of the nodes, 0 = normal '
                              'scheduling (default: the live file, config/live.yaml)')
+    parser.add_argument('--busy', type=int, default=0, metavar='K',
+                        help='load the machine with K busy-looping processes while measuring '
+                             '(e.g. one per core: what does the result owe to a quiet '
+                             'machine?); default 0')
     add_json_option(parser)
 
 
 def main(args) -> int:
+    from erva_ros.live.soak import start_busy, stop_busy
+    if args.busy < 0:
+        raise CLIError(f'--busy {args.busy}: give 0 or more processes')
+    busy = start_busy(args.busy)
+    try:
+        return _main(args)
+    finally:
+        stop_busy(busy)
+
+
+def _main(args) -> int:
     if args.reference_starts is not None and (args.live or args.no_reference):
         raise CLIError('--reference-starts sets the offline IPOPT reference; it cannot go '
                        'with ' + ('--live' if args.live else '--no-reference'))

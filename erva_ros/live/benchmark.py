@@ -45,7 +45,7 @@ def _run_config(args):
                      live_overrides=live)
 
 
-def bench_result(summary: Dict[str, Any]) -> Dict[str, Any]:
+def bench_result(summary: Dict[str, Any], busy: int = 0) -> Dict[str, Any]:
     """Return the benchmark figures of a realtime run's summary, with the targets checked."""
     cmd = summary['commands']
     nm = summary['nmpc']
@@ -73,6 +73,7 @@ def bench_result(summary: Dict[str, Any]) -> Dict[str, Any]:
     return {
         'mode': 'live', 'controller': sc['controller'], 'duration_s': sc['duration_s'],
         'ts': sc['ts'], 'samples': summary['metrics'].get('samples', 0),
+        'comfort': {k: summary['metrics'].get(k) for k in ('acc_2norm', 'acc_rms', 'power_w')},
         'command_rate_hz': measured['command_rate_hz'],
         'period_jitter_ms': jitter,
         'state_to_command_ms': latency,
@@ -93,6 +94,7 @@ def bench_result(summary: Dict[str, Any]) -> Dict[str, Any]:
         'all_targets_met': all(met.values()),
         'machine': {'cpus': os.cpu_count(), 'load_avg_1_5_15': [round(v, 2) for v in load],
                     'python': platform.python_version(), 'platform': platform.platform()},
+        'busy_processes': busy,
         'errors': summary['errors'],
     }
 
@@ -114,7 +116,12 @@ def format_bench(r: Dict[str, Any]) -> str:
     lines = [
         f'erva bench --live: {r["controller"]}, {r["duration_s"]:g} s realtime at '
         f'Ts = {r["ts"]:g} s, {r["machine"]["cpus"]} CPUs, load average '
-        f'{r["machine"]["load_avg_1_5_15"][0]:.2f} (machine shared: figures vary)',
+        f'{r["machine"]["load_avg_1_5_15"][0]:.2f}'
+        + (f', {r["busy_processes"]} busy processes' if r['busy_processes'] else '')
+        + ' (machine shared: figures vary)',
+        f'  comfort                 acc 2-norm {r["comfort"]["acc_2norm"]:.4g} m/s², power '
+        f'{r["comfort"]["power_w"]:.4g} W' if r['comfort']['acc_2norm'] is not None else
+        '  comfort                 n/a',
         f'  command rate            {rate:.3f} Hz' if rate else '  command rate            n/a',
         f'  period jitter at plant  {_fmt(r["period_jitter_ms"])}',
         f'    as published (NMPC)   {_fmt(r["nmpc_publish_jitter_ms"])}',
@@ -145,7 +152,7 @@ def run_live_bench(args) -> int:
     result = run_session(_run_config(args),
                          log=lambda line: print(f'erva bench: {line}', file=sys.stderr,
                                                 flush=True))
-    report = bench_result(result.summary)
+    report = bench_result(result.summary, getattr(args, 'busy', 0))
     if getattr(args, 'json', False):
         print_json(jsonable(report))
     else:

@@ -119,7 +119,7 @@ class SampleScheduler:
         return None
 
     def on_tick(self, now_ns: int) -> Tuple[Optional[Job], Optional[int]]:
-        """Realtime period tick: return (job to solve now, stamp of a safe command) -- either may be None."""
+        """Realtime tick: return (job to solve now, safe command's stamp); either may be None."""
         job = None
         if not self.finished and self.state is not None and self.state[0] > self.last_solved:
             # Arrived before this tick while disarmed, or its preview never came.

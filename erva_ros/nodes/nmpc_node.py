@@ -34,7 +34,8 @@ for a lost plant.
 Incoming states and previews are validated (erva_ros.live.validation): a non-finite
 or absurd value, or a stamp outside ``[now - max_stamp_age_s, now + max_stamp_lead_s]``
 of the node's clock or off the sample grid, is rejected, counted and logged at a
-limited rate, and never reaches the controller.  Timings and counters are published on ``/diagnostics``.
+limited rate, and never reaches the controller.  Timings and counters are published
+on ``/diagnostics``.
 """
 
 import time
@@ -131,7 +132,8 @@ class NMPCNode(Node):
 
     def _warm_up(self) -> None:
         """Solve once at rest so the first real sample does not pay for first-call set-up."""
-        self.controller.compute(np.zeros(len(STATE_NAMES[self.kind])), np.zeros(self.n_preview), 0.0)
+        self.controller.compute(np.zeros(len(STATE_NAMES[self.kind])),
+                                np.zeros(self.n_preview), 0.0)
         self.controller.reset()
 
     def _now(self) -> int:

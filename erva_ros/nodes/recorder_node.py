@@ -63,6 +63,7 @@ import rclpy
 from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
@@ -159,6 +160,9 @@ class RecorderNode(Node):
         self._status_pub = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS,
                                                  contract.diagnostics_qos())
         self._status_seq = 0
+        # Timers on the steady clock: under use_sim_time, /clock may not run yet (lock-step
+        # waits for the recorder's status before it starts the clock).
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         try:
             self.writer = BagWriter(self.bag_dir, chunk_size=p['chunk_size'],
                                     compression=p['compression'],
@@ -168,7 +172,7 @@ class RecorderNode(Node):
             self._fail(str(exc))
         if self.writer is not None:
             self._start(p['topics'], p['flush_period_s'])
-        self.create_timer(p['diagnostics_period_s'], self._publish_status)
+        self.create_timer(p['diagnostics_period_s'], self._publish_status, clock=self._steady)
 
     def _start(self, requested: List[str], flush_period_s: float) -> None:
         """Subscribe to the requested topics whose type is known; discover the others."""
@@ -177,8 +181,9 @@ class RecorderNode(Node):
             self._pending[topic] = CONTRACT_TYPES.get(name) or contract.TOPIC_TYPES.get(topic)
             if self._pending[topic] is not None:
                 self._subscribe(topic, self._pending[topic])
-        self._discovery_timer = self.create_timer(DISCOVERY_PERIOD_S, self._discover)
-        self.create_timer(flush_period_s, self._flush)
+        self._discovery_timer = self.create_timer(DISCOVERY_PERIOD_S, self._discover,
+                                                  clock=self._steady)
+        self.create_timer(flush_period_s, self._flush, clock=self._steady)
         self.get_logger().info(f'recording {len(self._pending)} topics to '
                                f'{self.writer.file_path}')
 

@@ -1,0 +1,50 @@
+"""Helpers of the tests that run `erva run` as a user does (a process, its stderr, its bag)."""
+
+import os
+import re
+import subprocess
+import sys
+import time
+
+from conftest import REPO, ros_env
+
+
+def start_run(*args):
+    """Start ``erva run ARGS`` in its own session, stdout and stderr piped."""
+    return subprocess.Popen([sys.executable, '-m', 'erva_ros.cli', 'run', *map(str, args)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=ros_env(), cwd=REPO, start_new_session=True)
+
+
+def wait_connected(proc, timeout=120.0):
+    """Read erva run's stderr until it is connected; return {node: pid} it reported."""
+    pids, lines = {}, []
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        line = proc.stderr.readline()
+        if not line:
+            break
+        lines.append(line)
+        pids.update({n: int(p) for n, p in re.findall(r'(\w+_node) \(pid (\d+)\)', line)})
+        if 'connected in' in line:
+            return pids
+    raise AssertionError('erva run did not connect:\n' + ''.join(lines))
+
+
+def bag_counts(bag_dir, decode=False):
+    """Return the messages per topic of a bag, read with the mcap package (not erva_ros)."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+    mcaps = [f for f in os.listdir(bag_dir) if f.endswith('.mcap')]
+    assert len(mcaps) == 1, os.listdir(bag_dir)
+    counts = {}
+    with open(os.path.join(bag_dir, mcaps[0]), 'rb') as fh:
+        if decode:
+            reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+            for _, channel, _, decoded in reader.iter_decoded_messages():
+                counts[channel.topic] = counts.get(channel.topic, 0) + 1
+                assert decoded is not None
+        else:
+            for _, channel, _ in make_reader(fh).iter_messages():
+                counts[channel.topic] = counts.get(channel.topic, 0) + 1
+    return counts
