@@ -75,6 +75,14 @@ def test_erva_run_realtime_records_and_summarises(tmp_path, erva):
         assert counts[f'/erva/{topic}'] == n, (topic, counts)
     rec = s['recording']
     assert rec['lost'] == 0 and rec['lost_in_transport'] == 0 and not rec['diagnostics_missing']
+    # The summary's figures agree with the bag's own account of the session (erva report
+    # reads only the bag: messages, their stamps and the DDS publish / receive times).
+    report = json.loads(erva('report', bag, '--json', check=True).stdout)
+    assert report['comfort']['acc_2norm'] == pytest.approx(s['metrics']['acc_2norm'], rel=1e-9)
+    assert report['samples']['sprung_accel'] == s['metrics']['samples']
+    for key in ('latency_publish_ms', 'latency_log_ms'):     # command after its sample
+        lat = report['timing'][key]
+        assert lat['samples'] == cmd['for_samples'] and 0 < lat['p50'] <= lat['p99'], lat
     assert {t: c['recorded'] for t, c in rec['topics'].items()} == {
         f'/erva/{t}': n for t, n in published.items()}
 

@@ -456,6 +456,20 @@ class _Supervisor:
                 os.path.join(self.session.directory, f'{name}.log'), spec.env if spec else env)
         self.log('started ' + ', '.join(f'{n} (pid {p.pid})' for n, p in self.procs.items()))
 
+    def observe_at_priority(self) -> None:
+        """Run this process (the monitor's DDS threads) at the recorder's priority.
+
+        Called after the nodes are started (children would inherit it).  Under load a
+        monitor at normal priority receives late: its timing figures would be the
+        machine's, not the loop's.  Without the right it stays at normal priority.
+        """
+        from erva_ros.live.realtime import set_fifo_priority
+        live = self.session.live
+        loop = live['realtime_priority'] if self.session.realtime else 0
+        if loop > 1:
+            self.scheduling = set_fifo_priority(max(1, loop - RECORDER_PRIORITY_BELOW),
+                                                lambda line: None)
+
     def supervise(self) -> None:
         """Connect, run and drain, until the scenario ends, a needed node dies or a signal."""
         self.phase = 'connecting'
@@ -733,6 +747,7 @@ def run_session(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> 
         signal.signal(sig, lambda signum, frame: sup.caught.append(signum))
     try:
         sup.start()
+        sup.observe_at_priority()
         sup.supervise()
     finally:
         sup.stop()
