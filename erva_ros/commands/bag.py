@@ -84,6 +84,9 @@ def _add_soak(sub) -> None:
                         f'{os.cpu_count()}); 0 for a quiet machine')
     p.add_argument('--ecu', choices=('none', 'virtual'), default='none',
                    help='virtual: the hardware-in-the-loop session (erva run --ecu virtual)')
+    p.add_argument('--live', metavar='FILE', default=None,
+                   help='live parameter file for the runs (erva run --live), e.g. a smaller '
+                        'publisher_history_s to see what the writers\' history buys')
     p.add_argument('--keep-bags', metavar='DIR', default=None,
                    help='keep the bags under DIR (default: deleted after each run)')
     add_json_option(p)
@@ -95,7 +98,12 @@ def _soak(args) -> int:
     from erva_ros.live import soak
     if args.busy < 0:
         raise CLIError(f'--busy {args.busy}: give 0 or more processes')
+    import os
     run_args = ['--ecu', args.ecu] if args.ecu != 'none' else []
+    if args.live:
+        if not os.path.isfile(args.live):
+            raise CLIError(f'--live {args.live}: no such file')
+        run_args += ['--live', os.path.abspath(args.live)]
     result = soak.soak(args.runs, args.duration, args.busy, run_args, args.keep_bags,
                        progress=lambda s: print(f'erva bag soak: {s}', file=sys.stderr,
                                                 flush=True))
@@ -103,7 +111,8 @@ def _soak(args) -> int:
         print_json(result)
     else:
         print(f'{result["runs"]} runs x {result["duration_s"]:g} s'
-              f'{" --ecu virtual" if run_args else ""}, {result["busy_processes"]} busy '
+              f'{(" " + " ".join(run_args)) if run_args else ""}, '
+              f'{result["busy_processes"]} busy '
               f'processes on {result["cores"]} cores ({result["wall_s"]:.0f} s)')
         print(f'  messages published {result["published"]}, in the bags {result["in_bags"]}, '
               f'lost {result["lost"]} ({result["runs_with_loss"]} runs with a loss)')
