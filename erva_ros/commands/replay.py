@@ -222,6 +222,10 @@ def _play(args, bag) -> int:
     return 130 if stats['stopped'] and not args.loop else 0
 
 
+#: A viewer's subscriptions are complete when no new one came for this long (s).
+SETTLE_S = 0.5
+
+
 def _serve(address, bag, player, should_stop):
     """Start the Foxglove server of a replay; wait until a viewer subscribes (or a stop)."""
     import time
@@ -241,8 +245,15 @@ def _serve(address, bag, player, should_stop):
     player.sink = ReplaySink(server)
     print(f'erva replay: Foxglove: open {server.url} (layout config/foxglove_layout.json); '
           'playing once a viewer subscribes (Ctrl-C to stop)', file=sys.stderr, flush=True)
-    while not should_stop() and not server.stats()['clients_subscribed']:
-        time.sleep(0.05)
+    # A viewer subscribes its panels' topics together: play once none came for SETTLE_S.
+    last, since = 0, time.monotonic()
+    while not should_stop():
+        seen = server.stats()['subscriptions']
+        if seen != last:
+            last, since = seen, time.monotonic()
+        elif seen and time.monotonic() - since > SETTLE_S:
+            break
+        time.sleep(0.02)
     return server
 
 

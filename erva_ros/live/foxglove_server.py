@@ -148,6 +148,7 @@ class FoxgloveServer:
         #: client id -> {'offered': messages logged while it was subscribed, 'topics': set}
         self.clients: Dict[int, Dict] = {}
         self._subscribers: Dict[str, set] = {}
+        self.subscriptions = 0     # subscriptions made so far (by any client)
         self.overflows = _install_overflow_counter()
         self._overflows_at_start = self.overflows.events
         self.session = {str(k): str(v) for k, v in (session or {}).items()}
@@ -208,6 +209,7 @@ class FoxgloveServer:
         topic = self._topic_of.get(channel_id)
         with self._lock:
             entry = self.clients.setdefault(client_id, {'offered': 0, 'topics': set()})
+            self.subscriptions += 1
             if topic is not None:
                 entry['topics'].add(topic)
                 self._subscribers.setdefault(topic, set()).add(client_id)
@@ -229,6 +231,7 @@ class FoxgloveServer:
                     'forwarded_total': sum(self.forwarded.values()),
                     'clients_seen': len(self.clients),
                     'clients_subscribed': sum(1 for c in self.clients.values() if c['topics']),
+                    'subscriptions': self.subscriptions,
                     'offered': {cid: c['offered'] for cid, c in self.clients.items()},
                     'overflow_events': self.overflows.events - self._overflows_at_start}
 
