@@ -114,7 +114,7 @@ def add_arguments(parser):
                         help='serve the session live to Foxglove on this address '
                              f'(default {FOXGLOVE_DEFAULT}: this machine only; another '
                              'host only when named, e.g. 0.0.0.0:8765; PORT 0 = any free '
-                             'port); see --help above')
+                             'port)')
     add_json_option(parser)
 
 
