@@ -243,8 +243,9 @@ def test_viewer_gets_the_live_loop_as_the_bag_holds_it(tmp_path):
         # ~50 Hz: a 4 s run has 201 states; the viewer subscribed before the loop ran, so
         # it has them all, in order, one period apart (counted, not timed).
         assert len(got) == published[key], (topic, len(got), published[key])
-        assert all(b - a == TS_NS for a, b in zip(stamps, stamps[1:])) or key == 'damping_cmd'
         assert stamps == sorted(stamps)
+        if key == 'state':   # (a command may be the safe one, stamped off the grid)
+            assert all(b - a == TS_NS for a, b in zip(stamps, stamps[1:]))
         missing_in_bag = [s for s in stamps if s not in recorded]
         # The bag may lack the tail (the recorder's known defect), never anything inside.
         assert all(s > max(recorded) for s in missing_in_bag), missing_in_bag[:5]

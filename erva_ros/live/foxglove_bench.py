@@ -31,7 +31,7 @@ FIGURES = (('period_jitter_ms', 'period jitter at plant'),
 ARMS = ('without', 'with')
 #: What the JSON keeps of each run.
 PER_RUN = ('period_jitter_ms', 'state_to_command_ms', 'solve_ms', 'deadline_misses',
-           'dropped_messages', 'viewer')
+           'dropped_messages', 'viewer', 'foxglove')
 
 
 def _viewer(port: int, stall: bool) -> subprocess.Popen:

@@ -29,8 +29,13 @@ _TEXT, _BINARY, _CLOSE, _PING, _PONG = 0x1, 0x2, 0x8, 0x9, 0xA
 class ViewerConnection:
     """One WebSocket connection to a Foxglove server (client side of RFC 6455)."""
 
-    def __init__(self, host: str, port: int, timeout: float = 10.0):
-        self.sock = socket.create_connection((host, port), timeout=timeout)
+    def __init__(self, host: str, port: int, timeout: float = 10.0,
+                 rcvbuf: Optional[int] = None):
+        self.sock = socket.socket(socket.AF_INET6 if ':' in host else socket.AF_INET)
+        if rcvbuf:   # before connecting: the TCP window is agreed then
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+        self.sock.settimeout(timeout)
+        self.sock.connect((host, port))
         key = base64.b64encode(os.urandom(16)).decode()
         self.sock.sendall((f'GET / HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\n'
                            f'Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n'
@@ -94,7 +99,8 @@ def watch(host: str, port: int, stall: bool = False, seconds: Optional[float] = 
     end_connect = time.monotonic() + connect_timeout
     while True:
         try:
-            conn = ViewerConnection(host, port)
+            # A stalled viewer with a small window: the server's queue overflows sooner.
+            conn = ViewerConnection(host, port, rcvbuf=4096 if stall else None)
             break
         except OSError:
             if time.monotonic() > end_connect:

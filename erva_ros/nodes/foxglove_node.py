@@ -39,8 +39,7 @@ import time
 from typing import Dict, List, Optional
 
 from rclpy.node import Node
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                ParameterType)
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 
 from diagnostic_msgs.msg import DiagnosticArray
 
@@ -49,7 +48,7 @@ from erva_ros.bag.schemas import message_class
 from erva_ros.live import diagnostics as diag
 from erva_ros.live import foxglove_server as fg
 from erva_ros.live.runtime import run_node
-from erva_ros.nodes.recorder_node import CONTRACT_TYPES, DEFAULT_TOPICS
+from erva_ros.nodes.recorder_node import _range, CONTRACT_TYPES, DEFAULT_TOPICS
 from erva_ros.params import ParamError
 
 NODE_NAME = 'foxglove_server'
@@ -57,12 +56,6 @@ DISCOVERY_PERIOD_S = 0.5
 #: Reader history per topic: the server takes each message at once; this only bridges
 #: a stall of this process (2 s of a 50 Hz topic) without the publishers noticing.
 DEPTH = 100
-
-
-def _range(lo, hi, integer=False):
-    if integer:
-        return {'integer_range': [IntegerRange(from_value=lo, to_value=hi, step=1)]}
-    return {'floating_point_range': [FloatingPointRange(from_value=lo, to_value=hi)]}
 
 
 #: Parameters: name -> (default, type, description, range); see the module doc.
