@@ -1,4 +1,4 @@
-"""`erva bench --live --foxglove-ab N`: does serving Foxglove change the loop's timing?
+"""`erva bench --live --foxglove-ab N`: the loop's timing without and with serving Foxglove.
 
 Runs N pairs of realtime sessions (as `erva bench --live`: no recording), alternating
 A = without the Foxglove server and B = `erva run --foxglove` with a viewer connected
