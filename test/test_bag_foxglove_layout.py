@@ -10,7 +10,7 @@ from conftest import REPO
 from erva_ros import topics as contract
 
 LAYOUT = os.path.join(REPO, 'config', 'foxglove_layout.json')
-SEGMENT = re.compile(r'^([A-Za-z_][A-Za-z0-9_]*)(?:\[(-?\d+)\])?$')
+SEGMENT = re.compile(r'^([A-Za-z_][A-Za-z0-9_]*)(?:\[(-?\d+|:)\])?$')   # [:]: every element
 
 
 def _class(type_name):
@@ -68,3 +68,5 @@ def test_every_panel_uses_session_topics_and_existing_fields():
     assert set(ids) == set(layout['configById'])
     assert {'/erva/sprung_accel', '/erva/damping_cmd', '/erva/road/height',
             '/erva/road/preview', '/diagnostics', '/erva/state'} <= used
+    # The paper's view: solve time and deadline misses (a script on the NMPC's status).
+    assert {'/studio_script/erva/power', '/studio_script/erva/nmpc'} <= used

@@ -11,7 +11,7 @@ import pytest
 from conftest import REPO
 
 SETUP_NODES = ['plant_sim_node', 'road_preview_node', 'nmpc_node', 'recorder_node',
-               'ecu_bridge_node', 'state_estimator_node']
+               'ecu_bridge_node', 'state_estimator_node', 'foxglove_node']
 
 
 def test_package_xml_is_format3_ament_python():

@@ -3,7 +3,8 @@
 Messages are published in log-time (receive-time) order; message i goes out when
 (log_i − log_0)/rate of wall time has passed since the start, as raw CDR bytes (no
 re-serialisation), from one publisher per topic that offers the QoS recorded for it
-(``erva_ros.bag.qos.playback_qos``).  ``clock_hz`` > 0 publishes the playback time
+(``erva_ros.bag.qos.playback_qos``), and hands it to ``sink(topic, bytes, log time)`` when
+one is given (`erva replay --foxglove`).  ``clock_hz`` > 0 publishes the playback time
 (bag time) on /clock at that rate, like ``ros2 bag play --clock``; a /clock recorded
 in the bag is then not replayed.
 
@@ -27,7 +28,8 @@ class Player:
     """Replay ``bag`` through ``node``'s publishers (see module doc)."""
 
     def __init__(self, node, bag: Bag, rate: float = 1.0, topics: Optional[Iterable[str]] = None,
-                 loop: bool = False, clock_hz: float = 0.0):
+                 loop: bool = False, clock_hz: float = 0.0,
+                 sink: Optional[Callable[[str, bytes, int], None]] = None):
         from erva_ros.bag.qos import playback_qos
         from erva_ros.bag.schemas import message_class
 
@@ -35,6 +37,7 @@ class Player:
             raise BagError(f'rate {rate} must be positive')
         self.node, self.bag, self.rate, self.loop = node, bag, float(rate), bool(loop)
         self.clock_hz = float(clock_hz or 0.0)
+        self.sink = sink
         if topics:
             missing = sorted(set(topics) - set(bag.topics))
             if missing:
@@ -116,6 +119,8 @@ class Player:
                     return self._stats(passes, started, stopped=True)
                 self.lateness_s.append(time.monotonic() - target)
                 self.publishers[m.topic].publish(m.data)
+                if self.sink is not None:
+                    self.sink(m.topic, m.data, m.log_time_ns)
                 self.published[m.topic] += 1
             if not self.loop or should_stop() or bag0 is None:
                 return self._stats(passes, started, stopped=should_stop())

@@ -29,7 +29,9 @@ with the converged IPOPT reference, and reports:
                      /|f_ref| >= 0, p50 / p99 / max / mean
   realtime_factor    simulated time / wall time of the offline closed loop
 
---live measures the same in the running ROS 2 system instead (erva_ros.live)."""
+--live measures the same in the running ROS 2 system instead (erva_ros.live).
+--live --foxglove-ab N compares N alternating pairs of live runs without and with
+`erva run --foxglove` and a connected viewer (erva_ros.live.foxglove_bench)."""
 
 
 def add_arguments(parser):
@@ -63,6 +65,13 @@ def add_arguments(parser):
                         help='load the machine with K busy-looping processes while measuring '
                              '(e.g. one per core: what does the result owe to a quiet '
                              'machine?); default 0')
+    parser.add_argument('--foxglove-ab', type=positive_int, default=None, metavar='N',
+                        help='--live only: N alternating pairs of runs without / with the '
+                             'Foxglove server and a connected viewer (default --duration '
+                             '20 s each)')
+    parser.add_argument('--foxglove-viewer', choices=('reading', 'stalled'), default='reading',
+                        help='--foxglove-ab: the viewer reads everything, or never reads '
+                             '(default reading)')
     add_json_option(parser)
 
 
@@ -81,6 +90,14 @@ def _main(args) -> int:
     if args.reference_starts is not None and (args.live or args.no_reference):
         raise CLIError('--reference-starts sets the offline IPOPT reference; it cannot go '
                        'with ' + ('--live' if args.live else '--no-reference'))
+    if args.foxglove_ab is not None or args.foxglove_viewer != 'reading':
+        if not args.live or args.foxglove_ab is None:
+            raise CLIError('--foxglove-ab N needs --live (and --foxglove-viewer needs '
+                           '--foxglove-ab)')
+        from erva_ros.live.foxglove_process import check_address
+        check_address('127.0.0.1:0')   # foxglove-sdk installed
+        from erva_ros.live.foxglove_bench import run_foxglove_ab
+        return run_foxglove_ab(args)
     if args.live:
         try:
             from erva_ros.live.benchmark import run_live_bench

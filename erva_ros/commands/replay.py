@@ -6,6 +6,7 @@ import sys
 
 from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
                                        print_json)
+from erva_ros.commands.run import FOXGLOVE_DEFAULT
 from erva_ros.errors import CLIError
 
 COMMAND = 'replay'
@@ -15,7 +16,9 @@ Play (default): publishes every recorded message at its original time offset
 (receive times, scaled by --rate), as raw CDR from publishers offering the
 recorded QoS, like "ros2 bag play".  Nodes and tools subscribed to the topics see
 the session again.  --clock publishes the playback time on /clock (then a
-recorded /clock is not replayed).  Uses $ROS_DOMAIN_ID.
+recorded /clock is not replayed).  Uses $ROS_DOMAIN_ID.  --foxglove [HOST:]PORT also
+serves the played messages to Foxglove as `erva run --foxglove` does (same channels,
+schemas and layout; log times as recorded); playing starts once a viewer subscribes.
 
 Re-evaluation (--reevaluate): nothing is published.  The recorded states and
 previews are fed, in order, to a fresh controller built from the parameters stored
@@ -48,6 +51,11 @@ def add_arguments(parser):
                         help='wait S seconds before the first message (discovery)')
     parser.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='S',
                         help='wait up to S seconds until every topic has a subscriber')
+    parser.add_argument('--foxglove', nargs='?', const=FOXGLOVE_DEFAULT, default=None,
+                        metavar='[HOST:]PORT',
+                        help='also serve the messages to Foxglove on this address (default '
+                             f'{FOXGLOVE_DEFAULT}: this machine only; PORT 0 = any free '
+                             'port); playing starts when a viewer subscribes')
     again = parser.add_argument_group('re-evaluation (--reevaluate)')
     again.add_argument('--reevaluate', action='store_true',
                        help='recompute the recorded commands with a fresh controller')
@@ -169,6 +177,7 @@ def _play(args, bag) -> int:
 
     from erva_ros.bag.replay import Player
 
+    server = None
     stop = {'flag': False}
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -178,6 +187,8 @@ def _play(args, bag) -> int:
         node = rclpy.create_node('erva_replay')
         player = Player(node, bag, rate=args.rate, topics=args.topics, loop=args.loop,
                         clock_hz=args.clock or 0.0)
+        if args.foxglove is not None:
+            server = _serve(args.foxglove, bag, player, lambda: stop['flag'])
         if args.wait_for_subscribers > 0 and not player.wait_for_subscribers(
                 args.wait_for_subscribers):
             print('erva replay: warning: not every topic has a subscriber; playing anyway',
@@ -187,7 +198,11 @@ def _play(args, bag) -> int:
             time.sleep(0.02)
         stats = player.run(lambda: stop['flag'])
         stats['acknowledged'] = player.finish()
+        if server is not None:
+            stats['foxglove'] = server.stats()
     finally:
+        if server is not None:
+            server.close()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
@@ -200,7 +215,46 @@ def _play(args, bag) -> int:
               f'topics in {stats["wall_s"]:.2f} s (rate {stats["rate"]:g}, '
               f'{stats["passes"]} pass(es)); lateness p99 '
               f'{stats["lateness_ms"]["p99"]:.2f} ms')
+        if 'foxglove' in stats:
+            fox = stats['foxglove']
+            print(f'Foxglove: forwarded {fox["forwarded_total"]} messages; '
+                  f'{fox["clients_seen"]} viewer(s)')
     return 130 if stats['stopped'] and not args.loop else 0
+
+
+#: A viewer's subscriptions are complete when no new one came for this long (s).
+SETTLE_S = 0.5
+
+
+def _serve(address, bag, player, should_stop):
+    """Start the Foxglove server of a replay; wait until a viewer subscribes (or a stop)."""
+    import time
+
+    from erva_ros.bag.report import guess_namespace
+    from erva_ros.live.foxglove_server import FoxgloveServer, parse_address, ReplaySink
+
+    host, port = parse_address(address)
+    try:
+        server = FoxgloveServer(host, port, name=f'erva replay {bag.path}',
+                                session=bag.session, namespace=guess_namespace(bag),
+                                with_time=True)
+    except RuntimeError as exc:   # the port was taken since check_address
+        raise CLIError(f'--foxglove: {exc}') from None
+    for topic in player.topics:
+        server.add_topic(topic, bag.topics[topic].type)
+    player.sink = ReplaySink(server)
+    print(f'erva replay: Foxglove: open {server.url} (layout config/foxglove_layout.json); '
+          'playing once a viewer subscribes (Ctrl-C to stop)', file=sys.stderr, flush=True)
+    # A viewer subscribes its panels' topics together: play once none came for SETTLE_S.
+    last, since = 0, time.monotonic()
+    while not should_stop():
+        seen = server.stats()['subscriptions']
+        if seen != last:
+            last, since = seen, time.monotonic()
+        elif seen and time.monotonic() - since > SETTLE_S:
+            break
+        time.sleep(0.02)
+    return server
 
 
 def main(args) -> int:
@@ -220,6 +274,11 @@ def main(args) -> int:
                        'and --topics')
     if args.max_commands is not None and (not args.reevaluate or args.max_commands < 1):
         raise CLIError('--max-commands needs --reevaluate and a positive count')
+    if args.foxglove is not None:
+        if args.drive_plant or args.reevaluate:
+            raise CLIError('--foxglove serves what is played: drop --drive-plant/--reevaluate')
+        from erva_ros.live.foxglove_process import check_address
+        check_address(args.foxglove)
     bag = open_bag(args.bag)
     if args.reevaluate:
         return _reevaluate(args, bag)

@@ -26,6 +26,12 @@ publishes /clock, deterministic, equal to `erva sim`).
 time only): NMPC -> ecu_bridge_node -> CAN (UDP on 127.0.0.1) -> simulated ECU and
 plant (`erva ecu-sim`) -> CAN -> ecu_bridge_node -> state_estimator_node -> NMPC.
 
+--foxglove [HOST:]PORT serves the session live to Foxglove (WebSocket, no ROS install
+needed): every topic as on DDS (ros2msg schemas, CDR bytes), /diagnostics and the
+session description on <namespace>/session; open config/foxglove_layout.json there.
+The server is a separate, niced process: a viewer that does not keep up loses its own
+oldest messages, never the loop's or the bag's.
+
 Exit status: 0 ok; 1 a node died, did not stop cleanly, or no command arrived;
 2 bad option or parameter; 130/143 interrupted by SIGINT/SIGTERM (the nodes are
 stopped and the summary printed first)."""
@@ -35,6 +41,8 @@ CONTROLLERS = ('passive', 'skyhook', 'no_preview', 'preview', 'preview_long')
 ROADS = ('paper', 'iso8608', 'bump', 'sine')
 MODES = ('realtime', 'lockstep')
 MODELS = ('erva', 'benchmark')
+#: Kept literal, as above; test_foxglove checks it against live/foxglove_server.py.
+FOXGLOVE_DEFAULT = '127.0.0.1:8765'
 
 
 # Upper bound of a weight: the largest float, so inf (and NaN) are rejected.
@@ -101,6 +109,12 @@ def add_arguments(parser):
                              'HIL topics are recorded and the summary adds a hil block '
                              '(bridge drops and timeouts, latencies, estimation error); '
                              'real time only')
+    parser.add_argument('--foxglove', nargs='?', const=FOXGLOVE_DEFAULT, default=None,
+                        metavar='[HOST:]PORT',
+                        help='serve the session live to Foxglove on this address '
+                             f'(default {FOXGLOVE_DEFAULT}: this machine only; another '
+                             'host only when named, e.g. 0.0.0.0:8765; PORT 0 = any free '
+                             'port)')
     add_json_option(parser)
 
 
@@ -120,7 +134,8 @@ def run_config(args, record_dir=None):
                      road=args.road, seed=args.seed, mode=args.mode, model=args.model,
                      duration_s=args.duration, params_file=args.params, nmpc_file=args.nmpc,
                      live_file=args.live, record_dir=record_dir, namespace=args.namespace,
-                     live_overrides=live, ecu=args.ecu)
+                     live_overrides=live, ecu=args.ecu,
+                     foxglove=getattr(args, 'foxglove', None))
 
 
 def _check_namespace(namespace: str) -> str:
@@ -143,6 +158,9 @@ def main(args) -> int:
 
     ensure_ecu_available(args.ecu)
     args.namespace = _check_namespace(args.namespace)
+    if args.foxglove is not None:   # a port in use fails here, before anything starts
+        from erva_ros.live.foxglove_process import check_address
+        check_address(args.foxglove)
     cfg = run_config(args, None if args.no_record else args.record)
     result = run_session(cfg, log=lambda line: print(f'erva run: {line}', file=sys.stderr,
                                                      flush=True))

@@ -168,6 +168,7 @@ class RunConfig:
     settings_overrides: Dict[str, Any] = field(default_factory=dict)
     session_dir: Optional[str] = None      # where the params file and node logs go
     ecu: str = 'none'                      # 'virtual': the HIL loop (simulated ECU, CAN)
+    foxglove: Optional[str] = None         # [HOST:]PORT: serve the session to Foxglove
 
 
 @dataclass
@@ -223,8 +224,8 @@ def prepare_session(cfg: RunConfig, recording: bool) -> Session:
         live['start_delay_s'] = max(live['start_delay_s'], HIL_START_DELAY_S)
     live['preview_steps'] = max(live['preview_steps'], required_preview_steps(settings))
     # The time master starts when each of its topics has the other loop node, this
-    # process's monitor and (when recording) the recorder as subscribers.
-    live['wait_for_subscribers'] = 2 + (1 if recording else 0)
+    # process's monitor and (when recording / serving) the recorder / Foxglove server.
+    live['wait_for_subscribers'] = 2 + (1 if recording else 0) + (1 if cfg.foxglove else 0)
     build_road(live)   # a bad road option fails here, not in a node
     directory = cfg.session_dir or tempfile.mkdtemp(prefix='erva_run_')
     os.makedirs(directory, exist_ok=True)
@@ -323,18 +324,24 @@ class RunResult:
     session: Optional[Session] = None
 
 
-def _recorder(cfg: RunConfig, session: Session, bag_parent: str, env, log) -> NodeProcess:
+def session_description(session: Session) -> Dict[str, str]:
+    """Return what describes the session (the bag's erva_session record)."""
     from erva_ros.bag import session as bag_session
-    from erva_ros.nodes.recorder_node import DEFAULT_TOPICS
-    bag_dir = bag_session.new_bag_dir(bag_parent, session.scenario)
     params = {'erva': session.erva, 'controller': session.settings.as_dict(),
               'live': session.live}
-    meta = bag_session.session_metadata(
+    return bag_session.session_metadata(
         session.scenario, parameters=params, seed=session.live['seed'],
         controller=session.settings.controller,
         extra={'mode': session.live['mode'], 'model': session.live['model'],
                'duration_s': session.live['duration_s'], 'ecu': session.ecu,
                'params_file': session.params_file})
+
+
+def _recorder(cfg: RunConfig, session: Session, bag_parent: str, env, log) -> NodeProcess:
+    from erva_ros.bag import session as bag_session
+    from erva_ros.nodes.recorder_node import DEFAULT_TOPICS
+    bag_dir = bag_session.new_bag_dir(bag_parent, session.scenario)
+    meta = session_description(session)
     record = list(DEFAULT_TOPICS)
     if session.hil:
         from erva_ros.hil.topics import RECORD_TOPICS
@@ -416,6 +423,9 @@ class _Supervisor:
         loop = accounting.hil_loop_subscribers() if self.session.hil else dict(
             accounting.LOOP_SUBSCRIBERS)
         observers = [self.monitor.watched]
+        if self.cfg.foxglove:
+            from erva_ros.live import foxglove_process
+            observers.append(foxglove_process.session_topics(self.session.hil))
         if self.recording:
             from erva_ros.nodes.recorder_node import DEFAULT_TOPICS
             record = list(DEFAULT_TOPICS)
@@ -423,10 +433,12 @@ class _Supervisor:
                 from erva_ros.hil.topics import RECORD_TOPICS
                 record += RECORD_TOPICS
             observers.append(record)
-            # One writer per data topic; /diagnostics: every node and the recorder itself.
+            # One writer per data topic; /diagnostics: every node, the recorder itself and
+            # the Foxglove server.
             self.record_writers = {accounting.qualify(t, ns): 1 for t in record
                                    if t not in (topics.CLOCK, topics.DIAGNOSTICS)}
-            self.record_writers[topics.DIAGNOSTICS] = len(self.node_names) + 1
+            self.record_writers[topics.DIAGNOSTICS] = (len(self.node_names) + 1
+                                                       + (1 if self.cfg.foxglove else 0))
         self.expected = accounting.expected_subscribers(loop, observers, ns)
         self.later = {accounting.qualify(t, ns): 1 for t in self.gate}
 
@@ -435,6 +447,10 @@ class _Supervisor:
         env = dict(os.environ)
         env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
         env['PYTHONUNBUFFERED'] = '1'
+        if self.cfg.foxglove:   # first: it listens before the loop runs
+            from erva_ros.live import foxglove_process
+            self.procs[foxglove_process.PROCESS] = foxglove_process.start_process(
+                self.cfg, self.session, env, self.log, session_description(self.session))
         if self.recording:
             self.procs['recorder_node'] = _recorder(self.cfg, self.session,
                                                     self.cfg.record_dir, env, self.log)
@@ -644,9 +660,10 @@ class _Supervisor:
                 pass
             if ecu.poll() == 0:
                 self.ended.add(hil_summary.ECU)
-        stop_processes([p for n, p in self.procs.items() if n != 'recorder_node'])
-        if 'recorder_node' in self.procs:
-            stop_processes([self.procs['recorder_node']], grace_s=10.0)
+        last = ('recorder_node', 'foxglove_server')   # they take what the nodes published
+        stop_processes([p for n, p in self.procs.items() if n not in last])
+        if any(n in self.procs for n in last):
+            stop_processes([self.procs[n] for n in last if n in self.procs], grace_s=10.0)
         self.executor.shutdown()
         self.monitor.destroy_node()
         rclpy.try_shutdown(context=self.context)
@@ -668,6 +685,9 @@ class _Supervisor:
         if 'recorder_node' in self.procs:
             summary['bag'] = self.procs['recorder_node'].bag_dir
             summary['recording'] = self._check_recording()
+        if 'foxglove_server' in self.procs:
+            from erva_ros.live import foxglove_process
+            summary['foxglove'] = foxglove_process.summary(self.monitor.diag)
         if summary['commands']['received'] == 0 and not self.caught:
             self.errors.append('no damping commands were received')
         self._check_rejections(summary)
