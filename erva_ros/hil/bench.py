@@ -63,8 +63,9 @@ def run_live_bench(params_file: str, hil_file: Optional[str], duration_s: float,
     road = make_road('paper', duration_s + 30.0, seed=seed)
     env = dict(os.environ)
     env.setdefault('ROS_DOMAIN_ID', '0')
+    # The driver below is the road source: the ECU takes the heights as they arrive.
     specs = hil_process_specs(params_file, namespace, duration_s, hil_file, env=env,
-                              realtime_priority=realtime_priority)
+                              road='ros', realtime_priority=realtime_priority)
     logdir = tempfile.mkdtemp(prefix='erva_bench_hil_')
     context = rclpy.Context()
     rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
@@ -310,10 +311,10 @@ def run_core_bench(samples: int = 2000) -> Dict:
             frame = core.receive(1.0)
             recv.append(time.perf_counter() - t0)
             assert frame is not None
-            data = measurements.encode(k * 20_000_000, (c_e, c_e, 0.1, 1e-3, 0.05, 40.0))
+            data = measurements.encode(k * 20_000_000, (c_e, c_e, 0.1, 1e-3, 0.5, 40.0))
             t0 = time.perf_counter()
             _, _, y, _, _ = decode_joint_state(data)
-            x, _ = ekf.cycle((y[2], y[3], y[4] / params.l), y[1], y[0], 1e-3, 1.1e-3)
+            x, _ = ekf.cycle((y[2], y[3], y[4]), y[1], y[0], 1e-3, 1.1e-3)
             state.encode(k * 20_000_000, x[0::2].tolist(), x[1::2].tolist())
             est.append(time.perf_counter() - t0)
     finally:

@@ -3,7 +3,7 @@
 A thin rclpy adapter around :class:`erva_ros.estimator.ExtendedKalmanFilter` (the shared
 CasADi model, paper eq. (11)).  It subscribes to ``ecu/measurements``, the one message
 ecu_bridge_node publishes per ECU cycle (stamp t_k; c_e applied and cycle-mean c_e,
-sprung acceleration, deflection, v_gen, generator force), plus ``road/height`` (the road
+sprung acceleration, deflection, rotor speed, generator force), plus ``road/height`` (the road
 at the tyre, buffered and interpolated).  One callback per cycle: the prediction from
 t_{k-1} with the ECU's cycle-mean c_e and the road w(t_{k-1}) → w(t_k), the correction
 with the measurements present (a lost CAN frame's values are NaN: that channel is left
@@ -19,8 +19,11 @@ value or a NaN that is not a whole channel is rejected and counted, and never re
 the filter.  (The per-frame topics ``ecu/sprung_accel`` etc. are for users and the
 recorder; the estimator does not listen to them.)
 With ``stamp_on_road_grid`` (`erva run --ecu virtual` sets it) a cycle's stamp is the
-road's sample instant t_k at or before its CAN receive time: the simulated ECU samples
-on that grid, and the NMPC pairs each state with the road preview of the same t_k.
+road's sample instant t_k at most 3Ts/4 before (Ts/4 after) its CAN receive time: the
+simulated ECU samples on that grid and sends at once, and the NMPC pairs each state with
+the road preview of
+the same t_k; the status then also reports the loop's chain from t_k
+(``sample_to_measurements_ms``, ``sample_to_state_ms``).
 ``/diagnostics`` reports counters, the mean normalised innovation squared (≈ 3 when
 the noise model fits) and the latency this node adds (``ecu/measurements`` received →
 state published, p50/p99/max in ms) with, inside it, its own processing (compute_ms).
@@ -55,7 +58,7 @@ from erva_ros.live.rt_subscription import RealtimeSubscription
 from erva_ros.live.runtime import run_node
 
 #: Plausibility bounds of the measurements (absurd beyond: rejected, counted); speed is
-#: the rotor speed v_gen / l (rad/s), applied the c_e's (Ns/m, >= 0), force in N.
+#: the rotor speed phi' = v_gen / l (rad/s), applied the c_e's (Ns/m, >= 0), force in N.
 LIMITS = {'accel': 100.0, 'deflection': 0.5, 'speed': 1e3, 'applied': 1e6, 'force': 1e6}
 #: Cache warming runs this long before the next ECU cycle is due (s).
 WARM_LEAD_S = 0.004
@@ -64,8 +67,7 @@ _NAMES = list(hil_topics.MEASUREMENT_NAMES)
 _CHANNELS = tuple(hil_topics.MEASUREMENT_CHANNELS.values())
 
 
-def parse_measurements(data: bytes, l_gen: float
-                       ) -> Optional[Tuple[int, Tuple[float, ...]]]:
+def parse_measurements(data: bytes) -> Optional[Tuple[int, Tuple[float, ...]]]:
     """Return (stamp ns, (c_e, c_e_mean, accel, deflection, rotor speed)) of a message.
 
     ``data`` is a serialized ``ecu/measurements`` JointState.
@@ -84,8 +86,7 @@ def parse_measurements(data: bytes, l_gen: float
         nans = sum(math.isnan(v[i]) for i in channel)
         if 0 < nans < len(channel):
             return None
-    c_e, c_e_mean, accel, defl, v_gen, force = v
-    speed = v_gen / l_gen
+    c_e, c_e_mean, accel, defl, speed, force = v
     if not all(math.isnan(x) or ok for x, ok in (
             (c_e, 0 <= c_e <= LIMITS['applied']),
             (c_e_mean, 0 <= c_e_mean <= LIMITS['applied']),
@@ -112,7 +113,8 @@ class StateEstimatorNode(Node):
         self.cfg = cfg
         self.on_road_grid = declare_bool(
             self, 'stamp_on_road_grid', False, 'stamp each ECU cycle with the road sample '
-            'instant at or before its CAN receive time (an ECU sampling on the road grid)')
+            'instant in [-Ts/4, 3Ts/4) around its CAN receive time (an ECU sampling on the '
+            'road grid and sending at once)')
         self.grid_ns: Optional[int] = None  # a road sample instant: the grid's phase
         self.ekf = ExtendedKalmanFilter(self.params, self.kind, self.ts, noise_of(cfg),
                                         u_max=cfg['u_max'])
@@ -125,6 +127,8 @@ class StateEstimatorNode(Node):
         self.nis_sum = 0.0
         self.latency = LatencyStats()       # ecu/measurements received -> state published
         self.compute = LatencyStats()       # time spent in that callback
+        self.lag_meas = LatencyStats()      # sample instant -> ecu/measurements received
+        self.lag_state = LatencyStats()     # sample instant -> state published
         self.status_level, self.status_text = diag.WARN, 'waiting for ECU measurements'
 
         qos = topics.control_qos()
@@ -173,7 +177,7 @@ class StateEstimatorNode(Node):
             self._measurement(data, info, t0)
 
     def _measurement(self, data: bytes, info, t0: float) -> None:
-        parsed = parse_measurements(data, self.params.l)
+        parsed = parse_measurements(data)
         if parsed is None:
             self.count['rejected'] += 1
             return
@@ -189,8 +193,12 @@ class StateEstimatorNode(Node):
             u_now = u_mean = self.u_now
         self.nis_sum += self._step(stamp, u_now, u_mean, (accel, deflection, speed))
         self._publish(stamp)
-        self.latency.add((time.time_ns() - info['received_timestamp']) * 1e-9)
+        done = time.time_ns()
+        self.latency.add((done - info['received_timestamp']) * 1e-9)
         self.compute.add(time.perf_counter() - t0)
+        if self.grid_ns is not None:        # stamps are sample instants: the loop's chain
+            self.lag_meas.add((info['received_timestamp'] - stamp) * 1e-9)
+            self.lag_state.add((done - stamp) * 1e-9)
         self.meas_sub.idle_at = time.monotonic() + self.warm_after_s
 
     def _warm(self) -> None:
@@ -210,10 +218,15 @@ class StateEstimatorNode(Node):
     def _stamp(self, stamp: int) -> int:
         """Return the cycle stamp (ns) of an ECU message stamped ``stamp`` (ns).
 
-        See ``stamp_on_road_grid``.
+        See ``stamp_on_road_grid``: the road sample instant in the window [−Ts/4, 3Ts/4)
+        around the CAN receive time.  The ECU samples on that grid and sends at once, so
+        its frames arrive a fraction of a millisecond after the instant (its first cycle,
+        at start-up, up to several ms); the quarter period before the instant keeps the
+        pairing right when the ECU gateway's clock is a little behind the road's host
+        (docs/hil.md: tolerated offsets).
         """
         if self.grid_ns is not None:
-            stamp -= (stamp - self.grid_ns) % self.ts_ns
+            stamp -= (stamp - self.grid_ns + self.ts_ns // 4) % self.ts_ns - self.ts_ns // 4
         return stamp
 
     # -- the filter ----------------------------------------------------------------------
@@ -271,6 +284,8 @@ class StateEstimatorNode(Node):
         values['scheduling'] = getattr(self, 'scheduling', 'off')
         values.update(diag.flatten('latency_ms', self.latency.summary()))
         values.update(diag.flatten('compute_ms', self.compute.summary()))
+        values.update(diag.flatten('sample_to_measurements_ms', self.lag_meas.summary()))
+        values.update(diag.flatten('sample_to_state_ms', self.lag_state.summary()))
         for name, s in zip(self.ekf.model.state_names, std):
             values[f'std_{name}'] = float(s)
         if values['no_road'] and level == diag.OK:
