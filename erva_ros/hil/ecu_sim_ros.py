@@ -12,7 +12,13 @@ process (single-threaded), subscribes ``road/height`` and publishes
 
 With the road from ROS, the ECU's cycles fall on the road's sample grid (see
 :meth:`EcuSimRos.start_time`) and the ground truth is stamped with exactly those
-instants, as plant_sim_node stamps its samples.
+instants, as plant_sim_node stamps its samples.  With a road known ahead
+(:class:`~erva_ros.hil.road_buffer.KnownRoad`, the session's road) the messages only
+place the grid and are checked against it (``road_mismatches``); the ECU then never
+waits for them.  The status also reports the ECU's share of the loop's latency:
+``sample_to_can_ms`` (sample instant t_k → its sensor frames sent) and
+``sample_to_applied_ms`` (t_k → the first command of the cycle applied), and its mode
+changes (``mode_changes``: ``cycle:MODE:c_e``).
 """
 
 import time
@@ -22,14 +28,15 @@ from erva_ros import topics
 from erva_ros.hil import topics as hil_topics
 from erva_ros.hil.ecu_sim import EcuSample, EcuSimCore
 from erva_ros.hil.hardware import GeneratorHardware
-from erva_ros.hil.road_buffer import RoadBuffer
+from erva_ros.hil.latency import LatencyStats
+from erva_ros.hil.road_buffer import KnownRoad, RoadBuffer
 
 
 class EcuSimRos:
     """The ``ecu_sim`` node with its own context and executor."""
 
     def __init__(self, namespace: str, kind: str, hardware: GeneratorHardware,
-                 diagnostics_period_s: float = 0.5):
+                 diagnostics_period_s: float = 0.5, known_road: Optional[KnownRoad] = None):
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
@@ -48,6 +55,9 @@ class EcuSimRos:
         self.executor.add_node(self.node)
         qos = topics.control_qos()
         self.road = RoadBuffer(max_extrapolation_s=0.02)
+        self.known_road = known_road
+        self.lag_can = LatencyStats()        # sample instant -> sensor frames sent
+        self.lag_applied = LatencyStats()    # sample instant -> first command applied
         self.node.create_subscription(PointStamped, topics.ROAD_HEIGHT, self._on_road, qos)
         self.pub_accel = self.node.create_publisher(AccelStamped, topics.SPRUNG_ACCEL, qos)
         self.pub_gen = self.node.create_publisher(JointState, topics.GENERATOR, qos)
@@ -67,10 +77,16 @@ class EcuSimRos:
             stamp = time_to_ns(msg.header.stamp)
             if self.first_road_ns is None:
                 self.first_road_ns = stamp
+                if self.known_road is not None:
+                    self.known_road.anchor(stamp, msg.point.x)
+            if self.known_road is not None:
+                self.known_road.check(stamp, w)
             self.road.add(stamp / NS, w)
 
     def road_height(self, t: float) -> float:
-        """Return w(t) (m) at epoch time t from the received road samples."""
+        """Return w(t) (m) at epoch time t: the known road, else the received samples."""
+        if self.known_road is not None:
+            return self.known_road.height(t)
         return self.road.height(t)
 
     def wait_for_road(self, timeout_s: float, stop: Callable[[], bool]) -> bool:
@@ -86,7 +102,7 @@ class EcuSimRos:
         The road node publishes w(t_k) at t_k = t_first + k·Ts.  Cycles on the same
         grid make the state of t_k (estimated from this ECU's sensors) meet the preview
         of t_k in the NMPC, as with plant_sim_node.  Call after :meth:`wait_for_road`;
-        then wait with :meth:`wait_cycle`.
+        then wait with :meth:`spin_for` (and :meth:`wait_road_sample`).
         """
         from erva_ros.live.msgs import NS
         ts_ns = int(round(ts * NS))
@@ -104,19 +120,16 @@ class EcuSimRos:
                 return
             self.executor.spin_once(timeout_sec=left)
 
-    def wait_cycle(self, seconds: float) -> None:
-        """Wait for the next cycle on the road's grid, then for the road sample of that instant.
+    def wait_road_sample(self, t: float) -> None:
+        """Serve callbacks until the road sample of epoch time ``t`` arrived, at most Ts/4.
 
-        The road node publishes w(t_k) at t_k, the instant the ECU integrates up to:
-        serve callbacks until it arrived, at most Ts/4 more, so the plant is driven by
-        the road the estimator sees rather than an extrapolation (the sensor frames go
-        out that much later: typically well under a millisecond).
+        For a road that arrives sample by sample (no road known ahead): the plant must
+        be driven by the road the estimator sees rather than an extrapolation, so the
+        sensor frames go out that much later.
         """
-        due = time.time() + seconds
-        self.spin_for(seconds)
         ts = self._grid[1] * 1e-9
         end = time.monotonic() + ts / 4
-        while self.road.latest[0] < due - ts / 2 and time.monotonic() < end:
+        while self.road.latest[0] < t - ts / 2 and time.monotonic() < end:
             self.executor.spin_once(timeout_sec=max(0.0, end - time.monotonic()))
 
     def publish(self, core: EcuSimCore, s: EcuSample) -> None:
@@ -127,12 +140,15 @@ class EcuSimRos:
         else:   # exactly on the grid (epoch seconds as a float are 0.2 us coarse)
             t0, ts_ns = self._grid
             stamp = t0 + int(round(s.t * NS / ts_ns)) * ts_ns
-        x = s.x
-        rel = x[4] - (x[0] - x[2]) if self.kind == 'erva' else x[0] - x[2]
         self.pub_accel.publish(accel_msg(stamp, s.sprung_accel))
-        self.pub_gen.publish(generator_msg(stamp, rel, s.v_gen, s.c_e))
-        self.pub_state.publish(state_msg(stamp, x, self.kind))
+        self.pub_gen.publish(generator_msg(stamp, s.gen_position, s.v_gen, s.c_e))
+        self.pub_state.publish(state_msg(stamp, s.x, self.kind))
         self.published += 1
+        t_k = core.t0 + s.t
+        if s.sent_at is not None:
+            self.lag_can.add(s.sent_at - t_k)
+        if s.command_latched is not None:    # the command for the sample one Ts earlier
+            self.lag_applied.add(s.command_latched - (t_k - core.cfg.period_s))
         now = time.monotonic()
         if now - self._last_diag >= self.diag_period:
             self._last_diag = now
@@ -152,6 +168,12 @@ class EcuSimRos:
         values['harvested_j'] = core.plant.harvested_j
         values['samples_published'] = self.published
         values['scheduling'] = self.scheduling
+        values['mode_changes'] = core.mode_changes()
+        values.update(diag.flatten('sample_to_can_ms', self.lag_can.summary()))
+        values.update(diag.flatten('sample_to_applied_ms', self.lag_applied.summary()))
+        if self.known_road is not None:
+            values['road_checked'] = self.known_road.checked
+            values['road_mismatches'] = self.known_road.mismatches
         level = diag.ERROR if core.bus is None else (
             diag.OK if core.mode.name == 'CONTROLLED' else diag.WARN)
         text = core.bus_error or f'ECU {core.mode.name}'

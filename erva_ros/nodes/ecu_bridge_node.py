@@ -21,7 +21,11 @@ A thin rclpy adapter around :class:`erva_ros.hil.bridge.BridgeCore` (no ROS insi
   frame arrives or Ts/2 after its first frame (the watchdog's Ts/4 check), whichever
   comes first.
 * ``/diagnostics``: command link, CAN bus (E2E counters, losses, reconnects) and ECU
-  heartbeat, with the bridge's added latency (p50/p99/max in ms).
+  heartbeat, with the bridge's added latency (p50/p99/max in ms) and, on the command
+  link, ``sample_to_can_ms``: the command's sample instant (its stamp) → frame sent.
+* A ``damping_cmd`` whose stamp is older than ``command_timeout_periods`` when it
+  arrives is refused (``commands_stale``): e.g. commands DDS queued while a link between
+  hosts was down must not be applied as fresh (clocks synchronised, docs/hil.md).
 
 Bus loss never ends the node: it is reported and the bus re-opened every ``bus_retry_s``.
 """
@@ -60,24 +64,24 @@ ABSURD_C_E = 1e6
 
 
 def parse_command(data: bytes):
-    """Return (plan Ns/m, time offsets s) of a serialized ``damping_cmd``, or (None, None).
+    """Return (stamp ns, plan Ns/m, time offsets s) of a serialized ``damping_cmd``.
 
-    None for malformed CDR, other joints, no points, a point without exactly one
-    position, or an absurd value (beyond :data:`ABSURD_C_E`, NaN, infinite).
+    (None, None, None) for malformed CDR, other joints, no points, a point without
+    exactly one position, or an absurd value (beyond :data:`ABSURD_C_E`, NaN, infinite).
     """
     try:
-        _, names, points = decode_joint_trajectory(data)
+        stamp, names, points = decode_joint_trajectory(data)
     except CdrError:
-        return None, None
+        return None, None, None
     if names != [topics.DAMPING_JOINT] or not points:
-        return None, None
+        return None, None, None
     plan, offsets = [], []
     for positions, (sec, nsec) in points:
         if len(positions) != 1 or not abs(positions[0]) <= ABSURD_C_E:   # also NaN
-            return None, None
+            return None, None, None
         plan.append(positions[0])
         offsets.append((sec * 1_000_000_000 + nsec) * 1e-9)
-    return plan, offsets
+    return stamp, plan, offsets
 
 
 class EcuBridgeNode(Node):
@@ -114,6 +118,7 @@ class EcuBridgeNode(Node):
         # Added latency (DDS / kernel receive time -> done) and, inside it, the node's own
         # processing (callback entry -> done): the rest is waiting to be scheduled.
         self.lat_cmd = LatencyStats()       # damping_cmd received -> CAN frame sent
+        self.lag_cmd = LatencyStats()       # the command's sample instant -> frame sent
         self.proc_cmd = LatencyStats()
         self.lat_sensor = LatencyStats()    # CAN frame received -> its topic published
         self.proc_sensor = LatencyStats()
@@ -163,14 +168,20 @@ class EcuBridgeNode(Node):
     # -- ROS -> CAN --------------------------------------------------------------------
     def _on_command(self, data: bytes, info) -> None:
         t0 = time.perf_counter()
-        plan, offsets = parse_command(data)
+        stamp, plan, offsets = parse_command(data)
         if plan is None:
             self.rejected_msgs += 1
             self.core.counts['commands_rejected'] += 1
             return
-        result = self.core.submit(plan, offsets=offsets)
+        # The stamp is the sample the command was computed for (synchronised clocks
+        # across hosts, docs/hil.md): a command delivered late, e.g. queued by DDS
+        # while a link was down, is refused rather than applied as fresh.
+        result = self.core.submit(plan, offsets=offsets,
+                                  age_s=(info['received_timestamp'] - stamp) * 1e-9)
         if result in ('sent', 'clamped'):
-            self.lat_cmd.add((time.time_ns() - info['received_timestamp']) * 1e-9)
+            done = time.time_ns()
+            self.lat_cmd.add((done - info['received_timestamp']) * 1e-9)
+            self.lag_cmd.add((done - stamp) * 1e-9)
             self.proc_cmd.add(time.perf_counter() - t0)
 
     def _tick(self) -> None:
@@ -219,6 +230,7 @@ class EcuBridgeNode(Node):
                                                                 float(p.sprung_accel))))
             self.pub_susp.publish(self.enc_susp.encode(stamp, (float(p.deflection),)))
         else:
+            # The contract's generator topic is in stroke terms: v_gen = l·phi'.
             self.pub_gen.publish(self.enc_gen.encode(
                 stamp, (), (float(p.speed * self.params.l),),
                 (float(self.hw.force_from_current(p.current)),)))
@@ -235,7 +247,7 @@ class EcuBridgeNode(Node):
         gen = cyc.payloads.get(Kind.GENERATOR)
         values = ([float(st.c_e_applied), float(st.c_e_mean)] if st else [nan, nan]) + (
             [float(ch.sprung_accel), float(ch.deflection)] if ch else [nan, nan]) + (
-            [float(gen.speed * self.params.l), float(self.hw.force_from_current(gen.current))]
+            [float(gen.speed), float(self.hw.force_from_current(gen.current))]
             if gen else [nan, nan])
         self.pub_meas.publish(self.enc_meas.encode(int(round(cyc.stamp * 1e9)), values))
 
@@ -245,10 +257,11 @@ class EcuBridgeNode(Node):
         lat = {}
         for name, stats in (('ros_to_can_ms', self.lat_cmd), ('can_to_ros_ms', self.lat_sensor),
                             ('ros_to_can_proc_ms', self.proc_cmd),
-                            ('can_to_ros_proc_ms', self.proc_sensor)):
+                            ('can_to_ros_proc_ms', self.proc_sensor),
+                            ('sample_to_can_ms', self.lag_cmd)):
             lat.update(diag.flatten(name, stats.summary()))
         statuses[0].values.update({k: diag.format_value(v) for k, v in lat.items()
-                                   if k.startswith('ros_to_can')})
+                                   if k.startswith(('ros_to_can', 'sample_to_can'))})
         statuses[0].values['messages_rejected'] = str(self.rejected_msgs)
         statuses[0].values['scheduling'] = getattr(self, 'scheduling', 'off')
         statuses[2].values.update({k: diag.format_value(v) for k, v in lat.items()
