@@ -25,7 +25,8 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         (os.path.join('share', package_name, 'config'),
-         glob('config/*.yaml') + glob('config/*.dbc') + glob('config/*.json')),
+         glob('config/*.yaml') + glob('config/*.dbc') + glob('config/*.json')
+         + glob('config/*.xml')),
         (os.path.join('share', package_name, 'launch'), glob('launch/*.launch.py')),
     ],
     python_requires='>=3.10',

@@ -163,32 +163,38 @@ def _build_core(args, road):
 def _run(args, core, ros, stop) -> list:
     """Run the ECU loop until --duration or a stop; return its samples (cycle 0 first)."""
     from erva_ros.hil.ecu_sim import run_realtime
-    from erva_ros.live.realtime import set_fifo_priority
     samples = []
     on_cycle = samples.append if ros is None else (
         lambda s: (samples.append(s), ros.publish(core, s)))
     if ros is None:
         print(f'erva ecu-sim: {args.bus}, Ts = {args.ts:g} s, road {args.road}',
               file=sys.stderr, flush=True)
-    # After the set-up, like the nodes (erva_ros/live/realtime.py).
-    scheduling = set_fifo_priority(
-        args.realtime_priority, lambda m: print(f'erva ecu-sim: warning: {m}',
-                                                file=sys.stderr))
     should_stop = lambda: bool(stop)        # noqa: E731
     if args.road in GRID_ROADS:             # cycles on the road's grid
-        ros.scheduling = scheduling
         run_realtime(core, args.duration, on_cycle, should_stop, wait=ros.spin_for,
                      t0=ros.start_time(args.ts), ahead=args.road == 'session',
                      until_road=ros.wait_road_sample)
     else:
-        if ros is not None:
-            ros.scheduling = scheduling
         run_realtime(core, args.duration, on_cycle, should_stop,
                      wait=None if ros is None else ros.spin_for)
     if ros is not None:
         ros.publish_final(core)
     core.close()
     return samples
+
+
+def _realtime(args, ros) -> None:
+    """Switch to SCHED_FIFO once set up (as the nodes do, erva_ros/live/realtime.py).
+
+    Before waiting for the road: the ECU's first sample goes out when the first road
+    height arrives, which a busy machine would otherwise delay by milliseconds.
+    """
+    from erva_ros.live.realtime import set_fifo_priority
+    scheduling = set_fifo_priority(
+        args.realtime_priority, lambda m: print(f'erva ecu-sim: warning: {m}',
+                                                file=sys.stderr))
+    if ros is not None:
+        ros.scheduling = scheduling
 
 
 def _summary(args, core, samples) -> dict:
@@ -247,6 +253,7 @@ def main(args) -> int:
                             known_road=known)
         core = _build_core(args, _road_function(args) if ros is None or args.road not in
                            GRID_ROADS else ros.road_height)
+        _realtime(args, ros)
         # Built before the wait (the plant's CasADi set-up takes longer than a period), so
         # the ECU starts on the road's first sample; the bus opens after it (no backlog).
         if args.road in GRID_ROADS and not ros.wait_for_road(args.wait_road, lambda: bool(stop)):

@@ -1,6 +1,7 @@
 """``erva run``: the live system -- plant, road-preview and NMPC nodes over ROS 2, one scenario."""
 
 import os
+import shlex
 import sys
 
 from erva_ros.commands._common import (add_json_option, add_params_option, bounded,
@@ -25,6 +26,9 @@ publishes /clock, deterministic, equal to `erva sim`).
 --ecu virtual runs the hardware-in-the-loop loop instead of plant_sim_node (real
 time only): NMPC -> ecu_bridge_node -> CAN (UDP on 127.0.0.1) -> simulated ECU and
 plant (`erva ecu-sim`) -> CAN -> ecu_bridge_node -> state_estimator_node -> NMPC.
+--ecu-prefix runs those three processes through a command prefix, e.g. in another
+network namespace (`ip netns exec NS`, the loop split across two DDS hosts:
+docs/hil.md) or on other cores (`taskset -c 1`).
 
 Exit status: 0 ok; 1 a node died, did not stop cleanly, or no command arrived;
 2 bad option or parameter; 130/143 interrupted by SIGINT/SIGTERM (the nodes are
@@ -101,6 +105,12 @@ def add_arguments(parser):
                              'HIL topics are recorded and the summary adds a hil block '
                              '(bridge drops and timeouts, latencies, estimation error); '
                              'real time only')
+    parser.add_argument('--ecu-prefix', metavar='CMD', default=None,
+                        help='with --ecu virtual: start the ECU simulator, the bridge and the '
+                             'estimator through this command prefix (split like a shell '
+                             'does), e.g. "ip netns exec NS" or "taskset -c 1"; it must exec '
+                             'the command (signals stop it) and see the same files; DDS '
+                             'settings come from the environment (docs/hil.md)')
     add_json_option(parser)
 
 
@@ -120,7 +130,22 @@ def run_config(args, record_dir=None):
                      road=args.road, seed=args.seed, mode=args.mode, model=args.model,
                      duration_s=args.duration, params_file=args.params, nmpc_file=args.nmpc,
                      live_file=args.live, record_dir=record_dir, namespace=args.namespace,
-                     live_overrides=live, ecu=args.ecu)
+                     live_overrides=live, ecu=args.ecu, ecu_prefix=_ecu_prefix(args))
+
+
+def _ecu_prefix(args) -> tuple:
+    """Return --ecu-prefix as argv words; CLIError without --ecu virtual or if malformed."""
+    if args.ecu_prefix is None:
+        return ()
+    if args.ecu == 'none':
+        raise CLIError('--ecu-prefix needs --ecu virtual')
+    try:
+        words = tuple(shlex.split(args.ecu_prefix))
+    except ValueError as exc:
+        raise CLIError(f'--ecu-prefix {args.ecu_prefix!r}: {exc}') from None
+    if not words:
+        raise CLIError('--ecu-prefix is empty')
+    return words
 
 
 def _check_namespace(namespace: str) -> str:

@@ -58,6 +58,7 @@ class EcuSimRos:
         self.known_road = known_road
         self.lag_can = LatencyStats()        # sample instant -> sensor frames sent
         self.lag_applied = LatencyStats()    # sample instant -> first command applied
+        self.start_lag_s: Optional[float] = None
         self.node.create_subscription(PointStamped, topics.ROAD_HEIGHT, self._on_road, qos)
         self.pub_accel = self.node.create_publisher(AccelStamped, topics.SPRUNG_ACCEL, qos)
         self.pub_gen = self.node.create_publisher(JointState, topics.GENERATOR, qos)
@@ -146,6 +147,8 @@ class EcuSimRos:
         self.published += 1
         t_k = core.t0 + s.t
         if s.sent_at is not None:
+            if self.start_lag_s is None:    # the first sample: how late the ECU started
+                self.start_lag_s = s.sent_at - t_k
             self.lag_can.add(s.sent_at - t_k)
         if s.command_latched is not None:    # the command for the sample one Ts earlier
             self.lag_applied.add(s.command_latched - (t_k - core.cfg.period_s))
@@ -169,6 +172,8 @@ class EcuSimRos:
         values['samples_published'] = self.published
         values['scheduling'] = self.scheduling
         values['mode_changes'] = core.mode_changes()
+        if self.start_lag_s is not None:
+            values['start_lag_ms'] = round(self.start_lag_s * 1e3, 3)
         values.update(diag.flatten('sample_to_can_ms', self.lag_can.summary()))
         values.update(diag.flatten('sample_to_applied_ms', self.lag_applied.summary()))
         if self.known_road is not None:

@@ -98,6 +98,7 @@ def hil_block(values: Values, estimates: Dict[int, np.ndarray],
     ecu_out['mode'] = ecu.get('ecu_mode')
     ecu_out['mode_changes'] = ecu.get('mode_changes')
     ecu_out['road_mismatches'] = value_int(ecu.get('road_mismatches'))
+    ecu_out['start_lag_ms'] = value_float(ecu.get('start_lag_ms'))
     bridge['commands_stale'] = value_int(cmd.get('commands_stale'))
     bridge['timeout_plan_frames_max'] = value_int(cmd.get('timeout_plan_frames_max'))
     bridge['timeout_age_ms_max'] = value_float(cmd.get('timeout_age_ms_max'))

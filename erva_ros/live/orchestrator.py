@@ -170,6 +170,7 @@ class RunConfig:
     settings_overrides: Dict[str, Any] = field(default_factory=dict)
     session_dir: Optional[str] = None      # where the params file and node logs go
     ecu: str = 'none'                      # 'virtual': the HIL loop (simulated ECU, CAN)
+    ecu_prefix: tuple = ()                 # argv prefix of the HIL processes (--ecu-prefix)
 
 
 @dataclass
@@ -416,7 +417,7 @@ class _Supervisor:
             hil = {spec.name: spec for spec in hil_process_specs(
                 self.session.params_file, self.cfg.namespace, live['duration_s'],
                 model=live['model'], ts=live['ts'], env=env, stamp_on_road_grid=True,
-                realtime_priority=live['realtime_priority'])}
+                realtime_priority=live['realtime_priority'], prefix=self.cfg.ecu_prefix)}
         for name in self.node_names:
             argv = [sys.executable, '-m', f'erva_ros.nodes.{name}', '--ros-args',
                     '-r', f'__ns:={self.cfg.namespace}',

@@ -220,14 +220,18 @@ class StateEstimatorNode(Node):
 
         See ``stamp_on_road_grid``: the road sample instant in the window [−Ts/4, 3Ts/4)
         around the CAN receive time.  The ECU samples on that grid and sends at once, so
-        its frames arrive a fraction of a millisecond after the instant (its first cycle,
-        at start-up, up to several ms); the quarter period before the instant keeps the
-        pairing right when the ECU gateway's clock is a little behind the road's host
-        (docs/hil.md: tolerated offsets).
+        its frames arrive a fraction of a millisecond after the instant; the quarter
+        period before it keeps the pairing right when the ECU gateway's clock is a little
+        behind the road's host (docs/hil.md: tolerated offsets).  The first cycle comes
+        when the ECU has just started on the first road sample, on a busy machine up to
+        a period late: the instant before it, but not before the first road sample.
         """
-        if self.grid_ns is not None:
-            stamp -= (stamp - self.grid_ns + self.ts_ns // 4) % self.ts_ns - self.ts_ns // 4
-        return stamp
+        if self.grid_ns is None:
+            return stamp
+        if self.last_ns is None:
+            return max(stamp - (stamp - self.grid_ns) % self.ts_ns, self.grid_ns)
+        return stamp - ((stamp - self.grid_ns + self.ts_ns // 4) % self.ts_ns
+                        - self.ts_ns // 4)
 
     # -- the filter ----------------------------------------------------------------------
     def _step(self, stamp_ns: int, u_now: float, u_mean: float, y) -> float:
