@@ -14,6 +14,7 @@ namespace's multicast / broadcast IP counters (/proc/net/netstat ``IpExt``).
 
 import itertools
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -39,15 +40,25 @@ def unavailable() -> Optional[str]:
     probe = f'erva_probe_{os.getpid()}'
     made = _ip('netns', 'add', probe, check=False)
     if made.returncode != 0:
-        return f'cannot create network namespaces: {made.stderr.strip() or "not permitted"}'
+        why = (made.stderr.strip().splitlines() or ['not permitted'])[0]
+        return f'cannot create network namespaces: {why}'
     _ip('netns', 'del', probe, check=False)
     return None
+
+
+def remove_orphans() -> None:
+    """Delete the namespaces of test processes that died without cleaning up (SIGKILL)."""
+    for name in _ip('netns', 'list', check=False).stdout.split():
+        m = re.fullmatch(r'ev(\d+)x\d+[ab]', name)
+        if m and not os.path.exists(f'/proc/{m.group(1)}'):
+            _ip('netns', 'del', name, check=False)
 
 
 class HostPair:
     """Namespaces ``a`` and ``b`` with a veth link ``subnet.1`` <-> ``subnet.2`` (/30)."""
 
     def __init__(self, subnet: str = '10.203.0'):
+        remove_orphans()
         n = next(_pairs)
         self.prefix = f'ev{os.getpid() % 100000}x{n}'          # veth names <= 15 chars
         self.ns = {'a': f'{self.prefix}a', 'b': f'{self.prefix}b'}
