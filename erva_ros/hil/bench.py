@@ -272,7 +272,10 @@ def run_core_bench(samples: int = 2000) -> Dict:
       (read, E2E check, DBC decode);
     * estimator: one ECU cycle as state_estimator_node runs it: decode the serialized
       ``ecu/measurements``, the compiled EKF cycle (predict over Ts and update, one
-      buffered call), encode the state message.
+      buffered call), encode the state message;
+    * simulated ECU: ``prepare`` (the cycle integrated ahead: latch plan, one compiled
+      call) and, at the sample instant, ``run_cycle`` (read, take the prepared step,
+      sample, encode and send the three sensor frames): its own share of the loop.
     """
     import math
 
@@ -298,6 +301,7 @@ def run_core_bench(samples: int = 2000) -> Dict:
     measurements = JointStateEncoder(MEASUREMENT_NAMES)
     state = JointStateEncoder(state_joint_names('erva'))
     send, recv, est = [], [], []
+    ecu_prepare, ecu_sample = _ecu_core_bench(samples, codec)
     try:
         for k in range(samples):
             c_e = 10000.0 + 5000.0 * math.sin(0.1 * k)
@@ -322,4 +326,45 @@ def run_core_bench(samples: int = 2000) -> Dict:
         ecu.shutdown()
     return {'bridge_ros_to_can': percentiles_ms(send),
             'bridge_can_to_ros': percentiles_ms(recv),
-            'estimator_cycle': percentiles_ms(est)}
+            'estimator_cycle': percentiles_ms(est),
+            'ecu_prepare': percentiles_ms(ecu_prepare),
+            'ecu_sample_and_send': percentiles_ms(ecu_sample)}
+
+
+def _ecu_core_bench(samples: int, codec):
+    """Time the simulated ECU's ``prepare`` and ``run_cycle`` (a command every cycle)."""
+    import math
+
+    from erva_ros.hil.codec import Command, CommandMode, Kind
+    from erva_ros.hil.ecu_sim import EcuSimConfig, EcuSimCore, SensorNoise
+    from erva_ros.hil.hardware import GeneratorHardware
+    from erva_ros.hil.transport import free_udp_ports, open_bus
+    from erva_ros.params import paper_params
+
+    hw = GeneratorHardware()
+    a, b = free_udp_ports(2)
+    bridge = open_bus(f'udp:{a}:{b}')
+    ecu = EcuSimCore(paper_params(), hw, codec, lambda: open_bus(f'udp:{b}:{a}'),
+                     lambda t: 1e-3 * math.sin(t), EcuSimConfig(), SensorNoise())
+    tx = codec.sender(Kind.COMMAND)
+    prepare, sample = [], []
+    try:
+        ecu.open()
+        ecu.start(time.time())
+        for k in range(samples):
+            c_e = 10000.0 + 5000.0 * math.sin(0.1 * k)
+            bridge.send(codec.encode(Kind.COMMAND, Command(hw.duty_from_c_e(c_e), c_e,
+                                                           CommandMode.CONTROLLED), tx))
+            time.sleep(0.0002)                   # the frame is in the socket
+            t0 = time.perf_counter()
+            ecu.prepare()
+            prepare.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            ecu.run_cycle()
+            sample.append(time.perf_counter() - t0)
+            while bridge.recv(0.0) is not None:  # the sensor frames
+                pass
+    finally:
+        ecu.close()
+        bridge.shutdown()
+    return prepare, sample

@@ -23,7 +23,9 @@ road's sample instant t_k at most 3Ts/4 before (Ts/4 after) its CAN receive time
 simulated ECU samples on that grid and sends at once, and the NMPC pairs each state with
 the road preview of
 the same t_k; the status then also reports the loop's chain from t_k
-(``sample_to_measurements_ms``, ``sample_to_state_ms``).
+(``sample_to_measurements_ms``, ``sample_to_state_ms``).  The ECU sends at t_k as the
+road node publishes w(t_k), which the prediction needs: a cycle whose road sample is not
+there yet waits for it up to Ts/4 (``road_waits``; ``road_extrapolated`` if in vain).
 ``/diagnostics`` reports counters, the mean normalised innovation squared (≈ 3 when
 the noise model fits) and the latency this node adds (``ecu/measurements`` received →
 state published, p50/p99/max in ms) with, inside it, its own processing (compute_ms).
@@ -60,6 +62,8 @@ from erva_ros.live.runtime import run_node
 #: Plausibility bounds of the measurements (absurd beyond: rejected, counted); speed is
 #: the rotor speed phi' = v_gen / l (rad/s), applied the c_e's (Ns/m, >= 0), force in N.
 LIMITS = {'accel': 100.0, 'deflection': 0.5, 'speed': 1e3, 'applied': 1e6, 'force': 1e6}
+#: On the road grid, how long a cycle waits for its road sample w(t_k) (periods).
+ROAD_WAIT_PERIODS = 0.25
 #: Cache warming runs this long before the next ECU cycle is due (s).
 WARM_LEAD_S = 0.004
 _WARM_Y = (0.0, 0.0, 0.0)
@@ -123,7 +127,8 @@ class StateEstimatorNode(Node):
         self.last_ns: Optional[int] = None  # stamp of the last published estimate
         self.u_now = self.params.c_e0       # damping applied at the last stamp (Ns/m)
         self.count = dict.fromkeys(('updates', 'incomplete', 'gaps', 'restarts',
-                                    'late_or_repeated', 'rejected', 'no_road'), 0)
+                                    'late_or_repeated', 'rejected', 'no_road',
+                                    'road_waits', 'road_extrapolated'), 0)
         self.nis_sum = 0.0
         self.latency = LatencyStats()       # ecu/measurements received -> state published
         self.compute = LatencyStats()       # time spent in that callback
@@ -138,6 +143,7 @@ class StateEstimatorNode(Node):
         # filter's inputs and counters: one lock (re-entrant: a cycle may publish
         # diagnostics).
         self.lock = threading.RLock()
+        self.road_arrived = threading.Condition(self.lock)
         # ecu/measurements is on the loop's critical path: taken by its own thread, not
         # the executor (erva_ros/live/rt_subscription.py; ~0.5 ms less per cycle).  That
         # thread also warms the caches WARM_LEAD_S before the next cycle is due: it runs
@@ -170,6 +176,7 @@ class StateEstimatorNode(Node):
             if self.on_road_grid and self.grid_ns is None:
                 self.grid_ns = stamp
             self.road.add(stamp / NS, w)
+            self.road_arrived.notify_all()
 
     def _on_measurements(self, data: bytes, info) -> None:
         t0 = time.perf_counter()
@@ -186,6 +193,13 @@ class StateEstimatorNode(Node):
         if self.last_ns is not None and stamp <= self.last_ns:
             self.count['late_or_repeated'] += 1
             return
+        if self.grid_ns is not None and not self._road_at(stamp):
+            # The ECU samples and sends at t_k, as the road node publishes w(t_k): the
+            # measurement may come first.  The prediction needs w(t_k): wait for it
+            # (the lock is released meanwhile), at most ROAD_WAIT_PERIODS.
+            self.count['road_waits'] += 1
+            self.road_arrived.wait_for(lambda: self._road_at(stamp),
+                                       ROAD_WAIT_PERIODS * self.ts)
         if any(math.isnan(v) for v in y):   # a CAN frame of the cycle was lost
             self.count['incomplete'] += 1
         u_now, u_mean, accel, deflection, speed = y
@@ -233,15 +247,22 @@ class StateEstimatorNode(Node):
         return stamp - ((stamp - self.grid_ns + self.ts_ns // 4) % self.ts_ns
                         - self.ts_ns // 4)
 
+    def _road_at(self, stamp_ns: int) -> bool:
+        """Return True once the road sample of ``stamp_ns`` (or a later one) arrived."""
+        latest = self.road.latest
+        return latest is not None and latest[0] >= stamp_ns / NS - 1e-6
+
     # -- the filter ----------------------------------------------------------------------
     def _step(self, stamp_ns: int, u_now: float, u_mean: float, y) -> float:
         """Predict from the last estimate to ``stamp_ns`` and correct with y; return NIS.
 
         y is in erva_ros.estimator.MEASUREMENTS order, NaN = missing.
         """
+        t1 = stamp_ns / NS
         if len(self.road) == 0:
             self.count['no_road'] += 1
-        t1 = stamp_ns / NS
+        elif self.road.latest[0] < t1 - 1e-6:   # w(t_k) not here yet: extrapolated
+            self.count['road_extrapolated'] += 1
         w1 = self.road.height(t1)
         steps = 0 if self.last_ns is None else max(
             1, int(round((stamp_ns - self.last_ns) / self.ts_ns)))
