@@ -93,7 +93,8 @@ def hil_block(values: Values, estimates: Dict[int, np.ndarray],
     ecu_out = {f'dropped_{k}': _sum(ecu, [f'rx_{n}' for n in names])
                for k, names in DROPS.items()}
     ecu_out.update({k: value_int(ecu.get(k)) for k in (
-        'cycles', 'commands_applied', 'command_timeouts', 'duty_out_of_range', 'overruns')})
+        'cycles', 'commands_applied', 'command_timeouts', 'duty_out_of_range', 'overruns',
+        'recomputed')})
     ecu_out['bus_errors'] = _sum(ecu, ('send_errors', 'bus_losses'))
     ecu_out['mode'] = ecu.get('ecu_mode')
     ecu_out['mode_changes'] = ecu.get('mode_changes')
