@@ -125,7 +125,7 @@ def _mode_changes(text):
 
 
 def _check_loop(s, n):
-    """The loop closed at 50 Hz: one NMPC solve with its preview per sample."""
+    """Check the loop closed at 50 Hz: one NMPC solve per sample, a clean CAN link."""
     assert s['ok'] and not s['errors'], s['errors']
     cmd, nmpc, hil = s['commands'], s['nmpc'], s['hil']
     assert n - 5 <= cmd['for_samples'] <= n, cmd
