@@ -223,9 +223,11 @@ def test_link_drop_goes_passive_reports_error_and_recovers(hosts, tmp_path):
     # passive command went out within 3 periods (+ its Ts/4 watchdog step).
     assert hil['bridge']['command_timeouts'] == len(episodes), hil['bridge']
     assert hil['bridge']['timeout_plan_frames_max'] <= 2, hil['bridge']
-    # The loop recovered: the NMPC had a command for every state it got (in the gap
-    # also its safe commands, then those for the late states DDS repaired, which the
-    # bridge refused: commands_stale), to the scenario's last sample.
-    cmds = stamps['/erva/damping_cmd']
-    assert set(stamps['/erva/state']) <= set(cmds) and cmds[-1] == first + (n - 1) * TS_NS
+    # The loop recovered: the NMPC had a command for every state it got outside the gap,
+    # to the scenario's last sample.  (Around the gap: its safe commands, then of the late
+    # states DDS repaired in one burst the newest, which the bridge refused as stale.)
+    cmds = set(stamps['/erva/damping_cmd'])
+    gap = range(first + (gap_from - 5) * TS_NS, first + (gap_from + missing + 20) * TS_NS)
+    assert {t for t in stamps['/erva/state'] if t not in gap} <= cmds
+    assert max(cmds) == first + (n - 1) * TS_NS
     assert s['commands']['for_samples'] >= n - missing - 10, s['commands']
