@@ -120,6 +120,7 @@ def _erva_symbolic(p: ERVAParams):
     acc = _solve3(mass, ca.vertcat(f2, f4, f6))
     xdot = ca.vertcat(x[1], acc[0], x[3], acc[1], x[5], acc[2])
     power = u * v_gen ** 2
+    position = x[4] - d13       # rotor relative to screw, z_d - (z_s - z_us)
     # Kinetic energy of eq. (1) in the paper's translational variables (eq. (10)):
     # m r² ψ̇² → m_d (1+εr_1)² ż_d², m (r'φ̇)² → m_d ε² r_1'² v_gen², J_b θ̇² → m_b v24².
     r1 = ((x[4] - d13) / p.l) ** 2
@@ -128,7 +129,7 @@ def _erva_symbolic(p: ERVAParams):
                      + (p.m_r + p.m_d * (1 + p.epsilon * r1) ** 2) * x[5] ** 2
                      + p.m_d * p.epsilon ** 2 * r1p ** 2 * v_gen ** 2)
     potential = 0.5 * (p.k_s * d13 ** 2 + p.k_t * (x[2] - w) ** 2 + p.k_d * (x[4] - d13) ** 2)
-    return x, u, w, xdot, power, kinetic + potential, v_gen
+    return x, u, w, xdot, power, kinetic + potential, v_gen, position
 
 
 def _benchmark_symbolic(p: ERVAParams):
@@ -149,7 +150,7 @@ def _benchmark_symbolic(p: ERVAParams):
     power = u * v24 ** 2
     energy = (0.5 * (p.M_s * x[1] ** 2 + p.M_us * x[3] ** 2 + mx * v24 ** 2)
               + 0.5 * (p.k_s * d13 ** 2 + p.k_t * (x[2] - w) ** 2))
-    return x, u, w, xdot, power, energy, v24
+    return x, u, w, xdot, power, energy, v24, d13
 
 
 class QuarterCarModel:
@@ -165,7 +166,7 @@ class QuarterCarModel:
         self.params = params
         self.kind = kind
         build = _erva_symbolic if kind == 'erva' else _benchmark_symbolic
-        x, u, w, xdot, power, energy, v_gen = build(params)
+        x, u, w, xdot, power, energy, v_gen, position = build(params)
         self.nx = int(x.shape[0])
         self.state_names = STATE_NAMES[kind]
         #: Symbolic primitives, for users that build bigger graphs (NMPC, estimator).
@@ -176,6 +177,11 @@ class QuarterCarModel:
         self.power = ca.Function('power', [x, u], [power], ['x', 'u'], ['power'])
         self.generator_velocity = ca.Function('generator_velocity', [x], [v_gen],
                                               ['x'], ['v_gen'])
+        #: The generator's relative displacement (m; the benchmark's is the suspension
+        #: deflection), velocity v_gen (m/s) and harvested power u·v_gen² (W): what the
+        #: ``generator`` topic carries, for every publisher of it.
+        self.generator = ca.Function('generator', [x, u], [position, v_gen, power],
+                                     ['x', 'u'], ['position', 'v_gen', 'power'])
         self.energy = ca.Function('energy', [x, w], [energy], ['x', 'w'], ['energy'])
         #: [sprung_accel, power] for many samples at once: columns are samples.
         self.outputs = ca.Function('outputs', [x, u, w], [xdot[1], power],

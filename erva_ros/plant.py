@@ -12,9 +12,11 @@ simulated ECU, so every user integrates the same way:
 """
 
 from dataclasses import dataclass
+from functools import lru_cache
 import math
-from typing import Optional
+from typing import Optional, Sequence
 
+import casadi as ca
 import numpy as np
 
 from erva_ros.codegen import BufferedCall, compile_for
@@ -33,6 +35,15 @@ class PlantSample:
     sprung_accel: float      # m/s², z̈_s(t_k) with u_k applied (paper x_a = ẋ_2)
     power_w: float           # W, instantaneous harvested power at t_k
     harvested_j: float       # J, energy harvested since the start
+
+
+@dataclass(frozen=True)
+class ProfileStep:
+    """One period integrated by :meth:`PlantSimulator.integrate_profile`, not yet applied."""
+
+    x: np.ndarray            # state at the end of the period
+    harvested_j: float       # J harvested over the period
+    accel_sq_int: float      # ∫ z̈_s² dt over the period (m²/s³)
 
 
 class PlantSimulator:
@@ -55,6 +66,8 @@ class PlantSimulator:
         self._step = BufferedCall(self._step)
         self._outputs = BufferedCall(self.model.outputs)
         self._split = None   # (delay, the two partial steps) of step_delayed
+        self._profile = None  # (pieces, compiled period) of integrate_profile
+        self._codegen = codegen
         self.reset(x0)
 
     def reset(self, x0: Optional[np.ndarray] = None, t0: float = 0.0) -> None:
@@ -103,6 +116,35 @@ class PlantSimulator:
         self.t = self.k * self.ts
         return self.x
 
+    def integrate_profile(self, us: Sequence[float], ws: Sequence[float]) -> ProfileStep:
+        """Return one period Ts from the current state with a command profile; no step taken.
+
+        us[j] is held on the j-th of ``len(us)`` equal sub-intervals and the road moves
+        linearly from ws[j] to ws[j + 1] on it (``len(ws) == len(us) + 1``): an actuator
+        that latches new commands at sub-interval boundaries, as the simulated ECU's.
+        One compiled call for the whole period; :meth:`apply` takes the step, so a
+        caller can integrate ahead and again when the profile changes.
+        """
+        n = len(us)
+        if self._profile is None or self._profile[0] != n:
+            if n < 1 or len(ws) != n + 1:
+                raise ValueError(f'need len(ws) == len(us) + 1 >= 2, got {len(ws)} and {n}')
+            fn = _profile_function(self.model, self.ts / n,
+                                   max(1, math.ceil(self.ts / n / self.substep - 1e-9)), n)
+            fn, = compile_for(self._codegen, [fn], 'the plant')
+            self._profile = (n, BufferedCall(fn))
+        x, e, a2 = self._profile[1](self.x, us, ws)
+        return ProfileStep(x, e, a2)
+
+    def apply(self, step: ProfileStep) -> np.ndarray:
+        """Advance one period Ts to the end of an :meth:`integrate_profile` result."""
+        self.x = np.array(step.x, dtype=float)
+        self.harvested_j += step.harvested_j
+        self.accel_sq_int += step.accel_sq_int
+        self.k += 1
+        self.t = self.k * self.ts
+        return self.x
+
     def _split_steps(self, delay_s: float):
         if not delay_s < self.ts:
             raise ValueError(f'actuation delay {delay_s:g} s must be below Ts = {self.ts:g} s')
@@ -113,3 +155,20 @@ class PlantSimulator:
                 steps.append(BufferedCall(self.model.plant_step(dt, n)))
             self._split = (delay_s, steps)
         return self._split[1]
+
+
+@lru_cache(maxsize=16)
+def _profile_function(model, dt: float, substeps: int, n: int) -> ca.Function:
+    """(x, u[n], w[n+1]) -> (x⁺, E_h, ∫z̈_s²) over n pieces of ``dt``: a loop, not unrolled."""
+    step = model.plant_step(dt, substeps)
+    nx = model.nx
+    z, uw = ca.SX.sym('z', nx + 2), ca.SX.sym('uw', 3)
+    xn, e, a2 = step(z[:nx], uw[0], uw[1], uw[2])
+    piece = ca.Function('piece', [z, uw], [ca.vertcat(xn, z[nx] + e, z[nx + 1] + a2)])
+    loop = piece.mapaccum('pieces', n)
+    x, u, w = ca.MX.sym('x', nx), ca.MX.sym('u', n), ca.MX.sym('w', n + 1)
+    zs = loop(ca.vertcat(x, 0, 0), ca.vertcat(u.T, w[:n].T, w[1:].T))
+    end = zs[:, n - 1]
+    return ca.Function(f'plant_profile_{model.kind}_{n}', [x, u, w],
+                       [end[:nx], end[nx], end[nx + 1]], ['x', 'u', 'w'],
+                       ['xn', 'harvested_j', 'accel_sq_int'])

@@ -81,13 +81,16 @@ def test_joint_trajectory_decodes_what_rclpy_serializes(extra):
 
 
 def test_damping_command_parsing():
-    plan, offsets = parse_command(serialize(_trajectory([1e4, 2e4, 0.0])))
+    msg = _trajectory([1e4, 2e4, 0.0])
+    msg.header.stamp.sec, msg.header.stamp.nanosec = 1_700_000_000, 20_000_000
+    stamp, plan, offsets = parse_command(serialize(msg))
+    assert stamp == 1_700_000_000_020_000_000          # the sample it is for
     assert plan == [1e4, 2e4, 0.0] and offsets == pytest.approx([0.0, 0.02, 0.04])
     for bad in (_trajectory([]), _trajectory([1e4], joint='other'),
                 _trajectory([(1e4, 2e4)]), _trajectory([math.nan]), _trajectory([2e6]),
                 _trajectory([math.inf])):
-        assert parse_command(serialize(bad)) == (None, None)
-    assert parse_command(b'') == (None, None)
+        assert parse_command(serialize(bad)) == (None, None, None)
+    assert parse_command(b'') == (None, None, None)
 
 
 def test_every_truncation_and_corruption_is_a_cdr_error():

@@ -422,3 +422,101 @@ def test_each_ecu_cycle_is_handed_out_once_whole_even_with_a_lost_frame(codec, c
     finally:
         bridge.close()
         ecu_bus.shutdown()
+
+
+def _road(t):
+    return 1e-3 * math.sin(2 * math.pi * 1.7 * (t - T0))
+
+
+def _ecu_on_road(codec, channel):
+    return EcuSimCore(paper_params(), HW, codec, lambda: open_bus(channel), _road,
+                      EcuSimConfig(c_e_safe=C_E0), SensorNoise.none())
+
+
+def test_ecu_integrated_ahead_equals_integrated_at_the_sample(codec):
+    # The ECU integrates each cycle ahead (prepare) and sends at the sample instant. A
+    # command that arrives after the preparation (inside the cycle) makes it integrate
+    # again: bit for bit the plant of an ECU that integrated only at the sample.
+    names = [f'erva_ahead_{next(_channels)}' for _ in range(2)]
+    buses = [can.Bus(interface='virtual', channel=n, preserve_timestamps=True) for n in names]
+    ahead, late = (_ecu_on_road(codec, f'virtual:{n}') for n in names)
+    txs = [codec.sender(Kind.COMMAND) for _ in names]
+    try:
+        for ecu in (ahead, late):
+            ecu.start(T0)
+        got = {id(ahead): [], id(late): []}
+        for k in range(8):
+            t_k = T0 + 0.02 * k
+            # The NMPC's answer 6.5 ms after each sample; in cycles 3 and 5 a second one
+            # lands after the ahead-of-time integration (17 ms = Ts - prepare_lead_s).
+            arrivals = [(t_k + 0.0065, 12000.0 + 1000.0 * k)]
+            if k in (3, 5):
+                arrivals.append((t_k + 0.0185, 5000.0))
+            for bus, tx in zip(buses, txs):
+                bus.send(_command(codec, tx, *arrivals[0]))
+            ahead.prepare()
+            for bus, tx in zip(buses, txs):
+                for at, c_e in arrivals[1:]:
+                    bus.send(_command(codec, tx, at, c_e))
+            for ecu in (ahead, late):
+                s = ecu.run_cycle()
+                got[id(ecu)].append((s.x.tolist(), s.c_e, s.c_e_mean, s.harvested_j,
+                                     s.command_latched, s.mode))
+        assert got[id(ahead)] == got[id(late)]
+        assert ahead.counts['recomputed'] == 2 and late.counts['recomputed'] == 0
+        # The first command of each cycle is applied at the next 1 ms latch: 7 ms.
+        assert [round(v[4] - T0 - 0.02 * k, 6) for k, v in enumerate(got[id(ahead)])] == [
+            0.007] * 8
+        assert ahead.counts['commands_applied'] == 10
+        assert ahead.mode_changes() == '0:INIT:10000,1:CONTROLLED:12000'
+    finally:
+        for ecu in (ahead, late):
+            ecu.close()
+        for bus in buses:
+            bus.shutdown()
+
+
+def test_known_road_is_the_road_node_grid_and_counts_mismatches():
+    from erva_ros.hil.road_buffer import KnownRoad
+    from erva_ros.roads import make_road
+
+    road = make_road('paper', 4.0, ts=0.02, seed=3)
+    known = KnownRoad(road.height, road.speed_mps, 0.02)
+    origin = 1_700_000_000_000_000_000
+    k0 = 7                                  # the first message the ECU sees: sample 7
+    known.anchor(origin + k0 * 20_000_000, road.distance(k0 * 0.02))
+    assert known.origin_ns == origin
+    for k in range(k0, k0 + 50):            # what road_preview_node publishes
+        assert known.check(origin + k * 20_000_000, road.height(k * 0.02))
+    assert not known.check(origin + 60 * 20_000_000, road.height(61 * 0.02))
+    assert not known.check(origin + 60 * 20_000_000 + 1000, road.height(60 * 0.02))
+    assert (known.checked, known.mismatches) == (52, 2)
+    # Between samples: linear, as the estimator sees the road; on them: the exact values.
+    t10 = (origin + 10 * 20_000_000) * 1e-9
+    assert known.height(t10) == road.height(0.2)
+    w10, w11 = road.height(0.2), road.height(0.22)
+    # (epoch seconds as floats are 0.2 us coarse: 1e-5 of a period)
+    assert known.height(t10 + 0.005) == pytest.approx(w10 + 0.25 * (w11 - w10), abs=1e-8)
+
+
+def test_bridge_refuses_commands_that_arrive_stale_and_records_its_timeouts(codec, channel):
+    ecu_bus = _bus(channel)
+    bridge = _bridge(codec, channel)
+    try:
+        assert bridge.submit([12000.0] * 5, now=0.0, age_s=0.006) == 'sent'
+        # Queued by DDS while a link was down: older than the 3-period timeout.
+        assert bridge.submit([15000.0] * 5, now=0.01, age_s=0.0601) == 'stale'
+        assert bridge.submit([15000.0] * 5, now=0.01, age_s=math.nan) == 'stale'
+        assert bridge.counts['commands_stale'] == 2
+        for t in (0.02, 0.03, 0.06, 0.065):     # plan frames at 30 and 60 ms, safe at 65 ms
+            bridge.tick(now=t)
+        assert bridge.command_state == 'timeout'
+        assert bridge.timeouts_worst == {'plan_frames': 2, 'command_age_s': 0.065}
+        values = bridge.diagnostics(now=0.065)[0].values
+        assert (values['commands_stale'], values['timeout_plan_frames_max'],
+                values['timeout_age_ms_max']) == ('2', '2', '65.00')
+        frames, _ = _drain(ecu_bus, codec)
+        assert [round(p.c_e) for _, _, p in frames] == [12000, 12000, 12000, C_E0]
+    finally:
+        bridge.close()
+        ecu_bus.shutdown()

@@ -7,17 +7,17 @@ import sys
 from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
                                        print_json, realtime_priority)
 from erva_ros.errors import CLIError
-from erva_ros.live.realtime import set_fifo_priority
 
 COMMAND = 'ecu-sim'
 HELP = 'simulated generator ECU on a CAN bus: applies damping frames to the plant, sends sensors'
 DESCRIPTION = """\
-Plays the vehicle side of the HIL loop (erva_ros/hil/ecu_sim.py): every Ts it
-applies the ERVA_CMD frames that arrived (E2E-checked, duty clamped to the
-hardware range, latched within latch_s of their arrival) to the quarter car
-(erva_ros.plant.PlantSimulator), falls back to the passive c_e0 when no valid
-command came for command_timeout_periods (the bridge's rule), and sends the
-chassis, generator and status frames of config/erva_ecu.dbc.
+Plays the vehicle side of the HIL loop (erva_ros/hil/ecu_sim.py) with a real ECU's
+timing: at every sample instant it samples the sensors and sends the chassis,
+generator and status frames of config/erva_ecu.dbc at once; the quarter car
+(erva_ros.plant.PlantSimulator) is integrated ahead, with the ERVA_CMD frames
+(E2E-checked, duty clamped to the hardware range) latched within latch_s of their
+arrival, and the passive c_e0 after command_timeout_periods without a valid
+command (the bridge's rule).
 
 Bus (--bus): socketcan:IFACE, udp:LOCAL_PORT:PEER_PORT (loopback only, the peer is
 ecu_bridge_node with the ports swapped) or virtual:NAME (same process only, useless
@@ -25,13 +25,19 @@ here).  Example, with the bridge on udp:47001:47002:
 
   erva ecu-sim --bus udp:47002:47001 --road paper --duration 10
 
-With --road ros the road height comes from /erva/road/height (road_preview_node) and
-the ECU's cycles fall on the road's sample grid; --ros publishes the ground truth
-(sprung_accel, generator, ecu_sim/state and /diagnostics) like plant_sim_node;
-`erva run --ecu virtual` starts it that way.
-Stops after --duration, or on Ctrl-C / SIGTERM, and prints a summary."""
+Roads: a road of erva_ros.roads started with the ECU (paper, sine, bump, iso8608,
+--seed), flat, ros (the heights of /erva/road/height as they arrive: each cycle
+waits for its sample) or session (the road of the --params file, an `erva run`
+session file, placed on the sample grid of /erva/road/height and known ahead, so
+the ECU never waits for the road; every received height is checked against it).
+With ros or session the ECU's cycles fall on the road's sample grid; --ros
+publishes the ground truth (sprung_accel, generator, ecu_sim/state and
+/diagnostics) like plant_sim_node; `erva run --ecu virtual` starts it with
+--road session.  Stops after --duration, or on Ctrl-C / SIGTERM, and prints a
+summary (with --json: counters, comfort, and the ECU's latencies)."""
 
-ROADS = ('ros', 'flat', 'paper', 'sine', 'bump', 'iso8608')
+ROADS = ('session', 'ros', 'flat', 'paper', 'sine', 'bump', 'iso8608')
+GRID_ROADS = ('session', 'ros')
 REJECTS = ('wrong_length', 'bad_crc', 'repeated', 'skipped', 'bad_counter')
 
 
@@ -49,14 +55,16 @@ def add_arguments(parser):
     parser.add_argument('--ts', type=positive_float, default=0.02, metavar='S',
                         help='ECU cycle Ts (s, default 0.02)')
     parser.add_argument('--road', choices=ROADS, default='paper',
-                        help='road at the tyre: ros (/erva/road/height), flat, or a road of '
-                             'erva_ros.roads started with the ECU (default paper)')
+                        help='road at the tyre: session (the --params session file\'s road on '
+                             'the grid of /erva/road/height), ros (/erva/road/height as it '
+                             'arrives), flat, or a road of erva_ros.roads started with the '
+                             'ECU (default paper)')
     parser.add_argument('--seed', type=int, default=0, help='road seed (default 0)')
     parser.add_argument('--duration', type=float, default=0.0, metavar='S',
                         help='stop after S seconds (default 0: until Ctrl-C / SIGTERM)')
     parser.add_argument('--ros', action='store_true',
                         help='publish the ground truth and /diagnostics on ROS 2 '
-                             '(implied by --road ros)')
+                             '(implied by --road ros and --road session)')
     parser.add_argument('--namespace', default='/erva', metavar='NS',
                         help='ROS namespace of the topics (default /erva)')
     parser.add_argument('--wait-road', type=positive_float, default=15.0, metavar='S',
@@ -88,15 +96,36 @@ def _road_function(args):
     return road
 
 
-def main(args) -> int:
-    from erva_ros.hil.codec import EcuCodec
-    from erva_ros.hil.ecu_sim import EcuSimConfig, EcuSimCore, run_realtime, SensorNoise
-    from erva_ros.hil.settings import (hardware_of, load_bridge_section,
-                                       load_ecu_sim_section)
-    from erva_ros.hil.transport import open_bus, parse_spec
-    from erva_ros.metrics import comfort_power
-    from erva_ros.params import load_erva_params
+def _session_road(path, ts):
+    """Return the :class:`KnownRoad` of a session params file (its road_preview_node section).
 
+    The same ``build_road`` as road_preview_node, from the same values, so the heights
+    agree to the bit (checked against every received sample).
+    """
+    from erva_ros.hil.road_buffer import KnownRoad
+    from erva_ros.live.parameters import LIVE_DEFAULTS
+    from erva_ros.live.scenario import build_road
+    from erva_ros.params import load_params_yaml, ParamError
+    if path is None:
+        raise CLIError('--road session needs --params FILE (the session params file of '
+                       '`erva run`)')
+    try:
+        doc = load_params_yaml(path)
+        cfg = dict(LIVE_DEFAULTS)
+        for section in ('/**', '/**/road_preview_node'):
+            values = (doc.get(section) or {}).get('ros__parameters') or {}
+            cfg.update({k: v for k, v in values.items() if k in LIVE_DEFAULTS})
+        if abs(float(cfg['ts']) - ts) > 1e-12:
+            raise CLIError(f'{path}: ts = {cfg["ts"]} s differs from --ts {ts:g} s')
+        road = build_road(cfg)
+    except ParamError as exc:
+        raise CLIError(str(exc)) from None
+    return KnownRoad(road.height, road.speed_mps, ts)
+
+
+def _check_args(args) -> None:
+    """Refuse bad options with one line (CLIError), before anything starts."""
+    from erva_ros.hil.transport import parse_spec
     if not (math.isfinite(args.duration) and args.duration >= 0):
         raise CLIError(f'--duration must be >= 0, got {args.duration}')
     if args.seed < 0:
@@ -105,94 +134,160 @@ def main(args) -> int:
         parse_spec(args.bus)
     except ValueError as exc:
         raise CLIError(str(exc)) from None
+
+
+def _build_core(args, road):
+    """Return the EcuSimCore of the options (hardware and noise from the HIL file)."""
+    from erva_ros.hil.codec import EcuCodec
+    from erva_ros.hil.ecu_sim import EcuSimConfig, EcuSimCore, SensorNoise
+    from erva_ros.hil.settings import hardware_of, load_bridge_section, load_ecu_sim_section
+    from erva_ros.hil.transport import open_bus
+    from erva_ros.params import load_erva_params
+
     params = load_erva_params(args.params)
     bridge = load_bridge_section(args.hil_config)
     sim = load_ecu_sim_section(args.hil_config)
-    hw = hardware_of(bridge)
+    noise = SensorNoise.none() if args.noise_free else SensorNoise(
+        sim['noise_sprung_accel'], sim['noise_deflection'], sim['noise_speed'],
+        sim['noise_current'], sim['noise_voltage'], sim['seed'])
     try:
         cfg = EcuSimConfig(period_s=args.ts, latch_s=sim['latch_s'],
                            command_timeout_s=bridge['command_timeout_periods'] * args.ts,
                            c_e_safe=params.c_e0, max_delta_counter=bridge['max_delta_counter'])
-        codec = EcuCodec(bridge['dbc_file'] or None)
+        return EcuSimCore(params, hardware_of(bridge), EcuCodec(bridge['dbc_file'] or None),
+                          lambda: open_bus(args.bus), road, cfg, noise, args.model)
     except (ValueError, FileNotFoundError) as exc:
         raise CLIError(str(exc)) from None
-    noise = SensorNoise.none() if args.noise_free else SensorNoise(
-        sim['noise_sprung_accel'], sim['noise_deflection'], sim['noise_speed'],
-        sim['noise_current'], sim['noise_voltage'], sim['seed'])
-    use_ros = args.ros or args.road == 'ros'
 
-    stop = []
-    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    for s in handlers:
-        signal.signal(s, lambda signum, frame: stop.append(signum))
 
-    ros = None
-    try:
-        if use_ros:
-            from erva_ros.hil.ecu_sim_ros import EcuSimRos
-            ros = EcuSimRos(args.namespace, args.model, hw)
-        road = ros.road_height if args.road == 'ros' else _road_function(args)
-        try:
-            core = EcuSimCore(params, hw, codec, lambda: open_bus(args.bus), road, cfg, noise,
-                              args.model)
-        except ValueError as exc:
-            raise CLIError(str(exc)) from None
-        # Built before the wait (the plant's CasADi set-up takes longer than a period), so
-        # the ECU starts on the road's first sample; the bus opens after it (no backlog).
-        if args.road == 'ros' and not ros.wait_for_road(args.wait_road, lambda: bool(stop)):
-            if stop:
-                return 130
-            raise CLIError(f'no road height on {args.namespace}/road/height within '
-                           f'{args.wait_road:g} s (is road_preview_node running?)')
-        if not core.open():                 # later losses are retried; a wrong bus is not
-            raise CLIError(f'{args.bus}: {core.bus_error}')
-        samples = []
-        on_cycle = samples.append if ros is None else (
-            lambda s: (samples.append(s), ros.publish(core, s)))
-        if ros is None:
-            print(f'erva ecu-sim: {args.bus}, Ts = {args.ts:g} s, road {args.road}',
-                  file=sys.stderr, flush=True)
-        # After the set-up, like the nodes (erva_ros/live/realtime.py).
-        scheduling = set_fifo_priority(
-            args.realtime_priority, lambda m: print(f'erva ecu-sim: warning: {m}',
-                                                    file=sys.stderr))
-        if ros is not None:
-            ros.scheduling = scheduling
-        if args.road == 'ros':      # cycles on the road's grid, each once its road is here
-            run_realtime(core, args.duration, on_cycle, lambda: bool(stop),
-                         wait=ros.wait_cycle, t0=ros.start_time(args.ts))
-        else:
-            run_realtime(core, args.duration, on_cycle, lambda: bool(stop),
-                         wait=None if ros is None else ros.spin_for)
-        if ros is not None:
-            ros.publish_final(core)
-        core.close()
-    finally:
-        for s, h in handlers.items():
-            signal.signal(s, h)
-        if ros is not None:
-            ros.shutdown()
+def _run(args, core, ros, stop) -> list:
+    """Run the ECU loop until --duration or a stop; return its samples (cycle 0 first)."""
+    from erva_ros.hil.ecu_sim import run_realtime
+    samples = []
+    on_cycle = samples.append if ros is None else (
+        lambda s: (samples.append(s), ros.publish(core, s)))
+    if ros is None:
+        print(f'erva ecu-sim: {args.bus}, Ts = {args.ts:g} s, road {args.road}',
+              file=sys.stderr, flush=True)
+    should_stop = lambda: bool(stop)        # noqa: E731
+    if args.road in GRID_ROADS:             # cycles on the road's grid
+        run_realtime(core, args.duration, on_cycle, should_stop, wait=ros.spin_for,
+                     t0=ros.start_time(args.ts), ahead=args.road == 'session',
+                     until_road=ros.wait_road_sample)
+    else:
+        run_realtime(core, args.duration, on_cycle, should_stop,
+                     wait=None if ros is None else ros.spin_for)
+    if ros is not None:
+        ros.publish_final(core)
+    core.close()
+    return samples
 
+
+def _realtime(args, ros) -> None:
+    """Switch to SCHED_FIFO once set up (as the nodes do, erva_ros/live/realtime.py).
+
+    Before waiting for the road: the ECU's first sample goes out when the first road
+    height arrives, which a busy machine would otherwise delay by milliseconds.
+    """
+    from erva_ros.live.realtime import set_fifo_priority
+    scheduling = set_fifo_priority(
+        args.realtime_priority, lambda m: print(f'erva ecu-sim: warning: {m}',
+                                                file=sys.stderr))
+    if ros is not None:
+        ros.scheduling = scheduling
+
+
+def _summary(args, core, samples) -> dict:
+    """Return the run's counters, comfort and power, and the ECU's latencies."""
+    from erva_ros.metrics import comfort_power, percentiles_ms
     n = len(samples) - 1
-    duration = n * args.ts
     result = core.summary()
     result['bus'] = args.bus
     result['bus_error'] = core.bus_error
     if n > 0:
         result.update(comfort_power([s.sprung_accel for s in samples[1:]],
-                                    samples[-1].harvested_j, duration))
-    result['duration_s'] = duration
-    if args.json:
-        print_json(result)
-        return 0
+                                    samples[-1].harvested_j, n * args.ts))
+    result['duration_s'] = n * args.ts
+    result['mode_changes'] = core.mode_changes()
+    t0 = core.t0 or 0.0
+    lags = {'sample_to_can': [s.sent_at - t0 - s.t for s in samples if s.sent_at is not None],
+            'sample_to_applied': [s.command_latched - t0 - s.t + args.ts for s in samples
+                                  if s.command_latched is not None]}
+    # None, not NaN, where nothing was measured (no command came): valid JSON.
+    result['latency_ms'] = {k: {key: (v if math.isfinite(v) else None)
+                                for key, v in percentiles_ms(lag).items()}
+                            for k, lag in lags.items()}
+    return result
+
+
+def _print(args, result) -> None:
+    n = int(round(result['duration_s'] / args.ts))
     rejects = ', '.join(f'{k} {result["rx_" + k]}' for k in REJECTS)
-    print(f'ecu-sim: {n} cycles ({duration:.2f} s) on {args.bus}')
+    print(f'ecu-sim: {n} cycles ({result["duration_s"]:.2f} s) on {args.bus}')
     print(f'  commands applied {result["commands_applied"]}, rejected: {rejects}; '
           f'duty out of range {result["duty_out_of_range"]}, timeouts '
           f'{result["command_timeouts"]}, overruns {result["overruns"]}')
     if n > 0:
         print(f'  chassis acceleration RMS {result["acc_rms"]:.4g} m/s^2, harvested power '
               f'{result["power_w"]:.4g} W')
-    if core.bus_error:
-        print(f'  bus: {core.bus_error}')
+    if result['bus_error']:
+        print(f'  bus: {result["bus_error"]}')
+
+
+def _publisher_history_s(path) -> float:
+    """Return the session's publisher_history_s (its params file), else the default."""
+    from erva_ros.live.parameters import LIVE_DEFAULTS, LIVE_NUMERIC
+    from erva_ros.params import check_number, ParamError, read_ros_params
+    value = LIVE_DEFAULTS['publisher_history_s']
+    if path:
+        try:
+            value = read_ros_params(path, 'ecu_sim').get('publisher_history_s', value)
+            value = check_number('publisher_history_s', value,
+                                 LIVE_NUMERIC['publisher_history_s'], path)
+        except ParamError as exc:
+            raise CLIError(str(exc)) from None
+    return float(value)
+
+
+def main(args) -> int:
+    from erva_ros.hil.settings import hardware_of, load_bridge_section
+
+    _check_args(args)
+    use_ros = args.ros or args.road in GRID_ROADS
+    known = _session_road(args.params, args.ts) if args.road == 'session' else None
+    stop = []
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    for s in handlers:
+        signal.signal(s, lambda signum, frame: stop.append(signum))
+    ros = None
+    try:
+        if use_ros:
+            from erva_ros.hil.ecu_sim_ros import EcuSimRos
+            ros = EcuSimRos(args.namespace, args.model,
+                            hardware_of(load_bridge_section(args.hil_config)),
+                            known_road=known, ts=args.ts,
+                            publisher_history_s=_publisher_history_s(args.params))
+        core = _build_core(args, _road_function(args) if ros is None or args.road not in
+                           GRID_ROADS else ros.road_height)
+        _realtime(args, ros)
+        # Built before the wait (the plant's CasADi set-up takes longer than a period), so
+        # the ECU starts on the road's first sample; the bus opens after it (no backlog).
+        if args.road in GRID_ROADS and not ros.wait_for_road(args.wait_road, lambda: bool(stop)):
+            if stop:
+                return 130
+            raise CLIError(f'no road height on {args.namespace}/road/height within '
+                           f'{args.wait_road:g} s (is road_preview_node running?)')
+        if not core.open():                 # later losses are retried; a wrong bus is not
+            raise CLIError(f'{args.bus}: {core.bus_error}')
+        samples = _run(args, core, ros, stop)
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
+        if ros is not None:
+            ros.shutdown()
+    result = _summary(args, core, samples)
+    if args.json:
+        print_json(result)
+    else:
+        _print(args, result)
     return 0

@@ -1,6 +1,7 @@
 """``erva run``: the live system -- plant, road-preview and NMPC nodes over ROS 2, one scenario."""
 
 import os
+import shlex
 import sys
 
 from erva_ros.commands._common import (add_json_option, add_params_option, bounded,
@@ -25,6 +26,9 @@ publishes /clock, deterministic, equal to `erva sim`).
 --ecu virtual runs the hardware-in-the-loop loop instead of plant_sim_node (real
 time only): NMPC -> ecu_bridge_node -> CAN (UDP on 127.0.0.1) -> simulated ECU and
 plant (`erva ecu-sim`) -> CAN -> ecu_bridge_node -> state_estimator_node -> NMPC.
+--ecu-prefix runs those three processes through a command prefix, e.g. in another
+network namespace (`ip netns exec NS`, the loop split across two DDS hosts:
+docs/hil.md) or on other cores (`taskset -c 1`).
 
 --foxglove [HOST:]PORT serves the session live to Foxglove (WebSocket, no ROS install
 needed): every topic as on DDS (ros2msg schemas, CDR bytes), /diagnostics and the
@@ -115,6 +119,12 @@ def add_arguments(parser):
                              f'(default {FOXGLOVE_DEFAULT}: this machine only; another '
                              'host only when named, e.g. 0.0.0.0:8765; PORT 0 = any free '
                              'port)')
+    parser.add_argument('--ecu-prefix', metavar='CMD', default=None,
+                        help='with --ecu virtual: start the ECU simulator, the bridge and the '
+                             'estimator through this command prefix (split like a shell '
+                             'does), e.g. "ip netns exec NS" or "taskset -c 1"; it must exec '
+                             'the command (signals stop it) and see the same files; DDS '
+                             'settings come from the environment (docs/hil.md)')
     add_json_option(parser)
 
 
@@ -134,8 +144,23 @@ def run_config(args, record_dir=None):
                      road=args.road, seed=args.seed, mode=args.mode, model=args.model,
                      duration_s=args.duration, params_file=args.params, nmpc_file=args.nmpc,
                      live_file=args.live, record_dir=record_dir, namespace=args.namespace,
-                     live_overrides=live, ecu=args.ecu,
+                     live_overrides=live, ecu=args.ecu, ecu_prefix=_ecu_prefix(args),
                      foxglove=getattr(args, 'foxglove', None))
+
+
+def _ecu_prefix(args) -> tuple:
+    """Return --ecu-prefix as argv words; CLIError without --ecu virtual or if malformed."""
+    if args.ecu_prefix is None:
+        return ()
+    if args.ecu == 'none':
+        raise CLIError('--ecu-prefix needs --ecu virtual')
+    try:
+        words = tuple(shlex.split(args.ecu_prefix))
+    except ValueError as exc:
+        raise CLIError(f'--ecu-prefix {args.ecu_prefix!r}: {exc}') from None
+    if not words:
+        raise CLIError('--ecu-prefix is empty')
+    return words
 
 
 def _check_namespace(namespace: str) -> str:

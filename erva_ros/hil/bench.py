@@ -63,8 +63,9 @@ def run_live_bench(params_file: str, hil_file: Optional[str], duration_s: float,
     road = make_road('paper', duration_s + 30.0, seed=seed)
     env = dict(os.environ)
     env.setdefault('ROS_DOMAIN_ID', '0')
+    # The driver below is the road source: the ECU takes the heights as they arrive.
     specs = hil_process_specs(params_file, namespace, duration_s, hil_file, env=env,
-                              realtime_priority=realtime_priority)
+                              road='ros', realtime_priority=realtime_priority)
     logdir = tempfile.mkdtemp(prefix='erva_bench_hil_')
     context = rclpy.Context()
     rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
@@ -271,7 +272,10 @@ def run_core_bench(samples: int = 2000) -> Dict:
       (read, E2E check, DBC decode);
     * estimator: one ECU cycle as state_estimator_node runs it: decode the serialized
       ``ecu/measurements``, the compiled EKF cycle (predict over Ts and update, one
-      buffered call), encode the state message.
+      buffered call), encode the state message;
+    * simulated ECU: ``prepare`` (the cycle integrated ahead: latch plan, one compiled
+      call) and, at the sample instant, ``run_cycle`` (read, take the prepared step,
+      sample, encode and send the three sensor frames): its own share of the loop.
     """
     import math
 
@@ -297,6 +301,7 @@ def run_core_bench(samples: int = 2000) -> Dict:
     measurements = JointStateEncoder(MEASUREMENT_NAMES)
     state = JointStateEncoder(state_joint_names('erva'))
     send, recv, est = [], [], []
+    ecu_prepare, ecu_sample = _ecu_core_bench(samples, codec)
     try:
         for k in range(samples):
             c_e = 10000.0 + 5000.0 * math.sin(0.1 * k)
@@ -310,10 +315,10 @@ def run_core_bench(samples: int = 2000) -> Dict:
             frame = core.receive(1.0)
             recv.append(time.perf_counter() - t0)
             assert frame is not None
-            data = measurements.encode(k * 20_000_000, (c_e, c_e, 0.1, 1e-3, 0.05, 40.0))
+            data = measurements.encode(k * 20_000_000, (c_e, c_e, 0.1, 1e-3, 0.5, 40.0))
             t0 = time.perf_counter()
             _, _, y, _, _ = decode_joint_state(data)
-            x, _ = ekf.cycle((y[2], y[3], y[4] / params.l), y[1], y[0], 1e-3, 1.1e-3)
+            x, _ = ekf.cycle((y[2], y[3], y[4]), y[1], y[0], 1e-3, 1.1e-3)
             state.encode(k * 20_000_000, x[0::2].tolist(), x[1::2].tolist())
             est.append(time.perf_counter() - t0)
     finally:
@@ -321,4 +326,45 @@ def run_core_bench(samples: int = 2000) -> Dict:
         ecu.shutdown()
     return {'bridge_ros_to_can': percentiles_ms(send),
             'bridge_can_to_ros': percentiles_ms(recv),
-            'estimator_cycle': percentiles_ms(est)}
+            'estimator_cycle': percentiles_ms(est),
+            'ecu_prepare': percentiles_ms(ecu_prepare),
+            'ecu_sample_and_send': percentiles_ms(ecu_sample)}
+
+
+def _ecu_core_bench(samples: int, codec):
+    """Time the simulated ECU's ``prepare`` and ``run_cycle`` (a command every cycle)."""
+    import math
+
+    from erva_ros.hil.codec import Command, CommandMode, Kind
+    from erva_ros.hil.ecu_sim import EcuSimConfig, EcuSimCore, SensorNoise
+    from erva_ros.hil.hardware import GeneratorHardware
+    from erva_ros.hil.transport import free_udp_ports, open_bus
+    from erva_ros.params import paper_params
+
+    hw = GeneratorHardware()
+    a, b = free_udp_ports(2)
+    bridge = open_bus(f'udp:{a}:{b}')
+    ecu = EcuSimCore(paper_params(), hw, codec, lambda: open_bus(f'udp:{b}:{a}'),
+                     lambda t: 1e-3 * math.sin(t), EcuSimConfig(), SensorNoise())
+    tx = codec.sender(Kind.COMMAND)
+    prepare, sample = [], []
+    try:
+        ecu.open()
+        ecu.start(time.time())
+        for k in range(samples):
+            c_e = 10000.0 + 5000.0 * math.sin(0.1 * k)
+            bridge.send(codec.encode(Kind.COMMAND, Command(hw.duty_from_c_e(c_e), c_e,
+                                                           CommandMode.CONTROLLED), tx))
+            time.sleep(0.0002)                   # the frame is in the socket
+            t0 = time.perf_counter()
+            ecu.prepare()
+            prepare.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            ecu.run_cycle()
+            sample.append(time.perf_counter() - t0)
+            while bridge.recv(0.0) is not None:  # the sensor frames
+                pass
+    finally:
+        ecu.close()
+        bridge.shutdown()
+    return prepare, sample

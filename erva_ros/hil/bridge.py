@@ -11,6 +11,10 @@ and sends points[0] at once as duty D = c_e / c_e,full.  :meth:`BridgeCore.tick`
   plan's point for the elapsed time is sent (the NMPC's own plan, not a guess);
 * once the command is stale, the **safe passive command** (c_e0, CMD_MODE = SAFE_PASSIVE)
   is sent every Ts and the command state is ERROR until a fresh command arrives;
+  :attr:`BridgeCore.timeouts_worst` keeps the most plan frames that went out before
+  a timeout, and the largest command age at which one was declared;
+* a command that is already older than ``command_timeout_s`` when it arrives is
+  refused (``commands_stale``);
 * before the first command the bridge sends the safe command too (state WARN).
 
 CAN → ROS.  :meth:`BridgeCore.receive` (called in a loop by a reader thread) reads
@@ -121,7 +125,8 @@ class DiagStatus:
 
 ECU_KINDS = (Kind.STATUS, Kind.CHASSIS, Kind.GENERATOR)
 COUNTER_NAMES = (
-    'commands_received', 'commands_rejected', 'commands_clamped', 'frames_sent',
+    'commands_received', 'commands_rejected', 'commands_stale', 'commands_clamped',
+    'frames_sent',
     'safe_frames_sent', 'plan_frames_sent', 'command_timeouts', 'frames_not_sent',
     'send_errors', 'bus_losses', 'bus_open_attempts', 'bus_open_failures', 'reconnects',
     'ecu_cycles', 'incomplete_cycles', 'ecu_silences')
@@ -159,6 +164,10 @@ class BridgeCore:
         self._last_send = -math.inf
         self.command_state = 'waiting'          # waiting | fresh | timeout
         self.last_command: Optional[Command] = None
+        self._plan_frames = 0                   # plan frames since the last command
+        #: Over all timeouts: the most plan frames sent after the last command, and the
+        #: largest command age (s) at which the timeout was declared.
+        self.timeouts_worst: Dict[str, float] = {'plan_frames': 0, 'command_age_s': 0.0}
         # CAN → ROS
         self._rx = E2EReceiver(codec, ECU_KINDS, config.sensor_timeout_s,
                                config.max_delta_counter)
@@ -238,18 +247,24 @@ class BridgeCore:
 
     # ------------------------------------------------------------ ROS → CAN
     def submit(self, plan: Sequence[float], now: Optional[float] = None,
-               offsets: Optional[Sequence[float]] = None) -> str:
+               offsets: Optional[Sequence[float]] = None,
+               age_s: Optional[float] = None) -> str:
         """Take a new damping plan (Ns/m; plan[0] = now) and send plan[0] at once.
 
         ``offsets`` are the plan points' times after the command (s, the messages'
-        time_from_start; default k·Ts).  Returns 'sent', 'clamped' (sent after
-        clamping), 'not_sent' (bus down) or 'rejected' (empty or non-finite: ignored,
-        the previous command ages on).
+        time_from_start; default k·Ts).  ``age_s`` is how old the command was when it
+        arrived (its sample instant to its arrival, s; None: unknown).  Returns 'sent',
+        'clamped' (sent after clamping), 'not_sent' (bus down), 'rejected' (empty or
+        non-finite: ignored, the previous command ages on) or 'stale' (older than
+        ``command_timeout_s``: ignored and counted as well).
         """
         values = [float(v) for v in plan]
         if not values or not all(math.isfinite(v) for v in values):
             self.counts['commands_rejected'] += 1
             return 'rejected'
+        if age_s is not None and not age_s <= self.cfg.command_timeout_s:
+            self.counts['commands_stale'] += 1
+            return 'stale'
         if offsets is None or len(offsets) != len(values):
             offsets = [k * self.cfg.period_s for k in range(len(values))]
         clamped = [self.hw.clamp_c_e(v) for v in values]
@@ -259,6 +274,7 @@ class BridgeCore:
             self._offsets = [float(o) for o in offsets]
             self._plan_time = now
             self.counts['commands_received'] += 1
+            self._plan_frames = 0
             if clamped[0][1]:
                 self.counts['commands_clamped'] += 1
             self.command_state = 'fresh'
@@ -299,6 +315,10 @@ class BridgeCore:
             if self.command_state == 'fresh':
                 self.command_state = 'timeout'
                 self.counts['command_timeouts'] += 1
+                # What the NMPC's last plan covered before going safe (docs/hil.md).
+                worst = self.timeouts_worst
+                worst['plan_frames'] = max(worst['plan_frames'], self._plan_frames)
+                worst['command_age_s'] = max(worst['command_age_s'], self.command_age(now))
                 since_send = math.inf           # go safe now, not at the next period
             if since_send >= period * 0.95:
                 self._send_c_e(self.c_e_safe, CommandMode.SAFE_PASSIVE, now)
@@ -310,6 +330,7 @@ class BridgeCore:
                     k = i
             if self._send_c_e(self._plan[k], CommandMode.CONTROLLED, now):
                 self.counts['plan_frames_sent'] += 1
+                self._plan_frames += 1
         if now - self._last_sensor > self.cfg.sensor_timeout_s and not self._ecu_silent:
             self._ecu_silent = True
             self.counts['ecu_silences'] += 1
@@ -384,8 +405,12 @@ class BridgeCore:
         c = self.counts
         cmd = self.last_command
         cmd_values = {k: str(c[k]) for k in (
-            'commands_received', 'commands_rejected', 'commands_clamped', 'command_timeouts',
-            'frames_sent', 'safe_frames_sent', 'plan_frames_sent', 'frames_not_sent')}
+            'commands_received', 'commands_rejected', 'commands_stale', 'commands_clamped',
+            'command_timeouts', 'frames_sent', 'safe_frames_sent', 'plan_frames_sent',
+            'frames_not_sent')}
+        worst = self.timeouts_worst
+        cmd_values['timeout_plan_frames_max'] = str(worst['plan_frames'])
+        cmd_values['timeout_age_ms_max'] = f'{worst["command_age_s"] * 1e3:.2f}'
         cmd_values.update({
             'command_age_s': f'{self.command_age(now):.4f}',
             'sent_c_e_ns_per_m': f'{cmd.c_e:.1f}' if cmd else '',

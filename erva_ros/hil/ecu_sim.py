@@ -1,39 +1,47 @@
 """Simulated generator ECU (no ROS): CAN damping commands to the plant, sensor frames back.
 
 It plays the vehicle side of the CAN link for the HIL loop: the quarter car is
-:class:`erva_ros.plant.PlantSimulator` (the shared model, never a copy), advanced
-in latch steps of ``latch_s`` (default 1 ms, the ECU's PWM update granularity).
-Once per ECU cycle Ts, :meth:`EcuSimCore.run_cycle`
+:class:`erva_ros.plant.PlantSimulator` (the shared model, never a copy), with the
+damping latched in steps of ``latch_s`` (default 1 ms, the ECU's PWM update
+granularity).  It keeps a real ECU's timing: at each sample instant t_k it samples the
+sensors and sends ERVA_ECU_STATUS, ERVA_SENS_CHASSIS and ERVA_SENS_GENERATOR at once;
+the physics of the cycle [t_k, t_k+1] is integrated *ahead*, not when t_k+1 comes:
 
-1. reads every command frame that arrived (each carries its receive time),
-2. integrates the cycle in latch steps; at every latch instant τ a command that
-   arrived before τ is applied (E2E-checked: length, CRC, alive counter; the duty
-   is clamped to the hardware range and counted if it was outside), and the
-   **same timeout rule as the bridge** applies: no valid command for
-   ``command_timeout_s`` → safe passive duty (c_e0), mode SAFE_TIMEOUT,
-3. samples the sensors at the end of the cycle (with noise, see :class:`SensorNoise`)
-   and sends ERVA_ECU_STATUS, ERVA_SENS_CHASSIS, ERVA_SENS_GENERATOR.
+1. every command frame is E2E-checked (length, CRC, alive counter) when it is read and
+   kept with its kernel receive time; the duty is clamped to the hardware range;
+2. the cycle's latch plan follows from those times alone: at every latch instant τ a
+   command that arrived at or before τ is applied, and the **same timeout rule as the
+   bridge** applies (no valid command for ``command_timeout_s`` → safe passive duty
+   c_e0, mode SAFE_TIMEOUT);
+3. :meth:`EcuSimCore.prepare` (called ``prepare_lead_s`` before t_k+1) integrates the
+   cycle with that plan in one compiled call (:meth:`PlantSimulator.integrate_profile`);
+   :meth:`EcuSimCore.run_cycle` at t_k+1 reads what arrived meanwhile, integrates again
+   only if a command landed inside the cycle after the preparation (rare: ~15 µs), takes
+   the step, samples (with noise, see :class:`SensorNoise`) and sends.
 
-``road(t)`` gives the road height at the tyre (m) at epoch time t (s), so a road
-published on ROS (stamped with the same wall clock) can drive it directly.
-Because frames carry kernel receive times (SocketCAN, :class:`LoopbackUdpBus`) the
-physics is the same as an ECU that latches each command within 1 ms of its arrival,
-although the simulator itself only wakes once per cycle.
+So the ECU's own share of the sample → command latency is its wake-up and the frame
+time, as on a vehicle, and the physics is exactly that of an ECU that latches each
+command within ``latch_s`` of its arrival, although the simulator wakes only twice per
+cycle.  ``road(t)`` gives the road height at the tyre (m) at epoch time t (s); it must be
+known up to t_k+1 when :meth:`EcuSimCore.prepare` runs (a road known ahead: the
+session's road, or a local one); with a road that arrives sample by sample, call only
+:meth:`EcuSimCore.run_cycle`, once the sample of t_k+1 is there.
 """
 
 from dataclasses import dataclass
 import math
 import time
-from typing import Callable, Dict, List, Optional
+from typing import Callable, Dict, List, NamedTuple, Optional, Tuple
 
 import can
 import numpy as np
 
+from erva_ros.codegen import BufferedCall
 from erva_ros.hil.codec import (Chassis, CommandMode, E2EReceiver, EcuCodec, EcuMode,
                                 Generator, Kind, Status)
 from erva_ros.hil.hardware import GeneratorHardware
 from erva_ros.params import ERVAParams
-from erva_ros.plant import PlantSimulator
+from erva_ros.plant import PlantSimulator, ProfileStep
 
 
 @dataclass(frozen=True)
@@ -45,6 +53,7 @@ class EcuSimConfig:
     latch_s: float = 0.001            # command latch / plant step granularity
     c_e_safe: float = 10000.0         # Ns/m applied on timeout and at start-up (c_e0)
     max_delta_counter: int = 1
+    prepare_lead_s: float = 0.003     # integrate the cycle this long before it ends
 
 
 @dataclass(frozen=True)
@@ -83,10 +92,43 @@ class EcuSample:
     power_w: float           # W at t
     harvested_j: float       # J since the start
     mode: EcuMode
+    gen_position: float = 0.0            # m, generator displacement (model.generator)
+    sent_at: Optional[float] = None      # epoch s once the sensor frames were sent
+    command_latched: Optional[float] = None   # epoch s the cycle's first CONTROLLED
+    #                                           command was applied (None: none came)
+
+
+class _Command(NamedTuple):
+    """A valid command frame, E2E-checked when read."""
+
+    t: float                 # kernel receive time (epoch s)
+    duty: float              # clamped to the hardware range
+    mode: EcuMode            # CONTROLLED or SAFE_REQUESTED
+    out_of_range: bool       # the duty sent was outside the range (or not finite)
+
+
+class _CyclePlan(NamedTuple):
+    """The latch decisions of one cycle, the ECU state they end in, and the physics."""
+
+    key: Tuple[int, int]     # (cycle index, commands latched): recompute when it changes
+    used: int                # pending commands latched in the cycle
+    c_e: List[float]         # Ns/m per latch step
+    duty: float              # at the cycle's end, after latching there
+    mode: EcuMode
+    last_cmd: float          # epoch s of the last valid command
+    applied: int
+    out_of_range: int
+    timeouts: int
+    first_controlled: Optional[float]   # latch instant of the first CONTROLLED command
+    step: ProfileStep
+    road_end: float          # m, w at the cycle's end
 
 
 COUNTER_NAMES = ('cycles', 'commands_applied', 'duty_out_of_range', 'command_timeouts',
-                 'frames_sent', 'send_errors', 'bus_losses', 'reconnects', 'overruns')
+                 'frames_sent', 'send_errors', 'bus_losses', 'reconnects', 'overruns',
+                 'cycles_skipped', 'recomputed')
+#: Mode changes kept for the status (cycle, mode, applied c_e): enough for a run's story.
+MODE_LOG_SIZE = 64
 
 
 class EcuSimCore:
@@ -107,8 +149,11 @@ class EcuSimCore:
         self.road = road
         self.noise = noise
         self._n_latch = int(round(n))
-        self.plant = PlantSimulator(params, kind, ts=config.latch_s)
-        self._v_gen = self.plant.model.generator_velocity
+        self.plant = PlantSimulator(params, kind, ts=config.period_s)
+        # Built (and compiled or loaded) now, not in the first cycle: that costs ms.
+        self.plant.integrate_profile([config.c_e_safe] * self._n_latch,
+                                     [0.0] * (self._n_latch + 1))
+        self._generator = BufferedCall(self.plant.model.generator)
         self._rng = np.random.default_rng(noise.seed)
         self._factory = bus_factory
         self.bus: Optional[can.BusABC] = None
@@ -121,7 +166,10 @@ class EcuSimCore:
         self.duty = self._safe_duty
         self.mode = EcuMode.INIT
         self._last_cmd = -math.inf            # epoch s of the last valid command
-        self._inbox: List[can.Message] = []
+        self._inbox: List[can.Message] = []   # read, not yet E2E-checked
+        self._pending: List[_Command] = []    # valid, not yet latched (arrival order)
+        self._plan: Optional[_CyclePlan] = None
+        self.mode_log: List[Tuple[int, str, float]] = []
         self.t0: Optional[float] = None       # epoch s of cycle 0
         self.k = 0
 
@@ -153,7 +201,8 @@ class EcuSimCore:
             pass
         self.bus = None
 
-    def _drain(self) -> None:
+    def _read(self) -> None:
+        """Move every frame waiting on the bus to the inbox."""
         if not self._ensure_bus():
             return
         try:
@@ -164,6 +213,19 @@ class EcuSimCore:
                 self._inbox.append(msg)
         except (can.CanError, OSError, ValueError) as exc:
             self._lost(exc)
+
+    def _check_inbox(self) -> None:
+        """E2E-check the frames read, in arrival order; keep the valid commands."""
+        for msg in self._inbox:
+            kind, _, cmd = self._rx.accept(msg, msg.timestamp)
+            if kind is not Kind.COMMAND or cmd is None:
+                continue
+            duty, clamped = self.hw.clamp_duty(cmd.duty)
+            mode = (EcuMode.CONTROLLED if cmd.mode is CommandMode.CONTROLLED
+                    else EcuMode.SAFE_REQUESTED)
+            self._pending.append(_Command(msg.timestamp, duty, mode,
+                                          clamped or not math.isfinite(cmd.duty)))
+        self._inbox = []
 
     def _send(self, kind: Kind, payload) -> None:
         if self.bus is None:
@@ -181,72 +243,108 @@ class EcuSimCore:
             self.bus = None
 
     # ------------------------------------------------------------------ ECU logic
-    def _latch(self, tau: float) -> None:
-        """Apply the commands that arrived before epoch time ``tau``, then the timeout rule."""
-        keep = []
-        for msg in self._inbox:
-            if msg.timestamp > tau:
-                keep.append(msg)
-                continue
-            kind, _, cmd = self._rx.accept(msg, msg.timestamp)
-            if kind is not Kind.COMMAND or cmd is None:
-                continue
-            duty, clamped = self.hw.clamp_duty(cmd.duty)
-            if clamped or not math.isfinite(cmd.duty):
-                self.counts['duty_out_of_range'] += 1
-            self.duty = duty
-            self.mode = (EcuMode.CONTROLLED if cmd.mode is CommandMode.CONTROLLED
-                         else EcuMode.SAFE_REQUESTED)
-            self._last_cmd = msg.timestamp
-            self.counts['commands_applied'] += 1
-        self._inbox = keep
-        if tau - self._last_cmd > self.cfg.command_timeout_s and self.mode not in (
-                EcuMode.INIT, EcuMode.SAFE_TIMEOUT):
-            self.mode = EcuMode.SAFE_TIMEOUT
-            self.counts['command_timeouts'] += 1
-        if self.mode in (EcuMode.INIT, EcuMode.SAFE_TIMEOUT):
-            self.duty = self._safe_duty
+    @property
+    def due(self) -> float:
+        """Return the epoch time of the next sample t_k+1 (s)."""
+        return self.t0 + (self.k + 1) * self.cfg.period_s
+
+    def _latch_plan(self) -> _CyclePlan:
+        """Return the plan of the cycle [t_k, t_k+1] from the commands read so far.
+
+        Pure: nothing is committed, so it is recomputed when a command arrives inside
+        the cycle after an earlier (ahead-of-time) plan.
+        """
+        ts, dt, n = self.cfg.period_s, self.cfg.latch_s, self._n_latch
+        t_start = self.t0 + self.k * ts
+        t_end = t_start + ts
+        pending = self._pending
+        due = 0
+        while due < len(pending) and pending[due].t <= t_end:
+            due += 1
+        key = (self.k, due)
+        if self._plan is not None and self._plan.key == key:
+            return self._plan
+        duty, mode, last = self.duty, self.mode, self._last_cmd
+        i = applied = out_of_range = timeouts = 0
+        first = None
+        c_e = []
+        for j in range(n + 1):
+            tau = t_start + j * dt
+            while i < due and pending[i].t <= tau:
+                cmd = pending[i]
+                i += 1
+                duty, mode, last = cmd.duty, cmd.mode, cmd.t
+                applied += 1
+                out_of_range += cmd.out_of_range
+                if first is None and mode is EcuMode.CONTROLLED:
+                    first = tau
+            if tau - last > self.cfg.command_timeout_s and mode not in (
+                    EcuMode.INIT, EcuMode.SAFE_TIMEOUT):
+                mode = EcuMode.SAFE_TIMEOUT
+                timeouts += 1
+            if mode in (EcuMode.INIT, EcuMode.SAFE_TIMEOUT):
+                duty = self._safe_duty
+            if j < n:
+                c_e.append(self.hw.c_e_from_duty(duty))
+        road = [self.road(t_start + j * dt) for j in range(n + 1)]
+        step = self.plant.integrate_profile(c_e, road)
+        if self._plan is not None and self._plan.key[0] == self.k:
+            self.counts['recomputed'] += 1
+        self._plan = _CyclePlan(key, due, c_e, duty, mode, last, applied, out_of_range,
+                                timeouts, first, step, road[-1])
+        return self._plan
 
     def start(self, t0: float) -> EcuSample:
         """Begin at epoch time ``t0``: open the bus, send the first sensor frames."""
         self.t0 = t0
         self.k = 0
+        self._plan = None
         self._ensure_bus()
         # Commands queued while the ECU waited to start (e.g. for the road) are history:
         # keep only those still fresh at t0.
-        self._drain()
+        self._read()
         self._inbox = [m for m in self._inbox if m.timestamp > t0 - self.cfg.command_timeout_s]
-        return self._measure_and_send(t0, self.hw.c_e_from_duty(self.duty))
+        self._check_inbox()
+        return self._measure_and_send(t0, self.hw.c_e_from_duty(self.duty), self.road(t0))
+
+    def prepare(self) -> None:
+        """Integrate the current cycle ahead of its end, with the commands read so far."""
+        if self.t0 is None:
+            raise RuntimeError('call start() first')
+        self._read()
+        self._check_inbox()
+        self._latch_plan()
 
     def run_cycle(self, send: bool = True) -> EcuSample:
-        """Integrate the cycle [t0 + k·Ts, t0 + (k+1)·Ts] (epoch s) and send its sensor frames.
+        """End the cycle [t0 + k·Ts, t0 + (k+1)·Ts] (epoch s): take its step, sample, send.
 
-        ``send=False`` integrates without sending (catching up after an overrun).
+        The step was integrated ahead by :meth:`prepare` unless a command arrived inside
+        the cycle since.  ``send=False`` only integrates (catching up after an overrun).
         """
         if self.t0 is None:
             raise RuntimeError('call start() first')
-        ts, dt = self.cfg.period_s, self.cfg.latch_s
-        t_start = self.t0 + self.k * ts
-        self._drain()
-        c_sum = 0.0
-        for j in range(self._n_latch):
-            tau = t_start + j * dt
-            self._latch(tau)
-            u = self.hw.c_e_from_duty(self.duty)
-            c_sum += u
-            self.plant.step(u, self.road(tau), self.road(tau + dt))
+        self._read()
+        self._check_inbox()
+        plan = self._latch_plan()
+        self.plant.apply(plan.step)
+        del self._pending[:plan.used]
+        self.duty, self.mode, self._last_cmd = plan.duty, plan.mode, plan.last_cmd
+        self.counts['commands_applied'] += plan.applied
+        self.counts['duty_out_of_range'] += plan.out_of_range
+        self.counts['command_timeouts'] += plan.timeouts
+        self._plan = None
         self.k += 1
         self.counts['cycles'] += 1
-        t_now = self.t0 + self.k * ts
-        self._latch(t_now)
-        return self._measure_and_send(t_now, c_sum / self._n_latch, send)
+        sample = self._measure_and_send(self.t0 + self.k * self.cfg.period_s,
+                                        sum(plan.c_e) / self._n_latch, plan.road_end, send)
+        sample.command_latched = plan.first_controlled
+        return sample
 
-    def _measure_and_send(self, t_epoch: float, c_e_mean: float,
+    def _measure_and_send(self, t_epoch: float, c_e_mean: float, w: float,
                           send: bool = True) -> EcuSample:
         u = self.hw.c_e_from_duty(self.duty)
-        w = self.road(t_epoch)
         s = self.plant.sample(u, w)
-        v_gen = float(self._v_gen(s.x))
+        position, v_gen, _ = self._generator(s.x, u)
         n, r = self.noise, self._rng
         chassis = Chassis(sprung_accel=s.sprung_accel + n.sprung_accel * r.standard_normal(),
                           deflection=float(s.x[0] - s.x[2]) + n.deflection * r.standard_normal())
@@ -259,13 +357,19 @@ class EcuSimCore:
         status = Status(mode=self.mode, c_e_applied=u, c_e_mean=c_e_mean,
                         cmd_rejected=rejected % 256,
                         cmd_timeouts=self.counts['command_timeouts'] % 256)
+        sent_at = None
         if send:
             self._send(Kind.STATUS, status)
             self._send(Kind.CHASSIS, chassis)
             self._send(Kind.GENERATOR, gen)
+            sent_at = time.time()
+        if not self.mode_log or self.mode_log[-1][1] != self.mode.name:
+            if len(self.mode_log) < MODE_LOG_SIZE:
+                self.mode_log.append((self.k, self.mode.name, u))
         return EcuSample(t=t_epoch - self.t0, x=s.x, road_height=w, c_e=u, c_e_mean=c_e_mean,
                          sprung_accel=s.sprung_accel, v_gen=v_gen, power_w=s.power_w,
-                         harvested_j=s.harvested_j, mode=self.mode)
+                         harvested_j=s.harvested_j, mode=self.mode, gen_position=position,
+                         sent_at=sent_at)
 
     def rx_counts(self) -> Dict[str, int]:
         """Return the E2E counters of the received command frames."""
@@ -277,39 +381,59 @@ class EcuSimCore:
         out.update({f'rx_{k}': v for k, v in self.rx_counts().items()})
         return out
 
+    def mode_changes(self) -> str:
+        """Return the mode changes as ``cycle:MODE:c_e`` items (c_e applied, Ns/m)."""
+        return ','.join(f'{k}:{mode}:{c_e:.0f}' for k, mode, c_e in self.mode_log)
+
 
 def run_realtime(core: EcuSimCore, duration_s: float = 0.0,
                  on_cycle: Optional[Callable[[EcuSample], None]] = None,
                  should_stop: Callable[[], bool] = lambda: False,
                  wait: Optional[Callable[[float], None]] = None,
-                 t0: Optional[float] = None) -> int:
+                 t0: Optional[float] = None,
+                 ahead: bool = True,
+                 until_road: Optional[Callable[[float], None]] = None) -> int:
     """Run ``core`` against the wall clock until ``duration_s`` (0: forever) or ``should_stop``.
 
-    ``wait(seconds)`` sleeps until the next cycle (default time.sleep; a ROS caller passes
-    a function that spins its executor meanwhile).  ``t0`` (epoch s, default now) is the
-    time of cycle 0, e.g. an instant of the road's sample grid.  A cycle that starts more
-    than one period late is counted as an overrun; the missed cycles are integrated
-    without sending, so the plant stays on the wall clock.  Returns the number of cycles
-    run.
+    ``wait(seconds)`` sleeps (default time.sleep; a ROS caller passes a function that
+    spins its executor meanwhile).  ``t0`` (epoch s, default now) is the time of cycle 0,
+    e.g. an instant of the road's sample grid.  With ``ahead`` (the road is known up to
+    the next sample) each cycle is integrated ``prepare_lead_s`` before its end, so the
+    sensor frames go out as soon as the sample instant has come; otherwise
+    ``until_road(t)`` is called at each sample instant t to wait for its road sample,
+    then the cycle is integrated and sent.  A cycle that starts more than one period late
+    is counted as an overrun; the missed cycles are integrated without sending, so the
+    plant stays on the wall clock.  Returns the number of cycles run.
     """
     wait = wait or time.sleep
-    ts = core.cfg.period_s
+    ts, lead = core.cfg.period_s, core.cfg.prepare_lead_s
     sample = core.start(time.time() if t0 is None else t0)
     if on_cycle:
         on_cycle(sample)
+    prepared = -1
     while not should_stop():
         if duration_s > 0 and core.k * ts >= duration_s - 1e-9:
             break
-        due = core.t0 + (core.k + 1) * ts
+        due = core.due
+        if ahead and prepared != core.k:
+            delay = due - lead - time.time()
+            if delay > 0:
+                wait(delay)
+                continue                         # woke (maybe early): look again
+            core.prepare()
+            prepared = core.k
         delay = due - time.time()
         if delay > 0:
             wait(delay)
-            if time.time() < due:
-                continue                         # woke early (e.g. a ROS callback ran)
-        elif -delay > ts:
+            continue
+        if -delay > ts:
             core.counts['overruns'] += 1
+            core.counts['cycles_skipped'] += int(-delay // ts)   # integrated, never sent
             for _ in range(int(-delay // ts)):
                 core.run_cycle(send=False)
+            continue                             # the current cycle, prepared anew
+        if not ahead and until_road is not None:
+            until_road(due)
         sample = core.run_cycle()
         if on_cycle:
             on_cycle(sample)

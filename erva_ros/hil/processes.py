@@ -15,7 +15,7 @@ bus.  The ECU publishes the ground truth (``sprung_accel``, ``generator``,
 from dataclasses import dataclass, field
 import os
 import sys
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Sequence
 
 from erva_ros.hil.settings import default_hil_file
 from erva_ros.live.realtime import DEFAULT_PRIORITY
@@ -34,18 +34,23 @@ class ProcessSpec:
 def hil_process_specs(params_file: str, namespace: str = '/erva', duration_s: float = 0.0,
                       hil_file: Optional[str] = None, model: str = 'erva', ts: float = 0.02,
                       ports: Optional[tuple] = None, env: Optional[Dict[str, str]] = None,
-                      road: str = 'ros', wait_road_s: float = 60.0,
+                      road: str = 'session', wait_road_s: float = 60.0,
                       stamp_on_road_grid: bool = False,
-                      realtime_priority: int = DEFAULT_PRIORITY
-                      ) -> List[ProcessSpec]:
+                      realtime_priority: int = DEFAULT_PRIORITY,
+                      prefix: Sequence[str] = ()) -> List[ProcessSpec]:
     """Return the HIL processes for a session (see the module docstring).
 
     ``params_file`` is the session's ROS params file (physical parameters in ``/**``,
     as `erva run` writes it); ``hil_file`` the HIL parameters (default
     config/hil.yaml).  ``env`` is the base environment (default os.environ); the
-    caller's ROS_DOMAIN_ID is kept and ROS_AUTOMATIC_DISCOVERY_RANGE is forced to
-    LOCALHOST.  ``duration_s`` = 0 runs the ECU until it is stopped (SIGINT/SIGTERM); the
-    ECU's run starts with the first road height it receives (within ``wait_road_s``).
+    caller's ROS_DOMAIN_ID and ROS_STATIC_PEERS are kept and ROS_AUTOMATIC_DISCOVERY_RANGE
+    is forced to LOCALHOST (with static peers: the hosts named there too, docs/hil.md).
+    ``duration_s`` = 0 runs the ECU until it is stopped (SIGINT/SIGTERM); the ECU's run
+    starts with the first road height it receives (within ``wait_road_s``).  ``road`` is
+    the ECU's road: ``session`` (the road of ``params_file``, an `erva run` session file,
+    known ahead on the grid of road/height) or ``ros`` (the heights as they arrive).
+    ``prefix`` is put before each argv (e.g. ``ip netns exec NS``, ``taskset -c 1``): it
+    must exec the command, so that signals reach it.
     ``stamp_on_road_grid`` stamps the estimates with the road's sample instants, which the
     NMPC needs to pair a state with its preview (`erva run`).  ``realtime_priority`` is
     the SCHED_FIFO priority of all three once started (0: normal scheduling).
@@ -71,6 +76,7 @@ def hil_process_specs(params_file: str, namespace: str = '/erva', duration_s: fl
         estimator += ['-p', 'stamp_on_road_grid:=true']
     for argv in (bridge, estimator):
         argv += ['-p', f'realtime_priority:={int(realtime_priority)}']
-    return [ProcessSpec('ecu_sim', ecu, dict(base)),
-            ProcessSpec('ecu_bridge_node', bridge, dict(base)),
-            ProcessSpec('state_estimator_node', estimator, dict(base))]
+    prefix = list(prefix)
+    return [ProcessSpec('ecu_sim', prefix + ecu, dict(base)),
+            ProcessSpec('ecu_bridge_node', prefix + bridge, dict(base)),
+            ProcessSpec('state_estimator_node', prefix + estimator, dict(base))]

@@ -18,11 +18,13 @@ ecu/generator         sensor_msgs/JointState       name [generator]: velocity = 
 ecu/measurements      sensor_msgs/JointState       the whole ECU cycle in one message, once
                                                    its frames are in (the estimator's
                                                    input): name [c_e, c_e_mean,
-                                                   sprung_accel, suspension, v_gen, f_gen],
-                                                   position = the values above (Ns/m, Ns/m,
-                                                   m/s^2, m, m/s, N); a lost frame's
-                                                   values are NaN (published with the next
-                                                   cycle's first frame or after Ts/2)
+                                                   sprung_accel, suspension,
+                                                   generator_speed, f_gen], position = the
+                                                   values above, the rotor speed phi' as
+                                                   the ECU measures it (Ns/m, Ns/m, m/s^2,
+                                                   m, rad/s, N); a lost frame's values are
+                                                   NaN (published with the next cycle's
+                                                   first frame or after Ts/2)
 /diagnostics          diagnostic_msgs/Diagnostic-  bridge: command link, CAN bus, ECU
                       Array                        heartbeat (counters, latency)
 ====================  ===========================  ========================================
@@ -44,7 +46,8 @@ SUSPENSION_JOINT = 'suspension'
 APPLIED_JOINTS = ('c_e', 'c_e_mean')
 #: ``ecu/measurements`` names (position[i], SI units as in the table), by CAN frame: the
 #: values of one frame are all present or all NaN (frame lost).
-MEASUREMENT_NAMES = ('c_e', 'c_e_mean', 'sprung_accel', 'suspension', 'v_gen', 'f_gen')
+MEASUREMENT_NAMES = ('c_e', 'c_e_mean', 'sprung_accel', 'suspension', 'generator_speed',
+                     'f_gen')
 MEASUREMENT_CHANNELS = {'status': (0, 1), 'chassis': (2, 3), 'generator': (4, 5)}
 
 #: ROS type names of the HIL topics, fully qualified under /erva (for recorders).

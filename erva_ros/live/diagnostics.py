@@ -94,6 +94,15 @@ class CountedPublisher:
         return self.publisher.get_subscription_count()
 
 
+def publisher_values(publishers: Sequence[CountedPublisher]) -> Dict[str, int]:
+    """Return ``published:<topic>`` and ``subscribers:<topic>`` of each counted publisher."""
+    out: Dict[str, int] = {}
+    for pub in publishers:
+        out[f'published:{pub.topic}'] = pub.count
+        out[f'subscribers:{pub.topic}'] = pub.get_subscription_count()
+    return out
+
+
 class StatusReporter:
     """Publish a node's status periodically and immediately on a level or message change.
 
@@ -145,9 +154,7 @@ class StatusReporter:
         arr.header.stamp = ns_to_time(self._now_ns())
         values = dict(self._values())
         values['status_seq'] = self.published + 1
-        for pub in self.publishers:
-            values[f'published:{pub.topic}'] = pub.count
-            values[f'subscribers:{pub.topic}'] = pub.get_subscription_count()
+        values.update(publisher_values(self.publishers))
         arr.status = [status_msg(self.name, self.level, self.message, values,
                                  self.hardware_id)]
         self._publish(arr)
@@ -157,4 +164,4 @@ class StatusReporter:
 
 __all__ = ['OK', 'WARN', 'ERROR', 'STALE', 'LEVEL_NAMES', 'format_value', 'status_msg',
            'parse_status', 'value_float', 'value_int', 'flatten', 'CountedPublisher',
-           'StatusReporter']
+           'publisher_values', 'StatusReporter']

@@ -32,6 +32,15 @@ BRIDGE_ECU = 'ecu_bridge_node: ecu'
 PERIODIC = (BRIDGE_COMMAND, BRIDGE_BUS, BRIDGE_ECU, ESTIMATOR)
 #: ECU cycles left out of the estimation error: the filter starts from rest.
 WARMUP = 25
+#: The loop's latency chain, each stage as time since the sample instant t_k (node, key):
+#: the ECU's sensor frames on CAN, ecu/measurements at the estimator, the state
+#: published, (the NMPC's command: the monitor's ``sample_to_command_ms``), the command
+#: on CAN, and applied by the ECU.
+CHAIN = {'sensors_on_can': (ECU, 'sample_to_can_ms'),
+         'measurements_at_estimator': (ESTIMATOR, 'sample_to_measurements_ms'),
+         'state_published': (ESTIMATOR, 'sample_to_state_ms'),
+         'command_on_can': (BRIDGE_COMMAND, 'sample_to_can_ms'),
+         'command_applied': (ECU, 'sample_to_applied_ms')}
 #: E2E rejections (erva_ros.hil.e2e) grouped as the summary reports them.
 DROPS = {'crc': ('bad_crc',), 'counter': ('repeated', 'skipped', 'bad_counter'),
          'length': ('wrong_length',)}
@@ -84,18 +93,27 @@ def hil_block(values: Values, estimates: Dict[int, np.ndarray],
     ecu_out = {f'dropped_{k}': _sum(ecu, [f'rx_{n}' for n in names])
                for k, names in DROPS.items()}
     ecu_out.update({k: value_int(ecu.get(k)) for k in (
-        'cycles', 'commands_applied', 'command_timeouts', 'duty_out_of_range', 'overruns')})
+        'cycles', 'commands_applied', 'command_timeouts', 'duty_out_of_range', 'overruns',
+        'cycles_skipped', 'recomputed')})
     ecu_out['bus_errors'] = _sum(ecu, ('send_errors', 'bus_losses'))
     ecu_out['mode'] = ecu.get('ecu_mode')
+    ecu_out['mode_changes'] = ecu.get('mode_changes')
+    ecu_out['road_mismatches'] = value_int(ecu.get('road_mismatches'))
+    ecu_out['start_lag_ms'] = value_float(ecu.get('start_lag_ms'))
+    bridge['commands_stale'] = value_int(cmd.get('commands_stale'))
+    bridge['timeout_plan_frames_max'] = value_int(cmd.get('timeout_plan_frames_max'))
+    bridge['timeout_age_ms_max'] = value_float(cmd.get('timeout_age_ms_max'))
     estimator: Dict[str, Any] = {k: value_int(est.get(k)) for k in (
         'updates', 'incomplete', 'gaps', 'restarts', 'late_or_repeated', 'rejected',
-        'no_road')}
+        'no_road', 'road_waits', 'road_extrapolated')}
     estimator['nis_mean'] = value_float(est.get('nis_mean'))
     estimator['error'] = estimation_error(estimates, truth)
     return {'bridge': bridge, 'ecu': ecu_out, 'estimator': estimator,
             'latency_ms': {'bridge_ros_to_can': stats(cmd, 'ros_to_can_ms'),
                            'bridge_can_to_ros': stats(link, 'can_to_ros_ms'),
-                           'estimator': stats(est, 'latency_ms')}}
+                           'estimator': stats(est, 'latency_ms')},
+            # Each stage's point in time after the sample instant t_k (CHAIN).
+            'chain_ms': {stage: stats(values(node), key) for stage, (node, key) in CHAIN.items()}}
 
 
 def estimation_error(estimates: Dict[int, np.ndarray], truth: Dict[int, np.ndarray],

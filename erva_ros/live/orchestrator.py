@@ -169,6 +169,7 @@ class RunConfig:
     session_dir: Optional[str] = None      # where the params file and node logs go
     ecu: str = 'none'                      # 'virtual': the HIL loop (simulated ECU, CAN)
     foxglove: Optional[str] = None         # [HOST:]PORT: serve the session to Foxglove
+    ecu_prefix: tuple = ()                 # argv prefix of the HIL processes (--ecu-prefix)
 
 
 @dataclass
@@ -461,7 +462,7 @@ class _Supervisor:
             hil = {spec.name: spec for spec in hil_process_specs(
                 self.session.params_file, self.cfg.namespace, live['duration_s'],
                 model=live['model'], ts=live['ts'], env=env, stamp_on_road_grid=True,
-                realtime_priority=live['realtime_priority'])}
+                realtime_priority=live['realtime_priority'], prefix=self.cfg.ecu_prefix)}
         for name in self.node_names:
             argv = [sys.executable, '-m', f'erva_ros.nodes.{name}', '--ros-args',
                     '-r', f'__ns:={self.cfg.namespace}',
@@ -538,9 +539,9 @@ class _Supervisor:
         topic's writer needs one subscriber less here.
         """
         statuses = {n: v[2] for n, v in self.monitor.diag.items()}
-        # The ECU simulator reports only once it runs (the bridge and estimator are
-        # covered by _graph_ready): every other node must have said what it matched.
-        nodes = [n for n in self.node_names if n not in HIL_PROCESSES]
+        # The ECU simulator reports only once the road runs (its readers are checked by
+        # _graph_ready): every other node must have said what its writers matched.
+        nodes = [n for n in self.node_names if n != hil_summary.ECU]
         nodes += ['recorder'] if self.recording else []
         missing = accounting.unmatched(statuses, nodes, self.expected, self.later)
         if self.recording:
@@ -662,11 +663,31 @@ class _Supervisor:
                 self.ended.add(hil_summary.ECU)
         last = ('recorder_node', 'foxglove_server')   # they take what the nodes published
         stop_processes([p for n, p in self.procs.items() if n not in last])
+        # Each node published its final status (its final counts) before it exited: take
+        # them, so the summary and the bag check count what was really published.
+        self._take_pending()
         if any(n in self.procs for n in last):
             stop_processes([self.procs[n] for n in last if n in self.procs], grace_s=10.0)
         self.executor.shutdown()
         self.monitor.destroy_node()
         rclpy.try_shutdown(context=self.context)
+
+    def _take_pending(self, quiet_s: float = 0.2, limit_s: float = 3.0) -> None:
+        """Spin the monitor until no loop node's message came for ``quiet_s`` (<= ``limit_s``).
+
+        (The recorder and the Foxglove server, still running, keep reporting: not counted.)
+        """
+        def loop_arrivals():
+            data = sum(n for t, n in self.monitor.received.items() if t != topics.DIAGNOSTICS)
+            return data, tuple(v[3] for n, v in self.monitor.diag.items()
+                               if not n.endswith((RECORDER_STATUS, ': foxglove server')))
+        end = time.monotonic() + limit_s
+        last, quiet_since = None, time.monotonic()
+        while time.monotonic() < end and time.monotonic() - quiet_since < quiet_s:
+            self.executor.spin_once(timeout_sec=0.02)
+            now = loop_arrivals()
+            if now != last:
+                last, quiet_since = now, time.monotonic()
 
     def summary(self) -> Dict[str, Any]:
         """Return the run's summary: the monitor's figures plus scenario, nodes and errors."""

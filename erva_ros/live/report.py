@@ -33,6 +33,12 @@ def _ms(stats: Dict[str, Any]) -> str:
             f'({stats["samples"]} samples)')
 
 
+def _p(stats: Dict[str, Any]) -> str:
+    if not stats or not stats.get('samples'):
+        return 'n/a'
+    return f'{stats["p50"]:.2f} / {stats["p99"]:.2f}'
+
+
 def format_summary(s: Dict[str, Any]) -> str:
     """Return the human-readable summary of one run."""
     sc = s['scenario']
@@ -123,6 +129,14 @@ def _hil_lines(h: Dict[str, Any]) -> List[str]:
              f'            CAN -> ROS {_ms(lat["bridge_can_to_ros"])}',
              f'  estimator {_ms(lat["estimator"])}; NIS mean '
              f'{nis if nis is None else format(nis, ".2f")}']
+    chain = h.get('chain_ms') or {}
+    if chain:       # each stage as time since the sample instant t_k (hil_summary.CHAIN)
+        lines.append(f'  chain     from the sample t_k, p50 / p99 ms: sensors on CAN '
+                     f'{_p(chain.get("sensors_on_can"))}, at the estimator '
+                     f'{_p(chain.get("measurements_at_estimator"))}, state published '
+                     f'{_p(chain.get("state_published"))},')
+        lines.append(f'            command on CAN {_p(chain.get("command_on_can"))}, applied '
+                     f'by the ECU {_p(chain.get("command_applied"))}')
     err = est.get('error') or {}
     if err.get('matched'):
         rel = ', '.join(f'{k} {v:.0%}' for k, v in err['relative_rms'].items())

@@ -87,13 +87,16 @@ def finish_publishing(node, signalled: List[int], limit_s: float = SHUTDOWN_ACK_
     further signal cut the wait short: False).
     """
     from rclpy.duration import Duration
+    # A node with a StatusReporter (``status``), or one that publishes its own status
+    # (``publish_status``) and lists its ``counted_publishers``.
     status = getattr(node, 'status', None)
-    publishers = list(getattr(status, 'publishers', []))
-    if status is not None:
-        status.publish()
-        diag = getattr(node, 'pub_diag', None)
-        if diag is not None:
-            publishers.append(diag)
+    publish = getattr(node, 'publish_status', None) or getattr(status, 'publish', None)
+    publishers = list(getattr(node, 'counted_publishers', None)
+                      or getattr(status, 'publishers', []))
+    if publish is not None:
+        publish()
+    if getattr(node, 'pub_diag', None) is not None:
+        publishers.append(node.pub_diag)
     deadline = time.monotonic() + limit_s
     before = len(signalled)
     for pub in publishers:

@@ -21,12 +21,17 @@ A thin rclpy adapter around :class:`erva_ros.hil.bridge.BridgeCore` (no ROS insi
   frame arrives or Ts/2 after its first frame (the watchdog's Ts/4 check), whichever
   comes first.
 * ``/diagnostics``: command link, CAN bus (E2E counters, losses, reconnects) and ECU
-  heartbeat, with the bridge's added latency (p50/p99/max in ms).
+  heartbeat, with the bridge's added latency (p50/p99/max in ms) and, on the command
+  link, ``sample_to_can_ms``: the command's sample instant (its stamp) → frame sent.
+* A ``damping_cmd`` whose stamp is older than ``command_timeout_periods`` when it
+  arrives is refused (``commands_stale``): e.g. commands DDS queued while a link between
+  hosts was down must not be applied as fresh (clocks synchronised, docs/hil.md).
 
 Bus loss never ends the node: it is reported and the bus re-opened every ``bus_retry_s``.
 """
 
 import gc
+import itertools
 import sys
 import threading
 import time
@@ -60,24 +65,24 @@ ABSURD_C_E = 1e6
 
 
 def parse_command(data: bytes):
-    """Return (plan Ns/m, time offsets s) of a serialized ``damping_cmd``, or (None, None).
+    """Return (stamp ns, plan Ns/m, time offsets s) of a serialized ``damping_cmd``.
 
-    None for malformed CDR, other joints, no points, a point without exactly one
-    position, or an absurd value (beyond :data:`ABSURD_C_E`, NaN, infinite).
+    (None, None, None) for malformed CDR, other joints, no points, a point without
+    exactly one position, or an absurd value (beyond :data:`ABSURD_C_E`, NaN, infinite).
     """
     try:
-        _, names, points = decode_joint_trajectory(data)
+        stamp, names, points = decode_joint_trajectory(data)
     except CdrError:
-        return None, None
+        return None, None, None
     if names != [topics.DAMPING_JOINT] or not points:
-        return None, None
+        return None, None, None
     plan, offsets = [], []
     for positions, (sec, nsec) in points:
         if len(positions) != 1 or not abs(positions[0]) <= ABSURD_C_E:   # also NaN
-            return None, None
+            return None, None, None
         plan.append(positions[0])
         offsets.append((sec * 1_000_000_000 + nsec) * 1e-9)
-    return plan, offsets
+    return stamp, plan, offsets
 
 
 class EcuBridgeNode(Node):
@@ -88,7 +93,8 @@ class EcuBridgeNode(Node):
         self.params = declare_erva_params(self)
         self.ts = declare_number(self, 'ts', 0.02, TS_SPEC)
         # SCHED_FIFO once started (run_node, live/realtime.py): the node is on the loop.
-        self.realtime_priority = loop_priority(declare_live(self, ('realtime_priority',)))
+        live = declare_live(self, ('realtime_priority', 'publisher_history_s'))
+        self.realtime_priority = loop_priority(live)
         cfg = {}
         for key, default in BRIDGE_DEFAULTS.items():
             if key in BRIDGE_STRINGS:
@@ -114,18 +120,30 @@ class EcuBridgeNode(Node):
         # Added latency (DDS / kernel receive time -> done) and, inside it, the node's own
         # processing (callback entry -> done): the rest is waiting to be scheduled.
         self.lat_cmd = LatencyStats()       # damping_cmd received -> CAN frame sent
+        self.lag_cmd = LatencyStats()       # the command's sample instant -> frame sent
         self.proc_cmd = LatencyStats()
         self.lat_sensor = LatencyStats()    # CAN frame received -> its topic published
         self.proc_sensor = LatencyStats()
         self.rejected_msgs = 0
 
         qos = topics.control_qos()
-        self.pub_accel = self.create_publisher(AccelStamped, hil_topics.ECU_SPRUNG_ACCEL, qos)
-        self.pub_susp = self.create_publisher(JointState, hil_topics.ECU_SUSPENSION, qos)
-        self.pub_gen = self.create_publisher(JointState, hil_topics.ECU_GENERATOR, qos)
-        self.pub_applied = self.create_publisher(JointState, hil_topics.ECU_DAMPING_APPLIED,
-                                                 qos)
-        self.pub_meas = self.create_publisher(JointState, hil_topics.ECU_MEASUREMENTS, qos)
+        # Counted (erva run checks the bag against them), with a history that lets a
+        # stalled recorder catch up (publisher_history_s of the loop, at the ECU's rate).
+        counted = diag.CountedPublisher
+        pub_qos = topics.publisher_qos(live['publisher_history_s'], self.ts)
+        self.pub_accel = counted(self.create_publisher(AccelStamped,
+                                                       hil_topics.ECU_SPRUNG_ACCEL, pub_qos))
+        self.pub_susp = counted(self.create_publisher(JointState, hil_topics.ECU_SUSPENSION,
+                                                      pub_qos))
+        self.pub_gen = counted(self.create_publisher(JointState, hil_topics.ECU_GENERATOR,
+                                                     pub_qos))
+        self.pub_applied = counted(self.create_publisher(
+            JointState, hil_topics.ECU_DAMPING_APPLIED, pub_qos))
+        self.pub_meas = counted(self.create_publisher(JointState, hil_topics.ECU_MEASUREMENTS,
+                                                      pub_qos))
+        self.counted_publishers = [self.pub_meas, self.pub_applied, self.pub_accel,
+                                   self.pub_susp, self.pub_gen]
+        self._status_seq = itertools.count(1)   # next() is atomic: two threads publish
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
                                               topics.diagnostics_qos())
         self.enc_applied = JointStateEncoder(hil_topics.APPLIED_JOINTS)
@@ -164,14 +182,20 @@ class EcuBridgeNode(Node):
     # -- ROS -> CAN --------------------------------------------------------------------
     def _on_command(self, data: bytes, info) -> None:
         t0 = time.perf_counter()
-        plan, offsets = parse_command(data)
+        stamp, plan, offsets = parse_command(data)
         if plan is None:
             self.rejected_msgs += 1
             self.core.counts['commands_rejected'] += 1
             return
-        result = self.core.submit(plan, offsets=offsets)
+        # The stamp is the sample the command was computed for (synchronised clocks
+        # across hosts, docs/hil.md): a command delivered late, e.g. queued by DDS
+        # while a link was down, is refused rather than applied as fresh.
+        result = self.core.submit(plan, offsets=offsets,
+                                  age_s=(info['received_timestamp'] - stamp) * 1e-9)
         if result in ('sent', 'clamped'):
-            self.lat_cmd.add((time.time_ns() - info['received_timestamp']) * 1e-9)
+            done = time.time_ns()
+            self.lat_cmd.add((done - info['received_timestamp']) * 1e-9)
+            self.lag_cmd.add((done - stamp) * 1e-9)
             self.proc_cmd.add(time.perf_counter() - t0)
 
     def _tick(self) -> None:
@@ -220,6 +244,7 @@ class EcuBridgeNode(Node):
                                                                 float(p.sprung_accel))))
             self.pub_susp.publish(self.enc_susp.encode(stamp, (float(p.deflection),)))
         else:
+            # The contract's generator topic is in stroke terms: v_gen = l·phi'.
             self.pub_gen.publish(self.enc_gen.encode(
                 stamp, (), (float(p.speed * self.params.l),),
                 (float(self.hw.force_from_current(p.current)),)))
@@ -236,22 +261,32 @@ class EcuBridgeNode(Node):
         gen = cyc.payloads.get(Kind.GENERATOR)
         values = ([float(st.c_e_applied), float(st.c_e_mean)] if st else [nan, nan]) + (
             [float(ch.sprung_accel), float(ch.deflection)] if ch else [nan, nan]) + (
-            [float(gen.speed * self.params.l), float(self.hw.force_from_current(gen.current))]
+            [float(gen.speed), float(self.hw.force_from_current(gen.current))]
             if gen else [nan, nan])
         self.pub_meas.publish(self.enc_meas.encode(int(round(cyc.stamp * 1e9)), values))
 
     # -- diagnostics -------------------------------------------------------------------
+    def publish_status(self) -> None:
+        """Publish the statuses now (the final counts, on shutdown: runtime.run_node)."""
+        self._publish_diagnostics()
+
     def _publish_diagnostics(self) -> None:
         statuses = self.core.diagnostics(prefix=self.get_fully_qualified_name())
         lat = {}
         for name, stats in (('ros_to_can_ms', self.lat_cmd), ('can_to_ros_ms', self.lat_sensor),
                             ('ros_to_can_proc_ms', self.proc_cmd),
-                            ('can_to_ros_proc_ms', self.proc_sensor)):
+                            ('can_to_ros_proc_ms', self.proc_sensor),
+                            ('sample_to_can_ms', self.lag_cmd)):
             lat.update(diag.flatten(name, stats.summary()))
         statuses[0].values.update({k: diag.format_value(v) for k, v in lat.items()
-                                   if k.startswith('ros_to_can')})
+                                   if k.startswith(('ros_to_can', 'sample_to_can'))})
         statuses[0].values['messages_rejected'] = str(self.rejected_msgs)
         statuses[0].values['scheduling'] = getattr(self, 'scheduling', 'off')
+        statuses[0].values.update({k: str(v) for k, v in
+                                   diag.publisher_values(self.counted_publishers).items()})
+        seq = str(next(self._status_seq))
+        for s in statuses:
+            s.values['status_seq'] = seq
         statuses[2].values.update({k: diag.format_value(v) for k, v in lat.items()
                                    if k.startswith('can_to_ros')})
         arr = DiagnosticArray()

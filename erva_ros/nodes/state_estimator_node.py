@@ -3,7 +3,7 @@
 A thin rclpy adapter around :class:`erva_ros.estimator.ExtendedKalmanFilter` (the shared
 CasADi model, paper eq. (11)).  It subscribes to ``ecu/measurements``, the one message
 ecu_bridge_node publishes per ECU cycle (stamp t_k; c_e applied and cycle-mean c_e,
-sprung acceleration, deflection, v_gen, generator force), plus ``road/height`` (the road
+sprung acceleration, deflection, rotor speed, generator force), plus ``road/height`` (the road
 at the tyre, buffered and interpolated).  One callback per cycle: the prediction from
 t_{k-1} with the ECU's cycle-mean c_e and the road w(t_{k-1}) → w(t_k), the correction
 with the measurements present (a lost CAN frame's values are NaN: that channel is left
@@ -19,14 +19,20 @@ value or a NaN that is not a whole channel is rejected and counted, and never re
 the filter.  (The per-frame topics ``ecu/sprung_accel`` etc. are for users and the
 recorder; the estimator does not listen to them.)
 With ``stamp_on_road_grid`` (`erva run --ecu virtual` sets it) a cycle's stamp is the
-road's sample instant t_k at or before its CAN receive time: the simulated ECU samples
-on that grid, and the NMPC pairs each state with the road preview of the same t_k.
+road's sample instant t_k at most 3Ts/4 before (Ts/4 after) its CAN receive time: the
+simulated ECU samples on that grid and sends at once, and the NMPC pairs each state with
+the road preview of
+the same t_k; the status then also reports the loop's chain from t_k
+(``sample_to_measurements_ms``, ``sample_to_state_ms``).  The ECU sends at t_k as the
+road node publishes w(t_k), which the prediction needs: a cycle whose road sample is not
+there yet waits for it up to Ts/4 (``road_waits``; ``road_extrapolated`` if in vain).
 ``/diagnostics`` reports counters, the mean normalised innovation squared (≈ 3 when
 the noise model fits) and the latency this node adds (``ecu/measurements`` received →
 state published, p50/p99/max in ms) with, inside it, its own processing (compute_ms).
 """
 
 import gc
+import itertools
 import math
 import threading
 import time
@@ -55,8 +61,10 @@ from erva_ros.live.rt_subscription import RealtimeSubscription
 from erva_ros.live.runtime import run_node
 
 #: Plausibility bounds of the measurements (absurd beyond: rejected, counted); speed is
-#: the rotor speed v_gen / l (rad/s), applied the c_e's (Ns/m, >= 0), force in N.
+#: the rotor speed phi' = v_gen / l (rad/s), applied the c_e's (Ns/m, >= 0), force in N.
 LIMITS = {'accel': 100.0, 'deflection': 0.5, 'speed': 1e3, 'applied': 1e6, 'force': 1e6}
+#: On the road grid, how long a cycle waits for its road sample w(t_k) (periods).
+ROAD_WAIT_PERIODS = 0.25
 #: Cache warming runs this long before the next ECU cycle is due (s).
 WARM_LEAD_S = 0.004
 _WARM_Y = (0.0, 0.0, 0.0)
@@ -64,8 +72,7 @@ _NAMES = list(hil_topics.MEASUREMENT_NAMES)
 _CHANNELS = tuple(hil_topics.MEASUREMENT_CHANNELS.values())
 
 
-def parse_measurements(data: bytes, l_gen: float
-                       ) -> Optional[Tuple[int, Tuple[float, ...]]]:
+def parse_measurements(data: bytes) -> Optional[Tuple[int, Tuple[float, ...]]]:
     """Return (stamp ns, (c_e, c_e_mean, accel, deflection, rotor speed)) of a message.
 
     ``data`` is a serialized ``ecu/measurements`` JointState.
@@ -84,8 +91,7 @@ def parse_measurements(data: bytes, l_gen: float
         nans = sum(math.isnan(v[i]) for i in channel)
         if 0 < nans < len(channel):
             return None
-    c_e, c_e_mean, accel, defl, v_gen, force = v
-    speed = v_gen / l_gen
+    c_e, c_e_mean, accel, defl, speed, force = v
     if not all(math.isnan(x) or ok for x, ok in (
             (c_e, 0 <= c_e <= LIMITS['applied']),
             (c_e_mean, 0 <= c_e_mean <= LIMITS['applied']),
@@ -105,14 +111,16 @@ class StateEstimatorNode(Node):
         choices, doc = LIVE_CHOICES['model']
         self.kind = declare_choice(self, 'model', 'erva', choices, doc)
         # SCHED_FIFO once started (run_node, live/realtime.py): the node is on the loop.
-        self.realtime_priority = loop_priority(declare_live(self, ('realtime_priority',)))
+        live = declare_live(self, ('realtime_priority', 'publisher_history_s'))
+        self.realtime_priority = loop_priority(live)
         cfg = {key: declare_number(self, key, default, ESTIMATOR_NUMERIC[key],
                                    integer=key in INTEGER_KEYS)
                for key, default in ESTIMATOR_DEFAULTS.items()}
         self.cfg = cfg
         self.on_road_grid = declare_bool(
             self, 'stamp_on_road_grid', False, 'stamp each ECU cycle with the road sample '
-            'instant at or before its CAN receive time (an ECU sampling on the road grid)')
+            'instant in [-Ts/4, 3Ts/4) around its CAN receive time (an ECU sampling on the '
+            'road grid and sending at once)')
         self.grid_ns: Optional[int] = None  # a road sample instant: the grid's phase
         self.ekf = ExtendedKalmanFilter(self.params, self.kind, self.ts, noise_of(cfg),
                                         u_max=cfg['u_max'])
@@ -121,20 +129,28 @@ class StateEstimatorNode(Node):
         self.last_ns: Optional[int] = None  # stamp of the last published estimate
         self.u_now = self.params.c_e0       # damping applied at the last stamp (Ns/m)
         self.count = dict.fromkeys(('updates', 'incomplete', 'gaps', 'restarts',
-                                    'late_or_repeated', 'rejected', 'no_road'), 0)
+                                    'late_or_repeated', 'rejected', 'no_road',
+                                    'road_waits', 'road_extrapolated'), 0)
         self.nis_sum = 0.0
         self.latency = LatencyStats()       # ecu/measurements received -> state published
         self.compute = LatencyStats()       # time spent in that callback
+        self.lag_meas = LatencyStats()      # sample instant -> ecu/measurements received
+        self.lag_state = LatencyStats()     # sample instant -> state published
         self.status_level, self.status_text = diag.WARN, 'waiting for ECU measurements'
 
         qos = topics.control_qos()
-        self.pub_state = self.create_publisher(JointState, topics.STATE, qos)
+        self.pub_state = diag.CountedPublisher(self.create_publisher(
+            JointState, topics.STATE, topics.publisher_qos(live['publisher_history_s'],
+                                                           self.ts)))
+        self.counted_publishers = [self.pub_state]
+        self._status_seq = itertools.count(1)
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
                                               topics.diagnostics_qos())
         # The road (executor thread) and the measurements (their own thread) share the
         # filter's inputs and counters: one lock (re-entrant: a cycle may publish
         # diagnostics).
         self.lock = threading.RLock()
+        self.road_arrived = threading.Condition(self.lock)
         # ecu/measurements is on the loop's critical path: taken by its own thread, not
         # the executor (erva_ros/live/rt_subscription.py; ~0.5 ms less per cycle).  That
         # thread also warms the caches WARM_LEAD_S before the next cycle is due: it runs
@@ -167,6 +183,7 @@ class StateEstimatorNode(Node):
             if self.on_road_grid and self.grid_ns is None:
                 self.grid_ns = stamp
             self.road.add(stamp / NS, w)
+            self.road_arrived.notify_all()
 
     def _on_measurements(self, data: bytes, info) -> None:
         t0 = time.perf_counter()
@@ -174,7 +191,7 @@ class StateEstimatorNode(Node):
             self._measurement(data, info, t0)
 
     def _measurement(self, data: bytes, info, t0: float) -> None:
-        parsed = parse_measurements(data, self.params.l)
+        parsed = parse_measurements(data)
         if parsed is None:
             self.count['rejected'] += 1
             return
@@ -183,6 +200,13 @@ class StateEstimatorNode(Node):
         if self.last_ns is not None and stamp <= self.last_ns:
             self.count['late_or_repeated'] += 1
             return
+        if self.grid_ns is not None and not self._road_at(stamp):
+            # The ECU samples and sends at t_k, as the road node publishes w(t_k): the
+            # measurement may come first.  The prediction needs w(t_k): wait for it
+            # (the lock is released meanwhile), at most ROAD_WAIT_PERIODS.
+            self.count['road_waits'] += 1
+            self.road_arrived.wait_for(lambda: self._road_at(stamp),
+                                       ROAD_WAIT_PERIODS * self.ts)
         if any(math.isnan(v) for v in y):   # a CAN frame of the cycle was lost
             self.count['incomplete'] += 1
         u_now, u_mean, accel, deflection, speed = y
@@ -190,8 +214,12 @@ class StateEstimatorNode(Node):
             u_now = u_mean = self.u_now
         self.nis_sum += self._step(stamp, u_now, u_mean, (accel, deflection, speed))
         self._publish(stamp)
-        self.latency.add((time.time_ns() - info['received_timestamp']) * 1e-9)
+        done = time.time_ns()
+        self.latency.add((done - info['received_timestamp']) * 1e-9)
         self.compute.add(time.perf_counter() - t0)
+        if self.grid_ns is not None:        # stamps are sample instants: the loop's chain
+            self.lag_meas.add((info['received_timestamp'] - stamp) * 1e-9)
+            self.lag_state.add((done - stamp) * 1e-9)
         self.meas_sub.idle_at = time.monotonic() + self.warm_after_s
 
     def _warm(self) -> None:
@@ -211,11 +239,25 @@ class StateEstimatorNode(Node):
     def _stamp(self, stamp: int) -> int:
         """Return the cycle stamp (ns) of an ECU message stamped ``stamp`` (ns).
 
-        See ``stamp_on_road_grid``.
+        See ``stamp_on_road_grid``: the road sample instant in the window [−Ts/4, 3Ts/4)
+        around the CAN receive time.  The ECU samples on that grid and sends at once, so
+        its frames arrive a fraction of a millisecond after the instant; the quarter
+        period before it keeps the pairing right when the ECU gateway's clock is a little
+        behind the road's host (docs/hil.md: tolerated offsets).  The first cycle comes
+        when the ECU has just started on the first road sample, on a busy machine up to
+        a period late: the instant before it, but not before the first road sample.
         """
-        if self.grid_ns is not None:
-            stamp -= (stamp - self.grid_ns) % self.ts_ns
-        return stamp
+        if self.grid_ns is None:
+            return stamp
+        if self.last_ns is None:
+            return max(stamp - (stamp - self.grid_ns) % self.ts_ns, self.grid_ns)
+        return stamp - ((stamp - self.grid_ns + self.ts_ns // 4) % self.ts_ns
+                        - self.ts_ns // 4)
+
+    def _road_at(self, stamp_ns: int) -> bool:
+        """Return True once the road sample of ``stamp_ns`` (or a later one) arrived."""
+        latest = self.road.latest
+        return latest is not None and latest[0] >= stamp_ns / NS - 1e-6
 
     # -- the filter ----------------------------------------------------------------------
     def _step(self, stamp_ns: int, u_now: float, u_mean: float, y) -> float:
@@ -223,9 +265,11 @@ class StateEstimatorNode(Node):
 
         y is in erva_ros.estimator.MEASUREMENTS order, NaN = missing.
         """
+        t1 = stamp_ns / NS
         if len(self.road) == 0:
             self.count['no_road'] += 1
-        t1 = stamp_ns / NS
+        elif self.road.latest[0] < t1 - 1e-6:   # w(t_k) not here yet: extrapolated
+            self.count['road_extrapolated'] += 1
         w1 = self.road.height(t1)
         steps = 0 if self.last_ns is None else max(
             1, int(round((stamp_ns - self.last_ns) / self.ts_ns)))
@@ -272,15 +316,23 @@ class StateEstimatorNode(Node):
         values['scheduling'] = getattr(self, 'scheduling', 'off')
         values.update(diag.flatten('latency_ms', self.latency.summary()))
         values.update(diag.flatten('compute_ms', self.compute.summary()))
+        values.update(diag.flatten('sample_to_measurements_ms', self.lag_meas.summary()))
+        values.update(diag.flatten('sample_to_state_ms', self.lag_state.summary()))
         for name, s in zip(self.ekf.model.state_names, std):
             values[f'std_{name}'] = float(s)
         if values['no_road'] and level == diag.OK:
             level, text = diag.WARN, 'no road height received: assuming w = 0'
+        values.update(diag.publisher_values(self.counted_publishers))
+        values['status_seq'] = next(self._status_seq)
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status = [diag.status_msg(self.get_fully_qualified_name(), level, text, values,
                                       f'ekf:{self.kind}')]
         self.pub_diag.publish(arr)
+
+    def publish_status(self) -> None:
+        """Publish the status now (the final counts, on shutdown: runtime.run_node)."""
+        self._publish_diagnostics()
 
     def destroy_node(self):
         try:
