@@ -1,11 +1,12 @@
-"""Message accounting of a session (erva_ros/live/accounting.py): start gate and bag check."""
+"""Message accounting of a session (erva_ros/session/accounting.py): start gate and bag check."""
 
 import pytest
 
-from erva_ros import topics
-from erva_ros.live import accounting
-from erva_ros.live.cdr import header_stamp_ns, status_seqs
-from erva_ros.live.validation import MessageRejected, StampWindow
+from erva_ros.core import topics
+from erva_ros.ros import qos as ros_qos
+from erva_ros.session import accounting
+from erva_ros.ros.cdr import header_stamp_ns, status_seqs
+from erva_ros.core.loop.validation import MessageRejected, StampWindow
 
 
 def test_expected_subscribers_add_each_observer_that_watches_a_topic():
@@ -56,14 +57,14 @@ def _bag(tmp_path, stamps_by_topic, statuses):
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.serialization import serialize_message
 
-    from erva_ros.bag.qos import profile_to_dict
-    from erva_ros.bag.writer import BagWriter
-    from erva_ros.live.diagnostics import status_msg
-    from erva_ros.live.msgs import ns_to_time, state_msg
+    from erva_ros.core.bag.qos import profile_to_dict
+    from erva_ros.core.bag.writer import BagWriter
+    from erva_ros.ros.diagnostics import status_msg
+    from erva_ros.ros.msgs import ns_to_time, state_msg
 
     bag_dir = str(tmp_path / 'bag')
     w = BagWriter(bag_dir)
-    offered = [profile_to_dict(topics.control_qos())]
+    offered = [profile_to_dict(ros_qos.control_qos())]
     w.add_topic('/erva/state', 'sensor_msgs/msg/JointState', offered)
     w.add_topic('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray', offered)
     for stamp in stamps_by_topic['/erva/state']:
@@ -98,8 +99,8 @@ def test_cdr_stamp_and_status_sequence_match_rclpy():
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.serialization import serialize_message
 
-    from erva_ros.live.diagnostics import status_msg
-    from erva_ros.live.msgs import ns_to_time, state_msg
+    from erva_ros.ros.diagnostics import status_msg
+    from erva_ros.ros.msgs import ns_to_time, state_msg
     stamp = 1_796_000_000 * 10**9 + 123_456_789
     assert header_stamp_ns(serialize_message(state_msg(stamp, [0.0] * 4, 'benchmark'))) == stamp
     arr = DiagnosticArray(status=[status_msg('/ns/a_node', 1, 'warn', {'status_seq': 17}),

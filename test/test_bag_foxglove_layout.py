@@ -7,7 +7,7 @@ import re
 
 from conftest import REPO
 
-from erva_ros import topics as contract
+from erva_ros.core import topics as contract
 
 LAYOUT = os.path.join(REPO, 'config', 'foxglove_layout.json')
 SEGMENT = re.compile(r'^([A-Za-z_][A-Za-z0-9_]*)(?:\[(-?\d+|:)\])?$')   # [:]: every element

@@ -8,8 +8,10 @@ import pytest
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
-from erva_ros.bag.reader import open_bag
-from erva_ros.bag.writer import BagWriter
+from erva_ros.core.bag.reader import open_bag
+
+from erva_ros.ros.bag_messages import write_message
+from erva_ros.core.bag.writer import BagWriter
 
 T0 = 1_800_000_000 * 10 ** 9
 
@@ -22,8 +24,8 @@ def _write(bag_dir, n=400, flush_every=None):
     w.add_topic('/clock', 'rosgraph_msgs/msg/Clock')
     for k in range(n):
         t = T0 + k * 20_000_000
-        w.write_message('/erva/state', JointState(name=['z_s'], position=[k * 1.0]), t)
-        w.write_message('/clock', Clock(), t + 1)
+        write_message(w, '/erva/state', JointState(name=['z_s'], position=[k * 1.0]), t)
+        write_message(w, '/clock', Clock(), t + 1)
     return w
 
 
@@ -55,7 +57,7 @@ def test_a_torn_file_is_read_up_to_its_last_chunk(tmp_path):
     w = _write(path)
     w.flush()
     flushed = w.message_count
-    w.write_message('/clock', Clock(), T0 + 10 ** 12)   # in the open chunk: lost
+    write_message(w, '/clock', Clock(), T0 + 10 ** 12)   # in the open chunk: lost
     w.abort()
     with open(w.file_path, 'ab') as fh:
         fh.write(b'\x06' + b'\xff' * 20)  # a record torn mid-write

@@ -9,9 +9,11 @@ from mcap.reader import make_reader
 from rosbags.rosbag2 import Reader
 from sensor_msgs.msg import JointState
 
-from erva_ros.bag.reader import open_bag
-from erva_ros.bag.repair import repair_bag
-from erva_ros.bag.writer import BagWriter
+from erva_ros.core.bag.reader import open_bag
+
+from erva_ros.ros.bag_messages import write_message
+from erva_ros.core.bag.repair import repair_bag
+from erva_ros.core.bag.writer import BagWriter
 
 T0 = 1_800_000_000 * 10 ** 9
 
@@ -19,11 +21,11 @@ T0 = 1_800_000_000 * 10 ** 9
 CRASHER = r'''
 import os, signal, sys
 from sensor_msgs.msg import JointState
-from erva_ros.bag.writer import BagWriter
+from erva_ros.core.bag.writer import BagWriter
 w = BagWriter(sys.argv[1], session={'scenario': 'crash'}, flush_period_s=1e9)
 w.add_topic('/erva/state', 'sensor_msgs/msg/JointState')
 for k in range(530):
-    w.write_message('/erva/state', JointState(position=[float(k)]), %d + k * 20000000)
+    write_message(w, '/erva/state', JointState(position=[float(k)]), %d + k * 20000000)
     if (k + 1) %% 50 == 0:
         w.flush()
 os.kill(os.getpid(), signal.SIGKILL)
@@ -56,7 +58,7 @@ def test_any_cut_recovers_a_prefix(tmp_path):
     w = BagWriter(src, chunk_size=2048, session={'scenario': 'cut'})
     w.add_topic('/erva/state', 'sensor_msgs/msg/JointState')
     for k in range(300):
-        w.write_message('/erva/state', JointState(position=[float(k)]), T0 + k)
+        write_message(w, '/erva/state', JointState(position=[float(k)]), T0 + k)
     w.close()
     path = os.path.join(src, 'src_0.mcap')
     data = open(path, 'rb').read()

@@ -13,13 +13,15 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 import yaml
 
-from erva_ros import topics as contract
-from erva_ros.bag import BagError
-from erva_ros.bag.metadata import dump_yaml
-from erva_ros.bag.qos import dump_profiles, profile_to_dict
-from erva_ros.bag.schemas import message_definition, share_directory, type_description_hash
-from erva_ros.bag.writer import BagWriter, serialize
+from erva_ros.core import topics as contract
 
+from erva_ros.ros.bag_messages import serialize, write_message
+from erva_ros.ros import qos as ros_qos
+from erva_ros.core.bag import BagError
+from erva_ros.core.bag.metadata import dump_yaml
+from erva_ros.core.bag.qos import dump_profiles, profile_to_dict
+from erva_ros.core.bag.schemas import message_definition, share_directory, type_description_hash
+from erva_ros.core.bag.writer import BagWriter
 T0 = 1_800_000_000 * 10 ** 9
 
 
@@ -59,7 +61,7 @@ def _messages(k):
 def session_bag(tmp_path):
     """Write 20 steps of every contract topic; return (bag dir, {topic: [messages]})."""
     bag_dir = str(tmp_path / 'session')
-    offered = [profile_to_dict(contract.control_qos())]
+    offered = [profile_to_dict(ros_qos.control_qos())]
     written = {}
     with BagWriter(bag_dir, session={'scenario': 'unit', 'seed': '7'},
                    custom_data={'scenario': 'unit'}) as w:
@@ -68,7 +70,7 @@ def session_bag(tmp_path):
         for k in range(20):
             for topic, msg in _messages(k).items():
                 t = T0 + k * 20_000_000
-                w.write_message(topic, msg, t + 500_000, t + 100_000)
+                write_message(w, topic, msg, t + 500_000, t + 100_000)
                 written.setdefault(topic, []).append(msg)
     return bag_dir, written
 
@@ -108,7 +110,7 @@ def test_qos_profile_text_is_rosbag2s():
         '  liveliness_lease_duration:\n    sec: 9223372036\n    nsec: 854775807\n'
         '  avoid_ros_namespace_conventions: false')
     assert dump_profiles([]) == '[]'
-    ours = profile_to_dict(contract.control_qos())
+    ours = profile_to_dict(ros_qos.control_qos())
     assert (ours['history'], ours['depth'], ours['reliability'], ours['durability']) == (
         'keep_last', 10, 'reliable', 'volatile')
 
@@ -235,7 +237,7 @@ def test_flush_period_closes_chunks_on_time(tmp_path):
     size0 = os.path.getsize(w.file_path)
     for k in range(10):
         now[0] = 0.1 * k
-        w.write_message('/clock', Clock(), T0 + k)
+        write_message(w, '/clock', Clock(), T0 + k)
     assert w.flushes == 1 and os.path.getsize(w.file_path) > size0  # flushed at t = 0.5 s
     w.close()
     assert w.closed
@@ -246,6 +248,6 @@ def test_zstd_chunks_read_back(tmp_path):
     with BagWriter(str(tmp_path / 'z'), compression='zstd') as w:
         w.add_topic('/clock', 'rosgraph_msgs/msg/Clock')
         for k in range(100):
-            w.write_message('/clock', Clock(clock=Time(sec=k)), T0 + k)
+            write_message(w, '/clock', Clock(clock=Time(sec=k)), T0 + k)
     with Reader(str(tmp_path / 'z')) as reader:
         assert sum(1 for _ in reader.messages()) == 100

@@ -1,4 +1,4 @@
-"""The hot path's direct CDR codec (erva_ros/live/cdr.py) against rclpy's own serialization."""
+"""The hot path's direct CDR codec (erva_ros/ros/cdr.py) against rclpy's own serialization."""
 
 import math
 import struct
@@ -9,8 +9,8 @@ rclpy_serialization = pytest.importorskip('rclpy.serialization')
 from sensor_msgs.msg import JointState  # noqa: E402
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
 
-from erva_ros.live.cdr import (CdrError, decode_joint_state,  # noqa: E402
-                               decode_joint_trajectory, JointStateEncoder, MAX_ELEMENTS)
+from erva_ros.ros.cdr import (CdrError, decode_joint_state,  # noqa: E402
+                              decode_joint_trajectory, JointStateEncoder, MAX_ELEMENTS)
 from erva_ros.nodes.ecu_bridge_node import parse_command  # noqa: E402
 
 serialize = rclpy_serialization.serialize_message
@@ -126,7 +126,7 @@ def test_every_truncation_and_corruption_is_a_cdr_error():
 @pytest.mark.parametrize('kind', ['erva', 'benchmark'])
 def test_estimator_state_bytes_equal_the_state_message(kind):
     import numpy as np
-    from erva_ros.live.msgs import state_joint_names, state_msg
+    from erva_ros.ros.msgs import state_joint_names, state_msg
     x = np.array([0.01, -0.2, 0.002, 0.3, 0.004, -0.5])[:6 if kind == 'erva' else 4]
     data = JointStateEncoder(state_joint_names(kind)).encode(
         98_765_432_101, x[0::2].tolist(), x[1::2].tolist())
@@ -135,7 +135,7 @@ def test_estimator_state_bytes_equal_the_state_message(kind):
 
 def test_accel_stamped_encoding_is_read_back_by_rclpy():
     from geometry_msgs.msg import AccelStamped
-    from erva_ros.live.cdr import encode_accel_stamped
+    from erva_ros.ros.cdr import encode_accel_stamped
     msg = deserialize(encode_accel_stamped(3_000_000_007, (1.0, 2.0, -9.81)), AccelStamped)
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (3, 7)
     assert (msg.accel.linear.x, msg.accel.linear.y, msg.accel.linear.z) == (1.0, 2.0, -9.81)

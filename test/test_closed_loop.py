@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from erva_ros.closed_loop import closed_loop_cost, evaluation_objective, simulate_closed_loop
-from erva_ros.controllers import ControllerSettings, make_controller
-from erva_ros.metrics import comfort_power
-from erva_ros.params import paper_params
-from erva_ros.plant import PlantSimulator
-from erva_ros.preview import PreviewErrorModel
-from erva_ros.roads import make_road
+from erva_ros.core.closed_loop import closed_loop_cost, evaluation_objective, simulate_closed_loop
+from erva_ros.core.controllers import ControllerSettings, make_controller
+from erva_ros.core.metrics import comfort_power
+from erva_ros.core.params import paper_params
+from erva_ros.core.plant import PlantSimulator
+from erva_ros.core.preview import PreviewErrorModel
+from erva_ros.core.roads import make_road
 
 P = paper_params()
 # Quality tests: no real-time budget, so a loaded CI machine cannot change results.

@@ -6,10 +6,10 @@ import os
 import numpy as np
 import pytest
 
-from erva_ros.controllers import (CONTROLLER_NAMES, ControllerSettings,
-                                  load_controller_settings, make_controller, STATUSES)
-from erva_ros.controllers import settings as settings_mod
-from erva_ros.params import paper_params, ParamError
+from erva_ros.core.controllers import (CONTROLLER_NAMES, ControllerSettings,
+                                       load_controller_settings, make_controller, STATUSES)
+from erva_ros.core.controllers import settings as settings_mod
+from erva_ros.core.params import paper_params, ParamError
 
 P = paper_params()
 

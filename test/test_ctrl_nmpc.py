@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from erva_ros.closed_loop import simulate_closed_loop
-from erva_ros.controllers import ControllerSettings, make_controller
-from erva_ros.controllers.nmpc import build_ocp, build_rti, stable_rollout_substep, U_SCALE
-from erva_ros.model import get_model
-from erva_ros.params import paper_params
-from erva_ros.plant import PlantSimulator
-from erva_ros.roads import make_road
+from erva_ros.core.closed_loop import simulate_closed_loop
+from erva_ros.core.controllers import ControllerSettings, make_controller
+from erva_ros.core.controllers.nmpc import build_ocp, build_rti, stable_rollout_substep, U_SCALE
+from erva_ros.core.model import get_model
+from erva_ros.core.params import paper_params
+from erva_ros.core.plant import PlantSimulator
+from erva_ros.core.roads import make_road
 
 P = paper_params()
 # Quality tests: no real-time budget, so a loaded CI machine cannot change results.
@@ -86,7 +86,7 @@ def test_warm_start_reduces_iterations():
     road = make_road('paper', 1.0, seed=0)
     s = S.with_(solver='ipopt', alpha1=1.0, alpha2=0.0)
     warm = simulate_closed_loop(P, make_controller('preview', P, s), road, 1.0)
-    from erva_ros.controllers.nmpc import NMPCController
+    from erva_ros.core.controllers.nmpc import NMPCController
     cold = simulate_closed_loop(P, NMPCController(P, s.with_(controller='preview'),
                                                   warm_start=False), road, 1.0)
     assert np.mean(warm.iterations) < 0.8 * np.mean(cold.iterations)
@@ -170,7 +170,7 @@ def test_no_preview_holds_the_measured_road_height():
 def test_compiled_function_matches_and_is_cached(tmp_path, monkeypatch):
     import shutil
     import casadi as ca
-    from erva_ros.codegen import compile_functions
+    from erva_ros.core.codegen import compile_functions
     if not (shutil.which('cc') or shutil.which('gcc')):
         pytest.skip('no C compiler')
     monkeypatch.setenv('ERVA_CACHE_DIR', str(tmp_path))
@@ -189,7 +189,7 @@ def test_compiled_function_matches_and_is_cached(tmp_path, monkeypatch):
 
 
 def test_codegen_auto_follows_the_c_compiler(monkeypatch):
-    from erva_ros.codegen import use_codegen
+    from erva_ros.core.codegen import use_codegen
     monkeypatch.delenv('CC', raising=False)
     monkeypatch.setenv('PATH', '')
     assert not use_codegen('auto') and use_codegen('on') and not use_codegen('off')

@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 
-from erva_ros.controllers import ControllerSettings, make_controller
-from erva_ros.estimator import EstimatorNoise, ExtendedKalmanFilter, validate_noise
-from erva_ros.hil.ecu_sim import SensorNoise
-from erva_ros.hil.evaluation import evaluate_estimator, QUANTUM
-from erva_ros.model import get_model
-from erva_ros.params import paper_params, ParamError
-from erva_ros.plant import PlantSimulator
-from erva_ros.roads import make_road
+from erva_ros.core.controllers import ControllerSettings, make_controller
+from erva_ros.core.estimator import EstimatorNoise, ExtendedKalmanFilter, validate_noise
+from erva_ros.core.hil.ecu_sim import SensorNoise
+from erva_ros.core.hil.evaluation import evaluate_estimator, QUANTUM
+from erva_ros.core.model import get_model
+from erva_ros.core.params import paper_params, ParamError
+from erva_ros.core.plant import PlantSimulator
+from erva_ros.core.roads import make_road
 
 P = paper_params()
 X = np.array([0.004, 0.05, 0.001, -0.08, 0.002, 0.03])

@@ -137,7 +137,7 @@ def _finish(proc, timeout=240):
 # -- options -----------------------------------------------------------------------------------
 def test_address_parsing_and_defaults():
     from erva_ros.commands.run import FOXGLOVE_DEFAULT
-    from erva_ros.live import foxglove_server as fg
+    from erva_ros.ros import foxglove_server as fg
     assert FOXGLOVE_DEFAULT == fg.DEFAULT_ADDRESS == '127.0.0.1:8765'
     assert fg.parse_address('9000') == ('127.0.0.1', 9000)   # loopback unless named
     assert fg.parse_address('0.0.0.0:80') == ('0.0.0.0', 80)
@@ -178,7 +178,7 @@ def test_unusable_address_is_one_line_exit_2_before_anything_starts(erva, tmp_pa
 # -- the server alone ----------------------------------------------------------------------------
 def test_a_viewer_that_never_reads_loses_its_oldest_and_is_counted():
     """Logging never waits for a stalled viewer; the SDK's queue overflow is counted."""
-    from erva_ros.live.foxglove_server import FoxgloveServer
+    from erva_ros.ros.foxglove_server import FoxgloveServer
     server = FoxgloveServer('127.0.0.1', 0, backlog=64, session={'scenario': 'test'})
     try:
         server.add_topic('/erva/damping_cmd', 'trajectory_msgs/msg/JointTrajectory')

@@ -6,9 +6,9 @@ import os
 import numpy as np
 import pytest
 
-from erva_ros import fr
-from erva_ros.model import get_model
-from erva_ros.params import paper_params
+from erva_ros.core import fr
+from erva_ros.core.model import get_model
+from erva_ros.core.params import paper_params
 
 P = paper_params()
 

@@ -14,13 +14,13 @@ import time
 import can
 import pytest
 
-from erva_ros.hil.bridge import BridgeConfig, BridgeCore, ERROR, OK, WARN
-from erva_ros.hil.codec import (Chassis, Command, CommandMode, E2EReceiver, EcuCodec, EcuMode,
-                                Generator, Kind, Status)
-from erva_ros.hil.ecu_sim import EcuSimConfig, EcuSimCore, run_realtime, SensorNoise
-from erva_ros.hil.hardware import GeneratorHardware
-from erva_ros.hil.transport import free_udp_ports, open_bus
-from erva_ros.params import paper_params
+from erva_ros.core.hil.bridge import BridgeConfig, BridgeCore, ERROR, OK, WARN
+from erva_ros.core.hil.codec import (Chassis, Command, CommandMode, E2EReceiver, EcuCodec, EcuMode,
+                                     Generator, Kind, Status)
+from erva_ros.core.hil.ecu_sim import EcuSimConfig, EcuSimCore, run_realtime, SensorNoise
+from erva_ros.core.hil.hardware import GeneratorHardware
+from erva_ros.core.hil.transport import free_udp_ports, open_bus
+from erva_ros.core.params import paper_params
 
 _channels = itertools.count()
 HW = GeneratorHardware()
@@ -477,8 +477,8 @@ def test_ecu_integrated_ahead_equals_integrated_at_the_sample(codec):
 
 
 def test_known_road_is_the_road_node_grid_and_counts_mismatches():
-    from erva_ros.hil.road_buffer import KnownRoad
-    from erva_ros.roads import make_road
+    from erva_ros.core.hil.road_buffer import KnownRoad
+    from erva_ros.core.roads import make_road
 
     road = make_road('paper', 4.0, ts=0.02, seed=3)
     known = KnownRoad(road.height, road.speed_mps, 0.02)

@@ -4,12 +4,12 @@ import math
 
 import pytest
 
-from erva_ros.hil.codec import (Chassis, Command, CommandMode, E2EReceiver, EcuCodec, EcuMode,
-                                Generator, Kind, Status)
-from erva_ros.hil.e2e import (COUNTER_MODULO, crc8_sae_j1850, E2EChecker, E2ESender, E2EStatus,
-                              e2e_crc)
-from erva_ros.hil.hardware import GeneratorHardware, validate_hardware
-from erva_ros.params import ParamError
+from erva_ros.core.hil.codec import (Chassis, Command, CommandMode, E2EReceiver, EcuCodec, EcuMode,
+                                     Generator, Kind, Status)
+from erva_ros.core.hil.e2e import (COUNTER_MODULO, crc8_sae_j1850, E2EChecker, E2ESender,
+                                   E2EStatus, e2e_crc)
+from erva_ros.core.hil.hardware import GeneratorHardware, validate_hardware
+from erva_ros.core.params import ParamError
 
 
 @pytest.fixture(scope='module')

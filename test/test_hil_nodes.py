@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from conftest import REPO, ros_env
-from erva_ros.params import paper_params
+from erva_ros.core.params import paper_params
+from erva_ros.ros import qos as ros_qos
 
 pytestmark = pytest.mark.ros
 
@@ -35,9 +36,9 @@ class Driver:
         from sensor_msgs.msg import JointState
         from trajectory_msgs.msg import JointTrajectory
 
-        from erva_ros import topics
-        from erva_ros.hil import topics as hil_topics
-        from erva_ros.roads import make_road
+        from erva_ros.core import topics
+        from erva_ros.core.hil import topics as hil_topics
+        from erva_ros.core.roads import make_road
 
         self.rclpy = rclpy
         self.context = rclpy.Context()
@@ -47,7 +48,7 @@ class Driver:
                                       context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        qos = topics.control_qos()
+        qos = ros_qos.control_qos()
         self.road = make_road('paper', 60.0, seed=0)
         self.pub_road = self.node.create_publisher(PointStamped, topics.ROAD_HEIGHT, qos)
         self.pub_cmd = self.node.create_publisher(JointTrajectory, topics.DAMPING_CMD, qos)
@@ -72,12 +73,12 @@ class Driver:
         self.diag_log = []            # (time, name, level, message, values)
 
     def _on_road(self):
-        from erva_ros.live.msgs import road_height_msg
+        from erva_ros.ros.msgs import road_height_msg
         t = time.time()
         self.pub_road.publish(road_height_msg(int(t * 1e9), 0.0, self.road.height(t - self.t0)))
 
     def _on_state(self, msg):
-        from erva_ros.live.msgs import damping_msg, parse_state
+        from erva_ros.ros.msgs import damping_msg, parse_state
         stamp, x = parse_state(msg, 'erva')
         self.est[stamp] = x
         if self.answer:
@@ -85,21 +86,21 @@ class Driver:
             self.pub_cmd.publish(damping_msg(stamp, [u] * 10, 20_000_000))
 
     def _on_ecu(self, topic, msg):
-        from erva_ros.live.msgs import time_to_ns
+        from erva_ros.ros.msgs import time_to_ns
         self.ecu[topic][time_to_ns(msg.header.stamp)] = msg
 
     def _on_measurements(self, msg):
-        from erva_ros.live.msgs import time_to_ns
+        from erva_ros.ros.msgs import time_to_ns
         self.measurements.setdefault(time_to_ns(msg.header.stamp), []).append(
             (list(msg.name), list(msg.position)))
 
     def _on_truth(self, msg):
-        from erva_ros.live.msgs import parse_state
+        from erva_ros.ros.msgs import parse_state
         stamp, x = parse_state(msg, 'erva')
         self.truth[stamp] = x
 
     def _on_diag(self, arr):
-        from erva_ros.live.diagnostics import parse_status
+        from erva_ros.ros.diagnostics import parse_status
         for st in arr.status:
             name, level, message, values = parse_status(st)
             self.diag_log.append((time.monotonic(), name, level, message, values))
@@ -149,7 +150,7 @@ def _stop(procs):
 
 
 def test_hil_loop_estimates_the_state_and_goes_safe_when_the_nmpc_stops(tmp_path):
-    from erva_ros.hil.processes import hil_process_specs
+    from erva_ros.session.hil_processes import hil_process_specs
 
     # The road comes from this process as it arrives (not a session road known ahead).
     specs = hil_process_specs(PARAMS, duration_s=7.0, env=ros_env(), road='ros')
@@ -210,7 +211,7 @@ def test_hil_loop_estimates_the_state_and_goes_safe_when_the_nmpc_stops(tmp_path
     assert driver.last('ecu_sim')[4]['finished'] == 'true'
     # Exactly one ecu/measurements per ECU cycle, with the stamp and the values of the
     # cycle's four per-frame messages.
-    from erva_ros.hil import topics as hil_topics
+    from erva_ros.core.hil import topics as hil_topics
     assert all(len(v) == 1 for v in driver.measurements.values())
     stamps = set.intersection(*(set(d) for d in driver.ecu.values()))
     assert len(stamps) > 300 and len(set(driver.measurements) & stamps) >= len(stamps) - 2
@@ -234,9 +235,9 @@ def test_hil_loop_estimates_the_state_and_goes_safe_when_the_nmpc_stops(tmp_path
 
 
 def test_estimator_takes_one_message_per_cycle_and_rejects_bad_ones(tmp_path):
-    from erva_ros.hil import topics as hil_topics
-    from erva_ros.hil.processes import hil_process_specs
-    from erva_ros.live.msgs import ns_to_time
+    from erva_ros.core.hil import topics as hil_topics
+    from erva_ros.session.hil_processes import hil_process_specs
+    from erva_ros.ros.msgs import ns_to_time
     from sensor_msgs.msg import JointState
 
     specs = [s for s in hil_process_specs(PARAMS, env=ros_env())
@@ -315,7 +316,7 @@ def test_estimator_takes_one_message_per_cycle_and_rejects_bad_ones(tmp_path):
 
 
 def test_measurements_are_parsed_and_checked():
-    from erva_ros.hil.topics import MEASUREMENT_NAMES
+    from erva_ros.core.hil.topics import MEASUREMENT_NAMES
     from erva_ros.nodes.state_estimator_node import parse_measurements
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import JointState
@@ -394,7 +395,7 @@ def test_bridge_survives_an_unopenable_bus_and_stops_cleanly():
 
 
 def test_ecu_sim_cli(erva):
-    from erva_ros.hil.transport import free_udp_ports
+    from erva_ros.core.hil.transport import free_udp_ports
 
     bad = erva('ecu-sim', '--bus', 'can0', timeout=60)
     assert bad.returncode == 2

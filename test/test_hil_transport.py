@@ -9,9 +9,9 @@ import time
 import can
 import pytest
 
-from erva_ros.hil.processes import hil_process_specs
-from erva_ros.hil.transport import (free_udp_ports, LoopbackUdpBus, open_bus, parse_spec,
-                                    reverse_udp_spec)
+from erva_ros.session.hil_processes import hil_process_specs
+from erva_ros.core.hil.transport import (free_udp_ports, LoopbackUdpBus, open_bus, parse_spec,
+                                         reverse_udp_spec)
 
 
 def test_spec_parsing_gives_one_line_errors():
@@ -35,7 +35,7 @@ def test_frames_cross_processes_with_kernel_timestamps():
     bus = open_bus(f'udp:{a}:{b}')
     child = textwrap.dedent(f"""
         import time, can
-        from erva_ros.hil.transport import open_bus
+        from erva_ros.core.hil.transport import open_bus
         bus = open_bus('udp:{b}:{a}')
         msg = bus.recv(10.0)
         bus.send(can.Message(arbitration_id=msg.arbitration_id + 1, data=msg.data[::-1],

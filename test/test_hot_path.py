@@ -11,9 +11,9 @@ from rclpy.node import Node
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 
-from erva_ros.codegen import BufferedCall
-from erva_ros.live.rt_subscription import RealtimeSubscription
-from erva_ros.topics import control_qos
+from erva_ros.core.codegen import BufferedCall
+from erva_ros.ros.rt_subscription import RealtimeSubscription
+from erva_ros.ros.qos import control_qos
 
 
 # -- BufferedCall ------------------------------------------------------------------------

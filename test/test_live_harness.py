@@ -20,9 +20,10 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
-from erva_ros import topics
-from erva_ros.live.diagnostics import parse_status
-from erva_ros.live.msgs import time_to_ns
+from erva_ros.core import topics
+from erva_ros.ros import qos as ros_qos
+from erva_ros.ros.diagnostics import parse_status
+from erva_ros.ros.msgs import time_to_ns
 
 from conftest import REPO, ros_env
 
@@ -69,7 +70,7 @@ class Harness:
         self.ns = namespace
         self.executor = SingleThreadedExecutor(context=self.ctx)
         self.executor.add_node(self.node)
-        qos = topics.control_qos(depth=100)
+        qos = ros_qos.control_qos(depth=100)
         n = self.node
         self.pub_state = n.create_publisher(JointState, topics.STATE, qos)
         self.pub_preview = n.create_publisher(JointTrajectory, topics.ROAD_PREVIEW, qos)

@@ -8,11 +8,11 @@ import sys
 import pytest
 
 from conftest import fifo_permitted
-from erva_ros.live.realtime import set_fifo_priority
+from erva_ros.ros.realtime import set_fifo_priority
 
 PROBE = r'''
 import json, os, threading, time
-from erva_ros.live.realtime import set_fifo_priority
+from erva_ros.ros.realtime import set_fifo_priority
 warnings = []
 early = threading.Thread(target=time.sleep, args=(60,), daemon=True)
 early.start()                      # exists before the switch, like DDS's threads
@@ -71,7 +71,7 @@ def test_a_fifo_process_holds_the_cpu_wakeup_latency_at_zero_while_it_lives():
     if not (fifo_permitted(7) and os.access('/dev/cpu_dma_latency', os.R_OK | os.W_OK)):
         pytest.skip('needs SCHED_FIFO and /dev/cpu_dma_latency (root)')
     before = _wakeup_latency_us()
-    script = ('import sys, time\nfrom erva_ros.live.realtime import set_fifo_priority\n'
+    script = ('import sys, time\nfrom erva_ros.ros.realtime import set_fifo_priority\n'
               'print(set_fifo_priority(7, print), flush=True)\nsys.stdin.readline()\n')
     proc = subprocess.Popen([sys.executable, '-c', script], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, text=True)
@@ -85,7 +85,7 @@ def test_a_fifo_process_holds_the_cpu_wakeup_latency_at_zero_while_it_lives():
 
 
 def test_the_wakeup_latency_request_reports_a_missing_device(tmp_path, monkeypatch):
-    from erva_ros.live import realtime
+    from erva_ros.ros import realtime
     monkeypatch.setattr(realtime, '_latency_fd', None)     # nothing held in this process
     out = realtime.hold_cpu_wakeup_latency(0, device=str(tmp_path / 'no_such_device'))
     assert out.startswith('unavailable: ') and 'No such file' in out

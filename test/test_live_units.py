@@ -8,19 +8,19 @@ import pytest
 import rclpy
 import yaml
 
-from erva_ros import topics
-from erva_ros.live import msgs
-from erva_ros.live.command_hold import CommandHold
-from erva_ros.live.diagnostics import ERROR, parse_status, StatusReporter
-from erva_ros.live.orchestrator import (prepare_session, read_live_file, RunConfig,
-                                        validate_live)
-from erva_ros.live.parameters import (declare_controller_settings, declare_erva_params,
-                                      declare_live, LIVE_CHOICES, LIVE_DEFAULTS, LIVE_NUMERIC)
-from erva_ros.live.report import format_summary, jsonable
-from erva_ros.live.scenario import build_road, load_road_file
-from erva_ros.live.timing import next_grid_delay_ns, PeriodStats
-from erva_ros.live.validation import MessageRejected, Rejections
-from erva_ros.params import ParamError, PAPER_VALUES
+from erva_ros.core import topics
+from erva_ros.ros import msgs
+from erva_ros.core.loop.command_hold import CommandHold
+from erva_ros.ros.diagnostics import ERROR, parse_status, StatusReporter
+from erva_ros.session.orchestrator import (prepare_session, read_live_file, RunConfig,
+                                           validate_live)
+from erva_ros.ros.parameters import (declare_controller_settings, declare_erva_params,
+                                     declare_live, LIVE_CHOICES, LIVE_DEFAULTS, LIVE_NUMERIC)
+from erva_ros.session.report import format_summary, jsonable
+from erva_ros.core.loop.scenario import build_road, load_road_file
+from erva_ros.core.loop.timing import next_grid_delay_ns, PeriodStats
+from erva_ros.core.loop.validation import MessageRejected, Rejections
+from erva_ros.core.params import ParamError, PAPER_VALUES
 
 from conftest import REPO
 
@@ -247,8 +247,8 @@ def test_summary_json_has_no_nan_and_text_names_the_errors():
 
 
 def test_duration_stats_are_exact_then_binned_for_a_long_session():
-    from erva_ros.live.timing import DurationStats, EXACT_SAMPLES
-    from erva_ros.metrics import percentiles_ms
+    from erva_ros.core.loop.timing import DurationStats, EXACT_SAMPLES
+    from erva_ros.core.metrics import percentiles_ms
     rng = np.random.default_rng(5)
     samples = rng.lognormal(np.log(1e-3), 0.5, 3 * EXACT_SAMPLES)   # ~1 ms, long tail
     stats = DurationStats()

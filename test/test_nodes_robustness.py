@@ -16,9 +16,10 @@ import numpy as np
 import pytest
 from rosgraph_msgs.msg import Clock
 
-from erva_ros import topics
-from erva_ros.live import msgs
-from erva_ros.live.diagnostics import ERROR, OK, WARN
+from erva_ros.core import topics
+from erva_ros.ros import qos as ros_qos
+from erva_ros.ros import msgs
+from erva_ros.ros.diagnostics import ERROR, OK, WARN
 
 from test_live_harness import Harness, start_node, stop_node, TS_NS
 
@@ -221,8 +222,8 @@ def test_road_node_in_lockstep_answers_each_clock_tick_and_rejects_bad_ones(tmp_
     sub = h.node.create_subscription(
         PointStamped, topics.ROAD_HEIGHT,
         lambda m: heights.append((msgs.time_to_ns(m.header.stamp), m.point.z)),
-        topics.control_qos())
-    pub_clock = h.node.create_publisher(Clock, topics.CLOCK, topics.control_qos())
+        ros_qos.control_qos())
+    pub_clock = h.node.create_publisher(Clock, topics.CLOCK, ros_qos.control_qos())
     try:
         h.wait_matched([pub_clock], [sub])
         for ns_ in (0, TS_NS // 2, 0, TS_NS, 3 * TS_NS, 2 * TS_NS):

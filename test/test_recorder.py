@@ -15,10 +15,13 @@ import pytest
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import get_typestore, Stores
 
-from erva_ros import topics as contract
-from erva_ros.bag.reader import open_bag
-from erva_ros.bag.schemas import type_description_hash
-from erva_ros.bag.session import recorder_ros_args
+from erva_ros.core import topics as contract
+
+from erva_ros.ros.bag_messages import decoded
+from erva_ros.ros import qos as ros_qos
+from erva_ros.core.bag.reader import open_bag
+from erva_ros.core.bag.schemas import type_description_hash
+from erva_ros.core.bag.session import recorder_ros_args
 
 pytestmark = pytest.mark.ros
 STORE = get_typestore(Stores.ROS2_JAZZY)
@@ -64,7 +67,7 @@ def stop(proc, sig=signal.SIGINT, timeout=30):
 
 def traffic(*args, timeout=120):
     """Run the contract traffic publisher; return its JSON result."""
-    proc = subprocess.run([sys.executable, '-m', 'erva_ros.bag.traffic', 'contract', *args],
+    proc = subprocess.run([sys.executable, '-m', 'erva_ros.ros.traffic', 'contract', *args],
                           env=ros_env(), cwd=REPO, capture_output=True, text=True,
                           timeout=timeout)
     assert proc.returncode == 0, proc.stderr
@@ -84,7 +87,7 @@ class DiagnosticsWatcher:
         self.statuses = []
         self.node.create_subscription(DiagnosticArray, contract.DIAGNOSTICS,
                                       lambda m: self.statuses.extend(m.status),
-                                      contract.control_qos())
+                                      ros_qos.control_qos())
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.running = True
@@ -147,7 +150,7 @@ def test_records_the_contract_and_sigint_finishes_the_file(tmp_path):
     assert s['erva_ros_version'] and 'git_commit' in s
     # Both times kept: publish (source) time before log (receive) time, same clock.
     seqs = []
-    for m, msg in info.decoded(['/erva/state']):
+    for m, msg in decoded(info, ['/erva/state']):
         stamp = msg.header.stamp.sec * 10 ** 9 + msg.header.stamp.nanosec
         assert stamp <= m.publish_time_ns <= m.log_time_ns < m.publish_time_ns + 5 * 10 ** 8
         seqs.append(m.sequence)
@@ -170,7 +173,7 @@ def test_sigkill_then_repair_keeps_everything_flushed(tmp_path, erva):
     bag = str(tmp_path / 'killed')
     rec = start_recorder(bag, {'scenario': 'kill'}, params=['flush_period_s:=0.2'])
     wait_for(bag, rec)
-    pub = subprocess.Popen([sys.executable, '-m', 'erva_ros.bag.traffic', 'contract',
+    pub = subprocess.Popen([sys.executable, '-m', 'erva_ros.ros.traffic', 'contract',
                             '--duration', '60', '--ack-timeout', '0.2'], env=ros_env(),
                            cwd=REPO, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     STARTED.append(pub)

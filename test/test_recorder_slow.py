@@ -10,7 +10,7 @@ from conftest import REPO, ros_env
 import pytest
 from rosbags.rosbag2 import Reader
 
-from erva_ros.bag.session import recorder_ros_args
+from erva_ros.core.bag.session import recorder_ros_args
 
 DURATION_S = 62.0
 
@@ -26,7 +26,7 @@ def test_counts_in_the_bag_equal_counts_published_over_a_minute(tmp_path):
     try:
         # All eight contract topics at their live rates (six /erva topics and /clock at
         # 50 Hz, /diagnostics from three nodes at 1 Hz), from a separate process.
-        pub = subprocess.run([sys.executable, '-m', 'erva_ros.bag.traffic', 'contract',
+        pub = subprocess.run([sys.executable, '-m', 'erva_ros.ros.traffic', 'contract',
                               '--duration', str(DURATION_S), '--rate', '50'],
                              env=ros_env(), cwd=REPO, capture_output=True, text=True,
                              timeout=DURATION_S + 120)

@@ -13,9 +13,11 @@ import pytest
 
 from rclpy.serialization import deserialize_message
 
-from erva_ros.bag.reader import open_bag
-from erva_ros.bag.schemas import message_class
-from erva_ros.bag.session import recorder_ros_args
+from erva_ros.core.bag.reader import open_bag
+
+from erva_ros.ros.bag_messages import decoded
+from erva_ros.ros.bag_messages import message_class
+from erva_ros.core.bag.session import recorder_ros_args
 
 pytestmark = pytest.mark.ros
 STARTED = []   # processes started here, killed if a failing test left them running
@@ -68,7 +70,7 @@ def recorded(tmp_path_factory):
     """Return a bag recorded from the contract traffic (3 s at 50 Hz)."""
     bag = str(tmp_path_factory.mktemp('replay') / 'original')
     rec = start_recorder(bag, 'rec_a')
-    pub = subprocess.run([sys.executable, '-m', 'erva_ros.bag.traffic', 'contract',
+    pub = subprocess.run([sys.executable, '-m', 'erva_ros.ros.traffic', 'contract',
                           '--duration', '3'], env=ros_env(), cwd=REPO, capture_output=True,
                          text=True, timeout=120)
     assert pub.returncode == 0, pub.stderr
@@ -123,7 +125,7 @@ def test_rate_topics_and_clock(recorded, tmp_path):
                                                      abs=0.1)
     # /clock carries the playback (bag) time at 50 Hz of wall time.
     clocks = [msg.clock.sec + msg.clock.nanosec * 1e-9
-              for _, msg in open_bag(out).decoded(['/clock'])]
+              for _, msg in decoded(open_bag(out), ['/clock'])]
     assert stats['clock_ticks'] == len(clocks) > 0.6 * 50 * span(original['/erva/state']) / 4
     assert np.all(np.diff(clocks) > 0)
     bag_start = original['/erva/state'][0][0] * 1e-9

@@ -6,14 +6,14 @@ import os
 import numpy as np
 import pytest
 
-from erva_ros.bag.offline import run_and_record
-from erva_ros.closed_loop import simulate_closed_loop
-from erva_ros.bag.reader import open_bag
-from erva_ros.bag.reevaluate import reevaluate
-from erva_ros.bag.report import load_session
-from erva_ros.controllers import load_controller_settings, make_controller
-from erva_ros.params import load_erva_params
-from erva_ros.roads import make_road
+from erva_ros.session.offline_bag import run_and_record
+from erva_ros.core.closed_loop import simulate_closed_loop
+from erva_ros.core.bag.reader import open_bag
+from erva_ros.session.reevaluate import reevaluate
+from erva_ros.session.bag_report import load_session
+from erva_ros.core.controllers import load_controller_settings, make_controller
+from erva_ros.core.params import load_erva_params
+from erva_ros.core.roads import make_road
 
 
 @pytest.fixture(scope='module')

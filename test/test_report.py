@@ -10,11 +10,13 @@ import pytest
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from erva_ros.bag.offline import run_and_record
-from erva_ros.bag.writer import BagWriter
-from erva_ros.controllers import make_controller
-from erva_ros.params import load_erva_params
-from erva_ros.roads import make_road
+from erva_ros.session.offline_bag import run_and_record
+
+from erva_ros.ros.bag_messages import write_message
+from erva_ros.core.bag.writer import BagWriter
+from erva_ros.core.controllers import make_controller
+from erva_ros.core.params import load_erva_params
+from erva_ros.core.roads import make_road
 
 T0 = 1_800_000_000 * 10 ** 9
 MS = 1_000_000
@@ -74,17 +76,17 @@ def test_timing_deadlines_and_fallbacks_from_message_times(erva, tmp_path):
             stamp = T0 + k * 20 * MS
             state = JointState(position=[0.0] * 3, velocity=[0.0] * 3)
             state.header.stamp = _stamp(stamp)
-            w.write_message('/erva/state', state, stamp + MS // 2, stamp + MS // 4)
+            write_message(w, '/erva/state', state, stamp + MS // 2, stamp + MS // 4)
             accel = AccelStamped()
             accel.header.stamp = _stamp(stamp)
             accel.accel.linear.z = 2.0 if k % 2 else -2.0
-            w.write_message('/erva/sprung_accel', accel, stamp + MS, stamp + MS)
+            write_message(w, '/erva/sprung_accel', accel, stamp + MS, stamp + MS)
             if k == 50:
                 continue          # this state never gets a command
             delay = 2 * MS if k != 70 else 15 * MS   # one late command
             cmd = JointTrajectory(points=[JointTrajectoryPoint(positions=[1e4])])
             cmd.header.stamp = _stamp(stamp)
-            w.write_message('/erva/damping_cmd', cmd, stamp + delay + MS, stamp + delay)
+            write_message(w, '/erva/damping_cmd', cmd, stamp + delay + MS, stamp + delay)
         diag = DiagnosticArray(status=[
             DiagnosticStatus(name='/erva/nmpc_node', values=[
                 KeyValue(key='deadline_misses', value='2'),
@@ -94,7 +96,7 @@ def test_timing_deadlines_and_fallbacks_from_message_times(erva, tmp_path):
             DiagnosticStatus(level=DiagnosticStatus.ERROR, name='/erva/plant_sim_node',
                              message='no command', values=[
                                  KeyValue(key='harvested_j', value='8.0')])])
-        w.write_message('/diagnostics', diag, T0 + 2000 * MS)
+        write_message(w, '/diagnostics', diag, T0 + 2000 * MS)
     r = json.loads(erva('report', bag, '--json', check=True).stdout)
     t = r['timing']
     assert r['ts_s'] == pytest.approx(0.02) and not t['offline'] and t['clock'] == 'wall'

@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from erva_ros.preview import PreviewErrorModel
-from erva_ros.roads import butter2_lowpass, lfilter2, make_road, ROAD_KINDS, RoadError
+from erva_ros.core.preview import PreviewErrorModel
+from erva_ros.core.roads import butter2_lowpass, lfilter2, make_road, ROAD_KINDS, RoadError
 
 
 def test_road_kinds_exported():

@@ -65,9 +65,9 @@ def test_option_values_are_checked_by_argparse(erva):
 
 def test_option_choices_match_the_code():
     from erva_ros.commands import run
-    from erva_ros.controllers.settings import CONTROLLER_NAMES
-    from erva_ros.live.parameters import LIVE_CHOICES, MODES
-    from erva_ros.model import MODEL_KINDS
+    from erva_ros.core.controllers.settings import CONTROLLER_NAMES
+    from erva_ros.ros.parameters import LIVE_CHOICES, MODES
+    from erva_ros.core.model import MODEL_KINDS
     assert run.CONTROLLERS == CONTROLLER_NAMES
     assert run.ROADS == LIVE_CHOICES['road'][0]
     assert run.MODES == MODES and run.MODELS == MODEL_KINDS
@@ -89,8 +89,8 @@ def test_launch_file_parses_and_references_what_exists():
     for cfg in mod.CONFIG_FILES:
         assert os.path.isfile(os.path.join(REPO, 'config', cfg)), cfg
     # Every launch argument is a parameter some node declares.
-    from erva_ros.controllers.settings import DEFAULTS
-    from erva_ros.live.parameters import LIVE_DEFAULTS
+    from erva_ros.core.controllers.settings import DEFAULTS
+    from erva_ros.ros.parameters import LIVE_DEFAULTS
     for name, default, kind, _ in mod.ARGUMENTS:
         assert name == 'namespace' or name in LIVE_DEFAULTS or name in DEFAULTS, name
         kind(default)

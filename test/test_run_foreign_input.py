@@ -1,3 +1,4 @@
+from erva_ros.ros import qos as ros_qos
 """A message from outside the loop cannot stop or steer it (`erva run`).
 
 One valid ``/erva/state`` stamped an hour ahead, published by another process on the
@@ -27,14 +28,13 @@ def _inject_state(stamp_ns_of, timeout_s=60.0):
     from rclpy.duration import Duration
     from sensor_msgs.msg import JointState
 
-    from erva_ros.live.msgs import state_msg
-    from erva_ros import topics
+    from erva_ros.ros.msgs import state_msg
 
     context = rclpy.Context()
     rclpy.init(context=context)
     try:
         node = rclpy.create_node('foreign_publisher', context=context)
-        pub = node.create_publisher(JointState, '/erva/state', topics.control_qos())
+        pub = node.create_publisher(JointState, '/erva/state', ros_qos.control_qos())
         end = time.monotonic() + timeout_s
         while pub.get_subscription_count() < 2 and time.monotonic() < end:   # nmpc, monitor
             time.sleep(0.05)

@@ -7,13 +7,13 @@ import numpy as np
 import yaml
 
 from erva_ros.cli import build_parser
-from erva_ros.closed_loop import simulate_closed_loop
+from erva_ros.core.closed_loop import simulate_closed_loop
 from erva_ros.commands._closed_loop_options import (load_settings, make_road_from_args,
                                                     preview_model_from_args)
 from erva_ros.commands.run import run_config
-from erva_ros.controllers import make_controller
-from erva_ros.live.orchestrator import run_session
-from erva_ros.params import load_erva_params
+from erva_ros.core.controllers import make_controller
+from erva_ros.session.orchestrator import run_session
+from erva_ros.core.params import load_erva_params
 
 from conftest import REPO
 

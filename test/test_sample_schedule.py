@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from erva_ros.live.sample_schedule import SampleScheduler
-from erva_ros.live.validation import MessageRejected, StampWindow
+from erva_ros.core.loop.sample_schedule import SampleScheduler
+from erva_ros.core.loop.validation import MessageRejected, StampWindow
 
 TS = 20_000_000          # 20 ms in ns
 T0 = 1_700_000_000 * 10**9

@@ -50,8 +50,8 @@ def allowed(patterns, name):
 
 
 def test_policy_gives_each_loop_topic_exactly_its_writers():
-    from erva_ros import topics
-    from erva_ros.hil import topics as hil
+    from erva_ros.core import topics
+    from erva_ros.core.hil import topics as hil
     policy = load_policy()
     writers = {
         topics.STATE: {'plant_sim_node', 'state_estimator_node'},

@@ -7,7 +7,7 @@ from config/erva_paper.yaml (``--params``); command-line options override the fi
 import argparse
 
 from erva_ros.commands._common import positive_float
-from erva_ros.errors import CLIError
+from erva_ros.core.errors import CLIError
 
 ROAD_CHOICES = ('paper', 'iso8608', 'bump', 'sine')
 PAPER_T1_S = 4.0        # paper Table I: t0 = 0 s, t1 = 4 s
@@ -45,8 +45,8 @@ def seed_int(text: str) -> int:
 
 def add_settings_options(parser: argparse.ArgumentParser, controller: bool = True) -> None:
     """Add --settings and the common controller overrides."""
-    from erva_ros.controllers.settings import (CODEGEN_MODES, CONTROLLER_NAMES, COST_KINDS,
-                                               SOLVER_KINDS)
+    from erva_ros.core.controllers.settings import (CODEGEN_MODES, CONTROLLER_NAMES, COST_KINDS,
+                                                    SOLVER_KINDS)
     parser.add_argument('--settings', metavar='FILE', default=None,
                         help='controller settings, a ROS 2 params file with an nmpc_node '
                              'section (default: the shipped config/nmpc.yaml)')
@@ -104,7 +104,7 @@ def add_road_options(parser: argparse.ArgumentParser, seed: bool = True) -> None
 
 def load_settings(args, **extra):
     """Return validated ControllerSettings from --settings and the override options."""
-    from erva_ros.controllers.settings import load_controller_settings
+    from erva_ros.core.controllers.settings import load_controller_settings
     overrides = {'controller': getattr(args, 'controller', None), 'cost': args.cost,
                  'long_cost': args.cost, 'codegen': args.codegen,
                  'solver': args.solver, 'horizon': args.horizon, 'max_iter': args.max_iter,
@@ -116,7 +116,7 @@ def load_settings(args, **extra):
 
 def make_road_from_args(args, duration_s: float, seed: int):
     """Return the road chosen on the command line (one-line CLIError on bad options)."""
-    from erva_ros.roads import make_road, RoadError
+    from erva_ros.core.roads import make_road, RoadError
     opts = {}
     if args.road in ('iso8608', 'bump'):
         opts['speed_mps'] = args.speed
@@ -130,7 +130,7 @@ def make_road_from_args(args, duration_s: float, seed: int):
 
 def preview_model_from_args(args, seed: int, ts: float):
     """Return the PreviewErrorModel of --preview-snr/--preview-delay, or None."""
-    from erva_ros.preview import PreviewErrorModel
+    from erva_ros.core.preview import PreviewErrorModel
     if args.preview_snr is None and not args.preview_delay:
         return None
     if args.preview_delay < 0:

@@ -1,13 +1,13 @@
 """Options and helpers shared by ``erva`` subcommands."""
 
 import argparse
-import json
 import os
 import sys
-from typing import Any, Optional
+from typing import Optional
 
-from erva_ros.errors import CLIError
-from erva_ros.live.realtime import MAX_PRIORITY
+from erva_ros.core.errors import CLIError
+from erva_ros.ros.realtime import MAX_PRIORITY
+from erva_ros.session.report import print_json  # noqa: F401 (one home, for the commands)
 
 
 def add_params_option(parser: argparse.ArgumentParser) -> None:
@@ -79,12 +79,6 @@ def ensure_out_dir(path: Optional[str]) -> Optional[str]:
     if not os.access(path, os.W_OK):
         raise CLIError(f'output directory {path!r} is not writable')
     return path
-
-
-def print_json(obj: Any) -> None:
-    json.dump(obj, sys.stdout, indent=2, allow_nan=False)
-    sys.stdout.write('\n')
-    sys.stdout.flush()
 
 
 class Progress:

@@ -4,7 +4,7 @@ import math
 
 from erva_ros.commands._common import (add_json_option, positive_float, positive_int,
                                        print_json)
-from erva_ros.errors import CLIError
+from erva_ros.core.errors import CLIError
 
 COMMAND = 'bag'
 HELP = ('session bags: info (topics, counts, session), repair (after a crash), bench '
@@ -95,7 +95,7 @@ def _add_soak(sub) -> None:
 def _soak(args) -> int:
     import sys
 
-    from erva_ros.live import soak
+    from erva_ros.session import soak
     if args.busy < 0:
         raise CLIError(f'--busy {args.busy}: give 0 or more processes')
     import os
@@ -133,7 +133,7 @@ def _size(n: int) -> str:
 
 
 def _info(args) -> int:
-    from erva_ros.bag.reader import open_bag
+    from erva_ros.core.bag.reader import open_bag
     info = open_bag(args.bag).info()
     if args.json:
         print_json(info)
@@ -164,7 +164,7 @@ def _info(args) -> int:
 
 
 def _repair(args) -> int:
-    from erva_ros.bag.repair import repair_bag
+    from erva_ros.core.bag.repair import repair_bag
     result = repair_bag(args.bag, keep_original=not args.no_backup)
     if args.json:
         print_json(result)
@@ -184,7 +184,7 @@ def _repair(args) -> int:
 def _bench(args) -> int:
     import sys
 
-    from erva_ros.bag import bench
+    from erva_ros.session import recorder_bench as bench
 
     def rates(text, option, zero_ok):
         try:
@@ -205,7 +205,7 @@ def _bench(args) -> int:
                        progress=lambda s: print(f'erva bag bench: {s}', file=sys.stderr,
                                                 flush=True))
     if args.json:
-        from erva_ros.bag.report import json_safe
+        from erva_ros.session.bag_report import json_safe
         print_json(json_safe(result))
         return 0
 

@@ -8,7 +8,7 @@ from erva_ros.commands._closed_loop_options import (add_settings_options, load_s
                                                     seed_int, weights)
 from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
                                        positive_int, print_json, realtime_priority)
-from erva_ros.errors import CLIError
+from erva_ros.core.errors import CLIError
 
 COMMAND = 'bench'
 HELP = 'NMPC solve-time benchmark: >= 2000 closed-loop steps, suboptimality vs IPOPT'
@@ -29,9 +29,9 @@ with the converged IPOPT reference, and reports:
                      /|f_ref| >= 0, p50 / p99 / max / mean
   realtime_factor    simulated time / wall time of the offline closed loop
 
---live measures the same in the running ROS 2 system instead (erva_ros.live).
+--live measures the same in the running ROS 2 system instead (erva_ros.session).
 --live --foxglove-ab N compares N alternating pairs of live runs without and with
-`erva run --foxglove` and a connected viewer (erva_ros.live.foxglove_bench)."""
+`erva run --foxglove` and a connected viewer (erva_ros.session.foxglove_bench)."""
 
 
 def add_arguments(parser):
@@ -76,7 +76,7 @@ def add_arguments(parser):
 
 
 def main(args) -> int:
-    from erva_ros.live.soak import start_busy, stop_busy
+    from erva_ros.session.soak import start_busy, stop_busy
     if args.busy < 0:
         raise CLIError(f'--busy {args.busy}: give 0 or more processes')
     busy = start_busy(args.busy)
@@ -94,15 +94,15 @@ def _main(args) -> int:
         if not args.live or args.foxglove_ab is None:
             raise CLIError('--foxglove-ab N needs --live (and --foxglove-viewer needs '
                            '--foxglove-ab)')
-        from erva_ros.live.foxglove_process import check_address
+        from erva_ros.session.foxglove_process import check_address
         check_address('127.0.0.1:0')   # foxglove-sdk installed
-        from erva_ros.live.foxglove_bench import run_foxglove_ab
+        from erva_ros.session.foxglove_bench import run_foxglove_ab
         return run_foxglove_ab(args)
     if args.live:
         try:
-            from erva_ros.live.benchmark import run_live_bench
+            from erva_ros.session.benchmark import run_live_bench
         except ImportError as exc:
-            raise CLIError(f'--live needs erva_ros.live.benchmark, which is not available '
+            raise CLIError(f'--live needs erva_ros.session.benchmark, which is not available '
                            f'({exc})') from None
         return run_live_bench(args)
     if args.duration is not None:
@@ -110,10 +110,10 @@ def _main(args) -> int:
     if args.realtime_priority is not None:
         raise CLIError('--realtime-priority applies to --live only')
 
-    from erva_ros.closed_loop import closed_loop_cost, simulate_closed_loop
-    from erva_ros.controllers import make_controller
-    from erva_ros.params import load_erva_params
-    from erva_ros.roads import make_road
+    from erva_ros.core.closed_loop import closed_loop_cost, simulate_closed_loop
+    from erva_ros.core.controllers import make_controller
+    from erva_ros.core.params import load_erva_params
+    from erva_ros.core.roads import make_road
 
     params = load_erva_params(args.params)
     extra = {} if args.alpha is None else {'alpha1': args.alpha[0], 'alpha2': args.alpha[1]}

@@ -6,8 +6,8 @@ import sys
 
 from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
                                        positive_int, print_json, Progress, realtime_priority)
-from erva_ros.errors import CLIError
-from erva_ros.live.realtime import DEFAULT_PRIORITY
+from erva_ros.core.errors import CLIError
+from erva_ros.ros.realtime import DEFAULT_PRIORITY
 
 COMMAND = 'bench-hil'
 HELP = 'HIL benchmark: bridge and estimator latency (live), estimator closed loop (offline)'
@@ -34,7 +34,7 @@ UDP, receive + E2E + decode, one EKF cycle): their pure CPU cost.
 --estimator-eval: offline (no ROS) closed loop of each controller of
 --controllers with the full true state and with the EKF's estimate from the ECU's
 noisy, quantised sensors, over --seeds paper roads; prints comfort and power of
-both and their relative change (erva_ros/hil/evaluation.py).  A third run, the
+both and their relative change (erva_ros/core/hil/evaluation.py).  A third run, the
 true state plus 0.01 mm / 0.1 mm/s noise ("perturbed"), shows how sensitive the
 controller itself is to any state error."""
 
@@ -114,14 +114,14 @@ def _estimator_eval(args):
 def _evaluate(args):
     import numpy as np
 
-    from erva_ros.controllers import ControllerSettings, make_controller
-    from erva_ros.controllers.settings import CONTROLLER_NAMES
-    from erva_ros.hil.ecu_sim import SensorNoise
-    from erva_ros.hil.evaluation import evaluate_estimator
-    from erva_ros.hil.settings import (load_ecu_sim_section, load_estimator_section,
-                                       noise_of)
-    from erva_ros.params import load_erva_params
-    from erva_ros.roads import make_road
+    from erva_ros.core.controllers import ControllerSettings, make_controller
+    from erva_ros.core.controllers.settings import CONTROLLER_NAMES
+    from erva_ros.core.hil.ecu_sim import SensorNoise
+    from erva_ros.core.hil.evaluation import evaluate_estimator
+    from erva_ros.core.hil.settings import (load_ecu_sim_section, load_estimator_section,
+                                            noise_of)
+    from erva_ros.core.params import load_erva_params
+    from erva_ros.core.roads import make_road
 
     params = load_erva_params(args.params)
     est = load_estimator_section(args.hil_config)
@@ -206,7 +206,7 @@ def main(args) -> int:
     if args.estimator_eval:
         return _estimator_eval(args)
     if args.cores:
-        from erva_ros.hil.bench import run_core_bench
+        from erva_ros.session.hil_bench import run_core_bench
         result = run_core_bench(args.samples)
         if args.json:
             print_json(result)
@@ -216,12 +216,12 @@ def main(args) -> int:
             print(f'  {key:<22} {s["p50"]:7.3f} {s["p99"]:7.3f} {s["max"]:7.3f} '
                   f'{int(s["samples"]):6d}')
         return 0
-    from erva_ros.hil.bench import run_live_bench
-    from erva_ros.params import default_params_file, load_erva_params
+    from erva_ros.session.hil_bench import run_live_bench
+    from erva_ros.core.params import default_params_file, load_erva_params
 
     params_file = args.params or default_params_file()
     load_erva_params(params_file)      # a bad file fails here, in one line
-    from erva_ros.hil.settings import load_bridge_section, load_estimator_section
+    from erva_ros.core.hil.settings import load_bridge_section, load_estimator_section
     load_bridge_section(args.hil_config)
     load_estimator_section(args.hil_config)
     result = run_live_bench(params_file, args.hil_config, args.duration, args.law, args.seed,

@@ -6,15 +6,15 @@ import sys
 
 from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
                                        print_json, realtime_priority)
-from erva_ros.errors import CLIError
+from erva_ros.core.errors import CLIError
 
 COMMAND = 'ecu-sim'
 HELP = 'simulated generator ECU on a CAN bus: applies damping frames to the plant, sends sensors'
 DESCRIPTION = """\
-Plays the vehicle side of the HIL loop (erva_ros/hil/ecu_sim.py) with a real ECU's
+Plays the vehicle side of the HIL loop (erva_ros/core/hil/ecu_sim.py) with a real ECU's
 timing: at every sample instant it samples the sensors and sends the chassis,
 generator and status frames of config/erva_ecu.dbc at once; the quarter car
-(erva_ros.plant.PlantSimulator) is integrated ahead, with the ERVA_CMD frames
+(erva_ros.core.plant.PlantSimulator) is integrated ahead, with the ERVA_CMD frames
 (E2E-checked, duty clamped to the hardware range) latched within latch_s of their
 arrival, and the passive c_e0 after command_timeout_periods without a valid
 command (the bridge's rule).
@@ -25,7 +25,7 @@ here).  Example, with the bridge on udp:47001:47002:
 
   erva ecu-sim --bus udp:47002:47001 --road paper --duration 10
 
-Roads: a road of erva_ros.roads started with the ECU (paper, sine, bump, iso8608,
+Roads: a road of erva_ros.core.roads started with the ECU (paper, sine, bump, iso8608,
 --seed), flat, ros (the heights of /erva/road/height as they arrive: each cycle
 waits for its sample) or session (the road of the --params file, an `erva run`
 session file, placed on the sample grid of /erva/road/height and known ahead, so
@@ -57,7 +57,7 @@ def add_arguments(parser):
     parser.add_argument('--road', choices=ROADS, default='paper',
                         help='road at the tyre: session (the --params session file\'s road on '
                              'the grid of /erva/road/height), ros (/erva/road/height as it '
-                             'arrives), flat, or a road of erva_ros.roads started with the '
+                             'arrives), flat, or a road of erva_ros.core.roads started with the '
                              'ECU (default paper)')
     parser.add_argument('--seed', type=int, default=0, help='road seed (default 0)')
     parser.add_argument('--duration', type=float, default=0.0, metavar='S',
@@ -79,8 +79,8 @@ def add_arguments(parser):
 
 
 def _road_function(args):
-    """Return w(t) (m) at epoch time t for a road of erva_ros.roads started at the first call."""
-    from erva_ros.roads import make_road, RoadError
+    """Return w(t) (m) at epoch time t for a road (erva_ros.core.roads) started at first call."""
+    from erva_ros.core.roads import make_road, RoadError
     if args.road == 'flat':
         return lambda t: 0.0
     try:
@@ -102,10 +102,10 @@ def _session_road(path, ts):
     The same ``build_road`` as road_preview_node, from the same values, so the heights
     agree to the bit (checked against every received sample).
     """
-    from erva_ros.hil.road_buffer import KnownRoad
-    from erva_ros.live.parameters import LIVE_DEFAULTS
-    from erva_ros.live.scenario import build_road
-    from erva_ros.params import load_params_yaml, ParamError
+    from erva_ros.core.hil.road_buffer import KnownRoad
+    from erva_ros.ros.parameters import LIVE_DEFAULTS
+    from erva_ros.core.loop.scenario import build_road
+    from erva_ros.core.params import load_params_yaml, ParamError
     if path is None:
         raise CLIError('--road session needs --params FILE (the session params file of '
                        '`erva run`)')
@@ -125,7 +125,7 @@ def _session_road(path, ts):
 
 def _check_args(args) -> None:
     """Refuse bad options with one line (CLIError), before anything starts."""
-    from erva_ros.hil.transport import parse_spec
+    from erva_ros.core.hil.transport import parse_spec
     if not (math.isfinite(args.duration) and args.duration >= 0):
         raise CLIError(f'--duration must be >= 0, got {args.duration}')
     if args.seed < 0:
@@ -138,11 +138,11 @@ def _check_args(args) -> None:
 
 def _build_core(args, road):
     """Return the EcuSimCore of the options (hardware and noise from the HIL file)."""
-    from erva_ros.hil.codec import EcuCodec
-    from erva_ros.hil.ecu_sim import EcuSimConfig, EcuSimCore, SensorNoise
-    from erva_ros.hil.settings import hardware_of, load_bridge_section, load_ecu_sim_section
-    from erva_ros.hil.transport import open_bus
-    from erva_ros.params import load_erva_params
+    from erva_ros.core.hil.codec import EcuCodec
+    from erva_ros.core.hil.ecu_sim import EcuSimConfig, EcuSimCore, SensorNoise
+    from erva_ros.core.hil.settings import hardware_of, load_bridge_section, load_ecu_sim_section
+    from erva_ros.core.hil.transport import open_bus
+    from erva_ros.core.params import load_erva_params
 
     params = load_erva_params(args.params)
     bridge = load_bridge_section(args.hil_config)
@@ -162,7 +162,7 @@ def _build_core(args, road):
 
 def _run(args, core, ros, stop) -> list:
     """Run the ECU loop until --duration or a stop; return its samples (cycle 0 first)."""
-    from erva_ros.hil.ecu_sim import run_realtime
+    from erva_ros.core.hil.ecu_sim import run_realtime
     samples = []
     on_cycle = samples.append if ros is None else (
         lambda s: (samples.append(s), ros.publish(core, s)))
@@ -184,12 +184,12 @@ def _run(args, core, ros, stop) -> list:
 
 
 def _realtime(args, ros) -> None:
-    """Switch to SCHED_FIFO once set up (as the nodes do, erva_ros/live/realtime.py).
+    """Switch to SCHED_FIFO once set up (as the nodes do, erva_ros/ros/realtime.py).
 
     Before waiting for the road: the ECU's first sample goes out when the first road
     height arrives, which a busy machine would otherwise delay by milliseconds.
     """
-    from erva_ros.live.realtime import set_fifo_priority
+    from erva_ros.ros.realtime import set_fifo_priority
     scheduling = set_fifo_priority(
         args.realtime_priority, lambda m: print(f'erva ecu-sim: warning: {m}',
                                                 file=sys.stderr))
@@ -199,7 +199,7 @@ def _realtime(args, ros) -> None:
 
 def _summary(args, core, samples) -> dict:
     """Return the run's counters, comfort and power, and the ECU's latencies."""
-    from erva_ros.metrics import comfort_power, percentiles_ms
+    from erva_ros.core.metrics import comfort_power, percentiles_ms
     n = len(samples) - 1
     result = core.summary()
     result['bus'] = args.bus
@@ -236,8 +236,8 @@ def _print(args, result) -> None:
 
 def _publisher_history_s(path) -> float:
     """Return the session's publisher_history_s (its params file), else the default."""
-    from erva_ros.live.parameters import LIVE_DEFAULTS, LIVE_NUMERIC
-    from erva_ros.params import check_number, ParamError, read_ros_params
+    from erva_ros.ros.parameters import LIVE_DEFAULTS, LIVE_NUMERIC
+    from erva_ros.core.params import check_number, ParamError, read_ros_params
     value = LIVE_DEFAULTS['publisher_history_s']
     if path:
         try:
@@ -250,7 +250,7 @@ def _publisher_history_s(path) -> float:
 
 
 def main(args) -> int:
-    from erva_ros.hil.settings import hardware_of, load_bridge_section
+    from erva_ros.core.hil.settings import hardware_of, load_bridge_section
 
     _check_args(args)
     use_ros = args.ros or args.road in GRID_ROADS
@@ -262,7 +262,7 @@ def main(args) -> int:
     ros = None
     try:
         if use_ros:
-            from erva_ros.hil.ecu_sim_ros import EcuSimRos
+            from erva_ros.ros.ecu_sim_ros import EcuSimRos
             ros = EcuSimRos(args.namespace, args.model,
                             hardware_of(load_bridge_section(args.hil_config)),
                             known_road=known, ts=args.ts,

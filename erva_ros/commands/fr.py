@@ -6,7 +6,7 @@ import time
 
 from erva_ros.commands._common import (add_json_option, add_out_option, add_params_option,
                                        ensure_out_dir, positive_float, print_json, Progress)
-from erva_ros.errors import CLIError
+from erva_ros.core.errors import CLIError
 
 COMMAND = 'fr'
 HELP = 'frequency response road -> chassis acceleration and harvested power (paper Fig. 4)'
@@ -42,9 +42,9 @@ def add_arguments(parser):
 def main(args) -> int:
     import numpy as np
 
-    from erva_ros import fr
-    from erva_ros.model import get_model, MODEL_KINDS
-    from erva_ros.params import load_erva_params
+    from erva_ros.core import fr
+    from erva_ros.core.model import get_model, MODEL_KINDS
+    from erva_ros.core.params import load_erva_params
 
     if args.f_max < args.f_min:
         raise CLIError(f'--f-max {args.f_max} is below --f-min {args.f_min}')
@@ -75,7 +75,7 @@ def main(args) -> int:
     result['elapsed_s'] = round(elapsed, 2)
 
     if out:
-        from erva_ros.plots import fr_figure
+        from erva_ros.core.plots import fr_figure
         csv_path = os.path.join(out, 'fr.csv')
         with open(csv_path, 'w', newline='', encoding='utf-8') as fh:
             wr = csv.writer(fh)

@@ -9,7 +9,7 @@ from erva_ros.commands._closed_loop_options import (add_settings_options, load_s
 from erva_ros.commands._common import (add_json_option, add_out_option, add_params_option,
                                        ensure_out_dir, positive_float, positive_int,
                                        print_json, Progress)
-from erva_ros.errors import CLIError
+from erva_ros.core.errors import CLIError
 
 COMMAND = 'pareto'
 HELP = 'comfort vs harvested power as alpha2/alpha1 sweeps, with passive and skyhook points'
@@ -49,10 +49,10 @@ def add_arguments(parser):
 def main(args) -> int:
     import numpy as np
 
-    from erva_ros.closed_loop import simulate_closed_loop
-    from erva_ros.controllers import make_controller
-    from erva_ros.params import load_erva_params
-    from erva_ros.roads import make_road
+    from erva_ros.core.closed_loop import simulate_closed_loop
+    from erva_ros.core.controllers import make_controller
+    from erva_ros.core.params import load_erva_params
+    from erva_ros.core.roads import make_road
 
     ratios = _ratios(args.ratios)
     out = ensure_out_dir(args.out)
@@ -96,7 +96,7 @@ def main(args) -> int:
               'duration_s': args.duration, 'curve': json_curve, 'baselines': baselines,
               'elapsed_s': round(elapsed, 1)}
     if out:
-        from erva_ros.plots_closed_loop import pareto_figure
+        from erva_ros.core.plots_closed_loop import pareto_figure
         csv_path = os.path.join(out, 'pareto.csv')
         with open(csv_path, 'w', newline='', encoding='utf-8') as fh:
             wr = csv.writer(fh)

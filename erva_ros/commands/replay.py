@@ -7,7 +7,7 @@ import sys
 from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
                                        print_json)
 from erva_ros.commands.run import FOXGLOVE_DEFAULT
-from erva_ros.errors import CLIError
+from erva_ros.core.errors import CLIError
 
 COMMAND = 'replay'
 HELP = 'play a bag like "ros2 bag play", or drive a fresh plant with its road (--drive-plant)'
@@ -100,11 +100,11 @@ def _native_stdout_to_stderr():
 
 
 def _drive_plant(args, bag) -> int:
-    from erva_ros.bag.replay import drive_plant
-    from erva_ros.bag.report import compute_report, json_safe, load_session
-    from erva_ros.bag.session import new_bag_dir
-    from erva_ros.controllers import load_controller_settings
-    from erva_ros.params import load_erva_params
+    from erva_ros.session.whatif import drive_plant
+    from erva_ros.session.bag_report import compute_report, json_safe, load_session
+    from erva_ros.core.bag.session import new_bag_dir
+    from erva_ros.core.controllers import load_controller_settings
+    from erva_ros.core.params import load_erva_params
 
     params = load_erva_params(args.params)
     settings = load_controller_settings(args.settings, {'controller': args.controller,
@@ -148,9 +148,9 @@ def _drive_plant(args, bag) -> int:
 
 
 def _reevaluate(args, bag) -> int:
-    from erva_ros.bag.reevaluate import controller_from_session, reevaluate, summarize
-    from erva_ros.bag.report import json_safe, load_session
-    from erva_ros.controllers import make_controller
+    from erva_ros.session.reevaluate import controller_from_session, reevaluate, summarize
+    from erva_ros.session.bag_report import json_safe, load_session
+    from erva_ros.core.controllers import make_controller
 
     params, settings = controller_from_session(bag, args.controller)
     data = load_session(bag)
@@ -175,7 +175,7 @@ def _play(args, bag) -> int:
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
-    from erva_ros.bag.replay import Player
+    from erva_ros.ros.replay import Player
 
     server = None
     stop = {'flag': False}
@@ -207,7 +207,7 @@ def _play(args, bag) -> int:
             node.destroy_node()
         rclpy.try_shutdown()
     if args.json:
-        from erva_ros.bag.report import json_safe
+        from erva_ros.session.bag_report import json_safe
         print_json(json_safe(stats))
     else:
         state = 'stopped' if stats['stopped'] else 'done'
@@ -230,8 +230,8 @@ def _serve(address, bag, player, should_stop):
     """Start the Foxglove server of a replay; wait until a viewer subscribes (or a stop)."""
     import time
 
-    from erva_ros.bag.report import guess_namespace
-    from erva_ros.live.foxglove_server import FoxgloveServer, parse_address, ReplaySink
+    from erva_ros.session.bag_report import guess_namespace
+    from erva_ros.ros.foxglove_server import FoxgloveServer, parse_address, ReplaySink
 
     host, port = parse_address(address)
     try:
@@ -258,7 +258,7 @@ def _serve(address, bag, player, should_stop):
 
 
 def main(args) -> int:
-    from erva_ros.bag.reader import open_bag
+    from erva_ros.core.bag.reader import open_bag
 
     if args.delay < 0 or args.wait_for_subscribers < 0:
         raise CLIError('--delay and --wait-for-subscribers must be >= 0')
@@ -277,7 +277,7 @@ def main(args) -> int:
     if args.foxglove is not None:
         if args.drive_plant or args.reevaluate:
             raise CLIError('--foxglove serves what is played: drop --drive-plant/--reevaluate')
-        from erva_ros.live.foxglove_process import check_address
+        from erva_ros.session.foxglove_process import check_address
         check_address(args.foxglove)
     bag = open_bag(args.bag)
     if args.reevaluate:

@@ -39,8 +39,8 @@ def _fmt(p, unit='ms'):
 
 
 def main(args) -> int:
-    from erva_ros.bag.reader import open_bag
-    from erva_ros.bag.report import compute_report, json_safe, load_session, write_plots
+    from erva_ros.core.bag.reader import open_bag
+    from erva_ros.session.bag_report import compute_report, json_safe, load_session, write_plots
 
     bag = open_bag(args.bag)
     out = ensure_out_dir(args.out)

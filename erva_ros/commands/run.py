@@ -6,7 +6,7 @@ import sys
 
 from erva_ros.commands._common import (add_json_option, add_params_option, bounded,
                                        positive_float, print_json, realtime_priority)
-from erva_ros.errors import CLIError
+from erva_ros.core.errors import CLIError
 
 COMMAND = 'run'
 HELP = 'run the live system (plant, road preview, NMPC nodes over ROS 2) and summarise it'
@@ -130,7 +130,7 @@ def add_arguments(parser):
 
 def run_config(args, record_dir=None):
     """Return the RunConfig of parsed scenario options."""
-    from erva_ros.live.orchestrator import RunConfig
+    from erva_ros.session.orchestrator import RunConfig
     live = {}
     if args.preview_snr is not None:
         live.update(preview_noise=True, preview_snr_db=args.preview_snr)
@@ -178,13 +178,13 @@ def _check_namespace(namespace: str) -> str:
 
 
 def main(args) -> int:
-    from erva_ros.live.orchestrator import ensure_ecu_available, run_session
-    from erva_ros.live.report import format_summary, jsonable
+    from erva_ros.session.orchestrator import ensure_ecu_available, run_session
+    from erva_ros.session.report import format_summary, jsonable
 
     ensure_ecu_available(args.ecu)
     args.namespace = _check_namespace(args.namespace)
     if args.foxglove is not None:   # a port in use fails here, before anything starts
-        from erva_ros.live.foxglove_process import check_address
+        from erva_ros.session.foxglove_process import check_address
         check_address(args.foxglove)
     cfg = run_config(args, None if args.no_record else args.record)
     result = run_session(cfg, log=lambda line: print(f'erva run: {line}', file=sys.stderr,

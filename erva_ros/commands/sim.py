@@ -8,7 +8,7 @@ from erva_ros.commands._closed_loop_options import (add_road_options, add_settin
                                                     preview_model_from_args, weights)
 from erva_ros.commands._common import (add_json_option, add_out_option, add_params_option,
                                        ensure_out_dir, print_json)
-from erva_ros.errors import CLIError
+from erva_ros.core.errors import CLIError
 
 COMMAND = 'sim'
 HELP = 'offline closed loop of a controller on a road (paper Figs. 5-7), no ROS'
@@ -49,9 +49,9 @@ def add_arguments(parser):
 
 
 def main(args) -> int:
-    from erva_ros.closed_loop import simulate_closed_loop
-    from erva_ros.controllers import make_controller
-    from erva_ros.params import load_erva_params
+    from erva_ros.core.closed_loop import simulate_closed_loop
+    from erva_ros.core.controllers import make_controller
+    from erva_ros.core.params import load_erva_params
 
     out = ensure_out_dir(args.out)
     params = load_erva_params(args.params)
@@ -81,7 +81,7 @@ def main(args) -> int:
         'fallbacks': m['fallbacks'], 'realtime_factor': m['realtime_factor'],
     }
     if out:
-        from erva_ros.plots_closed_loop import timeseries_figure
+        from erva_ros.core.plots_closed_loop import timeseries_figure
         csv_path = os.path.join(out, 'timeseries.csv')
         with open(csv_path, 'w', newline='', encoding='utf-8') as fh:
             wr = csv.writer(fh)
@@ -121,5 +121,5 @@ def main(args) -> int:
 
 def controller_states(run):
     """Return the state names of a run's model (for CSV headers)."""
-    from erva_ros.model import STATE_NAMES
+    from erva_ros.core.model import STATE_NAMES
     return STATE_NAMES['erva' if run.x.shape[1] == 6 else 'benchmark']

@@ -10,7 +10,7 @@ from erva_ros.commands._closed_loop_options import (add_settings_options, load_s
 from erva_ros.commands._common import (add_json_option, add_out_option, add_params_option,
                                        ensure_out_dir, positive_float, positive_int,
                                        print_json, Progress)
-from erva_ros.errors import CLIError
+from erva_ros.core.errors import CLIError
 
 COMMAND = 'table'
 HELP = "the paper's results table (§IV.B) as mean ± spread over road seeds, with the bound"
@@ -72,10 +72,10 @@ def _stats(values):
 
 def run_seed(job):
     """Run every controller (and the bound) on one seed; return per-weighting metrics."""
-    from erva_ros.closed_loop import evaluation_objective, simulate_closed_loop
-    from erva_ros.controllers import make_controller
-    from erva_ros.controllers.clairvoyant import clairvoyant_bound
-    from erva_ros.roads import make_road
+    from erva_ros.core.closed_loop import evaluation_objective, simulate_closed_loop
+    from erva_ros.core.controllers import make_controller
+    from erva_ros.core.controllers.clairvoyant import clairvoyant_bound
+    from erva_ros.core.roads import make_road
 
     params, settings, seed, duration, weights, controllers, bound = job
     road = make_road('paper', duration, seed=seed)
@@ -203,8 +203,8 @@ def markdown(result) -> str:
 
 
 def main(args) -> int:
-    from erva_ros.controllers.settings import CONTROLLER_NAMES
-    from erva_ros.params import load_erva_params
+    from erva_ros.core.controllers.settings import CONTROLLER_NAMES
+    from erva_ros.core.params import load_erva_params
 
     names = [n.strip() for n in args.controllers.split(',') if n.strip()]
     for n in names:

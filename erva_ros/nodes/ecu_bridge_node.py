@@ -1,9 +1,9 @@
 """ecu_bridge_node: the NMPC's damping command onto the vehicle CAN bus, the ECU's sensors back.
 
-A thin rclpy adapter around :class:`erva_ros.hil.bridge.BridgeCore` (no ROS inside):
+A thin rclpy adapter around :class:`erva_ros.core.hil.bridge.BridgeCore` (no ROS inside):
 
 * ``damping_cmd`` (JointTrajectory, joint c_e) → clamped to the generator's range,
-  converted to a PWM duty (c_e = κ²/R, erva_ros/hil/hardware.py) and sent at once in
+  converted to a PWM duty (c_e = κ²/R, erva_ros/core/hil/hardware.py) and sent at once in
   an E2E-protected ERVA_CMD frame; a 4·Ts watchdog timer keeps the frames at Ts,
   follows the NMPC's plan while a command is late, and sends the safe passive c_e0
   with an ERROR diagnostic once no fresh command came for ``command_timeout_periods``.
@@ -11,7 +11,7 @@ A thin rclpy adapter around :class:`erva_ros.hil.bridge.BridgeCore` (no ROS insi
   second one straight from its wait set (:class:`RealtimeSubscription`, subscriber
   node ``ecu_bridge_node_rt``); the executor only serves the periodic diagnostics.
 * ECU frames (reader thread, E2E-checked) → ``ecu/damping_applied``,
-  ``ecu/sprung_accel``, ``ecu/suspension``, ``ecu/generator`` (erva_ros/hil/topics.py),
+  ``ecu/sprung_accel``, ``ecu/suspension``, ``ecu/generator`` (erva_ros/core/hil/topics.py),
   each published as soon as its frame arrived, all stamped with the CAN receive time
   of the ECU cycle's first frame; and the whole cycle once more in one message,
   ``ecu/measurements`` (the estimator's input: one callback per cycle), published
@@ -43,22 +43,23 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
-from erva_ros import topics
-from erva_ros.hil import topics as hil_topics
-from erva_ros.hil.bridge import BridgeConfig, BridgeCore, EcuCycle, SensorFrame
-from erva_ros.hil.codec import EcuCodec, Kind
-from erva_ros.hil.latency import LatencyStats
-from erva_ros.hil.settings import (BRIDGE_DEFAULTS, BRIDGE_NUMERIC, BRIDGE_STRINGS,
-                                   hardware_of, INTEGER_KEYS, TS_SPEC)
-from erva_ros.hil.transport import open_bus, parse_spec
-from erva_ros.live import diagnostics as diag
-from erva_ros.live.cdr import (CdrError, decode_joint_trajectory, encode_accel_stamped,
-                               JointStateEncoder)
-from erva_ros.live.parameters import (declare_erva_params, declare_live, declare_number,
-                                      declare_string, loop_priority)
-from erva_ros.live.rt_subscription import RealtimeSubscription
-from erva_ros.live.runtime import run_node
-from erva_ros.params import ParamError
+from erva_ros.core import topics
+from erva_ros.ros import qos as ros_qos
+from erva_ros.core.hil import topics as hil_topics
+from erva_ros.core.hil.bridge import BridgeConfig, BridgeCore, EcuCycle, SensorFrame
+from erva_ros.core.hil.codec import EcuCodec, Kind
+from erva_ros.core.hil.latency import LatencyStats
+from erva_ros.core.hil.settings import (BRIDGE_DEFAULTS, BRIDGE_NUMERIC, BRIDGE_STRINGS,
+                                        hardware_of, INTEGER_KEYS, TS_SPEC)
+from erva_ros.core.hil.transport import open_bus, parse_spec
+from erva_ros.ros import diagnostics as diag
+from erva_ros.ros.cdr import (CdrError, decode_joint_trajectory, encode_accel_stamped,
+                              JointStateEncoder)
+from erva_ros.ros.parameters import (declare_erva_params, declare_live, declare_number,
+                                     declare_string, loop_priority)
+from erva_ros.ros.rt_subscription import RealtimeSubscription
+from erva_ros.ros.runtime import run_node
+from erva_ros.core.params import ParamError
 
 #: Commands beyond this magnitude (Ns/m) are absurd (a unit error), not just out of range.
 ABSURD_C_E = 1e6
@@ -126,11 +127,11 @@ class EcuBridgeNode(Node):
         self.proc_sensor = LatencyStats()
         self.rejected_msgs = 0
 
-        qos = topics.control_qos()
+        qos = ros_qos.control_qos()
         # Counted (erva run checks the bag against them), with a history that lets a
         # stalled recorder catch up (publisher_history_s of the loop, at the ECU's rate).
         counted = diag.CountedPublisher
-        pub_qos = topics.publisher_qos(live['publisher_history_s'], self.ts)
+        pub_qos = ros_qos.publisher_qos(live['publisher_history_s'], self.ts)
         self.pub_accel = counted(self.create_publisher(AccelStamped,
                                                        hil_topics.ECU_SPRUNG_ACCEL, pub_qos))
         self.pub_susp = counted(self.create_publisher(JointState, hil_topics.ECU_SUSPENSION,
@@ -145,13 +146,13 @@ class EcuBridgeNode(Node):
                                    self.pub_susp, self.pub_gen]
         self._status_seq = itertools.count(1)   # next() is atomic: two threads publish
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
-                                              topics.diagnostics_qos())
+                                              ros_qos.diagnostics_qos())
         self.enc_applied = JointStateEncoder(hil_topics.APPLIED_JOINTS)
         self.enc_susp = JointStateEncoder((hil_topics.SUSPENSION_JOINT,))
         self.enc_gen = JointStateEncoder((topics.GENERATOR_JOINT,))
         self.enc_meas = JointStateEncoder(hil_topics.MEASUREMENT_NAMES)
         # The command is on the loop's critical path: taken by its own thread, not the
-        # executor (erva_ros/live/rt_subscription.py; ~0.5 ms less per command).
+        # executor (erva_ros/ros/rt_subscription.py; ~0.5 ms less per command).
         self.cmd_sub = RealtimeSubscription(self, JointTrajectory, topics.DAMPING_CMD, qos,
                                             self._on_command, raw=True)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -235,7 +236,7 @@ class EcuBridgeNode(Node):
                 self._publish_cycle(cyc)
         stamp = int(round(f.stamp * 1e9))
         p = f.payload
-        # Serialized here (erva_ros/live/cdr.py): a fraction of rclpy's conversion cost.
+        # Serialized here (erva_ros/ros/cdr.py): a fraction of rclpy's conversion cost.
         if f.kind is Kind.STATUS:
             self.pub_applied.publish(self.enc_applied.encode(
                 stamp, (float(p.c_e_applied), float(p.c_e_mean))))

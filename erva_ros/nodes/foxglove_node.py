@@ -3,8 +3,8 @@
 A subscriber like recorder_node, in its own process at normal (niced) priority: it
 takes every topic of the live contract -- the ``/erva`` topics resolved against this
 node's namespace, ``/diagnostics``, ``/clock`` -- as raw CDR (QoS
-``topics.control_qos``, as the publishers offer it) and forwards the bytes unchanged
-through :class:`~erva_ros.live.foxglove_server.FoxgloveServer`: one Foxglove channel per
+``ros_qos.control_qos``, as the publishers offer it) and forwards the bytes unchanged
+through :class:`~erva_ros.ros.foxglove_server.FoxgloveServer`: one Foxglove channel per
 topic with its ``ros2msg`` schema, log time = reception time as in the bag (node time
 under ``use_sim_time``).  Topics whose type the contract does not name are subscribed
 once a publisher shows their type.  A client that does not read loses its own oldest
@@ -43,13 +43,14 @@ from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 
 from diagnostic_msgs.msg import DiagnosticArray
 
-from erva_ros import topics as contract
-from erva_ros.bag.schemas import message_class
-from erva_ros.live import diagnostics as diag
-from erva_ros.live import foxglove_server as fg
-from erva_ros.live.runtime import run_node
+from erva_ros.core import topics as contract
+from erva_ros.ros import qos as ros_qos
+from erva_ros.ros.bag_messages import message_class
+from erva_ros.ros import diagnostics as diag
+from erva_ros.ros import foxglove_server as fg
+from erva_ros.ros.runtime import run_node
 from erva_ros.nodes.recorder_node import _range, CONTRACT_TYPES, DEFAULT_TOPICS
-from erva_ros.params import ParamError
+from erva_ros.core.params import ParamError
 
 NODE_NAME = 'foxglove_server'
 DISCOVERY_PERIOD_S = 0.5
@@ -118,7 +119,7 @@ class FoxgloveNode(Node):
             else:
                 self._subscribe(topic, type_name)
         self._status_pub = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS,
-                                                 contract.control_qos())
+                                                 ros_qos.control_qos())
         self.status = diag.StatusReporter(
             f'{self.get_fully_qualified_name()}{fg.STATUS_SUFFIX}', 'foxglove',
             self._status_pub.publish, lambda: self.get_clock().now().nanoseconds,
@@ -135,7 +136,7 @@ class FoxgloveNode(Node):
         self.server.add_topic(topic, type_name)
         self._subs[topic] = self.create_subscription(
             message_class(type_name), topic, functools.partial(self._on_message, topic),
-            contract.control_qos(DEPTH), raw=True)
+            ros_qos.control_qos(DEPTH), raw=True)
 
     def _discover(self) -> None:
         """Subscribe to the requested topics of unknown type once the graph shows it."""

@@ -1,6 +1,6 @@
 """nmpc_node: the damping controller at 1/Ts (paper §III.A), publishing each command with its plan.
 
-A thin adapter around :func:`erva_ros.controllers.make_controller` (parameter
+A thin adapter around :func:`erva_ros.core.controllers.make_controller` (parameter
 ``controller``: preview, no_preview, preview_long, skyhook, passive; settings from
 config/nmpc.yaml).  For the newest state x(t_k) and the preview stamped t_k it calls
 ``Controller.compute`` and publishes ``damping_cmd``: points[0] = u_k, points[j] =
@@ -16,7 +16,7 @@ Modes:
   just after the height), so the state-to-command latency is the solve time plus
   message transport; at most one such early solve per tick keeps the rate at 1/Ts
   even if states come faster (the scheduling is
-  :class:`erva_ros.live.sample_schedule.SampleScheduler`, ROS-free).  A solve over
+  :class:`erva_ros.core.loop.sample_schedule.SampleScheduler`, ROS-free).  A solve over
   ``time_budget_s`` still publishes its own plan -- the freshest answer there is --
   counted ``late`` and as a deadline miss, as is a command published later than
   t_k + Ts; a failed or non-finite solve publishes the controller's fallback
@@ -31,7 +31,7 @@ After the scenario's last sample (``duration_s``, by the state stamps *and* the 
 own clock) it stops and reports ``finished``, so the end of the road is not mistaken
 for a lost plant.
 
-Incoming states and previews are validated (erva_ros.live.validation): a non-finite
+Incoming states and previews are validated (erva_ros.core.loop.validation): a non-finite
 or absurd value, or a stamp outside ``[now - max_stamp_age_s, now + max_stamp_lead_s]``
 of the node's clock or off the sample grid, is rejected, counted and logged at a
 limited rate, and never reaches the controller.  Timings and counters are published
@@ -47,18 +47,19 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
-from erva_ros import topics
-from erva_ros.controllers import make_controller
-from erva_ros.controllers.settings import NUMERIC_SPECS
-from erva_ros.live import diagnostics as diag
-from erva_ros.live.msgs import damping_msg, parse_preview, parse_state, s_to_ns
-from erva_ros.live.parameters import (declare_controller_settings, declare_erva_params,
-                                      declare_live, loop_priority, stamp_window)
-from erva_ros.live.runtime import run_node
-from erva_ros.live.sample_schedule import Job, SampleScheduler
-from erva_ros.live.timing import DurationStats, next_grid_delay_ns, PeriodStats
-from erva_ros.live.validation import MessageRejected, Rejections
-from erva_ros.model import STATE_NAMES
+from erva_ros.core import topics
+from erva_ros.ros import qos as ros_qos
+from erva_ros.core.controllers import make_controller
+from erva_ros.core.controllers.settings import NUMERIC_SPECS
+from erva_ros.ros import diagnostics as diag
+from erva_ros.ros.msgs import damping_msg, parse_preview, parse_state, s_to_ns
+from erva_ros.ros.parameters import (declare_controller_settings, declare_erva_params,
+                                     declare_live, loop_priority, stamp_window)
+from erva_ros.ros.runtime import run_node
+from erva_ros.core.loop.sample_schedule import Job, SampleScheduler
+from erva_ros.core.loop.timing import DurationStats, next_grid_delay_ns, PeriodStats
+from erva_ros.core.loop.validation import MessageRejected, Rejections
+from erva_ros.core.model import STATE_NAMES
 
 LIVE_PARAMETERS = ('mode', 'model', 'duration_s', 'state_timeout_periods',
                    'diagnostics_period_s', 'reject_log_period_s', 'max_stamp_lead_s',
@@ -110,12 +111,12 @@ class NMPCNode(Node):
                                      cfg['reject_log_period_s'])
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
 
-        qos = topics.control_qos()
+        qos = ros_qos.control_qos()
         self.pub_cmd = diag.CountedPublisher(self.create_publisher(
             JointTrajectory, topics.DAMPING_CMD,
-            topics.publisher_qos(cfg['publisher_history_s'], self.ts)))
+            ros_qos.publisher_qos(cfg['publisher_history_s'], self.ts)))
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
-                                              topics.diagnostics_qos())
+                                              ros_qos.diagnostics_qos())
         self.status = diag.StatusReporter(
             self.get_fully_qualified_name(), f'controller:{self.controller.name}',
             self.pub_diag.publish, lambda: self.get_clock().now().nanoseconds,

@@ -1,12 +1,12 @@
 """plant_sim_node: the ERVA quarter car (or the linear benchmark) simulated live.
 
-A thin adapter around :class:`erva_ros.plant.PlantSimulator` (paper eq. (11), or
+A thin adapter around :class:`erva_ros.core.plant.PlantSimulator` (paper eq. (11), or
 eq. (15) with ``model: benchmark``).  The plant moves along the road: each road
 height w(t_{k+1}) from road_preview_node advances it one period Ts from t_k with
 the damping u_k held (0.5 ms RK4 sub-steps, road linear in the step), then it
 publishes the state at t_{k+1} and the chassis acceleration and generator outputs
 at t_k (they depend on u_k).  u_k is chosen by
-:class:`~erva_ros.live.command_hold.CommandHold`: the command stamped t_k, else
+:class:`~erva_ros.core.loop.command_hold.CommandHold`: the command stamped t_k, else
 the newest command's plan, else passive c_e0, each counted and reported.
 
 Modes (parameter ``mode``):
@@ -18,7 +18,7 @@ Modes (parameter ``mode``):
   publishes /clock t_{k+1}; the road node answers with w(t_{k+1}) and the loop
   repeats -- deterministic, and equal to the offline closed loop (`erva sim`).
 
-Topics (erva_ros/topics.py): publishes state, sprung_accel, generator,
+Topics (erva_ros/core/topics.py): publishes state, sprung_accel, generator,
 /diagnostics (and /clock); subscribes road/height and damping_cmd.  Being where the
 commands are used, it also measures the loop as it sees it (realtime): state
 published -> its command received (loop_latency_ms) and the command period jitter.
@@ -34,17 +34,18 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
-from erva_ros import topics
-from erva_ros.live import diagnostics as diag
-from erva_ros.live.command_hold import CommandHold
-from erva_ros.live.msgs import (accel_msg, clock_msg, generator_msg, parse_damping,
-                                parse_road_height, s_to_ns, state_msg)
-from erva_ros.live.parameters import (declare_erva_params, declare_live, loop_priority,
-                                      stamp_window)
-from erva_ros.live.runtime import run_node
-from erva_ros.live.timing import DurationStats, PeriodStats
-from erva_ros.live.validation import MessageRejected, Rejections
-from erva_ros.plant import PlantSimulator
+from erva_ros.core import topics
+from erva_ros.ros import qos as ros_qos
+from erva_ros.ros import diagnostics as diag
+from erva_ros.core.loop.command_hold import CommandHold
+from erva_ros.ros.msgs import (accel_msg, clock_msg, generator_msg, parse_damping,
+                               parse_road_height, s_to_ns, state_msg)
+from erva_ros.ros.parameters import (declare_erva_params, declare_live, loop_priority,
+                                     stamp_window)
+from erva_ros.ros.runtime import run_node
+from erva_ros.core.loop.timing import DurationStats, PeriodStats
+from erva_ros.core.loop.validation import MessageRejected, Rejections
+from erva_ros.core.plant import PlantSimulator
 
 LIVE_PARAMETERS = ('mode', 'model', 'ts', 'duration_s', 'command_timeout_s',
                    'lockstep_timeout_s', 'wait_for_subscribers', 'start_delay_s',
@@ -93,15 +94,15 @@ class PlantSimNode(Node):
         self.cmd_period = PeriodStats(cfg['ts'])   # command arrivals |Δt - Ts|
         self._state_pub_ns = 0
 
-        qos = topics.control_qos()
-        pub_qos = topics.publisher_qos(cfg['publisher_history_s'], cfg['ts'])
+        qos = ros_qos.control_qos()
+        pub_qos = ros_qos.publisher_qos(cfg['publisher_history_s'], cfg['ts'])
         counted = diag.CountedPublisher
         self.pub_state = counted(self.create_publisher(JointState, topics.STATE, pub_qos))
         self.pub_accel = counted(self.create_publisher(AccelStamped, topics.SPRUNG_ACCEL,
                                                        pub_qos))
         self.pub_gen = counted(self.create_publisher(JointState, topics.GENERATOR, pub_qos))
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
-                                              topics.diagnostics_qos())
+                                              ros_qos.diagnostics_qos())
         self.pub_clock = (counted(self.create_publisher(ClockMsg, topics.CLOCK, pub_qos))
                           if self.lockstep else None)
         self.status = diag.StatusReporter(

@@ -1,6 +1,6 @@
 """recorder_node: record the session's topics into a rosbag2-compatible MCAP bag.
 
-Subscribes (QoS ``topics.control_qos``: reliable, volatile, keep-last 10) to every
+Subscribes (QoS ``ros_qos.control_qos``: reliable, volatile, keep-last 10) to every
 topic of the live contract -- the ``/erva`` topics resolved against this node's
 namespace, ``/diagnostics`` and ``/clock`` -- and writes each message's CDR bytes as
 received (raw subscription, no re-serialisation) with the times rosbag2 Jazzy records:
@@ -71,13 +71,14 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-from erva_ros import topics as contract
-from erva_ros.bag import BagError
-from erva_ros.bag.qos import profile_to_dict
-from erva_ros.bag.schemas import message_class
-from erva_ros.bag.session import session_metadata
-from erva_ros.bag.writer import BagWriter, COMPRESSIONS, DEFAULT_CHUNK_SIZE
-from erva_ros.live.realtime import MAX_PRIORITY, set_fifo_priority
+from erva_ros.core import topics as contract
+from erva_ros.ros import qos as ros_qos
+from erva_ros.core.bag import BagError
+from erva_ros.core.bag.qos import profile_to_dict
+from erva_ros.ros.bag_messages import message_class
+from erva_ros.core.bag.session import session_metadata
+from erva_ros.core.bag.writer import BagWriter, COMPRESSIONS, DEFAULT_CHUNK_SIZE
+from erva_ros.ros.realtime import MAX_PRIORITY, set_fifo_priority
 
 #: Default topics: relative names resolve against the node namespace (default /erva).
 DEFAULT_TOPICS = [contract.STATE, contract.SPRUNG_ACCEL, contract.GENERATOR,
@@ -158,7 +159,7 @@ class RecorderNode(Node):
         self._subs: Dict[str, object] = {}
         self._pending: Dict[str, Optional[str]] = {}   # topic -> type (None: from graph)
         self._status_pub = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS,
-                                                 contract.diagnostics_qos())
+                                                 ros_qos.diagnostics_qos())
         self._status_seq = 0
         # Timers on the steady clock: under use_sim_time, /clock may not run yet (lock-step
         # waits for the recorder's status before it starts the clock).
@@ -210,7 +211,7 @@ class RecorderNode(Node):
         events = SubscriptionEventCallbacks(message_lost=self._on_lost)
         self._subs[topic] = self.create_subscription(
             cls, topic, functools.partial(self._on_message, topic, type_name),
-            contract.control_qos(RECORDER_DEPTH), raw=True, event_callbacks=events)
+            ros_qos.control_qos(RECORDER_DEPTH), raw=True, event_callbacks=events)
 
     def _on_lost(self, info) -> None:
         """Count messages the middleware reports lost before this node took them."""

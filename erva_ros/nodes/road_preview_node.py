@@ -1,11 +1,11 @@
 """road_preview_node: the road under the wheel and its preview over the NMPC horizon.
 
-Owns the seeded road of :mod:`erva_ros.roads` (paper road, ISO 8608, bump, sine,
-or a recorded CSV profile) built by :func:`erva_ros.live.scenario.build_road`, and
+Owns the seeded road of :mod:`erva_ros.core.roads` (paper road, ISO 8608, bump, sine,
+or a recorded CSV profile) built by :func:`erva_ros.core.loop.scenario.build_road`, and
 publishes for every sample t_k = k·Ts of the scenario (k = 0..duration/Ts):
 
 * ``road/preview``: w(t_k + j·Ts), j = 0..N, degraded by the configured preview
-  error model (:class:`erva_ros.preview.PreviewErrorModel`), for the controller;
+  error model (:class:`erva_ros.core.preview.PreviewErrorModel`), for the controller;
 * ``road/height``: the true w(t_k) at the tyre, for the plant.
 
 The height is published first: the plant's step is on the path to the state,
@@ -25,13 +25,14 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMsg
 from trajectory_msgs.msg import JointTrajectory
 
-from erva_ros import topics
-from erva_ros.live import diagnostics as diag
-from erva_ros.live.msgs import preview_msg, road_height_msg, s_to_ns, time_to_ns
-from erva_ros.live.parameters import declare_live, loop_priority
-from erva_ros.live.runtime import run_node
-from erva_ros.live.scenario import build_preview_model, build_road
-from erva_ros.live.validation import Rejections
+from erva_ros.core import topics
+from erva_ros.ros import qos as ros_qos
+from erva_ros.ros import diagnostics as diag
+from erva_ros.ros.msgs import preview_msg, road_height_msg, s_to_ns, time_to_ns
+from erva_ros.ros.parameters import declare_live, loop_priority
+from erva_ros.ros.runtime import run_node
+from erva_ros.core.loop.scenario import build_preview_model, build_road
+from erva_ros.core.loop.validation import Rejections
 
 LIVE_PARAMETERS = ('mode', 'ts', 'duration_s', 'road', 'road_file', 'seed', 'road_class',
                    'speed_mps', 'bump_height_m', 'bump_length_m', 'bump_start_s',
@@ -65,17 +66,17 @@ class RoadPreviewNode(Node):
         self.rejections = Rejections(self.get_logger().warning, time.monotonic,
                                      cfg['reject_log_period_s'])
 
-        qos = topics.control_qos()
+        qos = ros_qos.control_qos()
         if cfg['mode'] == 'lockstep':
             # Subscribed before the publishers exist: the plant waits for them to appear.
             self.create_subscription(ClockMsg, topics.CLOCK, self._on_clock, qos)
-        pub_qos = topics.publisher_qos(cfg['publisher_history_s'], self.ts)
+        pub_qos = ros_qos.publisher_qos(cfg['publisher_history_s'], self.ts)
         self.pub_preview = diag.CountedPublisher(
             self.create_publisher(JointTrajectory, topics.ROAD_PREVIEW, pub_qos))
         self.pub_height = diag.CountedPublisher(
             self.create_publisher(PointStamped, topics.ROAD_HEIGHT, pub_qos))
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
-                                              topics.diagnostics_qos())
+                                              ros_qos.diagnostics_qos())
         self.status = diag.StatusReporter(
             self.get_fully_qualified_name(), f'road:{self.road.name}', self.pub_diag.publish,
             lambda: self.get_clock().now().nanoseconds, self._diag_values,

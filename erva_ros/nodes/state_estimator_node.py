@@ -1,6 +1,6 @@
 """state_estimator_node: the NMPC's state ``/erva/state`` from the ECU's sensors (HIL mode).
 
-A thin rclpy adapter around :class:`erva_ros.estimator.ExtendedKalmanFilter` (the shared
+A thin rclpy adapter around :class:`erva_ros.core.estimator.ExtendedKalmanFilter` (the shared
 CasADi model, paper eq. (11)).  It subscribes to ``ecu/measurements``, the one message
 ecu_bridge_node publishes per ECU cycle (stamp t_k; c_e applied and cycle-mean c_e,
 sprung acceleration, deflection, rotor speed, generator force), plus ``road/height`` (the road
@@ -11,7 +11,7 @@ out, the cycle counted ``incomplete``; a lost status frame holds the last applie
 and the estimate published on ``state`` with stamp t_k; predict and update are one
 compiled CasADi call (:meth:`ExtendedKalmanFilter.cycle`).  ``ecu/measurements`` is taken
 by its own thread straight from its wait set, not by the executor
-(:class:`~erva_ros.live.rt_subscription.RealtimeSubscription`, subscriber node
+(:class:`~erva_ros.ros.rt_subscription.RealtimeSubscription`, subscriber node
 ``state_estimator_node_rt``), and 4 ms before the next cycle is due that thread runs the
 cycle's computation once on scratch copies, so the real one finds the CPU caches warm
 (cold, after ~Ts asleep, it costs ~4x).  A malformed message (names, sizes), an absurd
@@ -44,21 +44,22 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from erva_ros import topics
-from erva_ros.estimator import ExtendedKalmanFilter
-from erva_ros.hil import topics as hil_topics
-from erva_ros.hil.latency import LatencyStats
-from erva_ros.hil.road_buffer import RoadBuffer
-from erva_ros.hil.settings import (ESTIMATOR_DEFAULTS, ESTIMATOR_NUMERIC, INTEGER_KEYS,
-                                   noise_of, TS_SPEC)
-from erva_ros.live import diagnostics as diag
-from erva_ros.live.cdr import CdrError, decode_joint_state, JointStateEncoder
-from erva_ros.live.msgs import NS, state_joint_names, time_to_ns
-from erva_ros.live.parameters import (declare_bool, declare_choice, declare_erva_params,
-                                      declare_live, declare_number, LIVE_CHOICES,
-                                      loop_priority)
-from erva_ros.live.rt_subscription import RealtimeSubscription
-from erva_ros.live.runtime import run_node
+from erva_ros.core import topics
+from erva_ros.ros import qos as ros_qos
+from erva_ros.core.estimator import ExtendedKalmanFilter
+from erva_ros.core.hil import topics as hil_topics
+from erva_ros.core.hil.latency import LatencyStats
+from erva_ros.core.hil.road_buffer import RoadBuffer
+from erva_ros.core.hil.settings import (ESTIMATOR_DEFAULTS, ESTIMATOR_NUMERIC, INTEGER_KEYS,
+                                        noise_of, TS_SPEC)
+from erva_ros.ros import diagnostics as diag
+from erva_ros.ros.cdr import CdrError, decode_joint_state, JointStateEncoder
+from erva_ros.ros.msgs import NS, state_joint_names, time_to_ns
+from erva_ros.ros.parameters import (declare_bool, declare_choice, declare_erva_params,
+                                     declare_live, declare_number, LIVE_CHOICES,
+                                     loop_priority)
+from erva_ros.ros.rt_subscription import RealtimeSubscription
+from erva_ros.ros.runtime import run_node
 
 #: Plausibility bounds of the measurements (absurd beyond: rejected, counted); speed is
 #: the rotor speed phi' = v_gen / l (rad/s), applied the c_e's (Ns/m, >= 0), force in N.
@@ -138,21 +139,21 @@ class StateEstimatorNode(Node):
         self.lag_state = LatencyStats()     # sample instant -> state published
         self.status_level, self.status_text = diag.WARN, 'waiting for ECU measurements'
 
-        qos = topics.control_qos()
+        qos = ros_qos.control_qos()
         self.pub_state = diag.CountedPublisher(self.create_publisher(
-            JointState, topics.STATE, topics.publisher_qos(live['publisher_history_s'],
-                                                           self.ts)))
+            JointState, topics.STATE,
+            ros_qos.publisher_qos(live['publisher_history_s'], self.ts)))
         self.counted_publishers = [self.pub_state]
         self._status_seq = itertools.count(1)
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
-                                              topics.diagnostics_qos())
+                                              ros_qos.diagnostics_qos())
         # The road (executor thread) and the measurements (their own thread) share the
         # filter's inputs and counters: one lock (re-entrant: a cycle may publish
         # diagnostics).
         self.lock = threading.RLock()
         self.road_arrived = threading.Condition(self.lock)
         # ecu/measurements is on the loop's critical path: taken by its own thread, not
-        # the executor (erva_ros/live/rt_subscription.py; ~0.5 ms less per cycle).  That
+        # the executor (erva_ros/ros/rt_subscription.py; ~0.5 ms less per cycle).  That
         # thread also warms the caches WARM_LEAD_S before the next cycle is due: it runs
         # the cycle's computation once on scratch copies (armed by every cycle, so it
         # follows the ECU's phase).
@@ -263,7 +264,7 @@ class StateEstimatorNode(Node):
     def _step(self, stamp_ns: int, u_now: float, u_mean: float, y) -> float:
         """Predict from the last estimate to ``stamp_ns`` and correct with y; return NIS.
 
-        y is in erva_ros.estimator.MEASUREMENTS order, NaN = missing.
+        y is in erva_ros.core.estimator.MEASUREMENTS order, NaN = missing.
         """
         t1 = stamp_ns / NS
         if len(self.road) == 0:
@@ -300,7 +301,7 @@ class StateEstimatorNode(Node):
             self._publish_diagnostics()
 
     def _state_bytes(self, stamp_ns: int) -> bytes:
-        """Return the estimate serialized as erva_ros.live.msgs.state_msg's JointState."""
+        """Return the estimate serialized as erva_ros.ros.msgs.state_msg's JointState."""
         x = self.ekf.x
         return self.state_encoder.encode(stamp_ns, x[0::2].tolist(), x[1::2].tolist())
 

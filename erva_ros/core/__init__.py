@@ -1,0 +1,1 @@
+"""core ring: plain Python (no rclpy, no message packages)."""

@@ -1,0 +1,59 @@
+"""Where erva_ros finds its shipped files and the ROS packages' share directories.
+
+One home for the lookup every tool needs: ``config/<name>`` of the source tree, else of the
+installed package (``<prefix>/share/erva_ros/config`` for each prefix of
+AMENT_PREFIX_PATH, as colcon installs it, then the Python prefix's, as pip installs the
+data files).  The ament index is a directory of marker files, read here directly: the
+core ring stays free of ROS imports, and a PyPI install (no ament index) works the same.
+"""
+
+import functools
+import os
+import sys
+from typing import List
+
+from erva_ros.core.params import ParamError
+
+PACKAGE = 'erva_ros'
+#: The source tree's config/ (erva_ros/core/config.py -> <repo>/config).
+SOURCE_CONFIG = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)),
+                                              '..', '..', 'config'))
+
+
+def prefixes() -> List[str]:
+    """Return the install prefixes to search: AMENT_PREFIX_PATH, then sys.prefix."""
+    out = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+    return out + ([sys.prefix] if sys.prefix not in out else [])
+
+
+def shipped_config(name: str, hint: str = '') -> str:
+    """Return the path of the shipped ``config/<name>``; ParamError (one line) if missing."""
+    candidates = [os.path.join(SOURCE_CONFIG, name)]
+    candidates += [os.path.join(p, 'share', PACKAGE, 'config', name) for p in prefixes()]
+    for cand in candidates:
+        if os.path.isfile(cand):
+            return os.path.normpath(cand)
+    raise ParamError(f'cannot find config/{name}' + (f'; {hint}' if hint else ''))
+
+
+@functools.lru_cache(maxsize=None)
+def share_directory(package: str) -> str:
+    """Return ``<prefix>/share/<package>`` of the first prefix that indexes ``package``.
+
+    ParamError if none does (the ament index: share/ament_index/resource_index/packages).
+    """
+    for prefix in prefixes():
+        marker = os.path.join(prefix, 'share', 'ament_index', 'resource_index', 'packages',
+                              package)
+        share = os.path.join(prefix, 'share', package)
+        if os.path.isfile(marker) and os.path.isdir(share):
+            return share
+    for prefix in prefixes():           # installed without an index entry (pip data files)
+        share = os.path.join(prefix, 'share', package)
+        if os.path.isdir(share):
+            return share
+    raise ParamError(f'package {package!r} not found (AMENT_PREFIX_PATH or '
+                     f'{sys.prefix}/share)')
+
+
+__all__ = ['PACKAGE', 'SOURCE_CONFIG', 'prefixes', 'shipped_config', 'share_directory']

@@ -1,0 +1,52 @@
+"""Controllers of the ERVA damping (no ROS inside): passive, skyhook, the NMPC and the bound.
+
+Use :func:`make_controller` with a name from :data:`CONTROLLER_NAMES`:
+
+==============  ==========================================================================
+passive         u = c_e0 (paper's passive ERVA)
+skyhook         on-off (Karnopp) skyhook on ż_s·(ż_s − ż_us), see skyhook.py
+no_preview      NMPC (paper §III.A), road predicted by holding the measured height
+preview         NMPC with the road preview over the horizon (paper §IV.B)
+preview_long    NMPC with a longer, non-uniform horizon and move blocking (beyond the paper)
+==============  ==========================================================================
+
+The clairvoyant bound (one OCP over the whole run) is not a causal controller; see
+:mod:`erva_ros.core.controllers.clairvoyant`.
+"""
+
+from typing import Optional
+
+from erva_ros.core.controllers.base import ControlResult, Controller, SolveFailure, STATUSES
+from erva_ros.core.controllers.settings import (CONTROLLER_NAMES, ControllerSettings,
+                                                load_controller_settings)
+from erva_ros.core.params import ERVAParams, ParamError
+
+
+def make_controller(name: Optional[str], params: ERVAParams,
+                    settings: Optional[ControllerSettings] = None, kind: str = 'erva'
+                    ) -> Controller:
+    """Build the controller ``name`` (default settings.controller) for the model ``kind``."""
+    settings = settings or ControllerSettings()
+    name = name or settings.controller
+    if name not in CONTROLLER_NAMES:
+        raise ParamError(f'unknown controller {name!r}; choose one of '
+                         f'{", ".join(CONTROLLER_NAMES)}')
+    common = dict(horizon=settings.horizon, ts=settings.ts, u_min=settings.u_min,
+                  u_max=settings.u_max, c_e0=params.c_e0)
+    if name == 'passive':
+        from erva_ros.core.controllers.passive import PassiveController
+        return PassiveController(**common)   # constant: nothing to compensate
+    if name == 'skyhook':
+        from erva_ros.core.controllers.skyhook import SkyhookController
+        ctrl = SkyhookController(**common)
+    else:
+        from erva_ros.core.controllers.nmpc import NMPCController
+        ctrl = NMPCController(params, settings.with_(controller=name), kind=kind)
+    if settings.command_delay_s > 0:
+        from erva_ros.core.model import get_model
+        ctrl.compensate_delay(get_model(params, kind), settings.command_delay_s)
+    return ctrl
+
+
+__all__ = ['ControlResult', 'Controller', 'SolveFailure', 'STATUSES', 'CONTROLLER_NAMES',
+           'ControllerSettings', 'load_controller_settings', 'make_controller']

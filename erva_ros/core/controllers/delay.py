@@ -1,0 +1,51 @@
+"""Command-delay compensation: plan for the instant the command will act.
+
+The paper's NMPC (§III.A) plans u_k for [t_k, t_k + Ts) from x(t_k).  On a vehicle, and in
+`erva run --ecu virtual`, the command reaches the generator a delay d after the sample
+t_k (sensors → CAN → bridge → estimator → solve → CAN → ECU: ≈ 8 ms of the 20 ms period),
+and the previous command acts until then.  Planned for t_k, the first move is then
+applied too late throughout.  With a known d (setting ``command_delay_s``) the
+controller instead
+
+1. predicts x(t_k + d) from x(t_k) with the shared model (paper eq. (11), RK4 in steps
+   of at most 0.5 ms, the plant's), the command now acting held, and the road linear
+   from w(t_k) to w(t_k + d) (interpolated in the preview);
+2. shifts the preview by d: w(t_k + d + j·Ts) by linear interpolation between preview
+   samples, the last one held;
+3. plans from there, so u_k is optimised for [t_k + d, t_{k+1} + d), when it acts.
+
+The offline closed loop reproduces such a delay with ``actuation_delay_s``
+(erva_ros/core/closed_loop.py; `erva sim --actuation-delay`), so the compensation is
+measured there too.
+"""
+
+import math
+from typing import Tuple
+
+import numpy as np
+
+from erva_ros.core.codegen import BufferedCall
+from erva_ros.core.model import PLANT_SUBSTEP_S, QuarterCarModel
+
+
+class DelayCompensation:
+    """Predict the state and the road preview ``delay_s`` ahead (see module doc)."""
+
+    def __init__(self, model: QuarterCarModel, ts: float, delay_s: float):
+        if not 0.0 < delay_s < ts:
+            raise ValueError(f'command delay must be in (0, Ts = {ts:g} s), got {delay_s:g} s')
+        self.ts = float(ts)
+        self.delay_s = float(delay_s)
+        substeps = max(1, math.ceil(self.delay_s / PLANT_SUBSTEP_S - 1e-9))
+        self._step = BufferedCall(model.rk4_step(self.delay_s, substeps))
+
+    def __call__(self, x: np.ndarray, u_acting: float, preview: np.ndarray
+                 ) -> Tuple[np.ndarray, np.ndarray]:
+        """Return (x(t_k + d), preview shifted by d) for x(t_k) and w(t_k + j·Ts), j = 0..N."""
+        preview = np.asarray(preview, dtype=float)
+        grid = self.ts * np.arange(preview.size)
+        shifted = np.interp(grid + self.delay_s, grid, preview)   # holds past the end
+        return self._step(x, u_acting, preview[0], shifted[0])[0], shifted
+
+
+__all__ = ['DelayCompensation']

@@ -1,0 +1,580 @@
+r"""Nonlinear MPC of the ERVA damping (paper §III.A, eqs. (12)-(14)), on the shared CasADi model.
+
+Optimal control problem solved at every sample t_k (paper eq. (14)):
+
+    min_u  Σ_k ℓ_k     s.t.  x_0 = x(t_k),  ẋ = Φ(x)⁻¹ f(x, u_k, w)  on each interval,
+                             u_k ∈ [u_min, u_max]
+
+Prediction model -- direct collocation, multiple shooting.  Each interval is one
+Radau IIA collocation step (degree 3, order 5) of the shared model's ``ode``
+(:mod:`erva_ros.core.model`; no second copy of the equations).  Radau IIA is L-stable,
+so the prediction is stable for every damping in the box; NOTES.md's warning (an
+optimizer "harvests" the integration error of a too coarse explicit step) is
+checked by ``test_ctrl_nmpc.py`` against the plant's 0.5 ms RK4 over the whole
+box: for bang-bang switching between the box corners degree 3 *under*-predicts
+the harvested energy by ~2 % (never over-predicts), degree 5 agrees to 0.1 %.
+The road is linear between preview samples, as in the plant.
+
+Stage cost ℓ_k, setting ``cost``:
+
+``paper``  as printed after eq. (14):
+           ℓ_k = α1/Ts²·[x_a(k) − x_a(k−1)]² − α2·u_k·[x6(k) − x_{2\4}(k)]²,
+           x_a(k) = ẋ_2 at node k with u_k, x_a(−1) the acceleration of the previous
+           sample.  The comfort term penalises the *change* of acceleration (a jerk-
+           like term); the power is sampled at the nodes.
+``continuous``  the running cost of eq. (12) integrated over each interval with the
+           collocation quadrature: ℓ_k = (1/Ts)∫ α1·x_a² − α2·P dt.
+
+Horizon: ``preview``/``no_preview`` use N intervals of Ts (paper: N = 10, Ts = 20 ms).
+``preview_long`` adds a terminal value for what lies beyond the horizon: a credit of
+α2·``terminal_weight``·E_stored(x_N)/Ts for the mechanical energy stored at the end
+(default weight 0.5: part of the stored energy can still be harvested later), so the
+controller may let the absorber build up motion instead of draining it greedily, and
+uses the ``long_cost`` stage cost (default ``continuous``: the paper's node-sampled
+power rewards switching to u_max exactly at a sample, where the generator velocity
+then decays within milliseconds).  It can also append ``long_steps`` longer intervals of
+``long_step_s`` (non-uniform steps; u held over each = move blocking), off by
+default: with the real-time solver they harvested less (see README).  The terminal
+credit acts only when α2 > 0.
+
+Road: ``preview`` uses the preview w(t_k + j·Ts); ``no_preview`` the measured height
+w(t_k) held over the horizon (``road_prediction: hold``) or 0 (``zero``).
+
+Solvers (``solver``):
+
+``sqp``    real-time: a reduced-space SQP built once as *one* CasADi Function with
+           ``max_iter`` unrolled iterations (no Python per iteration).  It starts from
+           the best (by the true objective) of the warm start, a constant-c_e0 plan
+           and the warm start with its first move at u_max or u_min.  Each iteration:
+           roll the plan out with the model's RK4 (a nearly feasible point), linearise
+           the collocation NLP there, condense onto the N inputs (sparse LU of the
+           constraint Jacobian), build the reduced Hessian
+           from the cost's exact Hessian (Gauss-Newton type: constraint curvature
+           left out), solve the N-variable box QP (qpOASES, dense; not convexified,
+           qpOASES returns a local solution), and keep the best of the steps 1, ½, 0
+           by the true objective -- so the cost never increases.
+``ipopt``  converged reference on the same collocation NLP (tol 1e-8), solved from
+           ``ipopt_starts`` of the SQP's starts (default 2: the warm start and constant
+           c_e0), keeping the best local optimum.
+
+Warm start: the previous plan shifted by one sample (last value repeated).
+Variables are scaled (u by 10 kNs/m, positions by 1 cm, velocities by 0.1 m/s).
+"""
+
+from contextlib import contextmanager
+from dataclasses import dataclass
+from functools import lru_cache
+import math
+import os
+import sys
+from typing import Tuple
+
+import casadi as ca
+import numpy as np
+
+from erva_ros.core.controllers.base import Controller, SolveFailure
+from erva_ros.core.codegen import BufferedCall, compile_for
+from erva_ros.core.controllers.settings import ControllerSettings
+from erva_ros.core.model import get_model, linearize, QuarterCarModel
+from erva_ros.core.params import ERVAParams, ParamError
+
+#: Scales of the decision variables (u in Ns/m; positions m; velocities m/s).
+U_SCALE = 1e4
+X_SCALE = {'erva': (1e-2, 0.1, 1e-2, 0.1, 1e-2, 0.1), 'benchmark': (1e-2, 0.1, 1e-2, 0.1)}
+#: IPOPT tolerance of the converged reference.
+IPOPT_TOL = 1e-8
+#: Radau IIA collocation degree of the prediction model (order 2·d − 1 = 5, L-stable).
+COLLOCATION_DEGREE = 3
+#: Longest RK4 sub-step of the rollout (s); shortened if needed for stability at u_max.
+ROLLOUT_SUBSTEP_S = 2.5e-3
+#: Other starts the real-time SQP compares with the warm start (NMPCController._alternatives).
+N_ALTERNATIVES = 3
+#: Step lengths tried by the real-time SQP's line search (0: keep the iterate).
+LINE_SEARCH_STEPS = (1.0, 0.5)
+
+
+@contextmanager
+def _quiet_stdout():
+    """Silence file descriptor 1: qpOASES prints its licence banner on first use."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(devnull)
+        os.close(saved)
+
+
+def stable_rollout_substep(model: QuarterCarModel, u_max: float) -> float:
+    """Return an RK4 sub-step (s) with h·|λ_max| ≤ 1.39 (half the limit) at ``u_max``."""
+    a, _, _ = linearize(model, u0=u_max)
+    lam = float(np.max(np.abs(np.linalg.eigvals(a))))
+    return min(ROLLOUT_SUBSTEP_S, 1.39 / lam)
+
+
+def _road_weights(blocks: Tuple[int, ...], taus) -> Tuple[np.ndarray, np.ndarray]:
+    """Return interpolation matrices: road at interval starts and at collocation points.
+
+    The road is linear between preview samples (as in the plant), so w at any time is
+    a fixed linear combination of the H + 1 preview values.
+    """
+    horizon = int(sum(blocks))
+    starts = np.cumsum((0,) + tuple(blocks[:-1]))
+    eye = np.eye(horizon + 1)
+
+    def row(sample_time):
+        i = min(int(np.floor(sample_time)), horizon - 1)
+        f = sample_time - i
+        return (1 - f) * eye[i] + f * eye[i + 1]
+
+    w_start = np.array([row(s) for s in starts])
+    w_col = np.array([[row(s + tau * m) for tau in taus] for s, m in zip(starts, blocks)])
+    return w_start, w_col
+
+
+@dataclass(eq=False)   # hashed by identity: one OCP per configuration (lru_cache)
+class OCP:
+    """The collocation NLP of one configuration, its layout and its solvers (shareable).
+
+    Decision vector z, stage by stage: x_k = [state/scale, x_a(k−1)], u_k = [u/U_SCALE,
+    x_a(k), collocation states/scale]; then x_B (x_a only with the paper cost).
+    Constraints per stage: the shooting gap x_{k+1} − [last collocation state, x_a(k)],
+    then the path equalities (collocation, x_a(k) = ẋ_2(x_k, u_k, w_k)).
+    Parameters p = [w (H + 1 preview heights), α1, α2].
+    """
+
+    nlp: ca.Function             # (z, p) -> (f, g)
+    rollout: ca.Function         # (x0, a_prev, u per interval, w) -> z, by RK4
+    blocks: Tuple[int, ...]
+    nx: int
+    degree: int
+    with_acc: bool
+    u_min: float
+    u_max: float
+    x_scale: np.ndarray
+
+    @property
+    def horizon(self) -> int:
+        """Return the number of samples H = Σ blocks."""
+        return int(sum(self.blocks))
+
+    @property
+    def nxa(self) -> int:
+        """Return the stage state size (model states, plus x_a(k−1) for the paper cost)."""
+        return self.nx + int(self.with_acc)
+
+    @property
+    def stage(self) -> int:
+        """Return the number of decision variables per stage."""
+        return self.nxa + 1 + int(self.with_acc) + self.degree * self.nx
+
+    @property
+    def nz(self) -> int:
+        """Return the size of the decision vector."""
+        return len(self.blocks) * self.stage + self.nxa
+
+    @property
+    def u_index(self) -> np.ndarray:
+        """Return the positions of the scaled inputs in z."""
+        return np.arange(len(self.blocks)) * self.stage + self.nxa
+
+    def bounds(self, x0: np.ndarray, a_prev: float) -> Tuple[np.ndarray, np.ndarray]:
+        """Return (lbz, ubz): the input box, and the first stage state fixed to x(t_k)."""
+        lbz = np.full(self.nz, -np.inf)
+        ubz = np.full(self.nz, np.inf)
+        lbz[self.u_index] = self.u_min / U_SCALE
+        ubz[self.u_index] = self.u_max / U_SCALE
+        x0s = np.r_[x0 / self.x_scale, [a_prev] if self.with_acc else []]
+        lbz[:self.nxa] = ubz[:self.nxa] = x0s
+        return lbz, ubz
+
+    def nodes(self, z: np.ndarray) -> np.ndarray:
+        """Return the predicted states at the interval ends, (B + 1, nx) in SI units."""
+        nb = len(self.blocks)
+        body = z[:nb * self.stage].reshape(nb, self.stage)
+        xs = np.vstack([body[:, :self.nx], z[nb * self.stage:][None, :self.nx]])
+        return xs * self.x_scale
+
+
+@lru_cache(maxsize=32)
+def build_ocp(model: QuarterCarModel, ts: float, blocks: Tuple[int, ...], cost: str,
+              u_min: float, u_max: float, terminal_weight: float = 0.0,
+              degree: int = COLLOCATION_DEGREE,
+              rollout_substep_s: float = ROLLOUT_SUBSTEP_S) -> OCP:
+    """Build (once per configuration) the collocation NLP and the RK4 rollout.
+
+    ``cost`` is 'paper' or 'continuous' (see the module doc) or 'bound', the objective
+    of the clairvoyant bound: Σ_k α1·x_a(t_k)² − α2·E_k/Ts, i.e. n·(α1·acc_rms² −
+    α2·P_avg) with the acceleration sampled at t_k and the energy E_k integrated.
+    """
+    nx = model.nx
+    horizon = int(sum(blocks))
+    xs = np.array(X_SCALE[model.kind])
+    xs_col = ca.DM(xs)
+    taus = [float(t) for t in ca.collocation_points(degree, 'radau')]
+    c_mat, d_vec, b_vec = (np.asarray(m) for m in ca.collocation_coeff(taus))
+    w_start, w_col = _road_weights(blocks, taus)
+    with_acc = cost in ('paper', 'bound')
+    nxa = nx + int(with_acc)
+
+    w = ca.SX.sym('w', horizon + 1)
+    alpha = ca.SX.sym('alpha', 2)
+    z, g = [], []
+    obj = 0
+    xk_s = ca.SX.sym('x0', nxa)
+    z.append(xk_s)
+    for i, m in enumerate(blocks):
+        h = m * ts
+        x = xk_s[:nx] * xs_col
+        v = ca.SX.sym(f'v{i}')
+        u = U_SCALE * v
+        w_i = ca.mtimes(w_start[i:i + 1, :], w)
+        z.append(v)
+        path = []
+        if with_acc:
+            # x_a(k) as a variable: the jerk-like term is a convex quadratic inside
+            # the stage (x_a(k−1) is carried in the stage state).
+            a = ca.SX.sym(f'a{i}')
+            z.append(a)
+            if cost == 'paper':
+                obj += alpha[0] / (m * ts ** 2) * (a - xk_s[nx]) ** 2 \
+                    - alpha[1] * m * model.power(x, u)
+            else:
+                obj += alpha[0] * m * a ** 2
+        xc_s = ca.SX.sym(f'xc{i}', nx, degree)
+        z.append(ca.vec(xc_s))
+        xc = [xc_s[:, r] * xs_col for r in range(degree)]
+        pts = [x] + xc
+        for r in range(degree):
+            w_r = ca.mtimes(w_col[i, r:r + 1, :], w)
+            slope = sum(c_mat[s, r] * pts[s] for s in range(degree + 1))
+            path.append((slope - h * model.ode(xc[r], u, w_r)) / xs_col)
+            if cost == 'continuous':
+                acc = model.sprung_accel(xc[r], u, w_r)
+                obj += h * b_vec[r] * (alpha[0] * acc ** 2
+                                       - alpha[1] * model.power(xc[r], u)) / ts
+            elif cost == 'bound':
+                obj -= h * b_vec[r] * alpha[1] * model.power(xc[r], u) / ts
+        if with_acc:
+            path.append(a - model.sprung_accel(x, u, w_i))
+        x_end = sum(d_vec[s] * pts[s] for s in range(degree + 1)) / xs_col
+        xk_s = ca.SX.sym(f'x{i + 1}', nxa)
+        z.append(xk_s)
+        g.append(xk_s - (ca.vertcat(x_end, a) if with_acc else x_end))
+        g.append(ca.vertcat(*path))
+    if terminal_weight > 0:
+        # Stored mechanical energy is worth harvesting later: credit a share of it.
+        obj -= terminal_weight * alpha[1] * model.energy(xk_s[:nx] * xs_col, w[horizon]) / ts
+    nlp = ca.Function('nlp', [ca.vertcat(*z), ca.vertcat(w, alpha)], [obj, ca.vertcat(*g)],
+                      ['z', 'p'], ['f', 'g'])
+
+    # Rollout: the decision vector of a plan, by the model's RK4 through every
+    # collocation point (a point with tiny collocation defects).
+    x0 = ca.SX.sym('x0', nx)
+    a_prev = ca.SX.sym('a_prev')
+    ub = ca.SX.sym('ub', len(blocks))
+    xr = x0
+    a_last = a_prev
+    zr = []
+    for i, m in enumerate(blocks):
+        h = m * ts
+        w_i = ca.mtimes(w_start[i:i + 1, :], w)
+        acc = model.sprung_accel(xr, U_SCALE * ub[i], w_i)
+        zr += [xr / xs_col] + ([a_last] if with_acc else []) + [ub[i]] + \
+            ([acc] if with_acc else [])
+        a_last = acc
+        tau_prev, w_prev = 0.0, w_i
+        for r in range(degree):
+            w_r = ca.mtimes(w_col[i, r:r + 1, :], w)
+            dt = (taus[r] - tau_prev) * h
+            step = model.rk4_step(dt, max(1, int(np.ceil(dt / rollout_substep_s - 1e-9))))
+            xr = step(xr, U_SCALE * ub[i], w_prev, w_r)
+            zr.append(xr / xs_col)
+            tau_prev, w_prev = taus[r], w_r
+    zr += [xr / xs_col] + ([a_last] if with_acc else [])
+    rollout = ca.Function('rollout', [x0, a_prev, ub, w], [ca.vertcat(*zr)],
+                          ['x0', 'a_prev', 'u', 'w'], ['z'])
+    return OCP(nlp, rollout, tuple(blocks), nx, degree, with_acc, float(u_min), float(u_max),
+               xs)
+
+
+@lru_cache(maxsize=32)
+def build_ipopt(ocp: OCP, max_iter: int) -> ca.Function:
+    """Return IPOPT on the OCP's NLP (the converged reference)."""
+    zs = ca.SX.sym('z', ocp.nz)
+    ps = ca.SX.sym('p', ocp.nlp.size1_in(1))
+    f, g = ocp.nlp(zs, ps)
+    opts = {'ipopt': {'print_level': 0, 'tol': IPOPT_TOL, 'max_iter': int(max_iter),
+                      'sb': 'yes', 'mu_strategy': 'adaptive'},
+            'print_time': False, 'error_on_fail': False}
+    return ca.nlpsol('nmpc_ipopt', 'ipopt', {'x': zs, 'p': ps, 'f': f, 'g': g}, opts)
+
+
+@lru_cache(maxsize=32)
+def build_rti(ocp: OCP, iterations: int, codegen: str = 'off',
+              n_alt: int = 1) -> ca.Function:
+    """Return the real-time reduced-space SQP as one Function (see module doc).
+
+    (x0, a_prev, u_guess, u_alt (scaled, per interval), p) -> (u, z, f, improved).
+    ``codegen`` (auto/on/off) compiles its model functions to C (erva_ros/core/codegen.py).
+    """
+    nz, nb = ocp.nz, len(ocp.blocks)
+    zs = ca.SX.sym('z', nz)
+    ps = ca.SX.sym('p', ocp.nlp.size1_in(1))
+    f, g = ocp.nlp(zs, ps)
+    first = ca.Function('first_order', [zs, ps], [f, g, ca.gradient(f, zs), ca.jacobian(g, zs)])
+    # Gauss-Newton-type Hessian: the exact Hessian of the cost, constraint curvature
+    # left out (measured: fewer stalls and ~4x cheaper than the exact Lagrangian one).
+    hess = ca.Function('cost_hessian', [zs, ps], [ca.hessian(f, zs)[0]])
+    nlp, rollout = ocp.nlp, ocp.rollout
+    first, hess, nlp, rollout = compile_for(codegen, (first, hess, nlp, rollout),
+                                            'the NMPC solver')
+    u_idx = [int(i) for i in ocp.u_index]
+    dep = [i for i in range(ocp.nxa, nz) if i not in set(u_idx)]   # x_0 is fixed
+    p_u = ca.DM(ca.Sparsity.triplet(nz, nb, u_idx, list(range(nb))), 1.0)
+    p_d = ca.DM(ca.Sparsity.triplet(nz, len(dep), dep, list(range(len(dep)))), 1.0)
+    with _quiet_stdout():
+        qp = ca.conic('rti_qp', 'qpoases',
+                      {'h': ca.Sparsity.dense(nb, nb), 'a': ca.Sparsity(0, nb)},
+                      {'printLevel': 'none', 'error_on_fail': False})
+    lo, hi = ocp.u_min / U_SCALE, ocp.u_max / U_SCALE
+
+    x0 = ca.MX.sym('x0', ocp.nx)
+    a_prev = ca.MX.sym('a_prev')
+    u_guess = ca.MX.sym('u_guess', nb)
+    p = ca.MX.sym('p', ps.shape[0])
+    w = p[:ocp.horizon + 1]
+
+    def objective(uu):
+        zz = rollout(x0, a_prev, uu, w)
+        return zz, nlp(zz, p)[0]
+
+    # Start from the best of the warm start and the alternatives (columns of u_alt):
+    # the OCP is non-convex and a shifted plan can sit in a poor basin.
+    u_alt = ca.MX.sym('u_alt', nb, n_alt)
+    u = ca.fmin(ca.fmax(u_guess, lo), hi)
+    z, fz = objective(u)
+    for j in range(n_alt):
+        ua = ca.fmin(ca.fmax(u_alt[:, j], lo), hi)
+        za, fa = objective(ua)
+        use_alt = fa < fz
+        u = ca.if_else(use_alt, ua, u)
+        z = ca.if_else(use_alt, za, z)
+        fz = ca.fmin(fa, fz)
+    improved = 0
+    for _ in range(iterations):
+        fz, gz, grad, jac = first(z, p)
+        jd = jac[:, dep]
+        sens = -ca.solve(jd, ca.horzcat(gz, jac[:, u_idx]), 'csparse')
+        zp = ca.mtimes(p_d, sens[:, 0])                        # closes the tiny defects
+        zu = ca.mtimes(p_d, sens[:, 1:]) + p_u                 # dz/du on the constraints
+        h = hess(z, p)
+        hr = ca.mtimes([zu.T, h, zu])
+        # Not convexified: qpOASES returns a local solution of the (bounded) QP and
+        # the line search below only accepts a decrease of the true objective.
+        hr = 0.5 * (hr + hr.T) + 1e-9 * ca.MX.eye(nb)
+        gr = ca.mtimes(zu.T, grad + ca.mtimes(h, zp))
+        du = qp(h=hr, g=gr, lbx=lo - u, ubx=hi - u)['x']
+        best_u, best_z, best_f, gain = u, z, fz, 0
+        for step in LINE_SEARCH_STEPS:
+            # Clipping maps NaN to a bound, so candidates are always finite inputs.
+            uc = ca.fmin(ca.fmax(u + step * du, lo), hi)
+            zc, fc = objective(uc)
+            better = fc < best_f      # False for NaN: a failed QP never moves the plan
+            best_u = ca.if_else(better, uc, best_u)
+            best_z = ca.if_else(better, zc, best_z)
+            best_f = ca.fmin(fc, best_f)
+            gain = ca.fmax(gain, better)
+        u, z, fz = best_u, best_z, best_f
+        improved = improved + gain
+    rti = ca.Function('nmpc_rti', [x0, a_prev, u_guess, u_alt, p], [u, z, fz, improved],
+                      ['x0', 'a_prev', 'u_guess', 'u_alt', 'p'], ['u', 'z', 'f', 'improved'])
+    with _quiet_stdout():   # first call allocates the QP memory (and prints the banner)
+        rti(np.zeros(ocp.nx), 0.0, np.full(nb, hi), np.full((nb, n_alt), lo),
+            np.zeros(ps.shape[0]))
+    return rti
+
+
+def nmpc_blocks(settings: ControllerSettings, name: str) -> Tuple[int, ...]:
+    """Return the interval lengths (in samples) of controller ``name``."""
+    blocks = (1,) * settings.horizon
+    if name == 'preview_long':
+        m = int(round(settings.long_step_s / settings.ts))
+        blocks += (m,) * settings.long_steps
+    return blocks
+
+
+class NMPCController(Controller):
+    """Paper NMPC (``no_preview``/``preview``) and the long-horizon ``preview_long``."""
+
+    def __init__(self, params: ERVAParams, settings: ControllerSettings, kind: str = 'erva',
+                 warm_start: bool = True):
+        name = settings.controller
+        if name not in ('no_preview', 'preview', 'preview_long'):
+            raise ParamError(f'NMPCController cannot run controller {name!r}')
+        self.name = name
+        self.settings = settings
+        self.model = get_model(params, kind)
+        self.warm_start = bool(warm_start)
+        self.blocks = nmpc_blocks(settings, name)
+        self.cost = settings.long_cost if name == 'preview_long' else settings.cost
+        self.ocp = build_ocp(self.model, settings.ts, self.blocks, self.cost,
+                             settings.u_min, settings.u_max,
+                             settings.terminal_weight if name == 'preview_long' else 0.0,
+                             settings.collocation_degree,
+                             stable_rollout_substep(self.model, settings.u_max))
+        if settings.solver == 'ipopt':
+            self._ipopt = build_ipopt(self.ocp, settings.ipopt_max_iter)
+            budget = math.inf      # the reference is not a real-time solver
+        else:
+            # Called through fixed buffers (erva_ros/core/codegen.py): no DM conversions.
+            self._rti = BufferedCall(build_rti(self.ocp, settings.max_iter, settings.codegen,
+                                               n_alt=N_ALTERNATIVES))
+            budget = settings.time_budget_s
+        super().__init__(self.ocp.horizon, settings.ts, settings.u_min, settings.u_max,
+                         params.c_e0, budget)
+        self._block_start = np.cumsum((0,) + self.blocks[:-1])
+        self._sprung_accel = BufferedCall(self.model.sprung_accel)
+        self._u_alt = np.full(len(self.blocks), self.c_e0 / U_SCALE)
+        self.last_prediction = None
+        #: Set to a list to keep every real-time solve's OCP (for :meth:`reference_gap`).
+        self.recorded_problems = None
+
+    # -- memory -------------------------------------------------------------------------
+    def _reset_law(self) -> None:
+        self._prev_sample = None     # (x, u, w) of the previous sample, for x_a(k-1)
+        self._pending = None         # (x, w) of the sample being computed
+        self._warm = None            # previous solution (plan, z) for the warm start
+
+    def _on_fallback(self, plan: np.ndarray) -> None:
+        # Remember what is really applied (for x_a(k-1)); the old solution no longer fits.
+        pending, self._pending = self._pending, None
+        self._prev_sample = None if pending is None else (pending[0], float(plan[0]),
+                                                          pending[1])
+        self._warm = None
+
+    # -- one sample -----------------------------------------------------------------------
+    def road_prediction(self, preview: np.ndarray) -> np.ndarray:
+        """Return the road heights the OCP uses: the preview, or the held measurement."""
+        if self.name != 'no_preview':
+            return preview
+        if self.settings.road_prediction == 'hold':
+            return np.full(preview.size, preview[0])
+        out = np.zeros(preview.size)
+        out[0] = preview[0]
+        return out
+
+    def _a_prev(self, x: np.ndarray, w0: float) -> float:
+        """Return x_a(k−1): the previous sample's acceleration (at start: with c_e0)."""
+        if self._prev_sample is None:
+            return self._sprung_accel(x, self.c_e0, w0)[0]
+        xp, up, wp = self._prev_sample
+        return self._sprung_accel(xp, up, wp)[0]
+
+    def _guess_plan(self) -> np.ndarray:
+        """Return the warm-start plan: the previous one shifted by a sample, else c_e0."""
+        if self.warm_start and self._warm is not None:
+            prev = self._warm
+            return np.append(prev[1:], prev[-1])
+        return np.full(self.horizon, self.c_e0)
+
+    def _alternatives(self, u_guess: np.ndarray) -> np.ndarray:
+        """Return the real-time SQP's other starts (scaled, one per column).
+
+        Constant c_e0, and the warm start with its first move at u_max / u_min: the
+        first sample's jerk term reacts to u_0 at once, so its optimum often sits at
+        a bound.
+        """
+        alt = np.column_stack([self._u_alt, u_guess, u_guess])
+        alt[0, 1], alt[0, 2] = self.u_max / U_SCALE, self.u_min / U_SCALE
+        return alt
+
+    def _compute(self, x, preview, t):
+        self._pending = (x.copy(), float(preview[0]))
+        w = self.road_prediction(preview)
+        a_prev = self._a_prev(x, float(preview[0]))
+        p = np.append(w, (self.settings.alpha1, self.settings.alpha2))
+        u_guess = self._guess_plan()[self._block_start] / U_SCALE
+        try:
+            if self.settings.solver == 'ipopt':
+                u_blocks, z, cost, iterations = self._solve_ipopt(x, a_prev, u_guess, w, p)
+            else:
+                out = self._rti(x, a_prev, u_guess, self._alternatives(u_guess), p)
+                u_blocks = np.asarray(out[0]).ravel()
+                z = np.asarray(out[1]).ravel()
+                cost = float(out[2])
+                iterations = self.settings.max_iter
+                self._improved = int(out[3])
+                if self.recorded_problems is not None:
+                    self.recorded_problems.append((x.copy(), a_prev, u_guess, w, p,
+                                                   u_blocks.copy(), cost))
+        except RuntimeError as exc:   # evaluation error inside CasADi
+            self._warm = None
+            raise SolveFailure(f'solver error: {str(exc).splitlines()[0]}') from None
+        if not (np.all(np.isfinite(u_blocks)) and math.isfinite(cost)):
+            self._warm = None
+            raise SolveFailure(f'{self.settings.solver}: non-finite solution')
+        plan = np.repeat(np.clip(u_blocks * U_SCALE, self.u_min, self.u_max), self.blocks)
+        self._warm = plan
+        self._prev_sample = (x.copy(), float(plan[0]), float(preview[0]))
+        self._pending = None
+        self.last_prediction = {'x_nodes': self.ocp.nodes(z), 'cost': cost,
+                                'improved_steps': getattr(self, '_improved', None)}
+        return plan, iterations
+
+    def _solve_ipopt(self, x, a_prev, u_guess, w, p):
+        # Non-convex OCP: converge from the first ``ipopt_starts`` of the starts the
+        # real-time SQP compares (warm start, constant c_e0, first move at u_max, at
+        # u_min) and keep the best local optimum.
+        alt = self._alternatives(u_guess)
+        starts = [u_guess] + [alt[:, j] for j in range(self.settings.ipopt_starts - 1)]
+        if self.settings.ipopt_starts == 2 and np.allclose(u_guess, self._u_alt):
+            starts = starts[:1]             # the same start twice
+        best, status, iterations = converge_from(self.ocp, self._ipopt, x, a_prev, w, p, starts)
+        if best is None:
+            raise SolveFailure(f'ipopt: {status}')
+        z = np.asarray(best['x']).ravel()
+        # Iterations from the warm start (what warm starting is judged by).
+        return z[self.ocp.u_index], z, float(best['f']), iterations[0]
+
+    def reference_gap(self, problem) -> float:
+        """Return the real-time solve's relative objective gap to a converged one (≥ 0).
+
+        ``problem`` is an entry of :attr:`recorded_problems`.  IPOPT starts from the
+        warm start, from c_e0 and from the real-time solution itself, so the reference
+        is never worse than what it judges: (f_rt − f_ref) / |f_ref|.
+        """
+        x, a_prev, u_guess, w, p, u_rt, f_rt = problem
+        ipopt = build_ipopt(self.ocp, self.settings.ipopt_max_iter)
+        best, _, _ = converge_from(self.ocp, ipopt, x, a_prev, w, p,
+                                   (u_guess, self._u_alt, u_rt))
+        f_ref = f_rt if best is None else min(f_rt, float(best['f']))
+        return (f_rt - f_ref) / abs(f_ref) if f_ref != 0 else 0.0
+
+
+def converge_from(ocp: OCP, ipopt: ca.Function, x, a_prev, w, p, starts):
+    """Solve the OCP with IPOPT from each start plan (scaled inputs); keep the best.
+
+    Returns (the best converged solution or None, the last return status, the
+    iteration count of each start).
+    """
+    lbz, ubz = ocp.bounds(x, a_prev)
+    best, status, iterations = None, 'failed', []
+    for u0 in starts:
+        z0 = np.asarray(ocp.rollout(x, a_prev, u0, w)).ravel()
+        sol = ipopt(x0=z0, p=p, lbx=lbz, ubx=ubz, lbg=0, ubg=0)
+        stats = ipopt.stats()
+        iterations.append(int(stats.get('iter_count', 0)))
+        status = str(stats.get('return_status', '')) or status
+        if not (stats.get('success') or status == 'Solved_To_Acceptable_Level'):
+            continue
+        if best is None or float(sol['f']) < float(best['f']):
+            best = sol
+    return best, status, iterations
+
+
+__all__ = ['NMPCController', 'build_ocp', 'build_rti', 'build_ipopt', 'nmpc_blocks',
+           'stable_rollout_substep', 'OCP', 'U_SCALE', 'COLLOCATION_DEGREE']

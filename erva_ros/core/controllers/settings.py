@@ -1,0 +1,201 @@
+"""Validated controller settings, loaded from ``config/nmpc.yaml`` (a ROS 2 params file).
+
+The file's ``nmpc_node: ros__parameters:`` section (merged over ``/**``, as
+``--params-file`` does) configures every controller.  The tables below are the
+single source of the allowed values: :func:`load_controller_settings` validates with
+them and the ROS 2 ``nmpc_node`` builds its ParameterDescriptors from them.
+
+Input box (not stated in the paper, see NOTES.md): u = c_e ∈ [0, 20] kNs/m by
+default.  0 is the open circuit (duty cycle 0, R → ∞); 20 kNs/m = 2·c_e0 puts the
+paper's passive damping in the middle of the box.  The NMPC's prediction model is
+stable over the whole box: it is Radau IIA collocation (L-stable), see nmpc.py.
+"""
+
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any, Dict, Mapping, Optional, Tuple
+
+from erva_ros.core.params import check_number, ERVA_SPECS, ParamError, read_ros_params, Spec
+
+#: Controllers understood by make_controller (and `erva sim --controller`).
+CONTROLLER_NAMES = ('passive', 'skyhook', 'no_preview', 'preview', 'preview_long')
+#: Stage-cost variants of the NMPC (see erva_ros.core.controllers.nmpc).
+COST_KINDS = ('paper', 'continuous')
+#: NMPC solvers: 'sqp' = real-time SQP (qrqp QPs, built once), 'ipopt' = converged reference.
+SOLVER_KINDS = ('sqp', 'ipopt')
+#: codegen: auto = compile when a C compiler is on PATH (else run the CasADi VM).
+CODEGEN_MODES = ('auto', 'on', 'off')
+#: How the no-preview NMPC predicts the road: hold the last measured height, or zero.
+ROAD_PREDICTIONS = ('hold', 'zero')
+
+#: Node name whose section of the params file holds the controller settings.
+NODE_NAME = 'nmpc_node'
+
+#: Numeric settings: allowed range, unit and meaning (reused for ROS descriptors).
+NUMERIC_SPECS: Dict[str, Spec] = {
+    'horizon': Spec(1, 200, 'steps', 'prediction horizon N (paper: 10)'),
+    'ts': Spec(1e-3, 1.0, 's', 'control sample time Ts (paper: 0.02)', lo_open=False),
+    'alpha1': Spec(0.0, 1e6, '-', 'comfort weight alpha1 on chassis acceleration (eq. (12))'),
+    'alpha2': Spec(0.0, 1e6, '-', 'energy weight alpha2 on harvested power (eq. (12))'),
+    'u_min': Spec(0.0, 1e6, 'Ns/m', 'lower bound of the electrical damping c_e'),
+    'u_max': Spec(0.0, 1e6, 'Ns/m', 'upper bound of the electrical damping c_e', lo_open=True),
+    'max_iter': Spec(1, 50, 'iterations', 'real-time SQP iterations per sample'),
+    'ipopt_max_iter': Spec(1, 100000, 'iterations', 'IPOPT iteration limit (reference)'),
+    'ipopt_starts': Spec(1, 4, 'starts', 'IPOPT reference: converge from the warm start, '
+                         '+ constant c_e0, + first move at u_max, + at u_min; keep the best'),
+    'time_budget_s': Spec(0.0, 10.0, 's', 'solve time beyond which the plan is not used'),
+    'command_delay_s': Spec(0.0, 1.0, 's', 'known delay from the sample t_k to the command '
+                            'acting (0: none); plan from x(t_k + delay), < ts',
+                            lo_open=False),
+    'collocation_degree': Spec(1, 6, '-', 'Radau collocation points per interval (model)'),
+    'long_steps': Spec(0, 200, 'steps', 'preview_long: coarse intervals after the first N'),
+    'long_step_s': Spec(1e-3, 1.0, 's', 'preview_long: length of a coarse interval'),
+    'terminal_weight': Spec(0.0, 1e6, '-', 'preview_long: weight of the terminal energy cost'),
+}
+#: Settings that must be whole numbers.
+INTEGER_KEYS = frozenset({'horizon', 'max_iter', 'ipopt_max_iter', 'ipopt_starts',
+                          'long_steps', 'collocation_degree'})
+#: String settings and their allowed values.
+CHOICE_SPECS: Dict[str, Tuple[Tuple[str, ...], str]] = {
+    'controller': (CONTROLLER_NAMES, 'control law'),
+    'cost': (COST_KINDS, 'NMPC stage cost: paper (discrete, eq. (14)) or continuous (eq. (12))'),
+    'solver': (SOLVER_KINDS, 'NMPC solver: sqp (real-time SQP) or ipopt (converged reference)'),
+    'road_prediction': (ROAD_PREDICTIONS, 'no_preview road model: hold last height or zero'),
+    'long_cost': (COST_KINDS, 'stage cost of preview_long (paper or continuous)'),
+    'codegen': (CODEGEN_MODES, 'compile the real-time solver\'s model functions to C '
+                               '(auto: when cc/gcc is on PATH; cached in ~/.cache/erva_ros)'),
+}
+
+
+@dataclass(frozen=True)
+class ControllerSettings:
+    """Controller configuration (SI units); defaults are the paper's NMPC (N = 10, Ts = 0.02)."""
+
+    controller: str = 'preview'
+    horizon: int = 10
+    ts: float = 0.02
+    alpha1: float = 1.0
+    alpha2: float = 0.0
+    u_min: float = 0.0
+    u_max: float = 20000.0
+    cost: str = 'paper'
+    solver: str = 'sqp'
+    max_iter: int = 2
+    ipopt_max_iter: int = 3000
+    ipopt_starts: int = 2
+    time_budget_s: float = 0.01
+    command_delay_s: float = 0.0
+    collocation_degree: int = 3
+    road_prediction: str = 'hold'
+    long_steps: int = 0
+    long_step_s: float = 0.06
+    terminal_weight: float = 0.5
+    long_cost: str = 'continuous'
+    codegen: str = 'auto'
+
+    @property
+    def weights(self) -> Tuple[float, float]:
+        """Return (alpha1, alpha2)."""
+        return (self.alpha1, self.alpha2)
+
+    def with_(self, **kw: Any) -> 'ControllerSettings':
+        """Return a validated copy with some values replaced."""
+        return validate_settings(dict(asdict(self), **kw), source='override')
+
+    def as_dict(self) -> Dict[str, Any]:
+        """Return the settings as a plain dict (ROS parameter names)."""
+        return asdict(self)
+
+
+#: Default value of every setting (for ROS declare_parameter).
+DEFAULTS: Dict[str, Any] = asdict(ControllerSettings())
+
+
+def describe(key: str) -> str:
+    """Return the allowed values of ``key`` as text (for --help and descriptors)."""
+    if key in CHOICE_SPECS:
+        choices, doc = CHOICE_SPECS[key]
+        return f'one of {", ".join(choices)} ({doc})'
+    spec = NUMERIC_SPECS[key]
+    kind = 'integer' if key in INTEGER_KEYS else 'number'
+    return f'{kind} in {spec.describe()} ({spec.doc})'
+
+
+def _check(key: str, value: Any, source: str) -> Any:
+    where = f'{source}: ' if source else ''
+    if key == 'codegen' and isinstance(value, bool):
+        value = 'on' if value else 'off'   # YAML 1.1 reads a bare on/off as a boolean
+    if key in CHOICE_SPECS:
+        choices, _ = CHOICE_SPECS[key]
+        if not isinstance(value, str) or value not in choices:
+            raise ParamError(f'{where}parameter {key!r} = {value!r} is not allowed; '
+                             f'choose one of {", ".join(choices)}')
+        return value
+    spec = NUMERIC_SPECS[key]
+    if key in INTEGER_KEYS:
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ParamError(f'{where}parameter {key!r} must be an integer in '
+                             f'{spec.describe()}, got {type(value).__name__} {value!r}')
+        return int(check_number(key, value, spec, source))
+    return check_number(key, value, spec, source)
+
+
+def validate_settings(values: Mapping[str, Any], source: str = '') -> ControllerSettings:
+    """Validate a mapping of settings (missing keys take defaults); raise ParamError."""
+    where = f'{source}: ' if source else ''
+    known = {f.name for f in fields(ControllerSettings)}
+    out: Dict[str, Any] = {}
+    for key, value in values.items():
+        if key in known:
+            out[key] = _check(key, value, source)
+        elif key in ERVA_SPECS or key == 'use_sim_time':
+            continue  # physical parameters or ROS built-ins sharing the file
+        else:
+            raise ParamError(f'{where}unknown parameter {key!r}; '
+                             f'known: {", ".join(sorted(known))}')
+    s = replace(ControllerSettings(), **out)
+    if not s.u_min < s.u_max:
+        raise ParamError(f'{where}parameter \'u_max\' = {s.u_max:g} must exceed '
+                         f'u_min = {s.u_min:g} Ns/m')
+    if not s.command_delay_s < s.ts:
+        raise ParamError(f'{where}parameter \'command_delay_s\' = {s.command_delay_s:g} must '
+                         f'be below ts = {s.ts:g} s')
+    ratio = s.long_step_s / s.ts
+    if s.long_steps and abs(ratio - round(ratio)) > 1e-6:
+        raise ParamError(f'{where}parameter \'long_step_s\' = {s.long_step_s:g} must be a whole '
+                         f'multiple of ts = {s.ts:g} s')
+    if s.alpha1 == 0 and s.alpha2 == 0 and s.controller in ('no_preview', 'preview',
+                                                            'preview_long'):
+        raise ParamError(f'{where}parameters \'alpha1\' and \'alpha2\' are both 0; '
+                         'the NMPC needs a nonzero weight')
+    return s
+
+
+def default_settings_file() -> str:
+    """Return the path of the shipped config/nmpc.yaml (source tree or installed share)."""
+    from erva_ros.core.config import shipped_config
+    return shipped_config('nmpc.yaml', 'pass a settings file')
+
+
+def load_controller_settings(path: Optional[str] = None,
+                             overrides: Optional[Mapping[str, Any]] = None
+                             ) -> ControllerSettings:
+    """Load ``nmpc_node`` settings from ``path`` (default config/nmpc.yaml), then overrides.
+
+    ``overrides`` (e.g. from command-line options) win over the file; ``None`` values in
+    it are ignored.  Raises :class:`~erva_ros.core.params.ParamError` with one line.
+    """
+    path = path or default_settings_file()
+    values = dict(read_ros_params(path, NODE_NAME))
+    s = validate_settings(values, source=path)
+    if overrides:
+        extra = {k: v for k, v in overrides.items() if v is not None}
+        s = validate_settings(dict(asdict(s), **extra), source='override')
+    return s
+
+
+__all__ = ['CONTROLLER_NAMES', 'COST_KINDS', 'SOLVER_KINDS', 'ROAD_PREDICTIONS', 'NODE_NAME',
+           'NUMERIC_SPECS', 'INTEGER_KEYS', 'CHOICE_SPECS', 'DEFAULTS', 'ControllerSettings',
+           'describe', 'validate_settings', 'load_controller_settings',
+           'default_settings_file']

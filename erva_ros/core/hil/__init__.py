@@ -1,0 +1,21 @@
+"""Hardware-in-the-loop: the NMPC on a vehicle ECU over CAN, a simulated ECU, plain-Python cores.
+
+=====================  ============================================================
+module                 role
+=====================  ============================================================
+``hardware``           c_e ↔ load resistance ↔ PWM duty (c_e = κ²/R), hardware limits
+``e2e``                AUTOSAR E2E profile 1 style CRC-8 + alive counter, checks
+``codec``              the DBC (config/erva_ecu.dbc) with cantools: frames ↔ values
+``transport``          bus selection: SocketCAN, python-can virtual, loopback UDP
+``bridge``             bridge core: commands → frames (watchdog, safe command),
+                       frames → sensor sets, bus loss and retry
+``ecu_sim``            simulated ECU core on erva_ros.core.plant.PlantSimulator
+``road_buffer``        w(t) from time-stamped road samples
+``evaluation``         offline closed loop on estimated vs true state
+``settings``           parameter tables of config/hil.yaml
+=====================  ============================================================
+
+The ROS adapters are erva_ros/nodes/ecu_bridge_node.py and state_estimator_node.py,
+the estimator core erva_ros/core/estimator.py, the commands `erva ecu-sim` and
+`erva bench-hil`.
+"""

@@ -1,0 +1,440 @@
+"""Simulated generator ECU (no ROS): CAN damping commands to the plant, sensor frames back.
+
+It plays the vehicle side of the CAN link for the HIL loop: the quarter car is
+:class:`erva_ros.core.plant.PlantSimulator` (the shared model, never a copy), with the
+damping latched in steps of ``latch_s`` (default 1 ms, the ECU's PWM update
+granularity).  It keeps a real ECU's timing: at each sample instant t_k it samples the
+sensors and sends ERVA_ECU_STATUS, ERVA_SENS_CHASSIS and ERVA_SENS_GENERATOR at once;
+the physics of the cycle [t_k, t_k+1] is integrated *ahead*, not when t_k+1 comes:
+
+1. every command frame is E2E-checked (length, CRC, alive counter) when it is read and
+   kept with its kernel receive time; the duty is clamped to the hardware range;
+2. the cycle's latch plan follows from those times alone: at every latch instant τ a
+   command that arrived at or before τ is applied, and the **same timeout rule as the
+   bridge** applies (no valid command for ``command_timeout_s`` → safe passive duty
+   c_e0, mode SAFE_TIMEOUT);
+3. :meth:`EcuSimCore.prepare` (called ``prepare_lead_s`` before t_k+1) integrates the
+   cycle with that plan in one compiled call (:meth:`PlantSimulator.integrate_profile`);
+   :meth:`EcuSimCore.run_cycle` at t_k+1 reads what arrived meanwhile, integrates again
+   only if a command landed inside the cycle after the preparation (rare: ~15 µs), takes
+   the step, samples (with noise, see :class:`SensorNoise`) and sends.
+
+So the ECU's own share of the sample → command latency is its wake-up and the frame
+time, as on a vehicle, and the physics is exactly that of an ECU that latches each
+command within ``latch_s`` of its arrival, although the simulator wakes only twice per
+cycle.  ``road(t)`` gives the road height at the tyre (m) at epoch time t (s); it must be
+known up to t_k+1 when :meth:`EcuSimCore.prepare` runs (a road known ahead: the
+session's road, or a local one); with a road that arrives sample by sample, call only
+:meth:`EcuSimCore.run_cycle`, once the sample of t_k+1 is there.
+"""
+
+from dataclasses import dataclass
+import math
+import time
+from typing import Callable, Dict, List, NamedTuple, Optional, Tuple
+
+import can
+import numpy as np
+
+from erva_ros.core.codegen import BufferedCall
+from erva_ros.core.hil.codec import (Chassis, CommandMode, E2EReceiver, EcuCodec, EcuMode,
+                                     Generator, Kind, Status)
+from erva_ros.core.hil.hardware import GeneratorHardware
+from erva_ros.core.params import ERVAParams
+from erva_ros.core.plant import PlantSimulator, ProfileStep
+
+
+@dataclass(frozen=True)
+class EcuSimConfig:
+    """Timing and safety of the simulated ECU (SI units)."""
+
+    period_s: float = 0.02            # ECU cycle Ts: sensor frames at 50 Hz
+    command_timeout_s: float = 0.06   # same rule as the bridge: 3 periods
+    latch_s: float = 0.001            # command latch / plant step granularity
+    c_e_safe: float = 10000.0         # Ns/m applied on timeout and at start-up (c_e0)
+    max_delta_counter: int = 1
+    prepare_lead_s: float = 0.003     # integrate the cycle this long before it ends
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """Standard deviations of the simulated sensors' white noise (SI units).
+
+    Defaults resemble automotive parts at a 50 Hz sample rate: a MEMS accelerometer
+    (≈ 0.02 m/s²), a ride-height potentiometer (0.1 mm), the generator's encoder speed
+    (0.01 rad/s), current shunt (10 mA) and back-emf sampling (50 mV).  The DBC's
+    quantisation (1 mm/s², 10 µm, 1 mrad/s, 1 mA, 10 mV) comes on top.
+    """
+
+    sprung_accel: float = 0.02        # m/s²
+    deflection: float = 1e-4          # m
+    speed: float = 0.01               # rad/s
+    current: float = 0.01             # A
+    voltage: float = 0.05             # V
+    seed: int = 0
+
+    @staticmethod
+    def none() -> 'SensorNoise':
+        return SensorNoise(0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+@dataclass
+class EcuSample:
+    """Ground truth of one ECU cycle (what the sensors saw, before noise)."""
+
+    t: float                 # s since the ECU started
+    x: np.ndarray            # plant state at t
+    road_height: float       # m
+    c_e: float               # Ns/m applied at t
+    c_e_mean: float          # Ns/m, mean over the cycle that ended at t
+    sprung_accel: float      # m/s²
+    v_gen: float             # m/s
+    power_w: float           # W at t
+    harvested_j: float       # J since the start
+    mode: EcuMode
+    gen_position: float = 0.0            # m, generator displacement (model.generator)
+    sent_at: Optional[float] = None      # epoch s once the sensor frames were sent
+    command_latched: Optional[float] = None   # epoch s the cycle's first CONTROLLED
+    #                                           command was applied (None: none came)
+
+
+class _Command(NamedTuple):
+    """A valid command frame, E2E-checked when read."""
+
+    t: float                 # kernel receive time (epoch s)
+    duty: float              # clamped to the hardware range
+    mode: EcuMode            # CONTROLLED or SAFE_REQUESTED
+    out_of_range: bool       # the duty sent was outside the range (or not finite)
+
+
+class _CyclePlan(NamedTuple):
+    """The latch decisions of one cycle, the ECU state they end in, and the physics."""
+
+    key: Tuple[int, int]     # (cycle index, commands latched): recompute when it changes
+    used: int                # pending commands latched in the cycle
+    c_e: List[float]         # Ns/m per latch step
+    duty: float              # at the cycle's end, after latching there
+    mode: EcuMode
+    last_cmd: float          # epoch s of the last valid command
+    applied: int
+    out_of_range: int
+    timeouts: int
+    first_controlled: Optional[float]   # latch instant of the first CONTROLLED command
+    step: ProfileStep
+    road_end: float          # m, w at the cycle's end
+
+
+COUNTER_NAMES = ('cycles', 'commands_applied', 'duty_out_of_range', 'command_timeouts',
+                 'frames_sent', 'send_errors', 'bus_losses', 'reconnects', 'overruns',
+                 'cycles_skipped', 'recomputed')
+#: Mode changes kept for the status (cycle, mode, applied c_e): enough for a run's story.
+MODE_LOG_SIZE = 64
+
+
+class EcuSimCore:
+    """The ECU side of the CAN link with the quarter car behind it."""
+
+    def __init__(self, params: ERVAParams, hardware: GeneratorHardware, codec: EcuCodec,
+                 bus_factory: Callable[[], can.BusABC], road: Callable[[float], float],
+                 config: EcuSimConfig = EcuSimConfig(), noise: SensorNoise = SensorNoise(),
+                 kind: str = 'erva'):
+        n = config.period_s / config.latch_s
+        if abs(n - round(n)) > 1e-6 or n < 1:
+            raise ValueError(f'period_s {config.period_s} must be a whole number of latch_s '
+                             f'{config.latch_s}')
+        self.cfg = config
+        self.hw = hardware
+        self.codec = codec
+        self.params = params
+        self.road = road
+        self.noise = noise
+        self._n_latch = int(round(n))
+        self.plant = PlantSimulator(params, kind, ts=config.period_s)
+        # Built (and compiled or loaded) now, not in the first cycle: that costs ms.
+        self.plant.integrate_profile([config.c_e_safe] * self._n_latch,
+                                     [0.0] * (self._n_latch + 1))
+        self._generator = BufferedCall(self.plant.model.generator)
+        self._rng = np.random.default_rng(noise.seed)
+        self._factory = bus_factory
+        self.bus: Optional[can.BusABC] = None
+        self.bus_error = ''
+        self._rx = E2EReceiver(codec, (Kind.COMMAND,), config.command_timeout_s,
+                               config.max_delta_counter)
+        self._tx = {k: codec.sender(k) for k in (Kind.CHASSIS, Kind.GENERATOR, Kind.STATUS)}
+        self.counts: Dict[str, int] = dict.fromkeys(COUNTER_NAMES, 0)
+        self._safe_duty, _ = hardware.clamp_duty(hardware.duty_from_c_e(config.c_e_safe))
+        self.duty = self._safe_duty
+        self.mode = EcuMode.INIT
+        self._last_cmd = -math.inf            # epoch s of the last valid command
+        self._inbox: List[can.Message] = []   # read, not yet E2E-checked
+        self._pending: List[_Command] = []    # valid, not yet latched (arrival order)
+        self._plan: Optional[_CyclePlan] = None
+        self.mode_log: List[Tuple[int, str, float]] = []
+        self.t0: Optional[float] = None       # epoch s of cycle 0
+        self.k = 0
+
+    # ------------------------------------------------------------------ bus
+    def open(self) -> bool:
+        """Open the bus now if it is not open; return True if it is up (else see bus_error)."""
+        return self._ensure_bus()
+
+    def _ensure_bus(self) -> bool:
+        if self.bus is not None:
+            return True
+        try:
+            self.bus = self._factory()
+        except Exception as exc:  # reported and retried next cycle, never raised
+            self.bus_error = f'cannot open bus: {exc}'
+            return False
+        if self.counts['cycles']:
+            self.counts['reconnects'] += 1
+        self._rx.reset()
+        self.bus_error = ''
+        return True
+
+    def _lost(self, exc: BaseException) -> None:
+        self.counts['bus_losses'] += 1
+        self.bus_error = f'bus lost: {exc}'
+        try:
+            self.bus.shutdown()
+        except Exception:  # a dead interface may fail to close; dropped anyway
+            pass
+        self.bus = None
+
+    def _read(self) -> None:
+        """Move every frame waiting on the bus to the inbox."""
+        if not self._ensure_bus():
+            return
+        try:
+            while True:
+                msg = self.bus.recv(0.0)
+                if msg is None:
+                    return
+                self._inbox.append(msg)
+        except (can.CanError, OSError, ValueError) as exc:
+            self._lost(exc)
+
+    def _check_inbox(self) -> None:
+        """E2E-check the frames read, in arrival order; keep the valid commands."""
+        for msg in self._inbox:
+            kind, _, cmd = self._rx.accept(msg, msg.timestamp)
+            if kind is not Kind.COMMAND or cmd is None:
+                continue
+            duty, clamped = self.hw.clamp_duty(cmd.duty)
+            mode = (EcuMode.CONTROLLED if cmd.mode is CommandMode.CONTROLLED
+                    else EcuMode.SAFE_REQUESTED)
+            self._pending.append(_Command(msg.timestamp, duty, mode,
+                                          clamped or not math.isfinite(cmd.duty)))
+        self._inbox = []
+
+    def _send(self, kind: Kind, payload) -> None:
+        if self.bus is None:
+            return
+        try:
+            self.bus.send(self.codec.encode(kind, payload, self._tx[kind]), timeout=0.005)
+            self.counts['frames_sent'] += 1
+        except (can.CanError, OSError, ValueError) as exc:
+            self.counts['send_errors'] += 1
+            self._lost(exc)
+
+    def close(self) -> None:
+        if self.bus is not None:
+            self.bus.shutdown()
+            self.bus = None
+
+    # ------------------------------------------------------------------ ECU logic
+    @property
+    def due(self) -> float:
+        """Return the epoch time of the next sample t_k+1 (s)."""
+        return self.t0 + (self.k + 1) * self.cfg.period_s
+
+    def _latch_plan(self) -> _CyclePlan:
+        """Return the plan of the cycle [t_k, t_k+1] from the commands read so far.
+
+        Pure: nothing is committed, so it is recomputed when a command arrives inside
+        the cycle after an earlier (ahead-of-time) plan.
+        """
+        ts, dt, n = self.cfg.period_s, self.cfg.latch_s, self._n_latch
+        t_start = self.t0 + self.k * ts
+        t_end = t_start + ts
+        pending = self._pending
+        due = 0
+        while due < len(pending) and pending[due].t <= t_end:
+            due += 1
+        key = (self.k, due)
+        if self._plan is not None and self._plan.key == key:
+            return self._plan
+        duty, mode, last = self.duty, self.mode, self._last_cmd
+        i = applied = out_of_range = timeouts = 0
+        first = None
+        c_e = []
+        for j in range(n + 1):
+            tau = t_start + j * dt
+            while i < due and pending[i].t <= tau:
+                cmd = pending[i]
+                i += 1
+                duty, mode, last = cmd.duty, cmd.mode, cmd.t
+                applied += 1
+                out_of_range += cmd.out_of_range
+                if first is None and mode is EcuMode.CONTROLLED:
+                    first = tau
+            if tau - last > self.cfg.command_timeout_s and mode not in (
+                    EcuMode.INIT, EcuMode.SAFE_TIMEOUT):
+                mode = EcuMode.SAFE_TIMEOUT
+                timeouts += 1
+            if mode in (EcuMode.INIT, EcuMode.SAFE_TIMEOUT):
+                duty = self._safe_duty
+            if j < n:
+                c_e.append(self.hw.c_e_from_duty(duty))
+        road = [self.road(t_start + j * dt) for j in range(n + 1)]
+        step = self.plant.integrate_profile(c_e, road)
+        if self._plan is not None and self._plan.key[0] == self.k:
+            self.counts['recomputed'] += 1
+        self._plan = _CyclePlan(key, due, c_e, duty, mode, last, applied, out_of_range,
+                                timeouts, first, step, road[-1])
+        return self._plan
+
+    def start(self, t0: float) -> EcuSample:
+        """Begin at epoch time ``t0``: open the bus, send the first sensor frames."""
+        self.t0 = t0
+        self.k = 0
+        self._plan = None
+        self._ensure_bus()
+        # Commands queued while the ECU waited to start (e.g. for the road) are history:
+        # keep only those still fresh at t0.
+        self._read()
+        self._inbox = [m for m in self._inbox if m.timestamp > t0 - self.cfg.command_timeout_s]
+        self._check_inbox()
+        return self._measure_and_send(t0, self.hw.c_e_from_duty(self.duty), self.road(t0))
+
+    def prepare(self) -> None:
+        """Integrate the current cycle ahead of its end, with the commands read so far."""
+        if self.t0 is None:
+            raise RuntimeError('call start() first')
+        self._read()
+        self._check_inbox()
+        self._latch_plan()
+
+    def run_cycle(self, send: bool = True) -> EcuSample:
+        """End the cycle [t0 + k·Ts, t0 + (k+1)·Ts] (epoch s): take its step, sample, send.
+
+        The step was integrated ahead by :meth:`prepare` unless a command arrived inside
+        the cycle since.  ``send=False`` only integrates (catching up after an overrun).
+        """
+        if self.t0 is None:
+            raise RuntimeError('call start() first')
+        self._read()
+        self._check_inbox()
+        plan = self._latch_plan()
+        self.plant.apply(plan.step)
+        del self._pending[:plan.used]
+        self.duty, self.mode, self._last_cmd = plan.duty, plan.mode, plan.last_cmd
+        self.counts['commands_applied'] += plan.applied
+        self.counts['duty_out_of_range'] += plan.out_of_range
+        self.counts['command_timeouts'] += plan.timeouts
+        self._plan = None
+        self.k += 1
+        self.counts['cycles'] += 1
+        sample = self._measure_and_send(self.t0 + self.k * self.cfg.period_s,
+                                        sum(plan.c_e) / self._n_latch, plan.road_end, send)
+        sample.command_latched = plan.first_controlled
+        return sample
+
+    def _measure_and_send(self, t_epoch: float, c_e_mean: float, w: float,
+                          send: bool = True) -> EcuSample:
+        u = self.hw.c_e_from_duty(self.duty)
+        s = self.plant.sample(u, w)
+        position, v_gen, _ = self._generator(s.x, u)
+        n, r = self.noise, self._rng
+        chassis = Chassis(sprung_accel=s.sprung_accel + n.sprung_accel * r.standard_normal(),
+                          deflection=float(s.x[0] - s.x[2]) + n.deflection * r.standard_normal())
+        gen = Generator(speed=v_gen / self.params.l + n.speed * r.standard_normal(),
+                        current=self.hw.current(u, v_gen) + n.current * r.standard_normal(),
+                        voltage=self.hw.back_emf(v_gen) + n.voltage * r.standard_normal())
+        rx = self._rx.counts()
+        rejected = sum(rx[k] for k in ('wrong_length', 'bad_crc', 'repeated', 'skipped',
+                                       'bad_counter'))
+        status = Status(mode=self.mode, c_e_applied=u, c_e_mean=c_e_mean,
+                        cmd_rejected=rejected % 256,
+                        cmd_timeouts=self.counts['command_timeouts'] % 256)
+        sent_at = None
+        if send:
+            self._send(Kind.STATUS, status)
+            self._send(Kind.CHASSIS, chassis)
+            self._send(Kind.GENERATOR, gen)
+            sent_at = time.time()
+        if not self.mode_log or self.mode_log[-1][1] != self.mode.name:
+            if len(self.mode_log) < MODE_LOG_SIZE:
+                self.mode_log.append((self.k, self.mode.name, u))
+        return EcuSample(t=t_epoch - self.t0, x=s.x, road_height=w, c_e=u, c_e_mean=c_e_mean,
+                         sprung_accel=s.sprung_accel, v_gen=v_gen, power_w=s.power_w,
+                         harvested_j=s.harvested_j, mode=self.mode, gen_position=position,
+                         sent_at=sent_at)
+
+    def rx_counts(self) -> Dict[str, int]:
+        """Return the E2E counters of the received command frames."""
+        return self._rx.counts()
+
+    def summary(self) -> Dict[str, int]:
+        """Return all counters (ECU and E2E) as one dict."""
+        out = dict(self.counts)
+        out.update({f'rx_{k}': v for k, v in self.rx_counts().items()})
+        return out
+
+    def mode_changes(self) -> str:
+        """Return the mode changes as ``cycle:MODE:c_e`` items (c_e applied, Ns/m)."""
+        return ','.join(f'{k}:{mode}:{c_e:.0f}' for k, mode, c_e in self.mode_log)
+
+
+def run_realtime(core: EcuSimCore, duration_s: float = 0.0,
+                 on_cycle: Optional[Callable[[EcuSample], None]] = None,
+                 should_stop: Callable[[], bool] = lambda: False,
+                 wait: Optional[Callable[[float], None]] = None,
+                 t0: Optional[float] = None,
+                 ahead: bool = True,
+                 until_road: Optional[Callable[[float], None]] = None) -> int:
+    """Run ``core`` against the wall clock until ``duration_s`` (0: forever) or ``should_stop``.
+
+    ``wait(seconds)`` sleeps (default time.sleep; a ROS caller passes a function that
+    spins its executor meanwhile).  ``t0`` (epoch s, default now) is the time of cycle 0,
+    e.g. an instant of the road's sample grid.  With ``ahead`` (the road is known up to
+    the next sample) each cycle is integrated ``prepare_lead_s`` before its end, so the
+    sensor frames go out as soon as the sample instant has come; otherwise
+    ``until_road(t)`` is called at each sample instant t to wait for its road sample,
+    then the cycle is integrated and sent.  A cycle that starts more than one period late
+    is counted as an overrun; the missed cycles are integrated without sending, so the
+    plant stays on the wall clock.  Returns the number of cycles run.
+    """
+    wait = wait or time.sleep
+    ts, lead = core.cfg.period_s, core.cfg.prepare_lead_s
+    sample = core.start(time.time() if t0 is None else t0)
+    if on_cycle:
+        on_cycle(sample)
+    prepared = -1
+    while not should_stop():
+        if duration_s > 0 and core.k * ts >= duration_s - 1e-9:
+            break
+        due = core.due
+        if ahead and prepared != core.k:
+            delay = due - lead - time.time()
+            if delay > 0:
+                wait(delay)
+                continue                         # woke (maybe early): look again
+            core.prepare()
+            prepared = core.k
+        delay = due - time.time()
+        if delay > 0:
+            wait(delay)
+            continue
+        if -delay > ts:
+            core.counts['overruns'] += 1
+            core.counts['cycles_skipped'] += int(-delay // ts)   # integrated, never sent
+            for _ in range(int(-delay // ts)):
+                core.run_cycle(send=False)
+            continue                             # the current cycle, prepared anew
+        if not ahead and until_road is not None:
+            until_road(due)
+        sample = core.run_cycle()
+        if on_cycle:
+            on_cycle(sample)
+    return core.k

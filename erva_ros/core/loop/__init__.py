@@ -1,0 +1,1 @@
+"""Loop logic of the live nodes without ROS: scheduling, holds, timing, validation."""

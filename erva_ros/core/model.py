@@ -1,0 +1,309 @@
+"""The ERVA quarter car, written once in CasADi and shared by every user.
+
+Nonlinear ERVA (paper eqs. (9)-(10) and the compact form (11), Φ(x)ẋ = f(x, u, w)):
+
+    x = [z_s, ż_s, z_us, ż_us, z_d, ż_d]   (m, m/s)
+    u = c_e     electrical damping (Ns/m), w = z_r road height at the tyre (m)
+
+Linear benchmark (paper eq. (15)), generator rigidly coupled to the screw:
+
+    x = [z_s, ż_s, z_us, ż_us],  m_x = m_b + m_r + m_d
+
+Both models expose the same numeric CasADi functions (built once, evaluated
+without Python overhead): ``ode`` (ẋ), ``sprung_accel`` (z̈_s, paper x_a = ẋ_2),
+``power`` (harvested electrical power P = u·v_gen², eq. (12)), ``energy`` (stored
+mechanical energy), and a discrete ``step`` (RK4 with sub-steps; the road is
+interpolated linearly inside the interval so the tyre force is continuous).
+
+Why sub-steps: the dynamics are stiff at high c_e (fastest eigenvalue ≈ -1300 1/s
+at 50 kNs/m, see NOTES.md); explicit RK4 is stable only for h·|λ| < 2.78, so
+the plant integrates at 0.5 ms by default and :func:`rk4_stable_substeps`
+tells a caller how many sub-steps a given damping bound needs.
+"""
+
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Tuple
+
+import casadi as ca
+import numpy as np
+
+from erva_ros.core.params import ERVAParams
+
+#: Models understood everywhere a ``--model`` or ``model`` parameter is accepted.
+MODEL_KINDS = ('erva', 'benchmark')
+
+#: Default plant integration sub-step (s): 0.5 ms keeps RK4 accurate up to c_e ≈ 100 kNs/m.
+PLANT_SUBSTEP_S = 5e-4
+
+STATE_NAMES = {
+    'erva': ('z_s', 'zdot_s', 'z_us', 'zdot_us', 'z_d', 'zdot_d'),
+    'benchmark': ('z_s', 'zdot_s', 'z_us', 'zdot_us'),
+}
+
+
+def _solve3(m, b):
+    """Solve a 3x3 linear system by the adjugate.
+
+    Φ(x) of eq. (11) reduces to a 3x3 block on (ẋ_2, ẋ_4, ẋ_6).  Its determinant is
+    A·((M_s+m_b)(M_us+m_b) - m_b²) + g·|E|·(M_s+M_us) > 0 for all x (A, g > 0, E ≤ 0),
+    so the closed form never divides by zero, unlike a symbolic QR that can produce
+    0/0 where E(x) = 0 (at rest).
+    """
+    cof = ca.SX.zeros(3, 3)
+    for i in range(3):
+        for j in range(3):
+            r = [k for k in range(3) if k != i]
+            c = [k for k in range(3) if k != j]
+            minor = m[r[0], c[0]] * m[r[1], c[1]] - m[r[0], c[1]] * m[r[1], c[0]]
+            cof[i, j] = (-1) ** (i + j) * minor
+    det = m[0, 0] * cof[0, 0] + m[0, 1] * cof[0, 1] + m[0, 2] * cof[0, 2]
+    return ca.mtimes(cof.T, b) / det
+
+
+@dataclass(frozen=True)
+class NonlinearTerms:
+    """Symbolic h, g, A, B, C, D, E of paper eq. (10) for a given state."""
+
+    h: ca.SX
+    g: ca.SX
+    A: ca.SX
+    B: ca.SX
+    C: ca.SX
+    D: ca.SX
+    E: ca.SX
+
+
+def erva_terms(p: ERVAParams, x) -> NonlinearTerms:
+    """Return the state-dependent coefficients h, g, A..E of paper eq. (10).
+
+    r_1 = φ², r_1' = 2φ, r_1'' = 2 with φ = [z_d - (z_s - z_us)] / l.
+    """
+    l, eps, m_d, m_r = p.l, p.epsilon, p.m_d, p.m_r
+    rel = x[4] - (x[0] - x[2])
+    r1 = (rel / l) ** 2
+    r1p = 2 * rel / l
+    r1pp = 2.0
+    h = 2 * m_d * (eps * r1p + eps ** 2 * r1 * r1p) / l
+    g = m_r + m_d * (1 + eps * r1) ** 2
+    A = m_r + m_d * (1 + eps * r1) ** 2 + m_d * eps ** 2 * r1p ** 2
+    B = m_d * (eps * r1p + eps ** 2 * (r1 * r1p + r1p * r1pp)) / l
+    C = -2 * B
+    D = m_d * eps ** 2 * r1p * r1pp / l
+    E = -m_d * eps ** 2 * r1p ** 2
+    return NonlinearTerms(h, g, A, B, C, D, E)
+
+
+def _erva_symbolic(p: ERVAParams):
+    """ẋ, P and stored energy of the nonlinear ERVA (paper eq. (11))."""
+    x = ca.SX.sym('x', 6)
+    u = ca.SX.sym('u')
+    w = ca.SX.sym('w')
+    t = erva_terms(p, x)
+    v24 = x[1] - x[3]           # suspension velocity ż_s - ż_us
+    d13 = x[0] - x[2]           # suspension deflection z_s - z_us
+    v_gen = x[5] - v24          # rotor relative to screw, l·φ̇
+    f2 = -t.h * x[5] * (x[5] - v24) - p.c * v24 - p.k_s * d13
+    f4 = t.h * x[5] * (x[5] - v24) + p.c * v24 + p.k_s * d13 - p.k_t * x[2] + p.k_t * w
+    f6 = (-t.B * x[5] ** 2 - t.C * x[5] * v24 - t.D * v24 ** 2
+          - u * v_gen - p.k_d * (x[4] - d13))
+    mass = ca.SX(3, 3)
+    mass[0, 0] = p.M_s + p.m_b
+    mass[0, 1] = -p.m_b
+    mass[0, 2] = t.g
+    mass[1, 0] = -p.m_b
+    mass[1, 1] = p.M_us + p.m_b
+    mass[1, 2] = -t.g
+    mass[2, 0] = t.E
+    mass[2, 1] = -t.E
+    mass[2, 2] = t.A
+    acc = _solve3(mass, ca.vertcat(f2, f4, f6))
+    xdot = ca.vertcat(x[1], acc[0], x[3], acc[1], x[5], acc[2])
+    power = u * v_gen ** 2
+    position = x[4] - d13       # rotor relative to screw, z_d - (z_s - z_us)
+    # Kinetic energy of eq. (1) in the paper's translational variables (eq. (10)):
+    # m r² ψ̇² → m_d (1+εr_1)² ż_d², m (r'φ̇)² → m_d ε² r_1'² v_gen², J_b θ̇² → m_b v24².
+    r1 = ((x[4] - d13) / p.l) ** 2
+    r1p = 2 * (x[4] - d13) / p.l
+    kinetic = 0.5 * (p.M_s * x[1] ** 2 + p.M_us * x[3] ** 2 + p.m_b * v24 ** 2
+                     + (p.m_r + p.m_d * (1 + p.epsilon * r1) ** 2) * x[5] ** 2
+                     + p.m_d * p.epsilon ** 2 * r1p ** 2 * v_gen ** 2)
+    potential = 0.5 * (p.k_s * d13 ** 2 + p.k_t * (x[2] - w) ** 2 + p.k_d * (x[4] - d13) ** 2)
+    return x, u, w, xdot, power, kinetic + potential, v_gen, position
+
+
+def _benchmark_symbolic(p: ERVAParams):
+    """ẋ, P and stored energy of the linear benchmark (paper eq. (15))."""
+    x = ca.SX.sym('x', 4)
+    u = ca.SX.sym('u')
+    w = ca.SX.sym('w')
+    mx = p.m_x
+    v24 = x[1] - x[3]
+    d13 = x[0] - x[2]
+    f2 = -(p.c + u) * v24 - p.k_s * d13
+    f4 = (p.c + u) * v24 + p.k_s * d13 - p.k_t * x[2] + p.k_t * w
+    a, b, d = p.M_s + mx, -mx, p.M_us + mx
+    det = a * d - b * b
+    acc_s = (d * f2 - b * f4) / det
+    acc_us = (a * f4 - b * f2) / det
+    xdot = ca.vertcat(x[1], acc_s, x[3], acc_us)
+    power = u * v24 ** 2
+    energy = (0.5 * (p.M_s * x[1] ** 2 + p.M_us * x[3] ** 2 + mx * v24 ** 2)
+              + 0.5 * (p.k_s * d13 ** 2 + p.k_t * (x[2] - w) ** 2))
+    return x, u, w, xdot, power, energy, v24, d13
+
+
+class QuarterCarModel:
+    """Numeric CasADi functions of one model kind, built once per parameter set.
+
+    Use :func:`get_model` to share instances (the functions are immutable).
+    """
+
+    def __init__(self, params: ERVAParams, kind: str = 'erva'):
+        if kind not in MODEL_KINDS:
+            raise ValueError(
+                f'model kind {kind!r} unknown; choose one of {", ".join(MODEL_KINDS)}')
+        self.params = params
+        self.kind = kind
+        build = _erva_symbolic if kind == 'erva' else _benchmark_symbolic
+        x, u, w, xdot, power, energy, v_gen, position = build(params)
+        self.nx = int(x.shape[0])
+        self.state_names = STATE_NAMES[kind]
+        #: Symbolic primitives, for users that build bigger graphs (NMPC, estimator).
+        self.x_sym, self.u_sym, self.w_sym, self.xdot_sym = x, u, w, xdot
+        self.ode = ca.Function('ode', [x, u, w], [xdot], ['x', 'u', 'w'], ['xdot'])
+        self.sprung_accel = ca.Function('sprung_accel', [x, u, w], [xdot[1]],
+                                        ['x', 'u', 'w'], ['sprung_accel'])
+        self.power = ca.Function('power', [x, u], [power], ['x', 'u'], ['power'])
+        self.generator_velocity = ca.Function('generator_velocity', [x], [v_gen],
+                                              ['x'], ['v_gen'])
+        #: The generator's relative displacement (m; the benchmark's is the suspension
+        #: deflection), velocity v_gen (m/s) and harvested power u·v_gen² (W): what the
+        #: ``generator`` topic carries, for every publisher of it.
+        self.generator = ca.Function('generator', [x, u], [position, v_gen, power],
+                                     ['x', 'u'], ['position', 'v_gen', 'power'])
+        self.energy = ca.Function('energy', [x, w], [energy], ['x', 'w'], ['energy'])
+        #: [sprung_accel, power] for many samples at once: columns are samples.
+        self.outputs = ca.Function('outputs', [x, u, w], [xdot[1], power],
+                                   ['x', 'u', 'w'], ['sprung_accel', 'power'])
+
+    def rk4_step(self, dt: float, substeps: int = 1) -> ca.Function:
+        """Discrete step x⁺ = F_d(x, u, w0, w1) over ``dt`` with ``substeps`` RK4 stages.
+
+        u is held over the interval (zero-order hold, as the controller applies it);
+        the road moves linearly from w0 to w1.
+        """
+        return _rk4_step(self, float(dt), int(substeps))
+
+    def plant_step(self, dt: float, substeps: int) -> ca.Function:
+        """Like :meth:`rk4_step`, plus the energy harvested over the interval (J).
+
+        (x, u, w0, w1) -> (x⁺, E_h, A): E_h = ∫ u·v_gen² dt (J) and A = ∫ z̈_s² dt
+        (m²/s³) are integrated as extra RK4 states, so average power and the
+        continuous-time RMS acceleration are exact to the integrator's order rather
+        than sampled at the control period (where the command switches).
+        """
+        return _rk4_step(self, float(dt), int(substeps), True)
+
+    def simulate(self, x0, u, w, dt: float, substeps: int = 1) -> np.ndarray:
+        """Integrate over samples: u[k] held on [t_k, t_k+1), w sampled at t_k (len(u)+1 values).
+
+        Returns the state trajectory, shape (len(u)+1, nx).  One CasADi call for the
+        whole horizon (``mapaccum``), so long sweeps cost no Python per step.
+        """
+        u = np.asarray(u, dtype=float).ravel()
+        w = np.asarray(w, dtype=float).ravel()
+        n = u.size
+        if w.size != n + 1:
+            raise ValueError(f'need len(w) == len(u) + 1, got {w.size} and {n}')
+        sim = _mapaccum(self, float(dt), int(substeps), n)
+        inputs = np.vstack([u, w[:-1], w[1:]])
+        xs = np.asarray(sim(np.asarray(x0, dtype=float), inputs))
+        return np.vstack([np.asarray(x0, dtype=float).reshape(1, -1), xs.T])
+
+    def outputs_along(self, xs: np.ndarray, u, w) -> Tuple[np.ndarray, np.ndarray]:
+        """Chassis acceleration and harvested power at each sample of a trajectory."""
+        n = xs.shape[0]
+        u = np.broadcast_to(np.asarray(u, dtype=float), (n,))
+        w = np.broadcast_to(np.asarray(w, dtype=float), (n,))
+        acc, pw = _outputs_map(self, n)(xs.T, u.reshape(1, -1), w.reshape(1, -1))
+        return np.asarray(acc).ravel(), np.asarray(pw).ravel()
+
+    def zero_state(self) -> np.ndarray:
+        return np.zeros(self.nx)
+
+
+@lru_cache(maxsize=64)
+def _rk4_step(model: QuarterCarModel, dt: float, substeps: int,
+              with_energy: bool = False) -> ca.Function:
+    x = ca.SX.sym('x', model.nx)
+    u = ca.SX.sym('u')
+    w0 = ca.SX.sym('w0')
+    w1 = ca.SX.sym('w1')
+    h = dt / substeps
+    # Augmented state [x; E_h; A] with Ė_h = P(x, u), Ȧ = z̈_s²: one RK4 for all.
+    nx = model.nx
+
+    def rhs(z, w):
+        xdot = model.ode(z[:nx], u, w)
+        return ca.vertcat(xdot, model.power(z[:nx], u), xdot[1] ** 2)
+
+    zk = ca.vertcat(x, 0, 0)
+    for i in range(substeps):
+        wa = w0 + (w1 - w0) * (i / substeps)
+        wm = w0 + (w1 - w0) * ((i + 0.5) / substeps)
+        wb = w0 + (w1 - w0) * ((i + 1) / substeps)
+        k1 = rhs(zk, wa)
+        k2 = rhs(zk + h / 2 * k1, wm)
+        k3 = rhs(zk + h / 2 * k2, wm)
+        k4 = rhs(zk + h * k3, wb)
+        zk = zk + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    if with_energy:
+        return ca.Function(f'plant_step_{model.kind}', [x, u, w0, w1],
+                           [zk[:nx], zk[nx], zk[nx + 1]], ['x', 'u', 'w0', 'w1'],
+                           ['xn', 'harvested_j', 'accel_sq_int'])
+    return ca.Function(f'rk4_{model.kind}', [x, u, w0, w1], [zk[:nx]],
+                       ['x', 'u', 'w0', 'w1'], ['xn'])
+
+
+@lru_cache(maxsize=64)
+def _mapaccum(model: QuarterCarModel, dt: float, substeps: int, n: int) -> ca.Function:
+    step = _rk4_step(model, dt, substeps)
+    x = ca.SX.sym('x', model.nx)
+    uw = ca.SX.sym('uw', 3)
+    one = ca.Function('one', [x, uw], [step(x, uw[0], uw[1], uw[2])])
+    return one.mapaccum('sim', n)
+
+
+@lru_cache(maxsize=64)
+def _outputs_map(model: QuarterCarModel, n: int) -> ca.Function:
+    return model.outputs.map(n)
+
+
+@lru_cache(maxsize=16)
+def get_model(params: ERVAParams, kind: str = 'erva') -> QuarterCarModel:
+    """Shared model instance for (params, kind); CasADi functions are built once."""
+    return QuarterCarModel(params, kind)
+
+
+def linearize(model: QuarterCarModel, x0=None, u0: float = 0.0, w0: float = 0.0):
+    """Jacobians (A, B_u, B_w) of ẋ = F(x, u, w) at an operating point."""
+    x0 = model.zero_state() if x0 is None else np.asarray(x0, dtype=float)
+    jac = ca.Function('linearization', [model.x_sym, model.u_sym, model.w_sym],
+                      [ca.jacobian(model.xdot_sym, model.x_sym),
+                       ca.jacobian(model.xdot_sym, model.u_sym),
+                       ca.jacobian(model.xdot_sym, model.w_sym)])
+    a, bu, bw = jac(x0, u0, w0)
+    return np.asarray(a), np.asarray(bu), np.asarray(bw)
+
+
+def rk4_stable_substeps(model: QuarterCarModel, dt: float, u_max: float,
+                        margin: float = 0.5) -> int:
+    """Fewest RK4 sub-steps over ``dt`` that keep the linearised plant stable at u_max.
+
+    Uses the fastest eigenvalue at rest and RK4's real-axis stability limit 2.785,
+    with a safety ``margin`` (0.5 → h·|λ| ≤ 1.39).
+    """
+    a, _, _ = linearize(model, u0=u_max)
+    lam = float(np.max(np.abs(np.linalg.eigvals(a))))
+    return max(1, int(np.ceil(dt * lam / (2.785 * margin))))

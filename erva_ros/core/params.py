@@ -1,0 +1,200 @@
+"""Typed, validated ERVA parameters (paper Table I) loaded from a ROS 2 parameter file.
+
+The parameter file is an ordinary ROS 2 ``--params-file`` YAML::
+
+    /**:
+      ros__parameters:
+        M_s: 250.0
+        ...
+
+Every node reads its own section (or ``/**``) so the same file configures the
+plant simulator, the NMPC and the offline tools.  Validation happens once, at
+load, and a bad value raises :class:`ParamError` whose message is one line naming
+the key, the value and the allowed range.
+"""
+
+from dataclasses import dataclass, fields, replace
+import math
+import os
+from typing import Any, Dict, Optional
+
+import yaml
+
+
+class ParamError(ValueError):
+    """A parameter is missing, of the wrong type, or out of its allowed range."""
+
+
+@dataclass(frozen=True)
+class Spec:
+    """Allowed range and meaning of one parameter (used for validation and ROS descriptors)."""
+
+    lo: float
+    hi: float
+    unit: str
+    doc: str
+    lo_open: bool = False
+
+    def describe(self) -> str:
+        left = '(' if self.lo_open else '['
+        return f'{left}{self.lo:g}, {self.hi:g}] {self.unit}'.rstrip()
+
+
+# Physical parameters of the quarter car with ERVA (paper Table I, eq. (10)).
+# Ranges are generous physical envelopes; they exist to catch unit and sign
+# errors (a mass in tonnes, a negative stiffness), not to restrict design studies.
+ERVA_SPECS: Dict[str, Spec] = {
+    'M_s': Spec(1.0, 5000.0, 'kg', 'sprung mass (quarter of the body)'),
+    'M_us': Spec(1.0, 1000.0, 'kg', 'unsprung mass (wheel, hub, strut)'),
+    'k_t': Spec(1e3, 1e7, 'N/m', 'tyre vertical stiffness'),
+    'k_s': Spec(1e2, 1e7, 'N/m', 'suspension spring stiffness'),
+    'c': Spec(0.0, 1e5, 'Ns/m', 'parasitic viscous damping of the strut'),
+    'k_d': Spec(0.0, 1e7, 'N/m', 'torsion-spring stiffness, translational (k_d = kbar_d/l^2)'),
+    'l': Spec(0.0, 10.0, 'm/rad', 'ball-screw effective moment arm (z = l*theta)', lo_open=True),
+    'c_e0': Spec(0.0, 1e6, 'Ns/m', 'passive electrical damping (c_e = kappa^2/R)'),
+    'm_d': Spec(0.0, 1e4, 'kg', 'sliding-mass equivalent mass (m r0^2 / l^2)'),
+    'm_r': Spec(0.0, 1e4, 'kg', 'rotor equivalent mass (J_r / l^2)'),
+    'm_b': Spec(0.0, 1e4, 'kg', 'ball-screw + housing equivalent mass (J_b / l^2)'),
+    'epsilon': Spec(0.0, 10.0, '-', 'inertia nonlinearity epsilon = lambda / r0'),
+}
+
+# Values printed in paper Table I.
+PAPER_VALUES: Dict[str, float] = {
+    'M_s': 250.0, 'M_us': 35.0, 'k_t': 150e3, 'k_s': 55e3,
+    'c': 70.71, 'k_d': 24.09e3, 'l': 0.16, 'c_e0': 10e3,
+    'm_d': 129.78, 'm_r': 14.42, 'm_b': 21.31, 'epsilon': 0.1,
+}
+
+
+@dataclass(frozen=True)
+class ERVAParams:
+    """Physical parameters of the ERVA quarter car, SI units (paper Table I)."""
+
+    M_s: float = PAPER_VALUES['M_s']
+    M_us: float = PAPER_VALUES['M_us']
+    k_t: float = PAPER_VALUES['k_t']
+    k_s: float = PAPER_VALUES['k_s']
+    c: float = PAPER_VALUES['c']
+    k_d: float = PAPER_VALUES['k_d']
+    l: float = PAPER_VALUES['l']  # noqa: E741 -- the paper's symbol
+    c_e0: float = PAPER_VALUES['c_e0']
+    m_d: float = PAPER_VALUES['m_d']
+    m_r: float = PAPER_VALUES['m_r']
+    m_b: float = PAPER_VALUES['m_b']
+    epsilon: float = PAPER_VALUES['epsilon']
+
+    @property
+    def m_x(self) -> float:
+        """Lumped inertia of the linear benchmark, m_x = m_b + m_r + m_d (paper §III.B)."""
+        return self.m_b + self.m_r + self.m_d
+
+    def with_(self, **kw: float) -> 'ERVAParams':
+        """Return a validated copy with some values replaced."""
+        return validate_erva(dict(self.as_dict(), **kw), source='override')
+
+    def as_dict(self) -> Dict[str, float]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+def check_number(key: str, value: Any, spec: Spec, source: str = '') -> float:
+    """Return ``value`` as float or raise a one-line :class:`ParamError`."""
+    where = f'{source}: ' if source else ''
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ParamError(
+            f'{where}parameter {key!r} must be a number in {spec.describe()}, '
+            f'got {type(value).__name__} {value!r}')
+    v = float(value)
+    too_low = v <= spec.lo if spec.lo_open else v < spec.lo
+    if not math.isfinite(v) or too_low or v > spec.hi:
+        raise ParamError(
+            f'{where}parameter {key!r} = {value!r} is out of range; allowed {spec.describe()} '
+            f'({spec.doc})')
+    return v
+
+
+def validate_erva(values: Dict[str, Any], source: str = '') -> ERVAParams:
+    """Validate a mapping of physical parameters; every key of ERVA_SPECS is required."""
+    where = f'{source}: ' if source else ''
+    out = {}
+    for key, spec in ERVA_SPECS.items():
+        if key not in values:
+            raise ParamError(
+                f'{where}missing parameter {key!r} (expected {spec.describe()}, {spec.doc})')
+        out[key] = check_number(key, values[key], spec, source)
+    return ERVAParams(**out)
+
+
+def load_params_yaml(path: str) -> Dict[str, Any]:
+    """Parse a ROS params file into its top-level mapping, or raise a one-line ParamError."""
+    if not os.path.isfile(path):
+        raise ParamError(f'parameter file {path!r} does not exist')
+    try:
+        with open(path, encoding='utf-8') as fh:
+            doc = yaml.safe_load(fh)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, 'problem_mark', None)
+        at = f' at line {mark.line + 1}' if mark is not None else ''
+        raise ParamError(f'{path}: not valid YAML{at}') from None
+    except UnicodeDecodeError as exc:
+        raise ParamError(f'{path}: not a UTF-8 text file (byte {exc.start}: {exc.reason})'
+                         ) from None
+    except OSError as exc:
+        raise ParamError(f'{path}: cannot be read ({exc.strerror or exc})') from None
+    if not isinstance(doc, dict):
+        raise ParamError(f'{path}: expected a mapping of node names to ros__parameters')
+    return doc
+
+
+def read_ros_params(path: str, node_name: Optional[str] = None) -> Dict[str, Any]:
+    """Merge the ``ros__parameters`` of ``/**`` and ``node_name`` sections of a params file.
+
+    Node-specific values override the wildcard section, as ``--params-file`` does.
+    """
+    doc = load_params_yaml(path)
+    merged: Dict[str, Any] = {}
+    sections = ['/**', '**']
+    if node_name:
+        # '/**/name' matches the node in any namespace (e.g. /erva/nmpc_node), as rcl does.
+        sections += [node_name, '/' + node_name.lstrip('/'), '/**/' + node_name.lstrip('/')]
+    found = False
+    for name in sections:
+        sec = doc.get(name)
+        if sec is None:
+            continue
+        if not isinstance(sec, dict) or not isinstance(sec.get('ros__parameters'), dict):
+            raise ParamError(f'{path}: section {name!r} must contain a ros__parameters mapping')
+        merged.update(sec['ros__parameters'])
+        found = True
+    if not found:
+        raise ParamError(
+            f'{path}: no ros__parameters for {node_name or "/**"} '
+            f'(sections present: {", ".join(map(str, doc)) or "none"})')
+    return merged
+
+
+def default_params_file() -> str:
+    """Path of the shipped paper parameter file (source tree or installed share dir)."""
+    from erva_ros.core.config import shipped_config
+    return shipped_config('erva_paper.yaml', 'pass --params FILE')
+
+
+def load_erva_params(path: Optional[str] = None, node_name: Optional[str] = None) -> ERVAParams:
+    """Load and validate the physical ERVA parameters from a ROS params file."""
+    path = path or default_params_file()
+    values = read_ros_params(path, node_name)
+    return validate_erva(values, source=path)
+
+
+def load_section(path: Optional[str], node_name: Optional[str] = None) -> Dict[str, Any]:
+    """Raw merged ``ros__parameters`` for ``node_name`` from ``path`` (default paper file)."""
+    return read_ros_params(path or default_params_file(), node_name)
+
+
+def paper_params() -> ERVAParams:
+    """Return the paper's Table I values."""
+    return ERVAParams()
+
+
+__all__ = ['ParamError', 'Spec', 'ERVA_SPECS', 'PAPER_VALUES', 'ERVAParams', 'check_number',
+           'validate_erva', 'read_ros_params', 'load_erva_params', 'load_section',
+           'default_params_file', 'paper_params', 'replace']

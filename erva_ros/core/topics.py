@@ -1,0 +1,53 @@
+"""Topic names, message types and QoS of the live system: the one contract all nodes share.
+
+Only common_interfaces types; every message is stamped where the type allows, so
+latencies can be measured from a recording alone.  Names are relative to the
+``/erva`` namespace (remappable with ``--ros-args -r __ns:=/car1`` etc.).
+
+topic          type                              content (SI units)
+-------------  --------------------------------  ---------------------------------------------
+state          sensor_msgs/JointState            joints [z_s, z_us, z_d]: position (m),
+                                                 velocity (m/s); stamp = sample time t_k
+sprung_accel   geometry_msgs/AccelStamped        accel.linear.z = z̈_s (m/s²) at t_k
+generator      sensor_msgs/JointState            joint [generator]: position = z_d - (z_s -
+                                                 z_us) (m), velocity = v_gen (m/s), effort =
+                                                 u·v_gen (N); harvested P = effort·velocity (W)
+road/height    geometry_msgs/PointStamped        point.x = distance travelled (m),
+                                                 point.z = road height at the tyre (m)
+road/preview   trajectory_msgs/JointTrajectory   joint [road_height]: points[k].positions =
+                                                 [w(t0 + k·Ts)] (m), time_from_start = k·Ts,
+                                                 header.stamp = t0
+damping_cmd    trajectory_msgs/JointTrajectory   joint [c_e]: points[0] = command to apply now
+                                                 (Ns/m), points[k] = plan at t0 + k·Ts;
+                                                 header.stamp = stamp of the state used
+/diagnostics   diagnostic_msgs/DiagnosticArray   per-node status, counters, timings
+/clock         rosgraph_msgs/Clock               lock-step mode only
+"""
+
+NAMESPACE = '/erva'
+
+STATE = 'state'
+SPRUNG_ACCEL = 'sprung_accel'
+GENERATOR = 'generator'
+ROAD_HEIGHT = 'road/height'
+ROAD_PREVIEW = 'road/preview'
+DAMPING_CMD = 'damping_cmd'
+DIAGNOSTICS = '/diagnostics'
+CLOCK = '/clock'
+
+STATE_JOINTS = ('z_s', 'z_us', 'z_d')
+GENERATOR_JOINT = 'generator'
+ROAD_JOINT = 'road_height'
+DAMPING_JOINT = 'c_e'
+
+#: ROS type names (as in rosbag2 metadata) of each fully-qualified topic.
+TOPIC_TYPES = {
+    f'{NAMESPACE}/{STATE}': 'sensor_msgs/msg/JointState',
+    f'{NAMESPACE}/{SPRUNG_ACCEL}': 'geometry_msgs/msg/AccelStamped',
+    f'{NAMESPACE}/{GENERATOR}': 'sensor_msgs/msg/JointState',
+    f'{NAMESPACE}/{ROAD_HEIGHT}': 'geometry_msgs/msg/PointStamped',
+    f'{NAMESPACE}/{ROAD_PREVIEW}': 'trajectory_msgs/msg/JointTrajectory',
+    f'{NAMESPACE}/{DAMPING_CMD}': 'trajectory_msgs/msg/JointTrajectory',
+    DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray',
+    CLOCK: 'rosgraph_msgs/msg/Clock',
+}

@@ -1,0 +1,117 @@
+"""The main() idiom shared by every node (ros2/examples style), with one-line start-up errors.
+
+``rclpy.init`` parses ``--ros-args`` (``--params-file``, ``-p``, ``-r __ns:=``) as
+``ros2 run`` does; the node is spun by a SingleThreadedExecutor; a bad parameter stops
+it with one line on stderr and exit status 2, never a traceback.
+
+Shutdown (SIGINT/SIGTERM, Ctrl-C) ends the node *cleanly* for the session's records:
+rclpy's own signal handlers would shut the context down at once, so a publisher
+leaving with samples a subscriber (the recorder) has not acknowledged yet would take
+them with it.  Instead the signal stops the spin loop, then the node publishes a last
+status (its final counts: ``published:<topic>``) and waits, bounded by
+``SHUTDOWN_ACK_S``, until every subscriber has acknowledged everything its
+:class:`~erva_ros.ros.diagnostics.CountedPublisher` s and its status wrote
+(``Publisher.wait_for_all_acked``).  A second signal skips the wait.
+"""
+
+import gc
+import signal
+import sys
+import time
+from typing import Callable, List, Optional
+
+from erva_ros.ros.realtime import set_fifo_priority
+from erva_ros.core.params import ParamError
+
+#: Exit status of a node stopped by a bad parameter or option.
+EXIT_BAD_PARAMETER = 2
+#: How long (s) a stopping node waits for its subscribers to acknowledge what it published.
+SHUTDOWN_ACK_S = 5.0
+#: The spin loop wakes at least this often to see a stop request (s).
+SPIN_TIMEOUT_S = 0.1
+
+
+def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]] = None
+             ) -> int:
+    """Create the node with ``factory`` and spin it until shutdown; return the exit status."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    signalled: List[int] = []
+
+    def note(signum, frame):
+        signalled.append(signum)
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, note)
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as exc:  # malformed --ros-args: rcl reports it, keep it to one line
+        print(f'{name}: error: {str(exc).splitlines()[0]}', file=sys.stderr)
+        return EXIT_BAD_PARAMETER
+    node = None
+    try:
+        node = factory()
+        # Start-up objects (CasADi functions, messages, modules) never die: move them out
+        # of the collector's way so a collection during the loop scans only new objects.
+        gc.collect()
+        gc.freeze()
+        # Last, after the start-up work: a FIFO thread building CasADi functions would
+        # starve the other nodes starting on the same cores.
+        priority = getattr(node, 'realtime_priority', 0)
+        node.scheduling = set_fifo_priority(priority, node.get_logger().warning)
+        if priority > 0 and node.scheduling.startswith('SCHED_FIFO'):
+            node.get_logger().info(f'running at {node.scheduling}')
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not signalled and rclpy.ok():
+            executor.spin_once(timeout_sec=SPIN_TIMEOUT_S)
+        finish_publishing(node, signalled)
+    except ParamError as exc:
+        print(f'{name}: error: {exc}', file=sys.stderr, flush=True)
+        return EXIT_BAD_PARAMETER
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def finish_publishing(node, signalled: List[int], limit_s: float = SHUTDOWN_ACK_S) -> bool:
+    """Publish ``node``'s final status, then wait until its samples are acknowledged.
+
+    Returns True if every subscriber acknowledged everything within ``limit_s`` (or a
+    further signal cut the wait short: False).
+    """
+    from rclpy.duration import Duration
+    # A node with a StatusReporter (``status``), or one that publishes its own status
+    # (``publish_status``) and lists its ``counted_publishers``.
+    status = getattr(node, 'status', None)
+    publish = getattr(node, 'publish_status', None) or getattr(status, 'publish', None)
+    publishers = list(getattr(node, 'counted_publishers', None)
+                      or getattr(status, 'publishers', []))
+    if publish is not None:
+        publish()
+    if getattr(node, 'pub_diag', None) is not None:
+        publishers.append(node.pub_diag)
+    deadline = time.monotonic() + limit_s
+    before = len(signalled)
+    for pub in publishers:
+        raw = getattr(pub, 'publisher', pub)
+        while len(signalled) <= before:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            # In short slices, so a second Ctrl-C is seen at once.
+            slice_ns = int(min(left, SPIN_TIMEOUT_S) * 1e9)
+            if raw.wait_for_all_acked(Duration(nanoseconds=slice_ns)):
+                break
+        else:
+            return False
+    return True
+
+
+__all__ = ['EXIT_BAD_PARAMETER', 'SHUTDOWN_ACK_S', 'finish_publishing', 'run_node']

@@ -1,0 +1,181 @@
+"""Message accounting of an `erva run` session: who must be matched, and was anything lost.
+
+A writer delivers only to the readers it has matched, and a reliable writer repairs a
+reader's gaps only from its own history.  So a session records everything exactly when
+
+1. the loop starts only after every loop writer has matched every subscriber it will
+   have -- the other loop nodes, the session monitor and the recorder (each node's
+   status reports ``subscribers:<topic>``, the recorder's ``publishers:<topic>``);
+2. the writers keep enough history to repair a stalled recorder
+   (``publisher_history_s``; :func:`erva_ros.ros.qos.publisher_qos`);
+3. at the end the nodes stay up until the recorder holds what they published
+   (``published:<topic>`` against the recorder's ``count:<topic>``), and each node,
+   when stopped, waits until its subscribers acknowledged its samples
+   (:func:`erva_ros.ros.runtime.finish_publishing`).
+
+:func:`check_bag` then compares, per topic, what the nodes published with what the bag
+file holds -- read back from disk, not the recorder's word for it -- and, for
+``/diagnostics``, that every node's status sequence numbers are there without a gap.
+"""
+
+from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
+
+from erva_ros.core import topics
+
+#: Subscribers of each loop topic among the loop's own nodes (observers come on top).
+LOOP_SUBSCRIBERS = {
+    topics.STATE: 1,            # nmpc_node
+    topics.SPRUNG_ACCEL: 0,
+    topics.GENERATOR: 0,
+    topics.ROAD_HEIGHT: 1,      # plant_sim_node
+    topics.ROAD_PREVIEW: 1,     # nmpc_node
+    topics.DAMPING_CMD: 1,      # plant_sim_node
+    topics.DIAGNOSTICS: 0,
+}
+
+
+def hil_loop_subscribers() -> Dict[str, int]:
+    """Return LOOP_SUBSCRIBERS of the HIL loop (the ECU simulator, bridge and estimator)."""
+    from erva_ros.core.hil import topics as hil
+    return {
+        topics.STATE: 1,            # nmpc_node (from the estimator)
+        topics.ROAD_HEIGHT: 2,      # the ECU simulator and the estimator
+        topics.ROAD_PREVIEW: 1,     # nmpc_node
+        topics.DAMPING_CMD: 1,      # ecu_bridge_node
+        topics.SPRUNG_ACCEL: 0,     # the ECU simulator's ground truth
+        topics.GENERATOR: 0,
+        topics.DIAGNOSTICS: 0,
+        hil.ECU_MEASUREMENTS: 1,    # state_estimator_node
+        hil.ECU_DAMPING_APPLIED: 0, hil.ECU_SPRUNG_ACCEL: 0, hil.ECU_SUSPENSION: 0,
+        hil.ECU_GENERATOR: 0, hil.TRUE_STATE: 0,
+    }
+
+
+def qualify(topic: str, namespace: str) -> str:
+    """Return ``topic`` resolved against ``namespace`` (absolute names stay)."""
+    return topic if topic.startswith('/') else f'{namespace.rstrip("/")}/{topic}'
+
+
+def expected_subscribers(loop: Mapping[str, int], observers: Iterable[Iterable[str]],
+                         namespace: str) -> Dict[str, int]:
+    """Return, per fully qualified topic, how many subscribers its writer must match.
+
+    ``loop`` counts the loop's own subscribers per topic; each of ``observers`` (the
+    monitor, the recorder, ...) is the list of topics that observer subscribes to.
+    """
+    out = {qualify(t, namespace): n for t, n in loop.items()}
+    for watched in observers:
+        for t in watched:
+            name = qualify(t, namespace)
+            if name in out:
+                out[name] += 1
+    return out
+
+
+def unmatched(statuses: Mapping[str, Mapping[str, str]], nodes: Sequence[str],
+              expected: Mapping[str, int], later: Mapping[str, int]) -> List[str]:
+    """Return what is not matched yet (empty once the loop may start).
+
+    ``statuses`` are the newest /diagnostics values by status name; every one of
+    ``nodes`` must have reported, and each ``subscribers:<topic>`` must reach
+    ``expected`` minus ``later`` (subscribers that come only after the check, e.g. the
+    monitor's gate subscription).
+    """
+    missing = [f'{n}: no status yet' for n in nodes
+               if not any(name == n or name.startswith(n + ':') for name in statuses)]
+    for name, values in statuses.items():
+        for key, value in values.items():
+            if not key.startswith('subscribers:'):
+                continue
+            topic = key[len('subscribers:'):]
+            need = expected.get(topic)
+            if need is None:
+                continue
+            need -= later.get(topic, 0)
+            if int(value) < need:
+                missing.append(f'{name}: {topic} has {value} of {need} subscribers')
+    return missing
+
+
+def recorder_unmatched(recorder: Mapping[str, str], record: Mapping[str, int]) -> List[str]:
+    """Return the recorded topics whose writers the recorder has not all matched yet.
+
+    ``record`` maps each fully qualified recorded topic to its number of writers.
+    """
+    out = []
+    for topic, need in record.items():
+        got = recorder.get(f'publishers:{topic}')
+        if got is None or int(got) < need:
+            out.append(f'recorder: {topic} matched {got or 0} of {need} publishers')
+    return out
+
+
+def published_counts(statuses: Mapping[str, Mapping[str, str]]) -> Dict[str, int]:
+    """Return, per topic, the messages the nodes say they published (``published:<topic>``)."""
+    out: Dict[str, int] = {}
+    for values in statuses.values():
+        for key, value in values.items():
+            if key.startswith('published:'):
+                topic = key[len('published:'):]
+                out[topic] = out.get(topic, 0) + int(value)
+    return out
+
+
+def recorder_behind(recorder: Mapping[str, str], published: Mapping[str, int]
+                    ) -> Dict[str, Tuple[int, int]]:
+    """Return {topic: (recorded, published)} for topics the recorder has not caught up on."""
+    out = {}
+    for topic, n in published.items():
+        got = int(recorder.get(f'count:{topic}', 0))
+        if got < n:
+            out[topic] = (got, n)
+    return out
+
+
+def check_bag(bag_path: str, published: Mapping[str, int],
+              status_seqs: Mapping[str, int], window_ns: Optional[Tuple[int, int]] = None
+              ) -> Dict:
+    """Compare the bag file with what was published; return the per-topic accounting.
+
+    ``published`` maps topics to the nodes' final counts; ``status_seqs`` maps each node's
+    status name to the highest ``status_seq`` the session saw from it: the bag must hold
+    every status from its first recorded one up to that.  Messages stamped outside
+    ``window_ns`` (the session's time span) are counted as foreign, not as the loop's.
+    Returns ``{'topics': {topic: {published, recorded, lost, foreign}}, 'lost': total,
+    'diagnostics_missing': {status name: [seq, ...]}}``.
+    """
+    from erva_ros.core.bag.reader import open_bag
+    from erva_ros.ros.cdr import header_stamp_ns, status_seqs as decode_seqs
+    bag = open_bag(bag_path)
+    recorded = {t: 0 for t in published}
+    foreign = {t: 0 for t in published}
+    seen: Dict[str, set] = {}
+    for msg in bag.messages():
+        if msg.topic == topics.DIAGNOSTICS:
+            for name, seq in decode_seqs(msg.data):
+                seen.setdefault(name, set()).add(seq)
+        if msg.topic not in recorded:
+            continue
+        stamp = header_stamp_ns(msg.data)
+        if window_ns is not None and not window_ns[0] <= stamp <= window_ns[1]:
+            foreign[msg.topic] += 1
+        else:
+            recorded[msg.topic] += 1
+    out = {'topics': {}, 'lost': 0, 'diagnostics_missing': {}}
+    for topic, n in published.items():
+        lost = max(0, n - recorded[topic])
+        out['topics'][topic] = {'published': n, 'recorded': recorded[topic], 'lost': lost,
+                                'foreign': foreign[topic]}
+        out['lost'] += lost
+    for name, last in status_seqs.items():
+        got = seen.get(name, set())
+        first = min(got) if got else last + 1
+        gaps = sorted(set(range(first, last + 1)) - got)
+        if not got or gaps:
+            out['diagnostics_missing'][name] = gaps if got else 'none recorded'
+    return out
+
+
+__all__ = ['LOOP_SUBSCRIBERS', 'hil_loop_subscribers', 'qualify', 'expected_subscribers',
+           'unmatched', 'recorder_unmatched', 'published_counts', 'recorder_behind',
+           'check_bag']

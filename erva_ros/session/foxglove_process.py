@@ -1,0 +1,120 @@
+"""`erva run --foxglove`: the session's Foxglove server process (nodes/foxglove_node.py).
+
+:func:`check_address` validates ``[HOST:]PORT`` and binds it once, so a port in use or
+an address of no interface here fails with one line before any process starts.
+:func:`start_process` starts foxglove_node first of all the session's processes and
+waits until it listens, so a viewer can connect before the loop runs and the node
+subscribes before the time master starts (it counts as one more subscriber, like the
+recorder).  It is stopped with the recorder, after the loop's nodes.
+"""
+
+import os
+import sys
+import time
+from typing import Any, Callable, Dict, List, Tuple
+
+from erva_ros.core.errors import CLIError
+from erva_ros.ros import foxglove_server as fg
+
+#: The process name in `erva run`'s summary and logs.
+PROCESS = 'foxglove_server'
+#: The log line of foxglove_node once it listens (followed by the URL).
+READY = 'serving ws://'
+#: Longest wait for the server to listen (a cold start on a busy machine takes seconds).
+START_TIMEOUT_S = 60.0
+
+
+def check_address(text: str) -> Tuple[str, int]:
+    """Return (host, port) of ``--foxglove [HOST:]PORT``; raise CLIError (one line) if unusable.
+
+    Without HOST the server listens on loopback only; another address is used only when
+    named.  The address is bound once here (and released), so a port in use is reported
+    before anything starts.
+    """
+    missing = fg.sdk_missing()
+    if missing:
+        raise CLIError(f'--foxglove: {missing}')
+    try:
+        host, port = fg.parse_address(text)
+        fg.check_bindable(host, port)
+    except ValueError as exc:
+        raise CLIError(f'--foxglove: {exc}') from None
+    return host, port
+
+
+def node_argv(host: str, port: int, namespace: str, topics: List[str],
+              session: Dict[str, str], use_sim_time: bool) -> List[str]:
+    """Return the command line of foxglove_node for one session."""
+    import json
+    argv = [sys.executable, '-m', 'erva_ros.nodes.foxglove_node', '--ros-args',
+            '-r', f'__ns:={namespace}', '-p', f'host:={json.dumps(host)}',
+            '-p', f'port:={int(port)}', '-p', f'topics:={json.dumps(list(topics))}',
+            # A double-quoted YAML scalar, so rcl keeps the JSON a string.
+            '-p', f'session_metadata:={json.dumps(json.dumps(session, sort_keys=True))}']
+    if use_sim_time:
+        argv += ['-p', 'use_sim_time:=true']
+    return argv
+
+
+def session_topics(hil: bool) -> List[str]:
+    """Return the topics served: the recorder's (the contract, plus the HIL topics)."""
+    from erva_ros.nodes.recorder_node import DEFAULT_TOPICS
+    served = list(DEFAULT_TOPICS)
+    if hil:
+        from erva_ros.core.hil.topics import RECORD_TOPICS
+        served += RECORD_TOPICS
+    return served
+
+
+def start_process(cfg, session, env: Dict[str, str], log: Callable[[str], None],
+                  description: Dict[str, str]):
+    """Start foxglove_node for ``session`` and wait until it listens; return its NodeProcess.
+
+    Raises CLIError (exit 2) when it cannot listen (say, the port was taken since
+    :func:`check_address`), after stopping it.
+    """
+    from erva_ros.session.orchestrator import NodeProcess, stop_processes
+    host, port = fg.parse_address(cfg.foxglove)
+    argv = node_argv(host, port, cfg.namespace, session_topics(session.hil), description,
+                     use_sim_time=not session.realtime)
+    proc = NodeProcess(PROCESS, argv, os.path.join(session.directory, f'{PROCESS}.log'), env)
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while True:
+        lines = proc.tail(50).splitlines()
+        ready = next((line for line in lines if READY in line), None)
+        if ready is not None:
+            served = 'ws://' + ready.split(READY, 1)[1].split()[0]
+            log(f'Foxglove: open {served} (Open connection > Foxglove WebSocket; '
+                f'layout config/foxglove_layout.json)')
+            return proc
+        if proc.poll() is not None or time.monotonic() > deadline:
+            why = (lines[-1] if lines else 'no output') if proc.poll() is not None else (
+                f'not listening after {START_TIMEOUT_S:g} s')
+            stop_processes([proc])
+            raise CLIError(f'--foxglove: the Foxglove server did not start: '
+                           f'{why.split("error: ", 1)[-1]}')
+        time.sleep(0.05)
+
+
+def summary(diag: Dict[str, Any]) -> Dict[str, Any]:
+    """Return the server's counters for `erva run`'s summary from the monitor's diagnostics.
+
+    ``diag`` maps status names to (level, message, values, rx) as Monitor.diag does.
+    """
+    values = next((entry[2] for name, entry in diag.items() if name.endswith(fg.STATUS_SUFFIX)),
+                  None)
+    if values is None:
+        return {'status': 'no status received'}
+    out: Dict[str, Any] = {'url': values.get('url')}
+    for key in ('received', 'forwarded', 'clients_seen', 'overflow_events'):
+        try:
+            out[key] = int(values.get(key, ''))
+        except ValueError:
+            out[key] = None
+    out['offered'] = {k.split(':', 1)[1]: int(v) for k, v in values.items()
+                      if k.startswith('offered:') and v.isdigit()}
+    return out
+
+
+__all__ = ['PROCESS', 'check_address', 'node_argv', 'session_topics', 'start_process',
+           'summary']

@@ -1,0 +1,158 @@
+"""The hardware-in-the-loop figures of `erva run --ecu virtual`, for the monitor's summary.
+
+In HIL mode the plant is the simulated ECU (``erva ecu-sim``): it publishes the true
+``sprung_accel``, ``generator`` and ``ecu_sim/state``; ``state`` comes from
+state_estimator_node, and ecu_bridge_node carries the commands over CAN.  This module
+maps what the summary takes from plant_sim_node to those processes' diagnostics
+where an equivalent exists (:func:`published`, :func:`plant_equivalents`) and builds
+the summary's ``hil`` block (:func:`hil_block`): the E2E drops and link counters of the
+bridge and the ECU, the bridge's and the estimator's latencies, and the estimation
+error against the ECU's ground truth.
+
+The bridge never finishes: when the NMPC stops after the last sample, it follows the
+plan once or twice, then times out to the safe command (as it should).  Its counters
+include that tail; ``command_timeouts`` counts only the timeouts that began before
+the ECU finished (``command_timeouts_total`` all of them).
+"""
+
+from typing import Any, Callable, Dict, List, Optional, Tuple
+
+import numpy as np
+
+from erva_ros.core import topics
+from erva_ros.ros.diagnostics import value_float, value_int
+
+ECU = 'ecu_sim'
+ESTIMATOR = 'state_estimator_node'
+#: ecu_bridge_node publishes three statuses; the monitor keys them by these names.
+BRIDGE_COMMAND = 'ecu_bridge_node: command'
+BRIDGE_BUS = 'ecu_bridge_node: can bus'
+BRIDGE_ECU = 'ecu_bridge_node: ecu'
+#: Nodes whose counters only come with their periodic status (no final one at the end).
+PERIODIC = (BRIDGE_COMMAND, BRIDGE_BUS, BRIDGE_ECU, ESTIMATOR)
+#: ECU cycles left out of the estimation error: the filter starts from rest.
+WARMUP = 25
+#: The loop's latency chain, each stage as time since the sample instant t_k (node, key):
+#: the ECU's sensor frames on CAN, ecu/measurements at the estimator, the state
+#: published, (the NMPC's command: the monitor's ``sample_to_command_ms``), the command
+#: on CAN, and applied by the ECU.
+CHAIN = {'sensors_on_can': (ECU, 'sample_to_can_ms'),
+         'measurements_at_estimator': (ESTIMATOR, 'sample_to_measurements_ms'),
+         'state_published': (ESTIMATOR, 'sample_to_state_ms'),
+         'command_on_can': (BRIDGE_COMMAND, 'sample_to_can_ms'),
+         'command_applied': (ECU, 'sample_to_applied_ms')}
+#: E2E rejections (erva_ros.core.hil.e2e) grouped as the summary reports them.
+DROPS = {'crc': ('bad_crc',), 'counter': ('repeated', 'skipped', 'bad_counter'),
+         'length': ('wrong_length',)}
+
+Values = Callable[[str], Dict[str, str]]
+
+
+def published(values: Values) -> Dict[str, Optional[int]]:
+    """Return the loop-side messages published per topic (None: not reported yet)."""
+    from erva_ros.core.hil import topics as hil_topics
+    samples = value_int(values(ECU).get('samples_published'))
+    return {topics.STATE: value_int(values(ESTIMATOR).get('updates')),
+            topics.SPRUNG_ACCEL: samples, topics.GENERATOR: samples,
+            hil_topics.TRUE_STATE: samples}
+
+
+def plant_equivalents(values: Values) -> Dict[str, Optional[int]]:
+    """Return the plant figures that have a HIL equivalent; the others are left out.
+
+    steps = the ECU's integrated cycles; rejected_damping_cmd = malformed commands the
+    bridge refused.  The plant's per-step command / plan / passive counts have none:
+    the bridge counts frames, also before the run and after it (module doc).
+    """
+    return {'steps': value_int(values(ECU).get('cycles')),
+            'rejected_damping_cmd': value_int(values(BRIDGE_COMMAND).get('commands_rejected'))}
+
+
+def hil_block(values: Values, estimates: Dict[int, np.ndarray],
+              truth: Dict[int, np.ndarray], stats: Callable,
+              events: List[Tuple[int, str, int, str]], end_ns: Optional[int]) -> Dict[str, Any]:
+    """Return the summary's ``hil`` block (see the module doc).
+
+    ``estimates`` and ``truth`` map sample stamps (ns) to states; ``stats(values,
+    prefix)`` reads a p50/p99/max/samples group of diagnostic values; ``events`` are the
+    monitor's status changes (rx_ns, name, level, message) and ``end_ns`` the arrival of
+    the ECU's `finished` status (None: it did not finish).
+    """
+    cmd, bus, link = values(BRIDGE_COMMAND), values(BRIDGE_BUS), values(BRIDGE_ECU)
+    ecu, est = values(ECU), values(ESTIMATOR)
+    bridge = {f'dropped_{k}': _sum(bus, names) for k, names in DROPS.items()}
+    total = value_int(cmd.get('command_timeouts'))
+    bridge['command_timeouts'] = total if end_ns is None else _timeouts_before(events, end_ns)
+    bridge['command_timeouts_total'] = total
+    bridge.update({k: value_int(cmd.get(k)) for k in (
+        'commands_received', 'commands_rejected', 'commands_clamped', 'plan_frames_sent')})
+    bridge['bus_errors'] = _sum(bus, ('send_errors', 'bus_losses', 'bus_open_failures'))
+    bridge['reconnects'] = value_int(bus.get('reconnects'))
+    bridge['incomplete_cycles'] = value_int(link.get('incomplete_cycles'))
+    # The ECU checks the command frames the same way (its counters are rx_<name>).
+    ecu_out = {f'dropped_{k}': _sum(ecu, [f'rx_{n}' for n in names])
+               for k, names in DROPS.items()}
+    ecu_out.update({k: value_int(ecu.get(k)) for k in (
+        'cycles', 'commands_applied', 'command_timeouts', 'duty_out_of_range', 'overruns',
+        'cycles_skipped', 'recomputed')})
+    ecu_out['bus_errors'] = _sum(ecu, ('send_errors', 'bus_losses'))
+    ecu_out['mode'] = ecu.get('ecu_mode')
+    ecu_out['mode_changes'] = ecu.get('mode_changes')
+    ecu_out['road_mismatches'] = value_int(ecu.get('road_mismatches'))
+    ecu_out['start_lag_ms'] = value_float(ecu.get('start_lag_ms'))
+    bridge['commands_stale'] = value_int(cmd.get('commands_stale'))
+    bridge['timeout_plan_frames_max'] = value_int(cmd.get('timeout_plan_frames_max'))
+    bridge['timeout_age_ms_max'] = value_float(cmd.get('timeout_age_ms_max'))
+    estimator: Dict[str, Any] = {k: value_int(est.get(k)) for k in (
+        'updates', 'incomplete', 'gaps', 'restarts', 'late_or_repeated', 'rejected',
+        'no_road', 'road_waits', 'road_extrapolated')}
+    estimator['nis_mean'] = value_float(est.get('nis_mean'))
+    estimator['error'] = estimation_error(estimates, truth)
+    return {'bridge': bridge, 'ecu': ecu_out, 'estimator': estimator,
+            'latency_ms': {'bridge_ros_to_can': stats(cmd, 'ros_to_can_ms'),
+                           'bridge_can_to_ros': stats(link, 'can_to_ros_ms'),
+                           'estimator': stats(est, 'latency_ms')},
+            # Each stage's point in time after the sample instant t_k (CHAIN).
+            'chain_ms': {stage: stats(values(node), key) for stage, (node, key) in CHAIN.items()}}
+
+
+def estimation_error(estimates: Dict[int, np.ndarray], truth: Dict[int, np.ndarray],
+                     warmup: int = WARMUP) -> Dict[str, Any]:
+    """Return the RMS of estimate - truth per state over the samples both have.
+
+    Both are stamped with the ECU's sample instants (estimator on the road grid), so
+    they pair by stamp; the first ``warmup`` samples are left out.
+    """
+    from erva_ros.core.model import STATE_NAMES
+    stamps = sorted(set(estimates) & set(truth))[warmup:]
+    if not stamps:
+        return {'matched': 0}
+    err = np.array([estimates[s] - truth[s] for s in stamps])
+    true = np.array([truth[s] for s in stamps])
+    names = STATE_NAMES['erva' if err.shape[1] == 6 else 'benchmark']
+    rms = np.sqrt(np.mean(err ** 2, axis=0))
+    scale = np.sqrt(np.mean(true ** 2, axis=0))
+    return {'matched': len(stamps), 'rms': dict(zip(names, rms.tolist())),
+            'relative_rms': dict(zip(names, (rms / np.where(scale > 0, scale, np.nan)).tolist()))}
+
+
+def _timeouts_before(events: List[Tuple[int, str, int, str]], end_ns: int) -> int:
+    """Return how often the bridge's command status turned ERROR (a timeout) before end_ns."""
+    from erva_ros.ros.diagnostics import ERROR
+    count, was_error = 0, False
+    for rx, name, level, _ in events:
+        if name == BRIDGE_COMMAND:
+            if level == ERROR and not was_error and rx < end_ns:
+                count += 1
+            was_error = level == ERROR
+    return count
+
+
+def _sum(values: Dict[str, str], keys) -> Optional[int]:
+    """Return the sum of integer counters, None if any is not reported."""
+    parts = [value_int(values.get(k)) for k in keys]
+    return None if any(p is None for p in parts) else sum(parts)
+
+
+__all__ = ['ECU', 'ESTIMATOR', 'PERIODIC', 'published', 'plant_equivalents', 'hil_block',
+           'estimation_error']

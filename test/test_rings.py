@@ -1,0 +1,110 @@
+"""The three rings, checked on the source: core never imports ROS, nothing imports upward.
+
+* core (erva_ros/core): plain Python -- no rclpy, no message package, not even inside a
+  function or through importlib;
+* ros (erva_ros/ros, erva_ros/nodes): may import core and ROS;
+* session (erva_ros/session) and the CLI (erva_ros/commands, erva_ros/cli.py): built on
+  both; the CLI may import the session, never the other way round.
+"""
+
+import ast
+import os
+
+import pytest
+
+from conftest import REPO
+
+PKG = os.path.join(REPO, 'erva_ros')
+#: What each ring may import of erva_ros (besides itself).
+ALLOWED = {
+    'core': {'core'},
+    'ros': {'core', 'ros'},
+    'session': {'core', 'ros', 'session'},
+    'cli': {'core', 'ros', 'session', 'cli'},
+}
+
+
+def ring_of(module: str) -> str:
+    """Return the ring of a dotted erva_ros module name."""
+    parts = module.split('.')
+    if len(parts) == 1 or parts[1].startswith('__'):
+        return 'core'                       # the package itself: the version only
+    return {'core': 'core', 'ros': 'ros', 'nodes': 'ros', 'session': 'session',
+            'commands': 'cli', 'cli': 'cli'}[parts[1]]
+
+
+def is_ros_package(name: str) -> bool:
+    top = name.split('.')[0]
+    return (top in ('rclpy', 'ament_index_python', 'launch', 'launch_ros')
+            or top.endswith(('_msgs', '_interfaces', '_srvs'))
+            or top.startswith(('rosidl', 'rmw')))
+
+
+def imports_of(path: str, module: str):
+    """Yield every module ``path`` imports, at any depth, and importlib.import_module('...')."""
+    tree = ast.parse(open(path, encoding='utf-8').read(), path)
+    package = module if path.endswith('__init__.py') else module.rsplit('.', 1)[0]
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                yield alias.name, node.lineno
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ''
+            if node.level:
+                parts = package.split('.')
+                base = '.'.join(parts[:len(parts) - node.level + 1] + ([base] if base else []))
+            yield base, node.lineno
+            for alias in node.names:            # from erva_ros import session -> a module
+                yield f'{base}.{alias.name}', node.lineno
+        elif (isinstance(node, ast.Call) and getattr(node.func, 'attr', '') == 'import_module'
+              and node.args and isinstance(node.args[0], (ast.Constant, ast.JoinedStr))):
+            arg = node.args[0]
+            text = arg.value if isinstance(arg, ast.Constant) else ''.join(
+                v.value if isinstance(v, ast.Constant) else '{}' for v in arg.values)
+            yield text, node.lineno
+
+
+def modules():
+    for dirpath, _, files in os.walk(PKG):
+        for f in sorted(files):
+            if f.endswith('.py'):
+                path = os.path.join(dirpath, f)
+                rel = os.path.relpath(path, REPO)[:-3].replace(os.sep, '.')
+                yield path, rel[:-len('.__init__')] if rel.endswith('.__init__') else rel
+
+
+def violations():
+    out = []
+    for path, module in modules():
+        ring = ring_of(module)
+        for name, line in imports_of(path, module):
+            where = f'{os.path.relpath(path, REPO)}:{line}'
+            if ring == 'core' and (is_ros_package(name) or name.startswith('{}')):
+                out.append(f'{where}: core imports {name}')
+            if name.startswith('erva_ros.') and ring_of(name) not in ALLOWED[ring]:
+                out.append(f'{where}: {ring} imports {name} ({ring_of(name)}, upward)')
+    return sorted(set(out))
+
+
+def test_the_rings_hold():
+    assert violations() == []
+
+
+def test_the_rings_are_folders():
+    entries = {e for e in os.listdir(PKG) if not e.startswith(('.', '__pycache__'))}
+    assert entries == {'__init__.py', 'cli.py', 'core', 'ros', 'nodes', 'session', 'commands'}
+
+
+@pytest.mark.parametrize('source, found', [
+    ('import rclpy\n', 'core imports rclpy'),
+    ('def f():\n    from sensor_msgs.msg import JointState\n', 'core imports sensor_msgs.msg'),
+    ('import importlib\nimportlib.import_module(f"{p}.msg")\n', 'core imports {}.msg'),
+    ('from erva_ros.session import monitor\n', 'core imports erva_ros.session'),
+])
+def test_the_check_finds_a_violation(tmp_path, monkeypatch, source, found):
+    pkg = tmp_path / 'erva_ros'
+    (pkg / 'core').mkdir(parents=True)
+    (pkg / 'core' / 'bad.py').write_text(source)
+    monkeypatch.setattr(__import__(__name__), 'PKG', str(pkg))
+    monkeypatch.setattr(__import__(__name__), 'REPO', str(tmp_path))
+    assert any(found in v for v in violations()), violations()
