@@ -22,6 +22,7 @@ CRASHER = r'''
 import os, signal, sys
 from sensor_msgs.msg import JointState
 from erva_ros.core.bag.writer import BagWriter
+from erva_ros.ros.bag_messages import write_message
 w = BagWriter(sys.argv[1], session={'scenario': 'crash'}, flush_period_s=1e9)
 w.add_topic('/erva/state', 'sensor_msgs/msg/JointState')
 for k in range(530):

@@ -87,7 +87,6 @@ def decoded(bag: Bag, topics: Optional[Iterable[str]] = None
             ) -> Iterator[Tuple[BagMessage, object]]:
     """Yield (message, deserialised ROS message) in log-time order (rclpy, CDR)."""
     from rclpy.serialization import deserialize_message
-    from erva_ros.core.bag.schemas import message_class
     classes: Dict[str, object] = {}
     for m in bag.messages(topics):
         cls = classes.get(m.type)
