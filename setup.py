@@ -44,6 +44,8 @@ setup(
             'ros-jazzy-ament-index-python',
         ],
         'hil': ['python-can', 'cantools'],
+        # `erva table/pareto --scheduler ADDRESS`: run the jobs on a Dask cluster.
+        'dask': ['dask[distributed]'],
         'test': [
             'pytest',
             'flake8',
