@@ -81,3 +81,35 @@ def test_pareto_json_and_png(erva, tmp_path):
     assert [b['controller'] for b in res['baselines']] == ['passive', 'skyhook']
     assert (tmp_path / 'pareto.png').stat().st_size > 10000
     assert len((tmp_path / 'pareto.csv').read_text().splitlines()) == 6
+
+
+def _numbers(rows):
+    keys = ('acc_2norm', 'acc_rms_continuous', 'power_w', 'objective_J')
+    return [(r['controller'], tuple(r['weights'])) + tuple(r[k]['mean'] for k in keys)
+            for r in rows]
+
+
+def test_table_and_pareto_on_a_dask_cluster_give_the_local_numbers(erva):
+    distributed = pytest.importorskip('distributed')
+    args = ('--seeds', 2, '--duration', 0.5, '--weights', '0,1', '--controllers',
+            'passive,preview', '--bound-search', 1, '--bound-polish', 5, '--json')
+    local = _json(erva('table', *args, '--jobs', 1))
+    p_args = ('--seeds', 2, '--duration', 0.5, '--ratios', '1', '--json')
+    p_local = _json(erva('pareto', *p_args, '--jobs', 1))
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        remote = _json(erva('table', *args, '--scheduler', cluster.scheduler_address))
+        p_remote = _json(erva('pareto', *p_args, '--scheduler', cluster.scheduler_address))
+    assert [r['controller'] for r in local['rows']] == ['passive', 'preview', 'clairvoyant']
+    assert _numbers(remote['rows']) == _numbers(local['rows'])
+    assert p_remote['curve'] == p_local['curve']
+    assert p_remote['baselines'] == p_local['baselines']
+
+
+def test_scheduler_that_does_not_answer_is_one_line(erva):
+    pytest.importorskip('distributed')
+    proc = erva('pareto', '--seeds', 1, '--duration', 0.2, '--ratios', '1',
+                '--scheduler', 'tcp://127.0.0.1:9')
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--scheduler: cannot connect to 'tcp://127.0.0.1:9'" in lines[0]
