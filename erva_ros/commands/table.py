@@ -133,7 +133,8 @@ def run_seed(job):
         if bound:
             starts.update({f'bound{tuple(a)}': u for a, u in bounds.items()})
             b = clairvoyant_bound(params, road, duration, s.ts, alpha, s.u_min, s.u_max,
-                                  starts, settings=BoundSettings(**bound), seed=seed)
+                                  starts, settings=BoundSettings(codegen=s.codegen, **bound),
+                                  seed=seed)
             bounds[alpha] = b.run.u
             rows['clairvoyant'] = _row(b.run.metrics, alpha, b.solve_s)
             rows['clairvoyant'].update({
