@@ -48,6 +48,8 @@ setup(
         'hil': ['python-can', 'cantools'],
         # `erva run --foxglove`, `erva replay --foxglove`: the Foxglove WebSocket server.
         'foxglove': ['foxglove-sdk'],
+        # `erva table/pareto --scheduler ADDRESS`: run the jobs on a Dask cluster.
+        'dask': ['dask[distributed]'],
         'test': [
             'pytest',
             'flake8',

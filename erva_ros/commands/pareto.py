@@ -9,6 +9,7 @@ from erva_ros.commands._closed_loop_options import (add_settings_options, load_s
 from erva_ros.commands._common import (add_json_option, add_out_option, add_params_option,
                                        ensure_out_dir, positive_float, positive_int,
                                        print_json, Progress)
+from erva_ros.commands._jobs import add_jobs_options, run_jobs
 from erva_ros.core.errors import CLIError
 
 COMMAND = 'pareto'
@@ -17,7 +18,9 @@ DESCRIPTION = """\
 The trade-off the paper describes in words (§IV.B): the NMPC (default: preview) is run
 with α1 = 1 and α2 = each --ratios value (and α = (0, 1) for the pure-energy end),
 averaged over --seeds paper-road seeds; passive and skyhook are the baselines.
-Writes pareto.csv and pareto.png (acceleration RMS vs average power) with --out."""
+Writes pareto.csv and pareto.png (acceleration RMS vs average power) with --out.
+Every (point, seed) run is a job: local worker processes (--jobs) or a Dask cluster
+(--scheduler); the numbers are the same either way."""
 
 DEFAULT_RATIOS = '0,0.01,0.1,1,3,10,30,100'
 
@@ -42,17 +45,27 @@ def add_arguments(parser):
                         help='paper-road seeds 0..n-1 averaged per point (default 3)')
     parser.add_argument('--duration', type=positive_float, default=PAPER_T1_S, metavar='S',
                         help=f'simulated time per run in s (default {PAPER_T1_S:g})')
+    add_jobs_options(parser, '(point, seed) run')
     add_out_option(parser, 'pareto.csv and pareto.png')
     add_json_option(parser)
+
+
+def run_point(job):
+    """Return (acc RMS, power) of one controller, weighting and seed (a pure function)."""
+    from erva_ros.core.closed_loop import simulate_closed_loop
+    from erva_ros.core.controllers import make_controller
+    from erva_ros.core.roads import make_road
+
+    params, settings, name, seed, duration = job
+    run = simulate_closed_loop(params, make_controller(name, params, settings),
+                               make_road('paper', duration, seed=seed), duration, settings.ts)
+    return run.metrics['acc_rms'], run.metrics['power_w']
 
 
 def main(args) -> int:
     import numpy as np
 
-    from erva_ros.core.closed_loop import simulate_closed_loop
-    from erva_ros.core.controllers import make_controller
     from erva_ros.core.params import load_erva_params
-    from erva_ros.core.roads import make_road
 
     ratios = _ratios(args.ratios)
     out = ensure_out_dir(args.out)
@@ -65,31 +78,23 @@ def main(args) -> int:
     if name in ('passive', 'skyhook'):
         raise CLIError(f'--controller {name} has no weights to sweep; use an NMPC controller')
     cost_kind = settings.long_cost if name == 'preview_long' else settings.cost
-    roads = [make_road('paper', args.duration, seed=s) for s in range(args.seeds)]
     points = [(1.0, r) for r in ratios] + [(0.0, 1.0)]
-    progress = Progress('erva pareto: points', enabled=True)
+    cases = ([(name, settings.with_(alpha1=a1, alpha2=a2)) for a1, a2 in points]
+             + [(base, settings) for base in ('passive', 'skyhook')])
+    jobs = [(params, s, ctrl, seed, args.duration) for ctrl, s in cases
+            for seed in range(args.seeds)]
+    progress = Progress('erva pareto: runs', enabled=True)
     t0 = time.perf_counter()
-
-    def average(ctrl_name, s):
-        acc, pw = [], []
-        for road in roads:
-            run = simulate_closed_loop(params, make_controller(ctrl_name, params, s), road,
-                                       args.duration, s.ts)
-            acc.append(run.metrics['acc_rms'])
-            pw.append(run.metrics['power_w'])
-        return float(np.mean(acc)), float(np.mean(pw))
-
+    results = run_jobs(run_point, jobs, args.jobs, args.scheduler, progress)
+    means = [np.mean(results[i:i + args.seeds], axis=0)
+             for i in range(0, len(results), args.seeds)]
     curve = []
-    for i, (a1, a2) in enumerate(points, 1):
-        acc, pw = average(name, settings.with_(alpha1=a1, alpha2=a2))
+    for (a1, a2), (acc, pw) in zip(points, means):
         curve.append({'alpha1': a1, 'alpha2': a2,
                       'ratio': (a2 / a1) if a1 > 0 else float('inf'),
-                      'acc_rms': acc, 'power_w': pw})
-        progress(i, len(points))
-    baselines = []
-    for base in ('passive', 'skyhook'):
-        acc, pw = average(base, settings)
-        baselines.append({'controller': base, 'acc_rms': acc, 'power_w': pw})
+                      'acc_rms': float(acc), 'power_w': float(pw)})
+    baselines = [{'controller': base, 'acc_rms': float(acc), 'power_w': float(pw)}
+                 for base, (acc, pw) in zip(('passive', 'skyhook'), means[len(points):])]
     elapsed = time.perf_counter() - t0
     json_curve = [dict(c, ratio=None if c['alpha1'] == 0 else c['ratio']) for c in curve]
     result = {'controller': name, 'cost': cost_kind, 'seeds': args.seeds,

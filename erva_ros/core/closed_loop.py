@@ -23,7 +23,7 @@ from typing import Callable, Dict, List, Optional
 import numpy as np
 
 from erva_ros.core.controllers.base import Controller
-from erva_ros.core.metrics import comfort_power, percentiles_ms
+from erva_ros.core.metrics import comfort_power, evaluation_objective, percentiles_ms
 from erva_ros.core.params import ERVAParams
 from erva_ros.core.plant import PlantSimulator
 from erva_ros.core.preview import PreviewErrorModel
@@ -152,11 +152,6 @@ def closed_loop_cost(r: ClosedLoopResult, alpha1: float, alpha2: float,
         jerk = np.diff(a, prepend=a[0])
         return float(np.sum(alpha1 / r.ts ** 2 * jerk ** 2 - alpha2 * r.power))
     return float(np.sum(alpha1 * a ** 2) - alpha2 * r.harvested_j / r.ts)
-
-
-def evaluation_objective(metrics: Dict, alpha) -> float:
-    """Return J(α) = α1·acc_rms² − α2·P_avg of a run (what the clairvoyant bound minimises)."""
-    return float(alpha[0] * metrics['acc_rms'] ** 2 - alpha[1] * metrics['power_w'])
 
 
 __all__ = ['ClosedLoopResult', 'simulate_closed_loop', 'closed_loop_metrics', 'closed_loop_cost',

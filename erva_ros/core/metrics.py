@@ -22,6 +22,11 @@ def comfort_power(sprung_accel: Sequence[float], harvested_j: float,
     }
 
 
+def evaluation_objective(metrics: Dict, alpha) -> float:
+    """Return J(α) = α1·acc_rms² − α2·P_avg of a run (what the clairvoyant bound minimises)."""
+    return float(alpha[0] * metrics['acc_rms'] ** 2 - alpha[1] * metrics['power_w'])
+
+
 def percentiles_ms(samples_s: Sequence[float]) -> Dict[str, float]:
     """p50 / p99 / max in milliseconds, and the sample count, of durations given in seconds."""
     s = np.asarray(samples_s, dtype=float) * 1e3
