@@ -105,16 +105,14 @@ def _session_road(path, ts):
     from erva_ros.core.hil.road_buffer import KnownRoad
     from erva_ros.ros.parameters import LIVE_DEFAULTS
     from erva_ros.core.loop.scenario import build_road
-    from erva_ros.core.params import load_params_yaml, ParamError
+    from erva_ros.core.params import ParamError, read_ros_params
     if path is None:
         raise CLIError('--road session needs --params FILE (the session params file of '
                        '`erva run`)')
     try:
-        doc = load_params_yaml(path)
+        values = read_ros_params(path, 'road_preview_node', required=False)
         cfg = dict(LIVE_DEFAULTS)
-        for section in ('/**', '/**/road_preview_node'):
-            values = (doc.get(section) or {}).get('ros__parameters') or {}
-            cfg.update({k: v for k, v in values.items() if k in LIVE_DEFAULTS})
+        cfg.update({k: v for k, v in values.items() if k in LIVE_DEFAULTS})
         if abs(float(cfg['ts']) - ts) > 1e-12:
             raise CLIError(f'{path}: ts = {cfg["ts"]} s differs from --ts {ts:g} s')
         road = build_road(cfg)
