@@ -130,7 +130,7 @@ def add_arguments(parser):
 
 def run_config(args, record_dir=None):
     """Return the RunConfig of parsed scenario options."""
-    from erva_ros.session.orchestrator import RunConfig
+    from erva_ros.session.run_config import RunConfig
     live = {}
     if args.preview_snr is not None:
         live.update(preview_noise=True, preview_snr_db=args.preview_snr)
@@ -178,7 +178,8 @@ def _check_namespace(namespace: str) -> str:
 
 
 def main(args) -> int:
-    from erva_ros.session.orchestrator import ensure_ecu_available, run_session
+    from erva_ros.session.orchestrator import run_session
+    from erva_ros.session.run_config import ensure_ecu_available
     from erva_ros.session.report import format_summary, jsonable
 
     ensure_ecu_available(args.ecu)
