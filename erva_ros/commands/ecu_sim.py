@@ -6,6 +6,7 @@ import sys
 
 from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
                                        print_json, realtime_priority)
+from erva_ros.core import topics
 from erva_ros.core.errors import CLIError
 
 COMMAND = 'ecu-sim'
@@ -65,8 +66,8 @@ def add_arguments(parser):
     parser.add_argument('--ros', action='store_true',
                         help='publish the ground truth and /diagnostics on ROS 2 '
                              '(implied by --road ros and --road session)')
-    parser.add_argument('--namespace', default='/erva', metavar='NS',
-                        help='ROS namespace of the topics (default /erva)')
+    parser.add_argument('--namespace', default=topics.NAMESPACE, metavar='NS',
+                        help=f'ROS namespace of the topics (default {topics.NAMESPACE})')
     parser.add_argument('--wait-road', type=positive_float, default=15.0, metavar='S',
                         help='with --road ros: wait at most S s for the first road height')
     parser.add_argument('--realtime-priority', type=realtime_priority,

@@ -6,6 +6,7 @@ import sys
 
 from erva_ros.commands._common import (add_json_option, add_params_option, bounded,
                                        positive_float, print_json, realtime_priority)
+from erva_ros.core import topics
 from erva_ros.core.errors import CLIError
 
 COMMAND = 'run'
@@ -92,8 +93,9 @@ def add_scenario_arguments(parser, duration_default: str = 'config/live.yaml: 4 
                         help='controller settings params file (default: config/nmpc.yaml)')
     parser.add_argument('--live', metavar='FILE', default=None,
                         help='live-system params file (default: config/live.yaml)')
-    parser.add_argument('--namespace', default='/erva', metavar='NS',
-                        help='ROS namespace of the nodes and topics (default: /erva)')
+    parser.add_argument('--namespace', default=topics.NAMESPACE, metavar='NS',
+                        help='ROS namespace of the nodes and topics (default: '
+                             f'{topics.NAMESPACE})')
 
 
 def add_arguments(parser):
