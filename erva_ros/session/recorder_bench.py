@@ -124,19 +124,26 @@ def echo_loop(window_s: float, pairs: int, work: str,
     return out
 
 
-def flood(rate_hz: float, duration_s: float, bag_dir: str) -> Dict:
-    """Flood the recorder with states; return published/recorded counts and rates."""
-    from erva_ros.core.bag.reader import open_bag
-    recorder = start_recorder(bag_dir, topics=['state'])
+def _traffic_into_recorder(bag_dir: str, role: List[str], topics: Optional[List[str]] = None
+                           ) -> Dict:
+    """Record ``bag_dir`` while ``erva_ros.ros.traffic ROLE...`` runs; return its result."""
+    recorder = start_recorder(bag_dir, topics=topics)
     try:
-        proc = _spawn(['erva_ros.ros.traffic', 'flood', '--duration', str(duration_s),
-                       '--rate', str(rate_hz)])
-        result = _last_json(_finish(proc, duration_s + 120))
+        duration_s = float(role[role.index('--duration') + 1])
+        result = _last_json(_finish(_spawn(['erva_ros.ros.traffic', *role]), duration_s + 120))
         if 'error' in result:
-            raise BagError(f'benchmark flood: {result["error"]}')
+            raise BagError(f'benchmark traffic ({role[0]}): {result["error"]}')
         time.sleep(0.5)
     finally:
         _stop(recorder, timeout=60)
+    return result
+
+
+def flood(rate_hz: float, duration_s: float, bag_dir: str) -> Dict:
+    """Flood the recorder with states; return published/recorded counts and rates."""
+    from erva_ros.core.bag.reader import open_bag
+    result = _traffic_into_recorder(bag_dir, ['flood', '--duration', str(duration_s),
+                                              '--rate', str(rate_hz)], topics=['state'])
     published = sum(result['published'].values())
     recorded = open_bag(bag_dir).message_count
     return {'requested_hz': rate_hz or None, 'published': published, 'recorded': recorded,
@@ -148,16 +155,8 @@ def flood(rate_hz: float, duration_s: float, bag_dir: str) -> Dict:
 def contract_rate(rate_hz: float, duration_s: float, bag_dir: str) -> Dict:
     """Publish the contract at ``rate_hz`` to the recorder; return published/recorded."""
     from erva_ros.core.bag.reader import open_bag
-    recorder = start_recorder(bag_dir)
-    try:
-        proc = _spawn(['erva_ros.ros.traffic', 'contract', '--rate', str(rate_hz),
-                       '--duration', str(duration_s)])
-        result = _last_json(_finish(proc, duration_s + 120))
-        if 'error' in result:
-            raise BagError(f'benchmark contract traffic: {result["error"]}')
-        time.sleep(0.5)
-    finally:
-        _stop(recorder, timeout=60)
+    result = _traffic_into_recorder(bag_dir, ['contract', '--rate', str(rate_hz),
+                                              '--duration', str(duration_s)])
     bag = open_bag(bag_dir)
     published = sum(result['published'].values())
     recorded = sum(bag.topics[t].count if t in bag.topics else 0 for t in result['published'])
