@@ -174,10 +174,6 @@ class ChildProcess:
             self._log.close()
 
 
-#: The name `erva run` and its helpers used for a child process before there were others.
-NodeProcess = ChildProcess
-
-
 def stop_processes(procs: Iterable[ChildProcess], grace_s: float = STOP_GRACE_S,
                    first: Optional[int] = signal.SIGINT) -> None:
     """Stop processes with ``first`` (SIGINT), then SIGTERM, then SIGKILL; reap them all.
@@ -203,4 +199,4 @@ def stop_processes(procs: Iterable[ChildProcess], grace_s: float = STOP_GRACE_S,
 
 
 __all__ = ['STOP_GRACE_S', 'ProcessSpec', 'child_env', 'module_argv', 'node_argv',
-           'ChildProcess', 'NodeProcess', 'stop_processes']
+           'ChildProcess', 'stop_processes']
