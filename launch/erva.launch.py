@@ -9,11 +9,14 @@ Parameters: config/erva_paper.yaml (physical, ``/**``), config/nmpc.yaml (the
 ``nmpc_node`` section) and config/live.yaml, then the launch arguments below.
 In lock-step mode every node runs on the plant's ``/clock`` (use_sim_time).
 
-Importing this file needs no ROS: the launch imports are inside
+Importing this file needs no ROS (only erva_ros's core): the launch imports are inside
 :func:`generate_launch_description`.
 """
 
 import os
+
+from erva_ros.core.params import read_ros_params
+from erva_ros.core.topics import NAMESPACE
 
 #: Executables started (console scripts of setup.py), in start order.
 NODES = ('nmpc_node', 'plant_sim_node', 'road_preview_node')
@@ -21,7 +24,7 @@ NODES = ('nmpc_node', 'plant_sim_node', 'road_preview_node')
 CONFIG_FILES = ('erva_paper.yaml', 'nmpc.yaml', 'live.yaml')
 #: Launch arguments: (name, default, ROS parameter type, description).
 ARGUMENTS = (
-    ('namespace', 'erva', str, 'namespace of the nodes and topics'),
+    ('namespace', NAMESPACE, str, 'namespace of the nodes and topics'),
     ('mode', 'realtime', str, 'realtime (wall clock) or lockstep (plant publishes /clock)'),
     ('model', 'erva', str, 'plant and controller model: erva or benchmark'),
     ('controller', 'preview', str, 'passive, skyhook, no_preview, preview, preview_long'),
@@ -34,18 +37,13 @@ ARGUMENTS = (
 
 
 def node_section(path: str, node: str) -> dict:
-    """Return the ros__parameters of ``node`` in a params file, whatever its key form.
+    """Return the ros__parameters of ``node`` in a params file (``node:``, ``/**/node``, ...).
 
     ``nmpc_node:`` only matches a node in the root namespace; reading the section
-    here applies it to the namespaced node too.
+    here applies it to the namespaced node too.  The reader is erva_ros's own (the one
+    `erva run` and the offline tools use).
     """
-    import yaml
-    with open(path, encoding='utf-8') as fh:
-        doc = yaml.safe_load(fh) or {}
-    for key, section in doc.items():
-        if str(key).rstrip('/').split('/')[-1] == node and isinstance(section, dict):
-            return dict(section.get('ros__parameters') or {})
-    return {}
+    return read_ros_params(path, node, wildcard=False, required=False)
 
 
 def generate_launch_description():

@@ -12,8 +12,8 @@ from erva_ros.core import topics
 from erva_ros.ros import msgs
 from erva_ros.core.loop.command_hold import CommandHold
 from erva_ros.ros.diagnostics import ERROR, parse_status, StatusReporter
-from erva_ros.session.orchestrator import (prepare_session, read_live_file, RunConfig,
-                                           validate_live)
+from erva_ros.session.run_config import (prepare_session, read_live_file, RunConfig,
+                                         validate_live)
 from erva_ros.ros.parameters import (declare_controller_settings, declare_erva_params,
                                      declare_live, LIVE_CHOICES, LIVE_DEFAULTS, LIVE_NUMERIC)
 from erva_ros.session.report import format_summary, jsonable

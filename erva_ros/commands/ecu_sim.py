@@ -6,6 +6,7 @@ import sys
 
 from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
                                        print_json, realtime_priority)
+from erva_ros.core import topics
 from erva_ros.core.errors import CLIError
 
 COMMAND = 'ecu-sim'
@@ -65,8 +66,8 @@ def add_arguments(parser):
     parser.add_argument('--ros', action='store_true',
                         help='publish the ground truth and /diagnostics on ROS 2 '
                              '(implied by --road ros and --road session)')
-    parser.add_argument('--namespace', default='/erva', metavar='NS',
-                        help='ROS namespace of the topics (default /erva)')
+    parser.add_argument('--namespace', default=topics.NAMESPACE, metavar='NS',
+                        help=f'ROS namespace of the topics (default {topics.NAMESPACE})')
     parser.add_argument('--wait-road', type=positive_float, default=15.0, metavar='S',
                         help='with --road ros: wait at most S s for the first road height')
     parser.add_argument('--realtime-priority', type=realtime_priority,
@@ -105,16 +106,14 @@ def _session_road(path, ts):
     from erva_ros.core.hil.road_buffer import KnownRoad
     from erva_ros.ros.parameters import LIVE_DEFAULTS
     from erva_ros.core.loop.scenario import build_road
-    from erva_ros.core.params import load_params_yaml, ParamError
+    from erva_ros.core.params import ParamError, read_ros_params
     if path is None:
         raise CLIError('--road session needs --params FILE (the session params file of '
                        '`erva run`)')
     try:
-        doc = load_params_yaml(path)
+        values = read_ros_params(path, 'road_preview_node', required=False)
         cfg = dict(LIVE_DEFAULTS)
-        for section in ('/**', '/**/road_preview_node'):
-            values = (doc.get(section) or {}).get('ros__parameters') or {}
-            cfg.update({k: v for k, v in values.items() if k in LIVE_DEFAULTS})
+        cfg.update({k: v for k, v in values.items() if k in LIVE_DEFAULTS})
         if abs(float(cfg['ts']) - ts) > 1e-12:
             raise CLIError(f'{path}: ts = {cfg["ts"]} s differs from --ts {ts:g} s')
         road = build_road(cfg)

@@ -111,13 +111,14 @@ def _drive_plant(args, bag) -> int:
                                                         'alpha1': args.alpha1,
                                                         'alpha2': args.alpha2})
     name = settings.controller
-    before = compute_report(load_session(bag))
+    data = load_session(bag)
+    before = compute_report(data)
     out_dir = new_bag_dir(args.record_dir, f'whatif-{name}')
-    with _native_stdout_to_stderr():
+    with _native_stdout_to_stderr():   # the plant and the controller: the recorded model
         result, meta = drive_plant(bag, out_dir, name, params, settings,
                                    session_extra={'alpha1': settings.alpha1,
                                                   'alpha2': settings.alpha2},
-                                   duration_s=args.duration)
+                                   kind=data.model, duration_s=args.duration)
     m = result.metrics
     summary = {'bag': bag.path, 'new_bag': out_dir, 'controller': name,
                'weights': [settings.alpha1, settings.alpha2],
@@ -155,7 +156,7 @@ def _reevaluate(args, bag) -> int:
     params, settings = controller_from_session(bag, args.controller)
     data = load_session(bag)
     with _native_stdout_to_stderr():
-        controller = make_controller(settings.controller, params, settings)
+        controller = make_controller(settings.controller, params, settings, kind=data.model)
         result = summarize(reevaluate(data, controller, args.max_commands))
     result.update({'bag': bag.path, 'controller': settings.controller})
     if args.json:

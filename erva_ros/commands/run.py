@@ -6,6 +6,7 @@ import sys
 
 from erva_ros.commands._common import (add_json_option, add_params_option, bounded,
                                        positive_float, print_json, realtime_priority)
+from erva_ros.core import topics
 from erva_ros.core.errors import CLIError
 
 COMMAND = 'run'
@@ -92,8 +93,9 @@ def add_scenario_arguments(parser, duration_default: str = 'config/live.yaml: 4 
                         help='controller settings params file (default: config/nmpc.yaml)')
     parser.add_argument('--live', metavar='FILE', default=None,
                         help='live-system params file (default: config/live.yaml)')
-    parser.add_argument('--namespace', default='/erva', metavar='NS',
-                        help='ROS namespace of the nodes and topics (default: /erva)')
+    parser.add_argument('--namespace', default=topics.NAMESPACE, metavar='NS',
+                        help='ROS namespace of the nodes and topics (default: '
+                             f'{topics.NAMESPACE})')
 
 
 def add_arguments(parser):
@@ -130,7 +132,7 @@ def add_arguments(parser):
 
 def run_config(args, record_dir=None):
     """Return the RunConfig of parsed scenario options."""
-    from erva_ros.session.orchestrator import RunConfig
+    from erva_ros.session.run_config import RunConfig
     live = {}
     if args.preview_snr is not None:
         live.update(preview_noise=True, preview_snr_db=args.preview_snr)
@@ -178,7 +180,8 @@ def _check_namespace(namespace: str) -> str:
 
 
 def main(args) -> int:
-    from erva_ros.session.orchestrator import ensure_ecu_available, run_session
+    from erva_ros.session.orchestrator import run_session
+    from erva_ros.session.run_config import ensure_ecu_available
     from erva_ros.session.report import format_summary, jsonable
 
     ensure_ecu_available(args.ecu)

@@ -16,7 +16,7 @@ the key, the value and the allowed range.
 from dataclasses import dataclass, fields, replace
 import math
 import os
-from typing import Any, Dict, Optional
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import yaml
 
@@ -145,30 +145,63 @@ def load_params_yaml(path: str) -> Dict[str, Any]:
     return doc
 
 
-def read_ros_params(path: str, node_name: Optional[str] = None) -> Dict[str, Any]:
-    """Merge the ``ros__parameters`` of ``/**`` and ``node_name`` sections of a params file.
+#: Section keys rcl applies to every node.
+WILDCARD_SECTIONS = ('/**', '**')
 
-    Node-specific values override the wildcard section, as ``--params-file`` does.
+
+def node_sections(node: str) -> Tuple[str, ...]:
+    """Return the section keys rcl applies to ``node`` in any namespace, in merge order.
+
+    ``/**/name`` (and ``**/name``) match the node in any namespace (e.g. /erva/nmpc_node);
+    a bare ``name`` or ``/name`` is the node in the root namespace, read here all the same
+    (the offline tools have no namespace).
+    """
+    node = node.lstrip('/')
+    return (node, '/' + node, '**/' + node, '/**/' + node)
+
+
+def read_sections(path: str, nodes: Sequence[str] = (), wildcard: bool = True
+                  ) -> List[Tuple[str, Dict[str, Any]]]:
+    """Return (key, ros__parameters) of each section of a params file that applies.
+
+    The one reader of params-file sections: the wildcard sections (``/**``, ``**``;
+    unless ``wildcard`` is False), then each of ``nodes``' sections
+    (:func:`node_sections`), in that order -- later ones override earlier ones when
+    merged, as ``--params-file`` does.  A section without a ros__parameters mapping is a
+    one-line :class:`ParamError`.
     """
     doc = load_params_yaml(path)
-    merged: Dict[str, Any] = {}
-    sections = ['/**', '**']
-    if node_name:
-        # '/**/name' matches the node in any namespace (e.g. /erva/nmpc_node), as rcl does.
-        sections += [node_name, '/' + node_name.lstrip('/'), '/**/' + node_name.lstrip('/')]
-    found = False
-    for name in sections:
-        sec = doc.get(name)
+    keys: List[str] = list(WILDCARD_SECTIONS) if wildcard else []
+    for node in nodes:
+        keys += [k for k in node_sections(node) if k not in keys]
+    out = []
+    for key in keys:
+        sec = doc.get(key)
         if sec is None:
             continue
         if not isinstance(sec, dict) or not isinstance(sec.get('ros__parameters'), dict):
-            raise ParamError(f'{path}: section {name!r} must contain a ros__parameters mapping')
-        merged.update(sec['ros__parameters'])
-        found = True
-    if not found:
+            raise ParamError(f'{path}: section {key!r} must contain a ros__parameters mapping')
+        out.append((key, sec['ros__parameters']))
+    return out
+
+
+def read_ros_params(path: str, node_name: Optional[str] = None, wildcard: bool = True,
+                    required: bool = True) -> Dict[str, Any]:
+    """Merge the ``ros__parameters`` of ``/**`` and ``node_name`` sections of a params file.
+
+    Node-specific values override the wildcard section, as ``--params-file`` does.
+    ``wildcard=False`` reads the node's sections only; ``required=False`` returns {}
+    where the file has none (else a one-line ParamError).
+    """
+    sections = read_sections(path, [node_name] if node_name else [], wildcard)
+    if required and not sections:
+        doc = load_params_yaml(path)
         raise ParamError(
             f'{path}: no ros__parameters for {node_name or "/**"} '
             f'(sections present: {", ".join(map(str, doc)) or "none"})')
+    merged: Dict[str, Any] = {}
+    for _, params in sections:
+        merged.update(params)
     return merged
 
 
@@ -196,5 +229,6 @@ def paper_params() -> ERVAParams:
 
 
 __all__ = ['ParamError', 'Spec', 'ERVA_SPECS', 'PAPER_VALUES', 'ERVAParams', 'check_number',
-           'validate_erva', 'read_ros_params', 'load_erva_params', 'load_section',
+           'validate_erva', 'WILDCARD_SECTIONS', 'node_sections', 'read_sections',
+           'read_ros_params', 'load_erva_params', 'load_section',
            'default_params_file', 'paper_params', 'replace']

@@ -65,6 +65,9 @@ class PlantSimulator:
         self._step, = compile_for(codegen, [self._step], 'the plant')
         self._step = BufferedCall(self._step)
         self._outputs = BufferedCall(self.model.outputs)
+        #: (x, u) -> (position, v_gen, power): the model's generator outputs, for every
+        #: publisher of the ``generator`` topic (QuarterCarModel.generator, buffered).
+        self.generator = BufferedCall(self.model.generator)
         self._split = None   # (delay, the two partial steps) of step_delayed
         self._profile = None  # (pieces, compiled period) of integrate_profile
         self._codegen = codegen

@@ -290,11 +290,9 @@ class EcuBridgeNode(Node):
             s.values['status_seq'] = seq
         statuses[2].values.update({k: diag.format_value(v) for k, v in lat.items()
                                    if k.startswith('can_to_ros')})
-        arr = DiagnosticArray()
-        arr.header.stamp = self.get_clock().now().to_msg()
-        arr.status = [diag.status_msg(s.name, s.level, s.message, s.values, self.cfg['bus'])
-                      for s in statuses]
-        self.pub_diag.publish(arr)
+        self.pub_diag.publish(diag.array_msg(self.get_clock().now().nanoseconds, [
+            diag.status_msg(s.name, s.level, s.message, s.values, self.cfg['bus'])
+            for s in statuses]))
         levels = [(s.level, s.message.split(':')[0]) for s in statuses]
         if levels != self._last_levels:
             for s in statuses:

@@ -170,10 +170,8 @@ class PlantSimNode(Node):
         self.w_k, self.u_k, self.sample = w_next, None, None
         self._publish_state()
         self.pub_accel.publish(accel_msg(t_k, sample.sprung_accel))
-        x = sample.x
-        rel = x[4] - (x[0] - x[2]) if self.kind == 'erva' else x[0] - x[2]
-        v_gen = float(self.plant.model.generator_velocity(x))
-        self.pub_gen.publish(generator_msg(t_k, rel, v_gen, u_k))
+        position, v_gen, _ = self.plant.generator(sample.x, u_k)
+        self.pub_gen.publish(generator_msg(t_k, position, v_gen, u_k))
         if self.k >= self.n_steps:
             self.finished = True
             self.status.set(diag.OK, f'finished: {self.k} steps, '

@@ -69,10 +69,10 @@ from rclpy.signals import SignalHandlerOptions
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType)
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 
 from erva_ros.core import topics as contract
-from erva_ros.ros import qos as ros_qos
+from erva_ros.ros import diagnostics as diag, qos as ros_qos
 from erva_ros.core.bag import BagError
 from erva_ros.core.bag.qos import profile_to_dict
 from erva_ros.ros.bag_messages import message_class
@@ -287,38 +287,29 @@ class RecorderNode(Node):
             self._publish_status()
 
     def _publish_status(self) -> None:
-        status = DiagnosticStatus(name=f'{self.get_name()}: bag recorder', hardware_id='erva')
-        values: List[KeyValue] = [KeyValue(key='bag_dir', value=str(self.bag_dir)),
-                                  KeyValue(key='received', value=str(self.received)),
-                                  KeyValue(key='lost', value=str(self.lost)),
-                                  KeyValue(key='lost_in_transport',
-                                           value=str(self.lost_in_transport))]
+        values: Dict[str, object] = {'bag_dir': self.bag_dir, 'received': self.received,
+                                     'lost': self.lost,
+                                     'lost_in_transport': self.lost_in_transport}
         if self.writer is not None:
             counts = self.writer.counts
-            values += [KeyValue(key='written', value=str(self.writer.message_count)),
-                       KeyValue(key='bytes', value=str(self.writer.bytes_written)),
-                       KeyValue(key='flushes', value=str(self.writer.flushes)),
-                       KeyValue(key='topics', value=str(len(counts)))]
+            values.update({'written': self.writer.message_count,
+                           'bytes': self.writer.bytes_written, 'flushes': self.writer.flushes,
+                           'topics': len(counts)})
             # Per topic, so `erva run` can wait until the bag holds what was published,
             # and start the loop only when every writer is matched.
-            values += [KeyValue(key=f'count:{topic}', value=str(n))
-                       for topic, n in sorted(counts.items())]
-            values += [KeyValue(key=f'publishers:{topic}', value=str(sub.get_publisher_count()))
-                       for topic, sub in sorted(self._subs.items())]
+            values.update({f'count:{topic}': n for topic, n in sorted(counts.items())})
+            values.update({f'publishers:{topic}': sub.get_publisher_count()
+                           for topic, sub in sorted(self._subs.items())})
         self._status_seq += 1
-        values += [KeyValue(key='status_seq', value=str(self._status_seq)),
-                   KeyValue(key='subscribers:' + contract.DIAGNOSTICS,
-                            value=str(self._status_pub.get_subscription_count())),
-                   KeyValue(key='scheduling', value=getattr(self, 'scheduling', 'off'))]
-        if self.error:
-            status.level, status.message = DiagnosticStatus.ERROR, self.error
-        else:
-            status.level = DiagnosticStatus.OK
-            status.message = f'recording to {self.bag_dir}'
-        status.values = values
-        msg = DiagnosticArray(status=[status])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self._status_pub.publish(msg)
+        values.update({'status_seq': self._status_seq,
+                       'subscribers:' + contract.DIAGNOSTICS:
+                           self._status_pub.get_subscription_count(),
+                       'scheduling': getattr(self, 'scheduling', 'off')})
+        level, message = ((diag.ERROR, self.error) if self.error
+                          else (diag.OK, f'recording to {self.bag_dir}'))
+        status = diag.status_msg(f'{self.get_name()}: bag recorder', level, message, values,
+                                 'erva')
+        self._status_pub.publish(diag.array_msg(self.get_clock().now().nanoseconds, [status]))
 
     # -- shutdown --------------------------------------------------------------------------
     def drain(self, executor, quiet_s: float = 0.1, limit_s: float = 2.0) -> None:

@@ -325,11 +325,9 @@ class StateEstimatorNode(Node):
             level, text = diag.WARN, 'no road height received: assuming w = 0'
         values.update(diag.publisher_values(self.counted_publishers))
         values['status_seq'] = next(self._status_seq)
-        arr = DiagnosticArray()
-        arr.header.stamp = self.get_clock().now().to_msg()
-        arr.status = [diag.status_msg(self.get_fully_qualified_name(), level, text, values,
-                                      f'ekf:{self.kind}')]
-        self.pub_diag.publish(arr)
+        self.pub_diag.publish(diag.array_msg(self.get_clock().now().nanoseconds, [
+            diag.status_msg(self.get_fully_qualified_name(), level, text, values,
+                            f'ekf:{self.kind}')]))
 
     def publish_status(self) -> None:
         """Publish the status now (the final counts, on shutdown: runtime.run_node)."""

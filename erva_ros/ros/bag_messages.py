@@ -11,6 +11,7 @@ from erva_ros.core.bag import BagError
 from erva_ros.core.bag.reader import Bag, BagMessage
 from erva_ros.core.bag.schemas import split_type
 from erva_ros.core.bag.writer import BagWriter
+from erva_ros.ros.cdr import encoded_size
 
 
 def message_class(type_name: str):
@@ -22,55 +23,18 @@ def message_class(type_name: str):
         raise BagError(f'message type {type_name} is not installed') from None
 
 
-# Sizes of the CDR primitive types (rosidl_parser BasicType names), bytes.
-_PRIMITIVE_SIZE = {'boolean': 1, 'octet': 1, 'char': 1, 'int8': 1, 'uint8': 1, 'int16': 2,
-                   'uint16': 2, 'int32': 4, 'uint32': 4, 'int64': 8, 'uint64': 8, 'float': 4,
-                   'double': 8, 'long double': 16, 'wchar': 2}
-
-
-def _fields_end(msg, pos: int) -> int:
-    """Return the offset after the fields of message ``msg`` encoded from ``pos`` (CDR)."""
-    for name, field_type in zip(msg.get_fields_and_field_types(), msg.SLOT_TYPES):
-        pos = _cdr_end(getattr(msg, name), field_type, pos)
-    return pos
-
-
-def _cdr_end(value, typ, pos: int) -> int:
-    """Return the offset after ``value`` of rosidl type ``typ`` encoded at ``pos`` (CDR)."""
-    from rosidl_parser import definition as d
-    if isinstance(typ, d.BasicType):
-        size = _PRIMITIVE_SIZE[typ.typename]
-        return -(-pos // size) * size + size
-    if isinstance(typ, d.AbstractString):
-        return -(-pos // 4) * 4 + 4 + len(value.encode('utf-8')) + 1
-    if isinstance(typ, d.NamespacedType):
-        return _fields_end(value, pos)
-    if isinstance(typ, d.AbstractNestedType):
-        if not isinstance(typ, d.Array):
-            pos = -(-pos // 4) * 4 + 4  # the element count
-        inner = typ.value_type
-        if isinstance(inner, d.BasicType):
-            n = len(value)
-            size = _PRIMITIVE_SIZE[inner.typename]
-            return -(-pos // size) * size + n * size if n else pos
-        for item in value:
-            pos = _cdr_end(item, inner, pos)
-        return pos
-    raise TypeError(f'cannot size CDR of {typ!r}')  # wstrings: not used here
-
-
 def serialize(msg) -> bytes:
     """Return the CDR bytes of a ROS message (``rclpy.serialization``), exactly as long.
 
     ``serialize_message`` hands back rmw_fastrtps' size *estimate*, which can exceed
     the encoding by a few bytes of junk; strict readers (rosbags) reject that, and
     what travels over DDS ends where the encoding ends.  The exact length is the
-    4-byte encapsulation header plus the classic-CDR size of the fields (primitives
-    aligned to their size from the start of the payload).
+    4-byte encapsulation header plus the classic-CDR size of the fields
+    (:func:`erva_ros.ros.cdr.encoded_size`).
     """
     from rclpy.serialization import serialize_message
     data = serialize_message(msg)
-    end = 4 + _fields_end(msg, 0)
+    end = 4 + encoded_size(msg)
     if end > len(data):
         raise BagError(f'CDR size of {type(msg).__name__} computed as {end} B, '
                        f'but rclpy produced {len(data)} B')

@@ -1,4 +1,4 @@
-"""Direct CDR decoding and encoding of the two message types on the HIL loop's hot path.
+"""CDR, the wire format of ROS messages, in one place: the hot path's direct (de)coding, sizes.
 
 Converting a message between its CDR bytes and an rclpy Python object costs more than
 anything the bridge or the estimator does with it (measured in the live loop: taking a
@@ -14,6 +14,9 @@ terminating NUL) and the bytes; sequences a uint32 count and the elements.  Only
 little-endian CDR encapsulation is accepted; anything truncated, oversized or
 inconsistent raises :class:`CdrError` (the caller counts and drops it).  The tests
 check both directions against rclpy's own (de)serialization.
+
+:func:`encoded_size` gives the exact CDR size of any message object (from its rosidl
+type description), which the bag writer uses to trim rclpy's serialized bytes.
 """
 
 import struct
@@ -31,6 +34,11 @@ _ACCEL = struct.Struct('<iII4x6d')
 
 class CdrError(ValueError):
     """The bytes are not a well-formed message of the expected type."""
+
+
+def _aligned(pos: int, size: int) -> int:
+    """Return ``pos`` rounded up to a multiple of ``size`` (CDR aligns each primitive)."""
+    return pos + (-pos % size)
 
 
 class _Reader:
@@ -208,6 +216,52 @@ def encode_accel_stamped(stamp_ns: int, linear=(0.0, 0.0, 0.0), angular=(0.0, 0.
     return CDR_LE + _ACCEL.pack(sec, nsec, 1, *linear, *angular)
 
 
+# Sizes of the CDR primitive types (rosidl_parser BasicType names), bytes.
+_PRIMITIVE_SIZE = {'boolean': 1, 'octet': 1, 'char': 1, 'int8': 1, 'uint8': 1, 'int16': 2,
+                   'uint16': 2, 'int32': 4, 'uint32': 4, 'int64': 8, 'uint64': 8, 'float': 4,
+                   'double': 8, 'long double': 16, 'wchar': 2}
+
+
+def encoded_size(msg) -> int:
+    """Return the plain-CDR size of any ROS message object's fields (without the header).
+
+    Generic, from the message's rosidl type description: what
+    :func:`erva_ros.ros.bag_messages.serialize` trims rclpy's output to.
+    """
+    return _fields_end(msg, 0)
+
+
+def _fields_end(msg, pos: int) -> int:
+    """Return the offset after the fields of message ``msg`` encoded from ``pos``."""
+    for name, field_type in zip(msg.get_fields_and_field_types(), msg.SLOT_TYPES):
+        pos = _value_end(getattr(msg, name), field_type, pos)
+    return pos
+
+
+def _value_end(value, typ, pos: int) -> int:
+    """Return the offset after ``value`` of rosidl type ``typ`` encoded at ``pos``."""
+    from rosidl_parser import definition as d
+    if isinstance(typ, d.BasicType):
+        size = _PRIMITIVE_SIZE[typ.typename]
+        return _aligned(pos, size) + size
+    if isinstance(typ, d.AbstractString):
+        return _aligned(pos, 4) + 4 + len(value.encode('utf-8')) + 1
+    if isinstance(typ, d.NamespacedType):
+        return _fields_end(value, pos)
+    if isinstance(typ, d.AbstractNestedType):
+        if not isinstance(typ, d.Array):
+            pos = _aligned(pos, 4) + 4  # the element count
+        inner = typ.value_type
+        if isinstance(inner, d.BasicType):
+            n = len(value)
+            size = _PRIMITIVE_SIZE[inner.typename]
+            return _aligned(pos, size) + n * size if n else pos
+        for item in value:
+            pos = _value_end(item, inner, pos)
+        return pos
+    raise TypeError(f'cannot size CDR of {typ!r}')  # wstrings: not used here
+
+
 __all__ = ['CdrError', 'JointStateEncoder', 'encode_accel_stamped', 'decode_joint_state',
-           'decode_joint_trajectory', 'header_stamp_ns', 'status_seqs', 'CDR_LE',
-           'MAX_ELEMENTS']
+           'decode_joint_trajectory', 'header_stamp_ns', 'status_seqs', 'encoded_size',
+           'CDR_LE', 'MAX_ELEMENTS']

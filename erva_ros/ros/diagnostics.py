@@ -18,13 +18,8 @@ from typing import Any, Callable, Dict, Optional, Sequence, Tuple
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
+from erva_ros.core.levels import ERROR, LEVEL_NAMES, OK, STALE, WARN
 from erva_ros.ros.msgs import ns_to_time
-
-OK = 0
-WARN = 1
-ERROR = 2
-STALE = 3
-LEVEL_NAMES = {OK: 'OK', WARN: 'WARN', ERROR: 'ERROR', STALE: 'STALE'}
 
 
 def format_value(value: Any) -> str:
@@ -38,11 +33,18 @@ def format_value(value: Any) -> str:
 
 def status_msg(name: str, level: int, message: str, values: Dict[str, Any],
                hardware_id: str = '') -> DiagnosticStatus:
-    """Return a DiagnosticStatus with ``values`` as key/value strings."""
+    """Return a DiagnosticStatus with ``values`` as key/value strings (:func:`format_value`)."""
     return DiagnosticStatus(level=bytes([level]), name=name, message=message,
                             hardware_id=hardware_id,
                             values=[KeyValue(key=k, value=format_value(v))
                                     for k, v in values.items()])
+
+
+def array_msg(stamp_ns: int, statuses: Sequence[DiagnosticStatus]) -> DiagnosticArray:
+    """Return a DiagnosticArray of ``statuses`` stamped ``stamp_ns``."""
+    arr = DiagnosticArray(status=list(statuses))
+    arr.header.stamp = ns_to_time(stamp_ns)
+    return arr
 
 
 def parse_status(status: DiagnosticStatus) -> Tuple[str, int, str, Dict[str, str]]:
@@ -150,18 +152,15 @@ class StatusReporter:
 
     def publish(self) -> None:
         """Publish the current status with fresh values."""
-        arr = DiagnosticArray()
-        arr.header.stamp = ns_to_time(self._now_ns())
         values = dict(self._values())
         values['status_seq'] = self.published + 1
         values.update(publisher_values(self.publishers))
-        arr.status = [status_msg(self.name, self.level, self.message, values,
-                                 self.hardware_id)]
-        self._publish(arr)
+        self._publish(array_msg(self._now_ns(), [status_msg(self.name, self.level, self.message,
+                                                            values, self.hardware_id)]))
         self.published += 1
         self._due = False
 
 
 __all__ = ['OK', 'WARN', 'ERROR', 'STALE', 'LEVEL_NAMES', 'format_value', 'status_msg',
-           'parse_status', 'value_float', 'value_int', 'flatten', 'CountedPublisher',
+           'array_msg', 'parse_status', 'value_float', 'value_int', 'flatten', 'CountedPublisher',
            'publisher_values', 'StatusReporter']

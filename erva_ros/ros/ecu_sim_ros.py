@@ -185,7 +185,6 @@ class EcuSimRos:
                 break
 
     def _diag(self, core: EcuSimCore, s, finished: bool) -> None:
-        from diagnostic_msgs.msg import DiagnosticArray
         from erva_ros.ros import diagnostics as diag
         values = dict(core.summary())
         values['finished'] = finished
@@ -207,10 +206,9 @@ class EcuSimRos:
         level = diag.ERROR if core.bus is None else (
             diag.OK if core.mode.name == 'CONTROLLED' else diag.WARN)
         text = core.bus_error or f'ECU {core.mode.name}'
-        arr = DiagnosticArray()
-        arr.header.stamp = self.node.get_clock().now().to_msg()
-        arr.status = [diag.status_msg(self.name, level, text, values, 'ecu_sim')]
-        self.pub_diag.publish(arr)
+        self.pub_diag.publish(diag.array_msg(self.node.get_clock().now().nanoseconds,
+                                             [diag.status_msg(self.name, level, text, values,
+                                                              'ecu_sim')]))
 
     def shutdown(self) -> None:
         import rclpy

@@ -24,6 +24,8 @@ import socket
 import threading
 from typing import Dict, Mapping, Optional, Tuple
 
+from erva_ros.core import topics
+
 DEFAULT_HOST = '127.0.0.1'
 DEFAULT_PORT = 8765
 DEFAULT_ADDRESS = f'{DEFAULT_HOST}:{DEFAULT_PORT}'
@@ -135,7 +137,7 @@ class FoxgloveServer:
 
     def __init__(self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, name: str = 'erva',
                  backlog: int = DEFAULT_BACKLOG, session: Optional[Mapping[str, str]] = None,
-                 namespace: str = '/erva', with_time: bool = False):
+                 namespace: str = topics.NAMESPACE, with_time: bool = False):
         import foxglove
         from foxglove.websocket import Capability
 

@@ -123,6 +123,17 @@ def clock_msg(stamp_ns: int) -> Clock:
 
 
 # -- parsers -------------------------------------------------------------------------------
+def joint_state_x(msg: JointState) -> np.ndarray:
+    """Return x = [z_s, ż_s, z_us, ż_us(, z_d, ż_d)] of a state message, unchecked.
+
+    For observers of what was published (the monitor, reports); a node acting on a
+    state uses :func:`parse_state`.
+    """
+    x = np.empty(2 * len(msg.position))
+    x[0::2], x[1::2] = msg.position, msg.velocity
+    return x
+
+
 def parse_state(msg: JointState, kind: str) -> Tuple[int, np.ndarray]:
     """Return (stamp_ns, x) of a state message; reject wrong joints or bad values."""
     names = state_joint_names(kind)
@@ -178,5 +189,5 @@ def parse_damping(msg: JointTrajectory, ts_ns: int) -> Tuple[int, np.ndarray]:
 
 __all__ = ['NS', 'ns_to_time', 'time_to_ns', 'ns_to_duration', 's_to_ns', 'state_joint_names',
            'state_msg', 'accel_msg', 'generator_msg', 'road_height_msg', 'preview_msg',
-           'damping_msg', 'clock_msg', 'parse_state', 'parse_road_height', 'parse_preview',
-           'parse_damping']
+           'damping_msg', 'clock_msg', 'joint_state_x', 'parse_state', 'parse_road_height',
+           'parse_preview', 'parse_damping']

@@ -76,10 +76,8 @@ class Player:
         return False
 
     def _publish_clock(self, bag_ns: int) -> None:
-        from rosgraph_msgs.msg import Clock
-        msg = Clock()
-        msg.clock.sec, msg.clock.nanosec = bag_ns // 1_000_000_000, bag_ns % 1_000_000_000
-        self.clock_pub.publish(msg)
+        from erva_ros.ros.msgs import clock_msg
+        self.clock_pub.publish(clock_msg(bag_ns))
         self.clock_ticks += 1
 
     def _sleep_until(self, target: float, wall0: float, bag0: int,

@@ -31,26 +31,9 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from erva_ros.core import topics as contract
-from erva_ros.ros import qos as ros_qos
+from erva_ros.ros import diagnostics as diag, msgs, qos as ros_qos
 
 HORIZON = 10
-
-
-def _stamp(ns: int):
-    from builtin_interfaces.msg import Time
-    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-
-
-def _trajectory(joint: str, values, ts: float, stamp_ns: int):
-    from builtin_interfaces.msg import Duration as DurationMsg
-    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
-    msg = JointTrajectory(joint_names=[joint])
-    msg.header.stamp = _stamp(stamp_ns)
-    for i, v in enumerate(values):
-        ns = int(round(i * ts * 1e9))
-        msg.points.append(JointTrajectoryPoint(positions=[float(v)], time_from_start=DurationMsg(
-            sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)))
-    return msg
 
 
 def _wait_matched(publishers: Dict, timeout_s: float) -> bool:
@@ -79,6 +62,7 @@ class ContractTraffic(Node):
         from trajectory_msgs.msg import JointTrajectory
         qos = ros_qos.control_qos()
         self.ts = 1.0 / rate_hz
+        self.ts_ns = msgs.s_to_ns(self.ts)
         self.echo = echo
         self.pubs = {
             contract.STATE: self.create_publisher(JointState, contract.STATE, qos),
@@ -111,54 +95,35 @@ class ContractTraffic(Node):
 
     def tick(self) -> None:
         """Publish one control period's messages (and the diagnostics once a second)."""
-        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-        from geometry_msgs.msg import AccelStamped, PointStamped
-        from rosgraph_msgs.msg import Clock
-        from sensor_msgs.msg import JointState
         t = self.k * self.ts
         w = 1e-3 * math.sin(2 * math.pi * 1.7 * t)
         now = time.time_ns()
         if contract.CLOCK in self.pubs:
-            self._publish(contract.CLOCK, Clock(clock=_stamp(now)))
-        road = PointStamped()
-        road.header.stamp = _stamp(now)
-        road.point.x, road.point.z = 20.0 * t, w
-        self._publish(contract.ROAD_HEIGHT, road)
-        self._publish(contract.ROAD_PREVIEW, _trajectory(
-            contract.ROAD_JOINT, [1e-3 * math.sin(2 * math.pi * 1.7 * (t + i * self.ts))
-                                  for i in range(HORIZON + 1)], self.ts, now))
-        accel = AccelStamped()
-        accel.header.stamp = _stamp(now)
-        accel.accel.linear.z = 3.0 * w
-        self._publish(contract.SPRUNG_ACCEL, accel)
-        gen = JointState(name=[contract.GENERATOR_JOINT], position=[0.1 * w], velocity=[0.02],
-                         effort=[200.0])
-        gen.header.stamp = _stamp(now)
-        self._publish(contract.GENERATOR, gen)
+            self._publish(contract.CLOCK, msgs.clock_msg(now))
+        self._publish(contract.ROAD_HEIGHT, msgs.road_height_msg(now, 20.0 * t, w))
+        self._publish(contract.ROAD_PREVIEW, msgs.preview_msg(
+            now, [1e-3 * math.sin(2 * math.pi * 1.7 * (t + i * self.ts))
+                  for i in range(HORIZON + 1)], self.ts_ns))
+        self._publish(contract.SPRUNG_ACCEL, msgs.accel_msg(now, 3.0 * w))
+        self._publish(contract.GENERATOR, msgs.generator_msg(now, 0.1 * w, 0.02, 1e4))
         # The state goes last, so that in the echo loop the command's round trip does
         # not wait for this node's other publications.
-        state = JointState(name=list(contract.STATE_JOINTS), position=[w, 0.5 * w, 0.1 * w],
-                           velocity=[0.01, 0.02, 0.03])
         state_ns = time.time_ns()
-        state.header.stamp = _stamp(state_ns)
-        self._publish(contract.STATE, state)
+        self._publish(contract.STATE, msgs.state_msg(
+            state_ns, [w, 0.01, 0.5 * w, 0.02, 0.1 * w, 0.03], 'erva'))
         if not self.echo:
-            self._publish(contract.DAMPING_CMD, _trajectory(
-                contract.DAMPING_JOINT, [1e4] * HORIZON, self.ts, state_ns))
+            self._publish(contract.DAMPING_CMD, msgs.damping_msg(state_ns, [1e4] * HORIZON,
+                                                                 self.ts_ns))
         per_second = max(1, int(round(1.0 / self.ts)))
         if self.k % per_second == 0:
             for node in ('plant_sim_node', 'road_preview_node', 'nmpc_node'):
-                status = DiagnosticStatus(level=DiagnosticStatus.OK, name=f'{node}: traffic',
-                                          hardware_id='erva', message='synthetic',
-                                          values=[KeyValue(key='k', value=str(self.k))])
-                diag = DiagnosticArray(status=[status])
-                diag.header.stamp = _stamp(now)
-                self._publish(contract.DIAGNOSTICS, diag)
+                self._publish(contract.DIAGNOSTICS, diag.array_msg(now, [diag.status_msg(
+                    f'{node}: traffic', diag.OK, 'synthetic', {'k': self.k}, 'erva')]))
         self.k += 1
 
     def _on_cmd(self, msg, info) -> None:
         now = time.time_ns()
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        stamp = msgs.time_to_ns(msg.header.stamp)
         self.latency_s.append((now - stamp) * 1e-9)
         self.publish_latency_s.append(((info.get('source_timestamp') or now) - stamp) * 1e-9)
         self.latency_stamps_ns.append(stamp)
@@ -177,8 +142,8 @@ class Echo(Node):
         self.count = 0
 
     def _on_state(self, msg) -> None:
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        self.pub.publish(_trajectory(contract.DAMPING_JOINT, [1e4] * HORIZON, 0.02, stamp))
+        stamp = msgs.time_to_ns(msg.header.stamp)
+        self.pub.publish(msgs.damping_msg(stamp, [1e4] * HORIZON, 20_000_000))
         self.count += 1
 
 
@@ -257,7 +222,7 @@ def _flood(args) -> int:
     if not _wait_matched({pub: args.subscribers}, args.wait):
         print(json.dumps({'error': 'subscribers did not match'}), flush=True)
         return 3
-    msg = JointState(name=list(contract.STATE_JOINTS), position=[0.0] * 3, velocity=[0.0] * 3)
+    msg = msgs.state_msg(0, [0.0] * 6, 'erva')
     count = 0
     start = time.monotonic()
     end = start + args.duration
@@ -269,8 +234,7 @@ def _flood(args) -> int:
         if period and now < start + count * period:
             time.sleep(min(start + count * period - now, 0.001))
             continue
-        ns = time.time_ns()
-        msg.header.stamp = _stamp(ns)
+        msg.header.stamp = msgs.ns_to_time(time.time_ns())
         pub.publish(msg)
         count += 1
     elapsed = time.monotonic() - start

@@ -13,6 +13,11 @@ Plain helpers around rclpy, kept out of the node files so the nodes stay thin:
 * :mod:`~erva_ros.ros.runtime` -- the main() idiom of every node;
 * :mod:`~erva_ros.session.monitor` -- the in-process monitor node of `erva run`;
 * :mod:`~erva_ros.session.hil_summary` -- its HIL figures (`erva run --ecu virtual`);
-* :mod:`~erva_ros.session.orchestrator` -- `erva run`: processes, start, stop, summary;
+* :mod:`~erva_ros.session.orchestrator` -- `erva run`: one session, start to summary;
+* :mod:`~erva_ros.session.run_config` -- its options validated, the session params file;
+* :mod:`~erva_ros.session.processes` -- child processes: start, stop (every session tool);
+* :mod:`~erva_ros.session.supervisor` -- the session's processes and phases;
+* :mod:`~erva_ros.session.start_gate` -- when the loop may start (every reader matched);
+* :mod:`~erva_ros.session.recording` -- the recorder process, its drain, the bag check;
 * :mod:`~erva_ros.session.benchmark` -- `erva bench --live`.
 """

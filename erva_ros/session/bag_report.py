@@ -31,9 +31,12 @@ import numpy as np
 
 from erva_ros.core import topics as contract
 
-from erva_ros.ros.bag_messages import decoded
 from erva_ros.core.bag.reader import Bag
+from erva_ros.core.levels import ERROR
 from erva_ros.core.metrics import comfort_power, percentiles_ms
+from erva_ros.ros.bag_messages import decoded
+from erva_ros.ros.diagnostics import parse_status
+from erva_ros.ros.msgs import state_joint_names, time_to_ns
 
 #: Diagnostic keys (regular expressions) that carry each figure, as plant_sim_node and
 #: nmpc_node (and offline sessions) name them.
@@ -69,7 +72,7 @@ class SessionData:
 
     bag: Bag
     namespace: str
-    state: Series
+    state: Series            # values: positions z_s, z_us, z_d, velocities (NaN: no z_d)
     accel: Series
     generator: Series        # values: position, velocity, effort
     road: Series             # values: distance, height
@@ -79,6 +82,7 @@ class SessionData:
     previews: List[np.ndarray]   # heights w(t0 + i·Ts)
     preview_dt: List[np.ndarray]  # time_from_start (s)
     diagnostics: List[Dict] = field(default_factory=list)   # per status message
+    model: str = 'erva'      # the state's model kind (its joints): erva or benchmark
 
     @property
     def t0_ns(self) -> int:
@@ -86,6 +90,14 @@ class SessionData:
             if s.n:
                 return int(s.stamp_ns[0])
         return int(self.bag.start_ns or 0)
+
+    def x(self, i: int) -> np.ndarray:
+        """Return the i-th recorded state as the model's x = [z_s, ż_s, z_us, ż_us(, z_d, ż_d)]."""
+        v = self.state.values[i]
+        n = len(state_joint_names(self.model))
+        x = np.empty(2 * n)
+        x[0::2], x[1::2] = v[:n], v[3:3 + n]
+        return x
 
 
 def _series(rows, width) -> Series:
@@ -97,12 +109,15 @@ def _series(rows, width) -> Series:
                   np.asarray([r[2] for r in rows], dtype=np.int64), arr)
 
 
-def _stamp(header) -> int:
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+def _first(values) -> float:
+    """Return the first of a message's values, NaN if it has none."""
+    return values[0] if len(values) else math.nan
 
 
-def _duration_s(d) -> float:
-    return int(d.sec) + int(d.nanosec) * 1e-9
+def _padded(values, n: int = 3) -> List[float]:
+    """Return the first ``n`` values, NaN-padded (a benchmark state has no z_d)."""
+    values = list(values)[:n]
+    return values + [math.nan] * (n - len(values))
 
 
 def guess_namespace(bag: Bag) -> str:
@@ -121,57 +136,80 @@ def guess_namespace(bag: Bag) -> str:
     return found[0] if found else contract.NAMESPACE
 
 
+class _Rows:
+    """The rows of one bag's contract topics, one small decoder per topic."""
+
+    def __init__(self):
+        self.rows: Dict[str, list] = {k: [] for k in (
+            contract.STATE, contract.SPRUNG_ACCEL, contract.GENERATOR, contract.ROAD_HEIGHT,
+            contract.DAMPING_CMD)}
+        self.plans: List[np.ndarray] = []
+        self.previews: List[np.ndarray] = []
+        self.preview_dt: List[np.ndarray] = []
+        self.preview_stamps: List[int] = []
+        self.diagnostics: List[Dict] = []
+        self.state_joints: Optional[tuple] = None
+
+    def _row(self, kind: str, m, msg, values) -> None:
+        self.rows[kind].append((time_to_ns(msg.header.stamp), m.log_time_ns,
+                                m.publish_time_ns, values))
+
+    def state(self, m, msg) -> None:
+        self.state_joints = self.state_joints or tuple(msg.name)
+        self._row(contract.STATE, m, msg, _padded(msg.position) + _padded(msg.velocity))
+
+    def sprung_accel(self, m, msg) -> None:
+        self._row(contract.SPRUNG_ACCEL, m, msg, [msg.accel.linear.z])
+
+    def generator(self, m, msg) -> None:
+        self._row(contract.GENERATOR, m, msg,
+                  [_first(msg.position), _first(msg.velocity), _first(msg.effort)])
+
+    def road_height(self, m, msg) -> None:
+        self._row(contract.ROAD_HEIGHT, m, msg, [msg.point.x, msg.point.z])
+
+    def road_preview(self, m, msg) -> None:
+        self.preview_stamps.append(time_to_ns(msg.header.stamp))
+        self.previews.append(np.array([_first(p.positions) for p in msg.points]))
+        self.preview_dt.append(np.array([time_to_ns(p.time_from_start) * 1e-9
+                                         for p in msg.points]))
+
+    def damping_cmd(self, m, msg) -> None:
+        plan = np.array([_first(p.positions) for p in msg.points])
+        self.plans.append(plan)
+        self._row(contract.DAMPING_CMD, m, msg, [_first(plan)])
+
+    def diagnostics_array(self, m, msg) -> None:
+        for status in msg.status:
+            name, level, text, values = parse_status(status)
+            self.diagnostics.append({'log_ns': m.log_time_ns, 'name': name, 'level': level,
+                                     'message': text, 'values': values})
+
+    def model(self) -> str:
+        """Return the model kind whose state joints were recorded (erva without states)."""
+        bench = state_joint_names('benchmark')
+        return 'benchmark' if self.state_joints == bench else 'erva'
+
+
 def load_session(bag: Bag, namespace: Optional[str] = None) -> SessionData:
     """Decode the contract topics of ``bag`` into arrays (see module doc)."""
     ns = namespace or guess_namespace(bag)
-    names = {k: _topic(k, ns) for k in (contract.STATE, contract.SPRUNG_ACCEL,
-                                        contract.GENERATOR, contract.ROAD_HEIGHT,
-                                        contract.ROAD_PREVIEW, contract.DAMPING_CMD)}
-    rows: Dict[str, list] = {k: [] for k in names}
-    plans: List[np.ndarray] = []
-    previews: List[np.ndarray] = []
-    preview_dt: List[np.ndarray] = []
-    preview_stamps: List[int] = []
-    diags: List[Dict] = []
-    by_topic = {v: k for k, v in names.items()}
-    wanted = set(names.values()) | {contract.DIAGNOSTICS}
-    for m, msg in decoded(bag, [t for t in bag.topics if t in wanted]):
-        kind = by_topic.get(m.topic)
-        times = (m.log_time_ns, m.publish_time_ns)
-        if kind == contract.STATE:
-            pos = list(msg.position)[:3] + [math.nan] * (3 - len(msg.position[:3]))
-            vel = list(msg.velocity)[:3] + [math.nan] * (3 - len(msg.velocity[:3]))
-            rows[kind].append((_stamp(msg.header), *times, pos + vel))
-        elif kind == contract.SPRUNG_ACCEL:
-            rows[kind].append((_stamp(msg.header), *times, [msg.accel.linear.z]))
-        elif kind == contract.GENERATOR:
-            vals = [msg.position[0] if msg.position else math.nan,
-                    msg.velocity[0] if msg.velocity else math.nan,
-                    msg.effort[0] if msg.effort else math.nan]
-            rows[kind].append((_stamp(msg.header), *times, vals))
-        elif kind == contract.ROAD_HEIGHT:
-            rows[kind].append((_stamp(msg.header), *times, [msg.point.x, msg.point.z]))
-        elif kind == contract.ROAD_PREVIEW:
-            preview_stamps.append(_stamp(msg.header))
-            previews.append(np.array([p.positions[0] if p.positions else math.nan
-                                      for p in msg.points]))
-            preview_dt.append(np.array([_duration_s(p.time_from_start) for p in msg.points]))
-        elif kind == contract.DAMPING_CMD:
-            plan = np.array([p.positions[0] if p.positions else math.nan for p in msg.points])
-            plans.append(plan)
-            rows[kind].append((_stamp(msg.header), *times, [plan[0] if plan.size else math.nan]))
-        elif m.topic == contract.DIAGNOSTICS:
-            for st in msg.status:
-                diags.append({'log_ns': m.log_time_ns, 'name': st.name, 'level': int.from_bytes(
-                    st.level, 'little') if isinstance(st.level, bytes) else int(st.level),
-                    'message': st.message,
-                    'values': {kv.key: kv.value for kv in st.values}})
-    return SessionData(bag, ns, _series(rows[contract.STATE], 6),
-                       _series(rows[contract.SPRUNG_ACCEL], 1),
-                       _series(rows[contract.GENERATOR], 3),
-                       _series(rows[contract.ROAD_HEIGHT], 2),
-                       _series(rows[contract.DAMPING_CMD], 1), plans,
-                       np.asarray(preview_stamps, dtype=np.int64), previews, preview_dt, diags)
+    rows = _Rows()
+    decoders = {_topic(contract.STATE, ns): rows.state,
+                _topic(contract.SPRUNG_ACCEL, ns): rows.sprung_accel,
+                _topic(contract.GENERATOR, ns): rows.generator,
+                _topic(contract.ROAD_HEIGHT, ns): rows.road_height,
+                _topic(contract.ROAD_PREVIEW, ns): rows.road_preview,
+                _topic(contract.DAMPING_CMD, ns): rows.damping_cmd,
+                contract.DIAGNOSTICS: rows.diagnostics_array}
+    for m, msg in decoded(bag, [t for t in bag.topics if t in decoders]):
+        decoders[m.topic](m, msg)
+    r = rows.rows
+    return SessionData(bag, ns, _series(r[contract.STATE], 6),
+                       _series(r[contract.SPRUNG_ACCEL], 1), _series(r[contract.GENERATOR], 3),
+                       _series(r[contract.ROAD_HEIGHT], 2), _series(r[contract.DAMPING_CMD], 1),
+                       rows.plans, np.asarray(rows.preview_stamps, dtype=np.int64),
+                       rows.previews, rows.preview_dt, rows.diagnostics, rows.model())
 
 
 def _number(text) -> Optional[float]:
@@ -265,7 +303,7 @@ def compute_report(data: SessionData) -> Dict:
     report['reported_timing_ms'] = _pick(last, REPORTED_TIMING_KEY)
     report['plant_command_source'] = _pick(last, PLANT_HOLD_KEY)
     report['diagnostics_errors'] = sorted({f'{d["name"]}: {d["message"]}'
-                                           for d in data.diagnostics if d['level'] >= 2})
+                                           for d in data.diagnostics if d['level'] >= ERROR})
     return report
 
 

@@ -28,7 +28,7 @@ DEFAULT_DURATION_S = 60.0
 
 
 def _run_config(args):
-    from erva_ros.session.orchestrator import RunConfig
+    from erva_ros.session.run_config import RunConfig
     overrides = {k: getattr(args, k, None)
                  for k in ('cost', 'solver', 'horizon', 'max_iter', 'u_min', 'u_max')}
     overrides = {k: v for k, v in overrides.items() if v is not None}

@@ -15,11 +15,11 @@ import dataclasses
 import json
 import os
 import statistics
-import subprocess
 import sys
 from typing import Any, Dict, List
 
 from erva_ros.session.benchmark import _run_config, bench_result
+from erva_ros.session.processes import ChildProcess, module_argv
 
 #: Default length of each run of the A/B (s).
 DEFAULT_AB_DURATION_S = 20.0
@@ -34,15 +34,14 @@ PER_RUN = ('period_jitter_ms', 'state_to_command_ms', 'solve_ms', 'deadline_miss
            'dropped_messages', 'viewer', 'foxglove')
 
 
-def _viewer(port: int, stall: bool) -> subprocess.Popen:
-    argv = [sys.executable, '-m', 'erva_ros.session.foxglove_viewer', '--port', str(port)]
-    return subprocess.Popen(argv + (['--stall'] if stall else []), stdout=subprocess.PIPE,
-                            stderr=subprocess.DEVNULL, text=True)
+def _viewer(port: int, stall: bool) -> ChildProcess:
+    argv = module_argv('erva_ros.session.foxglove_viewer', '--port', str(port))
+    return ChildProcess('viewer', argv + (['--stall'] if stall else []), capture=True)
 
 
 def _one_run(cfg, arm: str, stall: bool, log) -> Dict[str, Any]:
     from erva_ros.session.orchestrator import run_session
-    viewer: List[subprocess.Popen] = []
+    viewer: List[ChildProcess] = []
 
     def on_line(line: str) -> None:
         log(line)
@@ -54,13 +53,9 @@ def _one_run(cfg, arm: str, stall: bool, log) -> Dict[str, Any]:
     report = bench_result(result.summary)
     report['exit_code'] = result.exit_code
     report['foxglove'] = result.summary.get('foxglove')
-    if viewer:
-        try:   # it ends when the server goes away (a stalled one: stop it)
-            out, _ = viewer[0].communicate(timeout=0 if stall else 10)
-        except subprocess.TimeoutExpired:
-            viewer[0].kill()
-            out, _ = viewer[0].communicate()
-        lines = out.strip().splitlines()
+    if viewer:   # it ends when the server goes away (a stalled one: stop it)
+        viewer[0].stop(grace_s=0 if stall else 10, first=None)
+        lines = viewer[0].output().strip().splitlines()
         report['viewer'] = json.loads(lines[-1]) if lines else None
     return report
 

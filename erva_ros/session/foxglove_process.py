@@ -9,15 +9,18 @@ recorder).  It is stopped with the recorder, after the loop's nodes.
 """
 
 import os
-import sys
 import time
 from typing import Any, Callable, Dict, List, Tuple
 
 from erva_ros.core.errors import CLIError
 from erva_ros.ros import foxglove_server as fg
+from erva_ros.session.processes import ChildProcess, node_argv, stop_processes
+from erva_ros.session.recording import record_topics
 
 #: The process name in `erva run`'s summary and logs.
 PROCESS = 'foxglove_server'
+#: Its node module (erva_ros.nodes.<name>).
+PROCESS_NODE = 'foxglove_node'
 #: The log line of foxglove_node once it listens (followed by the URL).
 READY = 'serving ws://'
 #: Longest wait for the server to listen (a cold start on a busy machine takes seconds).
@@ -42,42 +45,28 @@ def check_address(text: str) -> Tuple[str, int]:
     return host, port
 
 
-def node_argv(host: str, port: int, namespace: str, topics: List[str],
-              session: Dict[str, str], use_sim_time: bool) -> List[str]:
+def server_argv(host: str, port: int, namespace: str, topics: List[str],
+                session: Dict[str, str], use_sim_time: bool) -> List[str]:
     """Return the command line of foxglove_node for one session."""
     import json
-    argv = [sys.executable, '-m', 'erva_ros.nodes.foxglove_node', '--ros-args',
-            '-r', f'__ns:={namespace}', '-p', f'host:={json.dumps(host)}',
-            '-p', f'port:={int(port)}', '-p', f'topics:={json.dumps(list(topics))}',
-            # A double-quoted YAML scalar, so rcl keeps the JSON a string.
-            '-p', f'session_metadata:={json.dumps(json.dumps(session, sort_keys=True))}']
-    if use_sim_time:
-        argv += ['-p', 'use_sim_time:=true']
-    return argv
-
-
-def session_topics(hil: bool) -> List[str]:
-    """Return the topics served: the recorder's (the contract, plus the HIL topics)."""
-    from erva_ros.nodes.recorder_node import DEFAULT_TOPICS
-    served = list(DEFAULT_TOPICS)
-    if hil:
-        from erva_ros.core.hil.topics import RECORD_TOPICS
-        served += RECORD_TOPICS
-    return served
+    return node_argv(PROCESS_NODE, namespace, parameters={
+        'host': json.dumps(host), 'port': int(port), 'topics': json.dumps(list(topics)),
+        # A double-quoted YAML scalar, so rcl keeps the JSON a string.
+        'session_metadata': json.dumps(json.dumps(session, sort_keys=True)),
+        **({'use_sim_time': True} if use_sim_time else {})})
 
 
 def start_process(cfg, session, env: Dict[str, str], log: Callable[[str], None],
                   description: Dict[str, str]):
-    """Start foxglove_node for ``session`` and wait until it listens; return its NodeProcess.
+    """Start foxglove_node for ``session`` and wait until it listens; return its process.
 
     Raises CLIError (exit 2) when it cannot listen (say, the port was taken since
     :func:`check_address`), after stopping it.
     """
-    from erva_ros.session.orchestrator import NodeProcess, stop_processes
     host, port = fg.parse_address(cfg.foxglove)
-    argv = node_argv(host, port, cfg.namespace, session_topics(session.hil), description,
-                     use_sim_time=not session.realtime)
-    proc = NodeProcess(PROCESS, argv, os.path.join(session.directory, f'{PROCESS}.log'), env)
+    argv = server_argv(host, port, cfg.namespace, record_topics(session.hil), description,
+                       use_sim_time=not session.realtime)
+    proc = ChildProcess(PROCESS, argv, env, os.path.join(session.directory, f'{PROCESS}.log'))
     deadline = time.monotonic() + START_TIMEOUT_S
     while True:
         lines = proc.tail(50).splitlines()
@@ -116,5 +105,5 @@ def summary(diag: Dict[str, Any]) -> Dict[str, Any]:
     return out
 
 
-__all__ = ['PROCESS', 'check_address', 'node_argv', 'session_topics', 'start_process',
+__all__ = ['PROCESS', 'check_address', 'server_argv', 'start_process',
            'summary']

@@ -25,15 +25,15 @@ runs at the ECU's 50 Hz.  Measured:
 """
 
 import os
-import signal
-import subprocess
 import tempfile
 import time
 from typing import Dict, List, Optional
 
 import numpy as np
 
+from erva_ros.core import topics
 from erva_ros.session.hil_processes import hil_process_specs
+from erva_ros.session.processes import ChildProcess, stop_processes
 from erva_ros.ros import qos as ros_qos
 from erva_ros.core.metrics import percentiles_ms
 
@@ -49,7 +49,7 @@ NODE_LATENCIES = {
 
 
 def run_live_bench(params_file: str, hil_file: Optional[str], duration_s: float,
-                   law: str = 'skyhook', seed: int = 0, namespace: str = '/erva',
+                   law: str = 'skyhook', seed: int = 0, namespace: str = topics.NAMESPACE,
                    log=lambda s: None, startup_timeout_s: float = 30.0,
                    realtime_priority: int = 0) -> Dict:
     """Run the HIL loop for ``duration_s`` and return the measured figures (see module doc)."""
@@ -73,13 +73,11 @@ def run_live_bench(params_file: str, hil_file: Optional[str], duration_s: float,
     driver = _Driver(namespace, context, road, law, params)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(driver.node)
-    procs: List[subprocess.Popen] = []
+    procs: List[ChildProcess] = []
     errors: List[str] = []
     try:
         for spec in specs:
-            out = open(os.path.join(logdir, f'{spec.name}.log'), 'w')
-            procs.append(subprocess.Popen(spec.argv, env=spec.env, stdout=out,
-                                          stderr=subprocess.STDOUT, start_new_session=True))
+            procs.append(ChildProcess.start(spec, logdir))
         log(f'started {", ".join(s.name for s in specs)} (logs in {logdir})')
         t0 = time.monotonic()
         ecu = procs[0]
@@ -100,20 +98,12 @@ def run_live_bench(params_file: str, hil_file: Optional[str], duration_s: float,
         while time.monotonic() < end:
             executor.spin_once(timeout_sec=0.02)
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-        for p in procs:
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+        stop_processes(procs, grace_s=10.0)
         executor.shutdown()
         driver.node.destroy_node()
         rclpy.try_shutdown(context=context)
-    if procs and procs[0].returncode not in (0, None):
-        errors.append(f'ecu-sim exited with {procs[0].returncode} (logs in {logdir})')
+    if procs and procs[0].poll() not in (0, None):
+        errors.append(f'ecu-sim exited with {procs[0].poll()} (logs in {logdir})')
     result = driver.results()
     result['errors'] = errors
     result['duration_s'] = duration_s
@@ -134,7 +124,6 @@ class _Driver:
         from sensor_msgs.msg import JointState
         from trajectory_msgs.msg import JointTrajectory
 
-        from erva_ros.core import topics
         from erva_ros.core.hil import topics as hil_topics
 
         self.node = Node('bench_hil_driver', namespace=namespace, context=context)

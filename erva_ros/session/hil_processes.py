@@ -12,26 +12,17 @@ bus.  The ECU publishes the ground truth (``sprung_accel``, ``generator``,
 ``duration_s``; the estimator publishes ``state``.
 """
 
-from dataclasses import dataclass, field
-import os
-import sys
 from typing import Dict, List, Optional, Sequence
 
+from erva_ros.core import topics
 from erva_ros.core.hil.settings import default_hil_file
-from erva_ros.ros.realtime import DEFAULT_PRIORITY
 from erva_ros.core.hil.transport import free_udp_ports
+from erva_ros.ros.realtime import DEFAULT_PRIORITY
+from erva_ros.session.processes import child_env, module_argv, node_argv, ProcessSpec
 
 
-@dataclass
-class ProcessSpec:
-    """One process to start: a name, its argv and its environment."""
-
-    name: str
-    argv: List[str]
-    env: Dict[str, str] = field(default_factory=dict)
-
-
-def hil_process_specs(params_file: str, namespace: str = '/erva', duration_s: float = 0.0,
+def hil_process_specs(params_file: str, namespace: str = topics.NAMESPACE,
+                      duration_s: float = 0.0,
                       hil_file: Optional[str] = None, model: str = 'erva', ts: float = 0.02,
                       ports: Optional[tuple] = None, env: Optional[Dict[str, str]] = None,
                       road: str = 'session', wait_road_s: float = 60.0,
@@ -57,26 +48,25 @@ def hil_process_specs(params_file: str, namespace: str = '/erva', duration_s: fl
     """
     hil_file = hil_file or default_hil_file()
     bridge_port, ecu_port = ports or free_udp_ports(2)
-    base = dict(os.environ if env is None else env)
-    base['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    base['PYTHONUNBUFFERED'] = '1'
-    ros_args = ['--ros-args', '-r', f'__ns:={namespace}', '--params-file', params_file,
-                '--params-file', hil_file]
-    ecu = [sys.executable, '-m', 'erva_ros.cli', 'ecu-sim',
-           '--bus', f'udp:{ecu_port}:{bridge_port}', '--params', params_file,
-           '--hil-config', hil_file, '--model', model, '--ts', repr(float(ts)),
-           '--road', road, '--wait-road', repr(float(wait_road_s)), '--ros',
-           '--namespace', namespace,
-           '--duration', repr(float(duration_s)), '--json',
-           '--realtime-priority', str(int(realtime_priority))]
-    bridge = [sys.executable, '-m', 'erva_ros.nodes.ecu_bridge_node', *ros_args,
-              '-p', f'bus:=udp:{bridge_port}:{ecu_port}']
-    estimator = [sys.executable, '-m', 'erva_ros.nodes.state_estimator_node', *ros_args]
-    if stamp_on_road_grid:
-        estimator += ['-p', 'stamp_on_road_grid:=true']
-    for argv in (bridge, estimator):
-        argv += ['-p', f'realtime_priority:={int(realtime_priority)}']
+    base = child_env(env, force_local=True)
+    files = [params_file, hil_file]
+    priority = {'realtime_priority': int(realtime_priority)}
+    ecu = module_argv('erva_ros.cli', 'ecu-sim',
+                      '--bus', f'udp:{ecu_port}:{bridge_port}', '--params', params_file,
+                      '--hil-config', hil_file, '--model', model, '--ts', repr(float(ts)),
+                      '--road', road, '--wait-road', repr(float(wait_road_s)), '--ros',
+                      '--namespace', namespace,
+                      '--duration', repr(float(duration_s)), '--json',
+                      '--realtime-priority', str(int(realtime_priority)))
+    bridge = node_argv('ecu_bridge_node', namespace, files,
+                       {'bus': f'udp:{bridge_port}:{ecu_port}', **priority})
+    estimator = node_argv('state_estimator_node', namespace, files,
+                          {**({'stamp_on_road_grid': True} if stamp_on_road_grid else {}),
+                           **priority})
     prefix = list(prefix)
     return [ProcessSpec('ecu_sim', prefix + ecu, dict(base)),
             ProcessSpec('ecu_bridge_node', prefix + bridge, dict(base)),
             ProcessSpec('state_estimator_node', prefix + estimator, dict(base))]
+
+
+__all__ = ['ProcessSpec', 'hil_process_specs']

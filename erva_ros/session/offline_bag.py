@@ -7,9 +7,11 @@ with t_k = t0 + k·Ts, it holds what the controller saw and did, in causal order
     /erva/road/height   PointStamped    x = distance (m), z = w(t_k) (m)
     /erva/road/preview  JointTrajectory the preview the controller used, w(t_k + i·Ts)
     /erva/state         JointState      [z_s, z_us, z_d] positions (m), velocities (m/s)
+                                        ([z_s, z_us] of the linear benchmark model)
     /erva/damping_cmd   JointTrajectory plan u_k .. u_{k+N-1} (Ns/m), stamp = state stamp
     /erva/sprung_accel  AccelStamped    z̈_s(t_k) (m/s²)
-    /erva/generator     JointState      position z_d - (z_s - z_us), velocity v_gen,
+    /erva/generator     JointState      the model's generator (QuarterCarModel.generator):
+                                        position z_d - (z_s - z_us), velocity v_gen,
                                         effort u·v_gen (P = effort·velocity, W)
     /diagnostics        DiagnosticArray once a second and after the last step: the
                                         plant's harvested energy up to the end of the
@@ -28,11 +30,10 @@ from typing import Dict, List, Mapping, Optional
 import numpy as np
 
 from erva_ros.core import topics as contract
-
-from erva_ros.ros.bag_messages import write_message
-from erva_ros.ros import qos as ros_qos
 from erva_ros.core.bag.writer import BagWriter
 from erva_ros.core.metrics import percentiles_ms
+from erva_ros.ros import diagnostics as diag, msgs, qos as ros_qos
+from erva_ros.ros.bag_messages import write_message
 
 TOPIC = {name: f'{contract.NAMESPACE}/{name}' for name in (
     contract.STATE, contract.SPRUNG_ACCEL, contract.GENERATOR, contract.ROAD_HEIGHT,
@@ -49,7 +50,7 @@ class StepLog:
     """What one control step saw and did (SI units)."""
 
     t: float
-    x: np.ndarray          # [z_s, ż_s, z_us, ż_us, z_d, ż_d]
+    x: np.ndarray          # [z_s, ż_s, z_us, ż_us(, z_d, ż_d)]
     w: float
     distance_m: float
     preview: np.ndarray    # w(t + i·Ts), i = 0..N, as the controller got it
@@ -58,6 +59,8 @@ class StepLog:
     harvested_j: float     # J harvested from the start up to t_k + Ts
     solve_time_s: float
     status: str
+    gen_position: float = float('nan')   # m, the model's generator displacement at t_k
+    v_gen: float = float('nan')          # m/s, the model's generator velocity at t_k
 
 
 class _CapturingController:
@@ -79,52 +82,22 @@ class _CapturingController:
         return self._inner.compute(x, preview, t)
 
 
-def _time_msg(t_ns: int):
-    from builtin_interfaces.msg import Time
-    return Time(sec=int(t_ns // 1_000_000_000), nanosec=int(t_ns % 1_000_000_000))
+def step_messages(step: StepLog, stamp_ns: int, ts: float, kind: str = 'erva') -> List:
+    """Return [(topic, message)] of one step of a ``kind`` model in causal order (module doc)."""
+    ts_ns = msgs.s_to_ns(ts)
+    road = msgs.road_height_msg(stamp_ns, step.distance_m, step.w)
+    return [(TOPIC[contract.ROAD_HEIGHT], road),
+            (TOPIC[contract.ROAD_PREVIEW], msgs.preview_msg(stamp_ns, step.preview, ts_ns)),
+            (TOPIC[contract.STATE], msgs.state_msg(stamp_ns, step.x, kind)),
+            (TOPIC[contract.DAMPING_CMD], msgs.damping_msg(stamp_ns, step.plan, ts_ns)),
+            (TOPIC[contract.SPRUNG_ACCEL], msgs.accel_msg(stamp_ns, step.accel)),
+            (TOPIC[contract.GENERATOR], msgs.generator_msg(stamp_ns, step.gen_position,
+                                                           step.v_gen, step.plan[0]))]
 
 
-def _duration_msg(s: float):
-    from builtin_interfaces.msg import Duration
-    ns = int(round(s * 1e9))
-    return Duration(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-
-
-def step_messages(step: StepLog, stamp_ns: int, ts: float) -> List:
-    """Return [(topic, message)] of one step in causal order (see module doc)."""
-    from geometry_msgs.msg import AccelStamped, PointStamped
-    from sensor_msgs.msg import JointState
-    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
-
-    stamp = _time_msg(stamp_ns)
-    x = np.asarray(step.x, dtype=float)
-    road = PointStamped()
-    road.header.stamp = stamp
-    road.point.x, road.point.z = float(step.distance_m), float(step.w)
-    preview = JointTrajectory(joint_names=[contract.ROAD_JOINT])
-    preview.header.stamp = stamp
-    preview.points = [JointTrajectoryPoint(positions=[float(h)],
-                                           time_from_start=_duration_msg(i * ts))
-                      for i, h in enumerate(step.preview)]
-    state = JointState(name=list(contract.STATE_JOINTS),
-                       position=[float(x[0]), float(x[2]), float(x[4])],
-                       velocity=[float(x[1]), float(x[3]), float(x[5])])
-    state.header.stamp = stamp
-    cmd = JointTrajectory(joint_names=[contract.DAMPING_JOINT])
-    cmd.header.stamp = stamp
-    cmd.points = [JointTrajectoryPoint(positions=[float(u)],
-                                       time_from_start=_duration_msg(i * ts))
-                  for i, u in enumerate(step.plan)]
-    accel = AccelStamped()
-    accel.header.stamp = stamp
-    accel.accel.linear.z = float(step.accel)
-    v_gen = float(x[5] - (x[1] - x[3]))
-    gen = JointState(name=[contract.GENERATOR_JOINT], position=[float(x[4] - (x[0] - x[2]))],
-                     velocity=[v_gen], effort=[float(step.plan[0]) * v_gen])
-    gen.header.stamp = stamp
-    return [(TOPIC[contract.ROAD_HEIGHT], road), (TOPIC[contract.ROAD_PREVIEW], preview),
-            (TOPIC[contract.STATE], state), (TOPIC[contract.DAMPING_CMD], cmd),
-            (TOPIC[contract.SPRUNG_ACCEL], accel), (TOPIC[contract.GENERATOR], gen)]
+def _exact(value):
+    """Return a float as its shortest exact text (repr), anything else unchanged."""
+    return repr(float(value)) if isinstance(value, float) else value
 
 
 def diagnostics_message(stamp_ns: int, harvested_j: float, solve_s: List[float],
@@ -133,35 +106,28 @@ def diagnostics_message(stamp_ns: int, harvested_j: float, solve_s: List[float],
 
     Plant: ``harvested_j``, ``steps``; controller: ``solve_ms_p50/p99/max/samples``,
     ``commands``, ``deadline_misses`` (the controller's late solves) and
-    ``controller_<counter>`` for each controller counter.
+    ``controller_<counter>`` for each controller counter.  Floats are written exactly.
     """
-    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-
-    def kv(key, value):
-        return KeyValue(key=key, value=repr(float(value)) if isinstance(value, float) else
-                        str(value))
-    plant = DiagnosticStatus(level=DiagnosticStatus.OK, name=PLANT_STATUS, hardware_id='erva',
-                             message='offline plant',
-                             values=[kv('harvested_j', harvested_j),
-                                     kv('steps', int(counters.get('steps', 0)))])
+    plant = {'harvested_j': float(harvested_j), 'steps': int(counters.get('steps', 0))}
     p = percentiles_ms(solve_s)
-    values = [kv('controller', controller), kv('commands', len(solve_s)),
-              kv('deadline_misses', int(counters.get('late', 0)))]
-    values += [kv(f'solve_ms_{k}', float(p[k])) for k in ('p50', 'p99', 'max')]
-    values += [kv('solve_ms_samples', int(p['samples']))]
-    values += [kv(f'controller_{k}', int(v)) for k, v in sorted(counters.items())]
-    ctrl = DiagnosticStatus(level=DiagnosticStatus.OK, name=CONTROLLER_STATUS,
-                            hardware_id='erva', message='offline controller', values=values)
-    msg = DiagnosticArray(status=[plant, ctrl])
-    msg.header.stamp = _time_msg(stamp_ns)
-    return msg
+    values = {'controller': controller, 'commands': len(solve_s),
+              'deadline_misses': int(counters.get('late', 0))}
+    values.update({f'solve_ms_{k}': float(p[k]) for k in ('p50', 'p99', 'max')})
+    values['solve_ms_samples'] = int(p['samples'])
+    values.update({f'controller_{k}': int(v) for k, v in sorted(counters.items())})
+    return diag.array_msg(stamp_ns, [
+        diag.status_msg(PLANT_STATUS, diag.OK, 'offline plant',
+                        {k: _exact(v) for k, v in plant.items()}, 'erva'),
+        diag.status_msg(CONTROLLER_STATUS, diag.OK, 'offline controller',
+                        {k: _exact(v) for k, v in values.items()}, 'erva')])
 
 
 def write_session(bag_dir: str, steps: List[StepLog], ts: float, controller: str,
                   session: Optional[Mapping[str, str]] = None, t0_ns: Optional[int] = None,
                   diagnostics_period_s: float = 1.0,
-                  final_counters: Optional[Mapping[str, int]] = None) -> Dict:
-    """Write ``steps`` as a session bag at ``bag_dir``; return its metadata.
+                  final_counters: Optional[Mapping[str, int]] = None,
+                  kind: str = 'erva') -> Dict:
+    """Write ``steps`` (of a ``kind`` model) as a session bag at ``bag_dir``; return its metadata.
 
     The controller counters on /diagnostics count step statuses as they go; the last
     message carries ``final_counters`` (the controller's own, e.g. late) too.
@@ -182,7 +148,7 @@ def write_session(bag_dir: str, steps: List[StepLog], ts: float, controller: str
         solve: List[float] = []
         for k, step in enumerate(steps):
             stamp = t0_ns + int(round(step.t * 1e9))
-            for topic, msg in step_messages(step, stamp, ts):
+            for topic, msg in step_messages(step, stamp, ts, kind):
                 write_message(writer, topic, msg, stamp, stamp)
             counters['steps'] += 1
             if step.status in counters:
@@ -207,24 +173,27 @@ def run_and_record(bag_dir: str, params, controller, road, duration_s: float,
     from erva_ros.core.closed_loop import simulate_closed_loop
     from erva_ros.core.plant import PlantSimulator
 
+    session = {'model': kind, **(session or {})}
     capture = _CapturingController(controller)
     result = simulate_closed_loop(params, capture, road, duration_s,
                                   preview_model=preview_model, kind=kind, keep_plans=True)
     # Energy harvested up to t_k + Ts: re-run the plant with the commands applied.
     plant = PlantSimulator(params, kind, result.ts)
     energy = np.empty(result.t.size)
+    gen = np.empty((result.t.size, 2))
     for k, t_k in enumerate(result.t):
         if not np.allclose(plant.x, result.x[k], rtol=0, atol=1e-12):
             raise RuntimeError(f'plant re-run diverged from the closed loop at t = {t_k:g} s')
+        gen[k] = plant.generator(result.x[k], result.u[k])[:2]
         plant.step(result.u[k], road.height(t_k), road.height(t_k + result.ts))
         energy[k] = plant.harvested_j
     steps = [StepLog(float(result.t[k]), result.x[k], float(result.w[k]),
                      float(road.distance(result.t[k])), capture.previews[k],
                      result.plans[k], float(result.sprung_accel[k]), float(energy[k]),
-                     float(result.solve_time_s[k]), result.status[k])
+                     float(result.solve_time_s[k]), result.status[k], *map(float, gen[k]))
              for k in range(result.t.size)]
     meta = write_session(bag_dir, steps, result.ts, result.controller, session, t0_ns,
-                         final_counters=result.counters)
+                         final_counters=result.counters, kind=kind)
     return result, meta
 
 

@@ -21,41 +21,32 @@ Processes are started with the caller's ROS_DOMAIN_ID and local-only discovery.
 import json
 import os
 import shutil
-import signal
-import subprocess
-import sys
 import tempfile
 import time
 from typing import Callable, Dict, List, Optional, Sequence
 
 from erva_ros.core.bag import BagError
 from erva_ros.core.metrics import percentiles_ms
+from erva_ros.session.processes import ChildProcess, child_env, module_argv
 
 
-def _env() -> Dict[str, str]:
-    env = dict(os.environ)
-    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    env.setdefault('AMENT_PREFIX_PATH', sys.prefix)
-    env['PYTHONUNBUFFERED'] = '1'
-    return env
+def _spawn(args: Sequence[str]) -> ChildProcess:
+    """Start ``python -m args...``, its stdout and stderr captured."""
+    return ChildProcess(args[0], module_argv(*args), child_env(), capture=True)
 
 
-def _spawn(args: Sequence[str], **kw) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, '-m', *args], env=_env(), text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kw)
-
-
-def _stop(proc: Optional[subprocess.Popen], timeout: float = 15.0) -> str:
+def _stop(proc: Optional[ChildProcess], timeout: float = 15.0) -> str:
+    """Stop ``proc`` (SIGINT first) and return its output ('' for None)."""
     if proc is None:
         return ''
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-    try:
-        out, err = proc.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        out, err = proc.communicate()
-    return out
+    proc.stop(grace_s=timeout)
+    return proc.output()
+
+
+def _finish(proc: ChildProcess, timeout: float) -> str:
+    """Let ``proc`` end by itself within ``timeout`` (else stop it); return its output."""
+    proc.stop(grace_s=timeout, first=None)
+    return proc.output()
 
 
 def _last_json(text: str) -> Dict:
@@ -69,7 +60,7 @@ def _last_json(text: str) -> Dict:
 RECORDER_PARAMS: List[str] = []
 
 
-def start_recorder(bag_dir: str, topics: Optional[List[str]] = None) -> subprocess.Popen:
+def start_recorder(bag_dir: str, topics: Optional[List[str]] = None) -> ChildProcess:
     """Start recorder_node on ``bag_dir``; return its process once it is recording."""
     from erva_ros.core.bag.session import recorder_ros_args
     extra = [arg for p in RECORDER_PARAMS for arg in ('-p', p)]
@@ -78,7 +69,8 @@ def start_recorder(bag_dir: str, topics: Optional[List[str]] = None) -> subproce
     end = time.monotonic() + 20
     while time.monotonic() < end and not os.path.exists(bag_dir):
         if proc.poll() is not None:
-            raise BagError(f'recorder_node exited: {proc.stderr.read().strip()[-300:]}')
+            proc.wait(1.0)
+            raise BagError(f'recorder_node exited: {proc.errors().strip()[-300:]}')
         time.sleep(0.05)
     return proc
 
@@ -111,8 +103,7 @@ def echo_loop(window_s: float, pairs: int, work: str,
     finally:
         _stop(recorder)
         _stop(echo)
-        if plant.poll() is None:
-            plant.kill()
+        _stop(plant, timeout=1.0)
     if 'error' in result:
         raise BagError(f'benchmark plant: {result["error"]}')
     stamps = result['stamps_ns']
@@ -133,20 +124,26 @@ def echo_loop(window_s: float, pairs: int, work: str,
     return out
 
 
-def flood(rate_hz: float, duration_s: float, bag_dir: str) -> Dict:
-    """Flood the recorder with states; return published/recorded counts and rates."""
-    from erva_ros.core.bag.reader import open_bag
-    recorder = start_recorder(bag_dir, topics=['state'])
+def _traffic_into_recorder(bag_dir: str, role: List[str], topics: Optional[List[str]] = None
+                           ) -> Dict:
+    """Record ``bag_dir`` while ``erva_ros.ros.traffic ROLE...`` runs; return its result."""
+    recorder = start_recorder(bag_dir, topics=topics)
     try:
-        proc = _spawn(['erva_ros.ros.traffic', 'flood', '--duration', str(duration_s),
-                       '--rate', str(rate_hz)])
-        out, _ = proc.communicate(timeout=duration_s + 120)
-        result = _last_json(out)
+        duration_s = float(role[role.index('--duration') + 1])
+        result = _last_json(_finish(_spawn(['erva_ros.ros.traffic', *role]), duration_s + 120))
         if 'error' in result:
-            raise BagError(f'benchmark flood: {result["error"]}')
+            raise BagError(f'benchmark traffic ({role[0]}): {result["error"]}')
         time.sleep(0.5)
     finally:
         _stop(recorder, timeout=60)
+    return result
+
+
+def flood(rate_hz: float, duration_s: float, bag_dir: str) -> Dict:
+    """Flood the recorder with states; return published/recorded counts and rates."""
+    from erva_ros.core.bag.reader import open_bag
+    result = _traffic_into_recorder(bag_dir, ['flood', '--duration', str(duration_s),
+                                              '--rate', str(rate_hz)], topics=['state'])
     published = sum(result['published'].values())
     recorded = open_bag(bag_dir).message_count
     return {'requested_hz': rate_hz or None, 'published': published, 'recorded': recorded,
@@ -158,17 +155,8 @@ def flood(rate_hz: float, duration_s: float, bag_dir: str) -> Dict:
 def contract_rate(rate_hz: float, duration_s: float, bag_dir: str) -> Dict:
     """Publish the contract at ``rate_hz`` to the recorder; return published/recorded."""
     from erva_ros.core.bag.reader import open_bag
-    recorder = start_recorder(bag_dir)
-    try:
-        proc = _spawn(['erva_ros.ros.traffic', 'contract', '--rate', str(rate_hz),
-                       '--duration', str(duration_s)])
-        out, _ = proc.communicate(timeout=duration_s + 120)
-        result = _last_json(out)
-        if 'error' in result:
-            raise BagError(f'benchmark contract traffic: {result["error"]}')
-        time.sleep(0.5)
-    finally:
-        _stop(recorder, timeout=60)
+    result = _traffic_into_recorder(bag_dir, ['contract', '--rate', str(rate_hz),
+                                              '--duration', str(duration_s)])
     bag = open_bag(bag_dir)
     published = sum(result['published'].values())
     recorded = sum(bag.topics[t].count if t in bag.topics else 0 for t in result['published'])

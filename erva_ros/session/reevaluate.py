@@ -3,10 +3,11 @@
 For every recorded damping command (``damping_cmd.header.stamp`` = stamp of the state
 it answers) the state with that stamp and the preview the controller had -- the one
 with the same stamp, else the newest one stamped before it -- are given, in order, to
-a freshly reset controller (:meth:`Controller.compute`, x = [z_s, ż_s, z_us, ż_us, z_d,
-ż_d], t = k·Ts).  With the same software and settings a deterministic controller
-reproduces the recorded plans; a difference means the session was not reproducible
-(other parameters, solver changes, or data the controller saw but the bag lacks).
+a freshly reset controller of the recorded model (:meth:`Controller.compute`, x = [z_s,
+ż_s, z_us, ż_us(, z_d, ż_d)], t = k·Ts).  With the same software and settings a
+deterministic controller reproduces the recorded plans; a difference means the session
+was not reproducible (other parameters, solver changes, or data the controller saw but
+the bag lacks).
 """
 
 import bisect
@@ -41,7 +42,10 @@ class Reevaluation:
 
 def reevaluate(data: SessionData, controller, max_commands: Optional[int] = None
                ) -> Reevaluation:
-    """Recompute the recorded commands of ``data`` (the first ``max_commands``)."""
+    """Recompute the recorded commands of ``data`` (the first ``max_commands``).
+
+    ``controller`` must be built for the recorded model (``data.model``).
+    """
     state_stamps = data.state.stamp_ns.tolist()
     if not data.cmd.n:
         raise BagError(f'{data.bag.path}: no damping commands to re-evaluate')
@@ -59,10 +63,8 @@ def reevaluate(data: SessionData, controller, max_commands: Optional[int] = None
         k = bisect.bisect_right(pstamps, stamp) - 1
         if k < 0:
             raise BagError(f'no preview recorded before the state stamped {stamp}')
-        v = data.state.values[i]
-        x = np.array([v[0], v[3], v[1], v[4], v[2], v[5]])
         t = round((stamp - t0) * 1e-9 / ts) * ts
-        res = controller.compute(x, data.previews[order[k]], t)
+        res = controller.compute(data.x(i), data.previews[order[k]], t)
         out.recorded.append(np.asarray(data.plans[j], dtype=float))
         out.recomputed.append(np.asarray(res.plan, dtype=float))
         out.statuses.append(res.status)

@@ -11,11 +11,14 @@ verdict (``recording.lost``, exit status) is kept beside it.
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
 import time
 from typing import Callable, Dict, List, Optional
+
+from erva_ros.session.processes import ChildProcess, stop_processes
 
 BUSY_LOOP = 'while True: pass'
 
@@ -31,17 +34,14 @@ def bag_counts(bag_dir: str) -> Dict[str, int]:
     return counts
 
 
-def start_busy(n: int) -> List[subprocess.Popen]:
+def start_busy(n: int) -> List[ChildProcess]:
     """Start ``n`` busy-looping Python processes (normal priority)."""
-    return [subprocess.Popen([sys.executable, '-c', BUSY_LOOP], stdin=subprocess.DEVNULL)
-            for _ in range(n)]
+    return [ChildProcess(f'busy{i}', [sys.executable, '-c', BUSY_LOOP]) for i in range(n)]
 
 
-def stop_busy(procs: List[subprocess.Popen]) -> None:
-    for p in procs:
-        p.kill()
-    for p in procs:
-        p.wait()
+def stop_busy(procs: List[ChildProcess]) -> None:
+    """Stop the busy loops (:func:`start_busy`)."""
+    stop_processes(procs, grace_s=1.0, first=signal.SIGKILL)
 
 
 def one_run(duration_s: float, record_dir: str, run_args: List[str]) -> Dict:

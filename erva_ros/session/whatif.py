@@ -12,6 +12,7 @@ from erva_ros.core import topics as contract
 from erva_ros.core.bag import BagError
 from erva_ros.core.bag.reader import Bag
 from erva_ros.ros.bag_messages import decoded
+from erva_ros.ros.msgs import time_to_ns
 
 
 def recorded_road(bag: Bag, namespace: Optional[str] = None):
@@ -25,7 +26,7 @@ def recorded_road(bag: Bag, namespace: Optional[str] = None):
         raise BagError(f'{bag.path}: no {topic} in the bag, so no road to drive the plant')
     stamps, heights = [], []
     for _, msg in decoded(bag, [topic]):
-        stamps.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+        stamps.append(time_to_ns(msg.header.stamp))
         heights.append(msg.point.z)
     if len(stamps) < 2:
         raise BagError(f'{bag.path}: {topic} has {len(stamps)} sample(s); need at least 2')

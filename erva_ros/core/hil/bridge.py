@@ -48,9 +48,7 @@ import can
 
 from erva_ros.core.hil.codec import Command, CommandMode, E2EReceiver, EcuCodec, EcuMode, Kind
 from erva_ros.core.hil.hardware import GeneratorHardware
-
-# diagnostic_msgs/DiagnosticStatus levels.
-OK, WARN, ERROR, STALE = 0, 1, 2, 3
+from erva_ros.core.levels import ERROR, OK, WARN
 
 #: Send errors that mean "queue full", not "interface gone" (SocketCAN gives ENOBUFS when
 #: no node acknowledges; python-can's virtual bus when a receiver's queue stays full).

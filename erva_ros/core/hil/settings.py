@@ -22,7 +22,7 @@ from typing import Any, Dict, Optional
 from erva_ros.core.estimator import EstimatorNoise, NOISE_SPECS, validate_noise
 from erva_ros.core.hil.hardware import (DEFAULTS as HW_DEFAULTS, GeneratorHardware,
                                         HARDWARE_SPECS, validate_hardware)
-from erva_ros.core.params import check_number, load_params_yaml, ParamError, Spec
+from erva_ros.core.params import check_number, ParamError, read_ros_params, Spec
 
 BRIDGE_NODE = 'ecu_bridge_node'
 ESTIMATOR_NODE = 'state_estimator_node'
@@ -107,17 +107,7 @@ def _section(path: Optional[str], node: str) -> Dict[str, Any]:
     (what config/hil.yaml uses, so ``-r __ns:=/erva`` still finds them), ``/node`` or
     ``node``; ``/**`` is not read (the HIL keys are per node).
     """
-    path = path or default_hil_file()
-    doc = load_params_yaml(path)
-    out: Dict[str, Any] = {}
-    for name in (node, f'/{node}', f'**/{node}', f'/**/{node}'):
-        sec = doc.get(name)
-        if sec is None:
-            continue
-        if not isinstance(sec, dict) or not isinstance(sec.get('ros__parameters'), dict):
-            raise ParamError(f'{path}: section {name!r} must contain a ros__parameters mapping')
-        out.update(sec['ros__parameters'])
-    return out
+    return read_ros_params(path or default_hil_file(), node, wildcard=False, required=False)
 
 
 def _validated(values: Dict[str, Any], specs: Dict[str, Spec], defaults: Dict[str, Any],

@@ -35,6 +35,8 @@ Published by ``erva ecu-sim`` (simulation only, ground truth): ``sprung_accel`` 
 ``state`` itself comes from ``state_estimator_node`` in HIL mode.
 """
 
+from erva_ros.core.topics import NAMESPACE
+
 ECU_SPRUNG_ACCEL = 'ecu/sprung_accel'
 ECU_SUSPENSION = 'ecu/suspension'
 ECU_GENERATOR = 'ecu/generator'
@@ -50,14 +52,14 @@ MEASUREMENT_NAMES = ('c_e', 'c_e_mean', 'sprung_accel', 'suspension', 'generator
                      'f_gen')
 MEASUREMENT_CHANNELS = {'status': (0, 1), 'chassis': (2, 3), 'generator': (4, 5)}
 
-#: ROS type names of the HIL topics, fully qualified under /erva (for recorders).
+#: ROS type names of the HIL topics, fully qualified under NAMESPACE (for recorders).
 TOPIC_TYPES = {
-    f'/erva/{ECU_SPRUNG_ACCEL}': 'geometry_msgs/msg/AccelStamped',
-    f'/erva/{ECU_SUSPENSION}': 'sensor_msgs/msg/JointState',
-    f'/erva/{ECU_GENERATOR}': 'sensor_msgs/msg/JointState',
-    f'/erva/{ECU_DAMPING_APPLIED}': 'sensor_msgs/msg/JointState',
-    f'/erva/{ECU_MEASUREMENTS}': 'sensor_msgs/msg/JointState',
-    f'/erva/{TRUE_STATE}': 'sensor_msgs/msg/JointState',
+    f'{NAMESPACE}/{ECU_SPRUNG_ACCEL}': 'geometry_msgs/msg/AccelStamped',
+    f'{NAMESPACE}/{ECU_SUSPENSION}': 'sensor_msgs/msg/JointState',
+    f'{NAMESPACE}/{ECU_GENERATOR}': 'sensor_msgs/msg/JointState',
+    f'{NAMESPACE}/{ECU_DAMPING_APPLIED}': 'sensor_msgs/msg/JointState',
+    f'{NAMESPACE}/{ECU_MEASUREMENTS}': 'sensor_msgs/msg/JointState',
+    f'{NAMESPACE}/{TRUE_STATE}': 'sensor_msgs/msg/JointState',
 }
 
 #: The HIL topics a session recorder should add to the contract's (relative names).

@@ -1,0 +1,163 @@
+"""The figures of an `erva run` summary, each built by one small function from the monitor's store.
+
+``obs`` is an :class:`~erva_ros.session.monitor.Observations` (decoded): its per-sample
+tables (states, accelerations, power, commands) and each node's newest diagnostics.
+:func:`summary` puts the blocks together: ``metrics``, ``commands``, ``nmpc``,
+``scheduling``, ``plant`` (and ``hil``), ``events`` and ``messages``.
+"""
+
+from typing import Any, Dict, Optional
+
+import numpy as np
+
+from erva_ros.core.metrics import comfort_power, percentiles_ms
+from erva_ros.ros.diagnostics import LEVEL_NAMES, value_float, value_int
+from erva_ros.session import hil_summary
+
+#: Status changes kept in the summary (the first ones; a flapping node could make many).
+MAX_EVENTS = 200
+#: The NMPC's counters in the summary (its diagnostics' keys).
+NMPC_COUNTERS = ('solves', 'commands', 'late', 'deadline_misses', 'state_timeouts',
+                 'safe_commands', 'missed_samples', 'superseded_states', 'out_of_order',
+                 'stale_previews', 'no_preview', 'rejected_state', 'rejected_preview',
+                 'controller_fallback_plan', 'controller_fallback_passive',
+                 'controller_failures', 'controller_late')
+#: The NMPC's timings in the summary (prefixes of _p50/_p99/_max/_samples).
+NMPC_TIMINGS = ('solve_ms', 'latency_ms', 'cmd_jitter_ms', 'tick_jitter_ms')
+#: The plant's counters and timings in the summary.
+PLANT_COUNTERS = ('steps', 'u_from_command', 'u_from_plan', 'u_from_passive', 'late_commands',
+                  'road_gaps', 'lockstep_timeouts', 'rejected_road_height',
+                  'rejected_damping_cmd')
+PLANT_TIMINGS = ('loop_latency_ms', 'cmd_jitter_ms', 'road_latency_ms', 'step_ms')
+
+
+def stats(values: Dict[str, str], prefix: str) -> Dict[str, Any]:
+    """Return p50/p99/max (floats, NaN if absent) and samples of a node's timing ``prefix``."""
+    out: Dict[str, Any] = {k: value_float(values.get(f'{prefix}_{k}'))
+                           for k in ('p50', 'p99', 'max')}
+    out['samples'] = value_int(values.get(f'{prefix}_samples'))
+    return out
+
+
+def metrics(obs, ts: float, n_steps: int) -> Dict[str, Any]:
+    """Return comfort and power of the first ``n_steps`` samples, and the real-time factor.
+
+    The energy is the plant's own integral (``harvested_j`` of the plant, or of the ECU in
+    HIL mode); the real-time factor is simulated time over the wall time between the
+    first and the last state's arrival.
+    """
+    accel = [obs.accel[s] for s in sorted(obs.accel)][:n_steps]
+    integrator = hil_summary.ECU if obs.hil else 'plant_sim_node'
+    harvested = value_float(obs.diag_values(integrator).get('harvested_j'))
+    out = comfort_power(accel, harvested, len(accel) * ts) if accel else {}
+    out.update({'harvested_j': harvested, 'samples': len(accel)})
+    if len(obs.state_rx) > 1:
+        rx = sorted(obs.state_rx.values())
+        span = (rx[-1] - rx[0]) * 1e-9
+        out['realtime_factor'] = (len(rx) - 1) * ts / span if span > 0 else None
+    return out
+
+
+def commands(obs, ts: float, realtime: bool) -> Dict[str, Any]:
+    """Return the commands received and, in real time, their rate, jitter and latencies.
+
+    Jitter and state-to-command latency are measured where the commands are used, at the
+    plant (its diagnostics; the HIL loop has no plant node), and also as this observer,
+    one more subscriber, receives them.  Sample-to-command runs from the sample time t_k.
+    """
+    cmds = obs.commands
+    scheduled = [c for c in cmds if c[0] in obs.states]   # not the safe commands
+    out: Dict[str, Any] = {'received': len(cmds), 'for_samples': len(scheduled)}
+    if not (realtime and len(scheduled) > 1):
+        return out
+    rx = np.array([c[1] for c in scheduled], dtype=float) * 1e-9
+    out['rate_hz'] = float((len(rx) - 1) / (rx[-1] - rx[0]))
+    if not obs.hil:
+        plant = obs.diag_values('plant_sim_node')
+        out['period_jitter_ms'] = stats(plant, 'cmd_jitter_ms')
+        out['state_to_command_ms'] = stats(plant, 'loop_latency_ms')
+    out['sample_to_command_ms'] = percentiles_ms([(c[1] - c[0]) * 1e-9 for c in scheduled])
+    out['monitor'] = {
+        'period_jitter_ms': percentiles_ms(np.abs(np.diff(rx) - ts)),
+        'state_to_command_ms': percentiles_ms(
+            [(c[1] - obs.state_rx[c[0]]) * 1e-9 for c in scheduled])}
+    return out
+
+
+def nmpc(obs) -> Dict[str, Any]:
+    """Return the controller's name, timings and counters from its newest diagnostics."""
+    values = obs.diag_values('nmpc_node')
+    return {'controller': values.get('controller'),
+            **{k: stats(values, k) for k in NMPC_TIMINGS},
+            **{k: value_int(values.get(k)) for k in NMPC_COUNTERS}}
+
+
+def scheduling(obs) -> Dict[str, Any]:
+    """Return what each node's threads got from realtime_priority (ros/realtime.py)."""
+    return {node.replace(': bag recorder', ''): entry[2]['scheduling']
+            for node, entry in obs.diag.items() if 'scheduling' in entry[2]}
+
+
+def plant(obs) -> Dict[str, Any]:
+    """Return the plant's counters and timings (in HIL mode: the ECU's equivalents)."""
+    if obs.hil:
+        return hil_summary.plant_equivalents(obs.diag_values)
+    values = obs.diag_values('plant_sim_node')
+    out: Dict[str, Any] = {k: value_int(values.get(k)) for k in PLANT_COUNTERS}
+    out.update({k: stats(values, k) for k in PLANT_TIMINGS})
+    return out
+
+
+def rejected(obs, plant_block: Dict[str, Any]) -> Dict[str, Optional[int]]:
+    """Return the input messages each node rejected, by topic, and those out of order."""
+    nm = obs.diag_values('nmpc_node')
+    pl = obs.diag_values('plant_sim_node')
+    out = {'state': value_int(nm.get('rejected_state')),
+           'road/preview': value_int(nm.get('rejected_preview')),
+           'road/height': value_int(pl.get('rejected_road_height')),
+           'damping_cmd': plant_block.get('rejected_damping_cmd'),
+           '/clock': value_int(obs.diag_values('road_preview_node').get('rejected_clock'))}
+    if obs.hil:   # the ECU ignores absurd road heights without counting them
+        del out['road/height']
+    # Inputs dropped for a stamp not newer than the newest (stamps going back).
+    out['out_of_order'] = ((value_int(nm.get('out_of_order')) or 0)
+                           + (value_int(pl.get('out_of_order_commands')) or 0))
+    return out
+
+
+def events(obs):
+    """Return the nodes' status changes (the first MAX_EVENTS), t_s from the first state."""
+    t0 = min(obs.state_rx.values()) if obs.state_rx else 0
+    return [{'t_s': round((rx - t0) * 1e-9, 3), 'node': node,
+             'level': LEVEL_NAMES.get(level, str(level)), 'message': text}
+            for rx, node, level, text in obs.diag_events[:MAX_EVENTS]]
+
+
+def messages(obs, rejected_block: Dict[str, Optional[int]]) -> Dict[str, Any]:
+    """Return the message accounting: published, received, foreign, dropped, rejected."""
+    published = obs.published()
+    dropped = obs.dropped(published)
+    return {'published': published, 'received': dict(obs.received),
+            'foreign': dict(obs.foreign), 'foreign_total': sum(obs.foreign.values()),
+            'dropped': dropped, 'dropped_total': sum(v for v in dropped.values() if v),
+            'rejected': rejected_block,
+            'rejected_total': sum(v for v in rejected_block.values() if v)}
+
+
+def summary(obs, ts: float, n_steps: int, realtime: bool) -> Dict[str, Any]:
+    """Return the run's figures for a run of ``n_steps`` periods ``ts`` (see module doc)."""
+    out: Dict[str, Any] = {'metrics': metrics(obs, ts, n_steps),
+                           'commands': commands(obs, ts, realtime),
+                           'nmpc': nmpc(obs), 'scheduling': scheduling(obs),
+                           'plant': plant(obs)}
+    if obs.hil:
+        out['hil'] = hil_summary.hil_block(
+            obs.diag_values, obs.states, obs.truth, stats, obs.diag_events,
+            obs.finished_rx.get(hil_summary.ECU))
+    out['events'] = events(obs)
+    out['messages'] = messages(obs, rejected(obs, out['plant']))
+    return out
+
+
+__all__ = ['MAX_EVENTS', 'stats', 'metrics', 'commands', 'nmpc', 'scheduling', 'plant',
+           'rejected', 'events', 'messages', 'summary']

@@ -1,0 +1,178 @@
+"""The recording of an `erva run` session: the recorder process, its drain, the bag check.
+
+* :func:`start_recorder` starts recorder_node on a new bag directory with the session's
+  description, below the loop's real-time priority;
+* :class:`RecorderDrain` tells when the recorder holds every message the nodes published
+  (the nodes stay up until then, as long as it makes progress);
+* :func:`check_recording` compares the finished bag with what every node said it
+  published, and names each loss.
+"""
+
+import os
+import tempfile
+import time
+from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
+
+from erva_ros.core import topics
+from erva_ros.core.errors import CLIError
+from erva_ros.session import accounting
+from erva_ros.session.processes import ChildProcess, module_argv
+from erva_ros.session.run_config import Session, session_description
+
+#: `erva run` waits for the recorder to report every message the nodes published (its
+#: status comes every RECORDER_STATUS_S) before stopping them, while it makes progress,
+#: giving up after this long without any (the reason goes in the summary).
+RECORDER_STALL_S = 5.0
+#: The recorder's status period in a session (the start gate and the drain read it).
+RECORDER_STATUS_S = 0.25
+#: The recorder runs at SCHED_FIFO this much below the loop's nodes: above other work on
+#: the machine, so the record is not starved, below the loop, so the loop goes first.
+RECORDER_PRIORITY_BELOW = 10
+#: The end of the recorder's /diagnostics status name ('<its node name>: bag recorder').
+RECORDER_STATUS = ': bag recorder'
+#: The recorder's process name in `erva run`.
+PROCESS = 'recorder_node'
+
+#: What the monitor keeps of each node's status: name -> (level, message, values, rx_ns).
+Statuses = Mapping[str, Tuple[int, str, Dict[str, str], int]]
+
+
+def record_topics(hil: bool) -> List[str]:
+    """Return the topics a session records (and serves): the contract, plus the HIL topics."""
+    from erva_ros.nodes.recorder_node import DEFAULT_TOPICS
+    out = list(DEFAULT_TOPICS)
+    if hil:
+        from erva_ros.core.hil.topics import RECORD_TOPICS
+        out += RECORD_TOPICS
+    return out
+
+
+def recorder_available() -> bool:
+    """Return True when the recorder (erva_ros.core.bag, recorder_node) is installed."""
+    import importlib.util
+    return all(importlib.util.find_spec(m) is not None
+               for m in ('erva_ros.core.bag.session', 'erva_ros.nodes.recorder_node'))
+
+
+def check_record_dir(parent: str) -> None:
+    """Raise CLIError unless bags can be written under ``parent`` (created if missing).
+
+    Refused before anything starts: a session whose record cannot be written is not
+    the session the user asked for (a disk that fills up *during* the run is reported
+    by the recorder and fails the run's bag check instead).
+    """
+    try:
+        os.makedirs(parent, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=parent, prefix='.erva-write-test-'):
+            pass
+    except OSError as exc:
+        raise CLIError(f'--record {parent}: cannot write bags there '
+                       f'({exc.strerror or exc}); pick another directory or --no-record'
+                       ) from None
+
+
+def start_recorder(session: Session, namespace: str, bag_parent: str, env: Dict[str, str],
+                   log: Callable[[str], None]) -> ChildProcess:
+    """Start recorder_node on a new bag under ``bag_parent``; its ``bag_dir`` and ``topics``."""
+    from erva_ros.core.bag import session as bag_session
+    bag_dir = bag_session.new_bag_dir(bag_parent, session.scenario)
+    record = record_topics(session.hil)
+    loop_priority = session.live['realtime_priority'] if session.realtime else 0
+    argv = module_argv('erva_ros.nodes.recorder_node', *bag_session.recorder_ros_args(
+        bag_dir, session_description(session), topics=record, namespace=namespace,
+        use_sim_time=not session.realtime,
+        parameters={'diagnostics_period_s': RECORDER_STATUS_S,
+                    'realtime_priority': max(0, loop_priority - RECORDER_PRIORITY_BELOW)
+                    if loop_priority > 1 else 0}))
+    proc = ChildProcess(PROCESS, argv, env, os.path.join(session.directory, f'{PROCESS}.log'))
+    proc.bag_dir = bag_dir
+    proc.topics = record
+    log(f'recording to {bag_dir}')
+    return proc
+
+
+def recorder_values(statuses: Statuses) -> Dict[str, str]:
+    """Return the recorder's newest status values ({} before its first)."""
+    return next((v[2] for n, v in statuses.items() if n.endswith(RECORDER_STATUS)), {})
+
+
+def node_values(statuses: Statuses) -> Dict[str, Dict[str, str]]:
+    """Return the newest status values of every node but the recorder."""
+    return {n: v[2] for n, v in statuses.items() if not n.endswith(RECORDER_STATUS)}
+
+
+class RecorderDrain:
+    """Tell when the recorder holds every message the nodes published (so far).
+
+    A publisher that exits takes what it has not delivered with it, so the nodes stay
+    up until then -- as long as the recorder makes progress; after RECORDER_STALL_S
+    without any, give up and say why (:attr:`gave_up`).
+    """
+
+    def __init__(self, stall_s: float = RECORDER_STALL_S):
+        self.stall_s = stall_s
+        self.gave_up: Optional[str] = None
+        self._total: Optional[int] = None
+        self._progress = 0.0
+
+    def caught_up(self, statuses: Statuses, now: Optional[float] = None) -> bool:
+        """Return True once nothing is behind, or the recorder stalled (see :attr:`gave_up`)."""
+        behind = accounting.recorder_behind(recorder_values(statuses),
+                                            accounting.published_counts(node_values(statuses)))
+        if not behind:
+            return True
+        total = sum(got for got, _ in behind.values())
+        now = time.monotonic() if now is None else now
+        if total != self._total:
+            self._total, self._progress = total, now
+        if now - self._progress > self.stall_s:
+            topic, (got, n) = next(iter(behind.items()))
+            self.gave_up = (f'the recorder made no progress for {self.stall_s:g} s with '
+                            f'{topic} at {got} of {n} messages; the nodes were stopped')
+            return True
+        return False
+
+
+def check_recording(bag_dir: str, statuses: Statuses, window: Tuple[int, int]
+                    ) -> Tuple[Dict[str, Any], List[str]]:
+    """Compare the bag with what every node published; return (report, one error per loss).
+
+    ``window`` is the span of the session's stamps (ns): others are not the loop's.
+    """
+    errors: List[str] = []
+    report: Dict[str, Any] = {
+        'lost_in_transport': int(recorder_values(statuses).get('lost_in_transport', 0))}
+    published = accounting.published_counts(node_values(statuses))
+    seqs = {n: int(v[2]['status_seq']) for n, v in statuses.items() if 'status_seq' in v[2]}
+    try:
+        report.update(accounting.check_bag(bag_dir, published, seqs, window))
+    except Exception as exc:    # BagError, CdrError: the file itself is the problem
+        report['error'] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        return report, [f'the bag cannot be checked: {report["error"]}']
+    for topic, c in report['topics'].items():
+        if c['lost']:
+            errors.append(f'the bag lost {c["lost"]} of {c["published"]} messages on {topic}')
+    for name, gaps in report['diagnostics_missing'].items():
+        errors.append(f'the bag lacks /diagnostics statuses of {name}: {gaps}')
+    if report['lost_in_transport']:
+        errors.append(f'the middleware reported {report["lost_in_transport"]} '
+                      f'messages lost before the recorder took them')
+    return report, errors
+
+
+def record_writers(record: List[str], namespace: str, n_diagnostics: int) -> Dict[str, int]:
+    """Return the writers the recorder must match per topic before the start.
+
+    One per data topic; /diagnostics: ``n_diagnostics`` (every node, the recorder itself
+    and the Foxglove server).
+    """
+    out = {accounting.qualify(t, namespace): 1 for t in record
+           if t not in (topics.CLOCK, topics.DIAGNOSTICS)}
+    out[topics.DIAGNOSTICS] = n_diagnostics
+    return out
+
+
+__all__ = ['RECORDER_STALL_S', 'RECORDER_STATUS_S', 'RECORDER_PRIORITY_BELOW',
+           'RECORDER_STATUS', 'PROCESS', 'record_topics', 'recorder_available',
+           'check_record_dir', 'start_recorder', 'recorder_values', 'node_values',
+           'RecorderDrain', 'check_recording', 'record_writers']

@@ -1,0 +1,240 @@
+"""What an `erva run` session runs: its options, validated, and the params file the nodes read.
+
+:func:`prepare_session` validates every value in-process first (physical parameters,
+controller settings, live parameters, the road), so a bad option fails with one line
+before any process starts, and writes the session's effective parameters to one ROS 2
+params file (``/**`` for what all nodes share, ``/**/<node>`` for each node) in a
+session directory.
+"""
+
+from dataclasses import dataclass, field
+import os
+import tempfile
+from typing import Any, Dict, Optional
+
+import yaml
+
+from erva_ros.core import topics
+from erva_ros.core.config import shipped_config
+from erva_ros.core.controllers.settings import load_controller_settings
+from erva_ros.core.errors import CLIError
+from erva_ros.core.loop.scenario import build_road, required_preview_steps
+from erva_ros.core.params import check_number, load_erva_params, ParamError, read_sections
+from erva_ros.ros.parameters import (LIVE_CHOICES, LIVE_DEFAULTS, LIVE_INTEGERS,
+                                     LIVE_NUMERIC, LIVE_OTHER)
+
+#: The live nodes in start order (the slowest to start first).
+NODES = ('nmpc_node', 'plant_sim_node', 'road_preview_node')
+#: The processes replacing plant_sim_node with --ecu virtual, in start order.
+HIL_PROCESSES = ('ecu_sim', 'ecu_bridge_node', 'state_estimator_node')
+HIL_NODES = ('nmpc_node', *HIL_PROCESSES, 'road_preview_node')
+#: Least settling time before sample 0 in HIL mode (live start_delay_s, default 0.5 s).
+#: Seven processes discover each other on a loaded machine: with 0.5 s the recorder's
+#: readers were sometimes matched ~0.2 s into the run and it lost the first samples.
+HIL_START_DELAY_S = 1.5
+#: Live parameters that belong to one node's section of the session params file.
+NODE_PARAMETERS = {
+    'road_preview_node': ('road', 'road_file', 'seed', 'road_class', 'speed_mps',
+                          'bump_height_m', 'bump_length_m', 'bump_start_s', 'preview_steps',
+                          'preview_noise', 'preview_snr_db', 'preview_delay_s'),
+    'plant_sim_node': ('command_timeout_s', 'lockstep_timeout_s'),
+    'nmpc_node': ('state_timeout_periods',),
+}
+#: The session params file's name in the session directory.
+PARAMS_FILE = 'session_params.yaml'
+
+
+def default_config_file(name: str) -> str:
+    """Return the path of a shipped config file (source tree or installed share)."""
+    return shipped_config(name)
+
+
+def read_live_file(path: Optional[str]) -> Dict[str, Any]:
+    """Return the live parameters of a params file: ``/**`` merged with each node's section."""
+    path = path or default_config_file('live.yaml')
+    if not os.path.isfile(path):
+        raise ParamError(f'live parameter file {path!r} does not exist')
+    out: Dict[str, Any] = {}
+    for section, params in read_sections(path, NODES):
+        unknown = sorted(set(params) - set(LIVE_DEFAULTS) - {'use_sim_time'})
+        if unknown:
+            raise ParamError(f'{path}: unknown live parameter(s) {", ".join(unknown)} '
+                             f'in {section}')
+        out.update(params)
+    return out
+
+
+def validate_live(values: Dict[str, Any], source: str = '') -> Dict[str, Any]:
+    """Return the live parameters (defaults filled in) checked against the tables."""
+    where = f'{source}: ' if source else ''
+    out = dict(LIVE_DEFAULTS)
+    out.update({k: v for k, v in values.items() if k != 'use_sim_time'})
+    for key, value in out.items():
+        if key in LIVE_NUMERIC:
+            spec = LIVE_NUMERIC[key]
+            if key in LIVE_INTEGERS and (isinstance(value, bool) or not isinstance(value, int)):
+                raise ParamError(f'{where}parameter {key!r} must be an integer in '
+                                 f'{spec.describe()}, got {value!r}')
+            out[key] = check_number(key, value, spec, source)
+            if key in LIVE_INTEGERS:
+                out[key] = int(out[key])
+        elif key in LIVE_CHOICES:
+            choices, doc = LIVE_CHOICES[key]
+            if value not in choices:
+                raise ParamError(f'{where}parameter {key!r} = {value!r} is not allowed; '
+                                 f'choose one of {", ".join(choices)} ({doc})')
+        elif isinstance(LIVE_DEFAULTS[key], bool) and not isinstance(value, bool):
+            raise ParamError(f'{where}parameter {key!r} must be true or false '
+                             f'({LIVE_OTHER[key]}), got {value!r}')
+        elif isinstance(LIVE_DEFAULTS[key], str) and not isinstance(value, str):
+            raise ParamError(f'{where}parameter {key!r} must be a string, got {value!r}')
+    return out
+
+
+@dataclass
+class RunConfig:
+    """What `erva run` runs; ``None`` means "as in the config files"."""
+
+    controller: Optional[str] = None
+    alpha1: Optional[float] = None
+    alpha2: Optional[float] = None
+    road: Optional[str] = None
+    seed: Optional[int] = None
+    mode: Optional[str] = None
+    model: Optional[str] = None
+    duration_s: Optional[float] = None
+    params_file: Optional[str] = None      # physical parameters (config/erva_paper.yaml)
+    nmpc_file: Optional[str] = None        # controller settings (config/nmpc.yaml)
+    live_file: Optional[str] = None        # live parameters (config/live.yaml)
+    record_dir: Optional[str] = None       # parent of the session bag; None: no recording
+    namespace: str = topics.NAMESPACE
+    startup_timeout_s: float = 90.0
+    live_overrides: Dict[str, Any] = field(default_factory=dict)
+    settings_overrides: Dict[str, Any] = field(default_factory=dict)
+    session_dir: Optional[str] = None      # where the params file and node logs go
+    ecu: str = 'none'                      # 'virtual': the HIL loop (simulated ECU, CAN)
+    foxglove: Optional[str] = None         # [HOST:]PORT: serve the session to Foxglove
+    ecu_prefix: tuple = ()                 # argv prefix of the HIL processes (--ecu-prefix)
+
+
+@dataclass
+class Session:
+    """A validated scenario: effective parameters and the params file the nodes read."""
+
+    erva: Dict[str, float]
+    settings: Any
+    live: Dict[str, Any]
+    directory: str
+    params_file: str
+    scenario: str
+    ecu: str = 'none'
+
+    @property
+    def hil(self) -> bool:
+        """Return True for the hardware-in-the-loop loop (--ecu virtual)."""
+        return self.ecu != 'none'
+
+    @property
+    def realtime(self) -> bool:
+        """Return True for a wall-clock run."""
+        return self.live['mode'] == 'realtime'
+
+    @property
+    def n_steps(self) -> int:
+        """Return the number of control periods of the scenario."""
+        return int(round(self.live['duration_s'] / self.live['ts']))
+
+    @property
+    def sim_window_ns(self):
+        """Return the span (ns) of a lock-step session's simulated stamps (None: realtime)."""
+        if self.realtime:
+            return None
+        return 0, int((self.live['duration_s'] + 10.0) * 1e9)   # simulated time from 0
+
+
+def live_values(cfg: RunConfig, settings, recording: bool) -> Dict[str, Any]:
+    """Return the session's validated live parameters: the live file, then the options."""
+    live_path = cfg.live_file or default_config_file('live.yaml')
+    values = read_live_file(live_path)
+    if 'ts' in values and abs(float(values['ts']) - settings.ts) > 1e-12:
+        raise ParamError(f'{live_path}: ts = {values["ts"]} s differs from the controller\'s '
+                         f'ts = {settings.ts:g} s; set both to the same sample time')
+    values['ts'] = settings.ts
+    for key, value in (('mode', cfg.mode), ('model', cfg.model), ('road', cfg.road),
+                       ('seed', cfg.seed), ('duration_s', cfg.duration_s)):
+        if value is not None:
+            values[key] = value
+    values.update(cfg.live_overrides)
+    live = validate_live(values, source=live_path)
+    if cfg.ecu != 'none':
+        if live['mode'] != 'realtime':
+            raise CLIError(f'--ecu {cfg.ecu} runs in real time only (the ECU keeps wall-clock '
+                           f'time), not with mode {live["mode"]}')
+        live['start_delay_s'] = max(live['start_delay_s'], HIL_START_DELAY_S)
+    live['preview_steps'] = max(live['preview_steps'], required_preview_steps(settings))
+    # The time master starts when each of its topics has the other loop node, this
+    # process's monitor and (when recording / serving) the recorder / Foxglove server.
+    live['wait_for_subscribers'] = 2 + (1 if recording else 0) + (1 if cfg.foxglove else 0)
+    build_road(live)   # a bad road option fails here, not in a node
+    return live
+
+
+def session_params(erva: Dict[str, float], settings, live: Dict[str, Any]) -> Dict[str, Any]:
+    """Return the session params file's content: ``/**`` shared, ``/**/<node>`` per node."""
+    shared = {k: v for k, v in live.items()
+              if not any(k in names for names in NODE_PARAMETERS.values())}
+    shared.update(erva)
+    if live['mode'] == 'lockstep':
+        shared['use_sim_time'] = True
+    doc = {'/**': {'ros__parameters': shared}}
+    for node, names in NODE_PARAMETERS.items():
+        doc[f'/**/{node}'] = {'ros__parameters': {k: live[k] for k in names}}
+    doc['/**/nmpc_node']['ros__parameters'].update(settings.as_dict())
+    return doc
+
+
+def prepare_session(cfg: RunConfig, recording: bool) -> Session:
+    """Validate everything and write the session params file; raise ParamError (one line)."""
+    erva = load_erva_params(cfg.params_file)
+    overrides = {'controller': cfg.controller, 'alpha1': cfg.alpha1, 'alpha2': cfg.alpha2}
+    overrides.update(cfg.settings_overrides)
+    settings = load_controller_settings(cfg.nmpc_file, overrides)
+    live = live_values(cfg, settings, recording)
+    directory = cfg.session_dir or tempfile.mkdtemp(prefix='erva_run_')
+    os.makedirs(directory, exist_ok=True)
+    scenario = live['road'] if not live['road_file'] else 'recorded'
+    path = os.path.join(directory, PARAMS_FILE)
+    with open(path, 'w', encoding='utf-8') as fh:
+        fh.write('# Effective parameters of an `erva run` session (ROS 2 params file).\n')
+        yaml.safe_dump(session_params(erva.as_dict(), settings, live), fh, sort_keys=False)
+    return Session(erva.as_dict(), settings, live, directory, path, scenario, cfg.ecu)
+
+
+def session_description(session: Session) -> Dict[str, str]:
+    """Return what describes the session (the bag's erva_session record)."""
+    from erva_ros.core.bag import session as bag_session
+    params = {'erva': session.erva, 'controller': session.settings.as_dict(),
+              'live': session.live}
+    return bag_session.session_metadata(
+        session.scenario, parameters=params, seed=session.live['seed'],
+        controller=session.settings.controller,
+        extra={'mode': session.live['mode'], 'model': session.live['model'],
+               'duration_s': session.live['duration_s'], 'ecu': session.ecu,
+               'params_file': session.params_file})
+
+
+def ensure_ecu_available(ecu: str) -> None:
+    """Raise CLIError unless the HIL loop for ``--ecu`` can run (its modules import)."""
+    if ecu == 'none':
+        return
+    try:
+        import erva_ros.core.hil  # noqa: F401  (python-can, cantools, the estimator)
+    except ImportError as exc:
+        raise CLIError(f'--ecu {ecu} is not available: the HIL modules (erva_ros.core.hil) do not '
+                       f'import ({exc})') from None
+
+
+__all__ = ['NODES', 'HIL_PROCESSES', 'HIL_NODES', 'HIL_START_DELAY_S', 'NODE_PARAMETERS',
+           'RunConfig', 'Session', 'default_config_file', 'read_live_file', 'validate_live',
+           'live_values', 'session_params', 'prepare_session', 'session_description',
+           'ensure_ecu_available']

@@ -1,0 +1,89 @@
+"""When an `erva run` session may start: every writer matched every reader it will have.
+
+The time master starts sample 0 once its topics have ``wait_for_subscribers`` readers;
+before the monitor opens that last subscription (:meth:`Monitor.connect`), every
+other loop writer must have matched all its subscribers -- the loop's own nodes, the
+monitor, the recorder and the Foxglove server -- and the recorder every writer it
+records (:mod:`erva_ros.session.accounting`).  In HIL mode the ROS graph must also show
+the whole loop (:meth:`StartGate.graph_ready`).
+"""
+
+from typing import Dict, List, Sequence
+
+from erva_ros.core import topics
+from erva_ros.session import accounting, hil_summary
+from erva_ros.session.recording import record_topics, record_writers, recorder_values
+
+
+class StartGate:
+    """What the session waits for before the loop runs (see the module doc)."""
+
+    def __init__(self, monitor, namespace: str, node_names: Sequence[str], hil: bool,
+                 recording: bool, foxglove: bool):
+        self.monitor = monitor
+        self.namespace = namespace
+        self.node_names = tuple(node_names)
+        self.hil, self.recording = hil, recording
+        #: What is still missing, for the user (the newest check).
+        self.unmatched: List[str] = []
+        loop = accounting.hil_loop_subscribers() if hil else dict(accounting.LOOP_SUBSCRIBERS)
+        observers = [monitor.watched]
+        if foxglove:
+            observers.append(record_topics(hil))   # the server serves what is recorded
+        self.record_writers: Dict[str, int] = {}
+        if recording:
+            record = record_topics(hil)
+            observers.append(record)
+            self.record_writers = record_writers(
+                record, namespace, len(self.node_names) + 1 + (1 if foxglove else 0))
+        self.expected = accounting.expected_subscribers(loop, observers, namespace)
+        # Before the monitor's gate subscription exists (it opens the start), the gate
+        # topic's writer needs one subscriber less.
+        self.later = {accounting.qualify(t, namespace): 1 for t in monitor.gate}
+
+    def open(self) -> bool:
+        """Return True once the loop may start (call repeatedly while connecting)."""
+        return (self.graph_ready() and self.matched()
+                and self.monitor.connect(n_diagnostics=len(self.node_names)))
+
+    def matched(self) -> bool:
+        """Return True once every loop writer and the recorder have matched all their peers."""
+        statuses = {n: v[2] for n, v in self.monitor.diag.items()}
+        # The ECU simulator reports only once the road runs (its readers are checked by
+        # graph_ready): every other node must have said what its writers matched.
+        nodes = [n for n in self.node_names if n != hil_summary.ECU]
+        nodes += ['recorder'] if self.recording else []
+        missing = accounting.unmatched(statuses, nodes, self.expected, self.later)
+        if self.recording:
+            missing += accounting.recorder_unmatched(recorder_values(self.monitor.diag),
+                                                     self.record_writers)
+        self.unmatched = missing
+        return not missing
+
+    def graph_ready(self) -> bool:
+        """HIL: return True once the ROS graph shows the whole loop (always True otherwise).
+
+        The monitor's own subscriptions (Monitor.connect) do not show that the estimator
+        listens to the bridge (ecu/measurements), the ECU to the road, or the recorder
+        (which subscribes to the HIL topics once it discovers their types) to all of them;
+        the road, which starts the loop, must wait for them too.
+        """
+        if not self.hil:
+            return True
+        from erva_ros.core.hil import topics as hil_topics
+        ns = self.namespace.rstrip('/')
+        m, rec = self.monitor, int(self.recording)
+        ecu = (hil_topics.ECU_DAMPING_APPLIED, hil_topics.ECU_SPRUNG_ACCEL,
+               hil_topics.ECU_SUSPENSION, hil_topics.ECU_GENERATOR)
+        subs = {topics.ROAD_HEIGHT: 2 + rec,      # ECU, estimator (the monitor comes last)
+                topics.DAMPING_CMD: 2 + rec,      # bridge, monitor
+                topics.STATE: 2 + rec,            # nmpc, monitor
+                hil_topics.TRUE_STATE: 1 + rec,   # monitor
+                hil_topics.ECU_MEASUREMENTS: 1 + rec,   # estimator
+                **{t: rec for t in ecu}}          # per-frame topics: only recorded
+        published = ecu + (hil_topics.ECU_MEASUREMENTS,)
+        return (all(m.count_subscribers(f'{ns}/{t}') >= n for t, n in subs.items())
+                and all(m.count_publishers(f'{ns}/{t}') >= 1 for t in published))
+
+
+__all__ = ['StartGate']

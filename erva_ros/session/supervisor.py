@@ -1,0 +1,327 @@
+"""One `erva run` session's processes and phases: start, connect, run, drain, stop, summarise.
+
+:class:`Supervisor` starts the recorder (when recording), the Foxglove server (when
+serving) and the loop's processes, each in its own process group
+(:mod:`erva_ros.session.processes`); an in-process monitor node
+(:class:`~erva_ros.session.monitor.Monitor`) observes the run.  It waits until the graph
+is connected (:class:`~erva_ros.session.start_gate.StartGate`), runs the scenario until
+every node reports it finished (or a node dies, or SIGINT/SIGTERM arrives), lets the
+last diagnostics and the recorder catch up, then stops the nodes with SIGINT (SIGTERM,
+SIGKILL after a grace period) and the recorder last, so the bag is finished.
+"""
+
+import os
+import signal
+import time
+from typing import Any, Dict, List, Optional
+
+from erva_ros.core import topics
+from erva_ros.session import hil_summary
+from erva_ros.session.recording import (check_recording, PROCESS as RECORDER,
+                                        RECORDER_PRIORITY_BELOW, RECORDER_STATUS, RecorderDrain,
+                                        start_recorder)
+from erva_ros.session.processes import (ChildProcess, child_env, node_argv, STOP_GRACE_S,
+                                        stop_processes)
+from erva_ros.session.run_config import HIL_NODES, HIL_PROCESSES, NODES, RunConfig, Session
+from erva_ros.session.run_config import session_description
+
+#: Once the ECU finished (no state comes any more), how long the others may take.
+HIL_FINISH_WAIT_S = 2.0
+#: HIL: the bridge and the estimator send no final status; after the finish, wait up to
+#: this long for their next periodic one (period 0.5 s, config/hil.yaml).
+HIL_DRAIN_S = 1.5
+#: Exit status of a run stopped by SIGINT / SIGTERM (shell convention 128 + signal).
+SIGNAL_EXIT = {signal.SIGINT: 130, signal.SIGTERM: 143}
+#: Processes stopped after the loop's nodes: they take what the nodes published.
+LAST = (RECORDER, 'foxglove_server')
+
+
+class Supervisor:
+    """One `erva run` session: the node processes, the monitor, and the run's phases."""
+
+    #: Nodes without which the run cannot go on (lock-step also needs the controller).
+    NEEDED = {'plant_sim_node', 'road_preview_node'}
+    #: The same in HIL mode (real time only): without the controller the bridge sends
+    #: the safe passive command, which is worth seeing.
+    HIL_NEEDED = {*HIL_PROCESSES, 'road_preview_node'}
+
+    def __init__(self, cfg: RunConfig, session: Session, recording: bool, log):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
+        from erva_ros.session.monitor import Monitor
+        from erva_ros.session.start_gate import StartGate
+
+        self.cfg, self.session, self.recording, self.log = cfg, session, recording, log
+        self.procs: Dict[str, ChildProcess] = {}
+        self.errors: List[str] = []
+        self.dead: set = set()
+        self.caught: List[int] = []
+        self.phase = 'starting'
+        self.t_start = time.monotonic()
+        self.t_start_ns = time.time_ns()
+        self.needed = set(self.NEEDED) | (set() if session.realtime else {'nmpc_node'})
+        # Processes run, and those that report `finished` on /diagnostics.
+        self.node_names, self.finishers = NODES, NODES
+        if session.hil:
+            self.node_names = HIL_NODES
+            self.finishers = ('nmpc_node', 'road_preview_node', hil_summary.ECU)
+            self.needed = set(self.HIL_NEEDED)
+        self.ended: set = set()     # exited 0 by themselves at the end (the ECU)
+        self._ecu_done: Optional[float] = None
+        self.context = rclpy.Context()
+        rclpy.init(args=[], context=self.context,
+                   signal_handler_options=SignalHandlerOptions.NO)
+        # The monitor subscribes to the time master's gate topic last (see Monitor): the
+        # time master starts only once that subscription is matched too.
+        gate = (topics.ROAD_PREVIEW,) if session.realtime else (topics.STATE,)
+        self.monitor = Monitor(cfg.namespace, context=self.context, gate=gate,
+                               hil=session.hil, window_ns=session.sim_window_ns)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.monitor)
+        self.gate = StartGate(self.monitor, cfg.namespace, self.node_names, session.hil,
+                              recording, bool(cfg.foxglove))
+        self.drain = RecorderDrain()
+
+    def start(self) -> None:
+        """Start the recorder (when recording) and the nodes, slowest first."""
+        env = child_env()
+        if self.cfg.foxglove:   # first: it listens before the loop runs
+            from erva_ros.session import foxglove_process
+            self.procs[foxglove_process.PROCESS] = foxglove_process.start_process(
+                self.cfg, self.session, env, self.log, session_description(self.session))
+        if self.recording:
+            self.procs[RECORDER] = start_recorder(
+                self.session, self.cfg.namespace, self.cfg.record_dir, env, self.log)
+        hil = {}
+        if self.session.hil:
+            from erva_ros.session.hil_processes import hil_process_specs
+            live = self.session.live
+            hil = {spec.name: spec for spec in hil_process_specs(
+                self.session.params_file, self.cfg.namespace, live['duration_s'],
+                model=live['model'], ts=live['ts'], env=env, stamp_on_road_grid=True,
+                realtime_priority=live['realtime_priority'], prefix=self.cfg.ecu_prefix)}
+        for name in self.node_names:
+            spec = hil.get(name)
+            argv = spec.argv if spec else node_argv(name, self.cfg.namespace,
+                                                    [self.session.params_file])
+            self.procs[name] = ChildProcess(name, argv, spec.env if spec else env,
+                                            os.path.join(self.session.directory, f'{name}.log'))
+        self.log('started ' + ', '.join(f'{n} (pid {p.pid})' for n, p in self.procs.items()))
+
+    def observe_at_priority(self) -> None:
+        """Run this process (the monitor's DDS threads) at the recorder's priority.
+
+        Called after the nodes are started (children would inherit it).  Under load a
+        monitor at normal priority receives late: its timing figures would be the
+        machine's, not the loop's.  Without the right it stays at normal priority.
+        """
+        from erva_ros.ros.realtime import set_fifo_priority
+        live = self.session.live
+        loop = live['realtime_priority'] if self.session.realtime else 0
+        if loop > 1:
+            self.scheduling = set_fifo_priority(
+                max(1, loop - RECORDER_PRIORITY_BELOW), lambda line: None)
+
+    def supervise(self) -> None:
+        """Connect, run and drain, until the scenario ends, a needed node dies or a signal."""
+        self.phase = 'connecting'
+        last_progress, last_states, finish_seen, finish_ns = time.monotonic(), 0, 0.0, 0
+        while True:
+            self.executor.spin_once(timeout_sec=0.02)
+            if self.caught:
+                self.errors.append(f'interrupted by {signal.Signals(self.caught[0]).name} '
+                                   f'while {self.phase}')
+                return
+            if self._check_deaths():
+                return
+            now = time.monotonic()
+            if self.phase == 'connecting':
+                if self._connecting(now):
+                    return
+            elif self.phase == 'running':
+                states = self.monitor.received[topics.STATE]
+                if states != last_states:
+                    last_states, last_progress = states, now
+                if self._finished(now):
+                    self.phase, finish_seen, finish_ns = 'draining', now, time.time_ns()
+                    continue
+                limit = 10.0 + (5.0 if last_states == 0 else 0.0)
+                if now - last_progress > limit + self.session.live['start_delay_s']:
+                    self.errors.append(f'no progress for {now - last_progress:.0f} s '
+                                       f'({last_states} states received)')
+                    return
+            elif self._drained(now - finish_seen, finish_ns):
+                return   # drained: the final diagnostics and messages in flight arrived
+
+    def _connecting(self, now: float) -> bool:
+        """One look at the start gate; return True if the run must stop (it never opened)."""
+        if self.gate.open():
+            self.phase = 'running'
+            self.log(f'connected in {now - self.t_start:.1f} s; running '
+                     f'{self.session.live["duration_s"]:g} s ({self.session.live["mode"]})')
+        elif now - self.t_start > 10.0 and not getattr(self, '_told_waiting', False):
+            self._told_waiting = True     # say once what a slow start waits for
+            self.log('still connecting; waiting for: '
+                     + ('; '.join(self.gate.unmatched[:6]) or 'the graph'))
+        elif now - self.t_start > self.cfg.startup_timeout_s:
+            waiting = '; '.join(self.gate.unmatched[:4]) or 'the monitor\'s subscriptions'
+            self.errors.append(f'the nodes did not connect within '
+                               f'{self.cfg.startup_timeout_s:g} s (waiting for: {waiting})')
+            return True
+        return False
+
+    def _finished(self, now: float) -> bool:
+        """Return True once every node that reports `finished` did (or died)."""
+        def done(name):
+            return name in self.ended or self.monitor.diag_values(name).get('finished') == 'true'
+        waiting = [n for n in self.finishers if n not in self.dead and not done(n)]
+        if not waiting:
+            return True
+        if self.session.hil and done(hil_summary.ECU):
+            # No state comes after the ECU's last cycle: a node still waiting for one
+            # (the NMPC, had it missed the first state) would never finish.
+            self._ecu_done = self._ecu_done or now
+            if now - self._ecu_done > HIL_FINISH_WAIT_S:
+                self.log(f'the ECU finished; {", ".join(waiting)} did not report finished')
+                return True
+        return False
+
+    def _drained(self, elapsed: float, finish_ns: int) -> bool:
+        """Return True once the final counters arrived and nothing is missing (or timed out)."""
+        if not self.session.hil:
+            done = elapsed > 1.0 or self.monitor.all_received()
+        else:
+            fresh = all(self.monitor.diag_rx(n) > finish_ns for n in hil_summary.PERIODIC
+                        if n.split(':')[0] not in self.dead)
+            done = elapsed > HIL_DRAIN_S or (fresh and self.monitor.all_received())
+        if not done or not self.recording or RECORDER in self.dead:
+            return done
+        caught_up = self.drain.caught_up(self.monitor.diag)
+        if self.drain.gave_up and caught_up:
+            self.log(self.drain.gave_up)
+        return caught_up
+
+    def _check_deaths(self) -> bool:
+        """Record nodes that exited on their own; return True if the run must stop."""
+        for name, p in self.procs.items():
+            if name in self.dead or name in self.ended or p.poll() is None:
+                continue
+            if name == hil_summary.ECU and p.poll() == 0:
+                self.ended.add(name)    # `erva ecu-sim --duration` ends by itself
+                continue
+            self.dead.add(name)
+            where = (f'at t = {self.monitor.received[topics.STATE] * self.session.live["ts"]:.2f}'
+                     f' s' if self.phase == 'running' else f'while {self.phase}')
+            self.errors.append(f'{name} died (exit status {p.poll()}) {where}'
+                               + (f': {p.tail(1)}' if p.tail(1) else ''))
+            # Without the controller the real-time plant falls back to the plan, then
+            # passive damping, which is worth seeing; without the recorder the loop
+            # runs on unrecorded.
+            goes_on = self.phase == 'running' and name not in self.needed
+            self.log(self.errors[-1] + ('; the run goes on without it' if goes_on else ''))
+        return bool(self.dead) and (self.phase != 'running' or bool(self.dead & self.needed))
+
+    def stop(self) -> None:
+        """Stop the nodes, then the recorder (so it records to the end), then the monitor."""
+        import rclpy
+        ecu = self.procs.get(hil_summary.ECU)
+        if ecu is not None and hil_summary.ECU in self.monitor.finished_rx:
+            ecu.wait(STOP_GRACE_S)   # it ends by itself after its last status: let it
+            if ecu.poll() == 0:      # print its summary
+                self.ended.add(hil_summary.ECU)
+        stop_processes([p for n, p in self.procs.items() if n not in LAST])
+        # Each node published its final status (its final counts) before it exited: take
+        # them, so the summary and the bag check count what was really published.
+        self._take_pending()
+        if any(n in self.procs for n in LAST):
+            stop_processes([self.procs[n] for n in LAST if n in self.procs], grace_s=10.0)
+        self.executor.shutdown()
+        self.monitor.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+    def _take_pending(self, quiet_s: float = 0.2, limit_s: float = 3.0) -> None:
+        """Spin the monitor until no loop node's message came for ``quiet_s`` (<= ``limit_s``).
+
+        (The recorder and the Foxglove server, still running, keep reporting: not counted.)
+        """
+        def loop_arrivals():
+            data = sum(n for t, n in self.monitor.received.items() if t != topics.DIAGNOSTICS)
+            return data, tuple(v[3] for n, v in self.monitor.diag.items()
+                               if not n.endswith((RECORDER_STATUS,
+                                                  ': foxglove server')))
+        end = time.monotonic() + limit_s
+        last, quiet_since = None, time.monotonic()
+        while time.monotonic() < end and time.monotonic() - quiet_since < quiet_s:
+            self.executor.spin_once(timeout_sec=0.02)
+            now = loop_arrivals()
+            if now != last:
+                last, quiet_since = now, time.monotonic()
+
+    def summary(self) -> Dict[str, Any]:
+        """Return the run's summary: the monitor's figures plus scenario, nodes and errors."""
+        s = self.session
+        summary = self.monitor.summary(s.live['ts'], s.n_steps, s.realtime)
+        nodes = {}
+        for name, p in self.procs.items():
+            status = p.poll()
+            nodes[name] = {'pid': p.pid, 'exit_status': status, 'died': name in self.dead,
+                           'stopped_cleanly': status == 0 and (p.stopped_by_us
+                                                               or name in self.ended),
+                           'log': p.log_path}
+            if name not in self.dead and status != 0:
+                self.errors.append(f'{name} did not stop cleanly (exit status {status})'
+                                   + (f': {p.tail(1)}' if p.tail(1) else ''))
+        if RECORDER in self.procs:
+            summary['bag'] = self.procs[RECORDER].bag_dir
+            summary['recording'] = self._check_recording()
+        if 'foxglove_server' in self.procs:
+            from erva_ros.session import foxglove_process
+            summary['foxglove'] = foxglove_process.summary(self.monitor.diag)
+        if summary['commands']['received'] == 0 and not self.caught:
+            self.errors.append('no damping commands were received')
+        self._check_rejections(summary)
+        summary.update({
+            'scenario': {'controller': s.settings.controller,
+                         'weights': list(s.settings.weights), 'road': s.scenario,
+                         'seed': s.live['seed'], 'mode': s.live['mode'],
+                         'model': s.live['model'], 'duration_s': s.live['duration_s'],
+                         'ts': s.live['ts'], 'namespace': self.cfg.namespace,
+                         'ecu': s.ecu},
+            'nodes': nodes, 'errors': self.errors, 'ok': not self.errors,
+            'wall_time_s': round(time.monotonic() - self.t_start, 3),
+            'session_dir': s.directory,
+        })
+        return summary
+
+    def _check_rejections(self, summary: Dict[str, Any]) -> None:
+        """Fail the run if rejected inputs cost the loop a sample of control."""
+        rejected = summary['messages']['rejected_total']
+        nm = summary['nmpc']
+        # Samples whose state never became the controller's (a busy controller's
+        # superseded states are load, not rejection).
+        unseen = (nm.get('missed_samples') or 0) - (nm.get('superseded_states') or 0)
+        if rejected and unseen > 0:
+            self.errors.append(f'{unseen} samples went without a command of their own while '
+                               f'{rejected} input messages were rejected')
+
+    def _check_recording(self) -> Dict[str, Any]:
+        """Compare the bag file with what every node published; add an error per loss."""
+        # Stamps outside `erva run`'s lifetime (realtime), or the simulated span
+        # (lock-step), are not the loop's.
+        window = self.session.sim_window_ns or (self.t_start_ns, time.time_ns())
+        report, errors = check_recording(self.procs[RECORDER].bag_dir, self.monitor.diag,
+                                         window)
+        if self.drain.gave_up:
+            report = {'gave_up': self.drain.gave_up, **report}
+        self.errors += errors
+        return report
+
+    def exit_code(self) -> int:
+        """Return 128 + signal if interrupted, 1 on any error, else 0."""
+        if self.caught:
+            return SIGNAL_EXIT.get(self.caught[0], 1)
+        return 1 if self.errors else 0
+
+
+__all__ = ['Supervisor', 'SIGNAL_EXIT', 'HIL_FINISH_WAIT_S', 'HIL_DRAIN_S']
