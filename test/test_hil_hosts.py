@@ -83,6 +83,9 @@ def _run_split(hosts, tmp_path, duration, during=None):
             proc.wait()
         reader.join(5)
     err = ''.join(lines)
+    # Kept next to the bag: what a failed assertion below needs to be understood.
+    (tmp_path / 'stderr.txt').write_text(err)
+    (tmp_path / 'summary.json').write_text(out)
     assert proc.returncode == 0, err
     after = {side: hosts.counters(side) for side in 'ab'}
     delta = {side: {k: after[side][k] - before[side][k] for k in after[side]} for side in 'ab'}
