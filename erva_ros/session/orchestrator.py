@@ -494,7 +494,7 @@ class _Supervisor:
             if self.phase == 'connecting':
                 if self._graph_ready() and self._matched() and self.monitor.connect(
                         n_diagnostics=len(self.node_names)):
-                    self.phase = 'running'
+                    self.phase, last_progress = 'running', now   # (not the connecting time)
                     self.log(f'connected in {now - self.t_start:.1f} s; running '
                              f'{self.session.live["duration_s"]:g} s '
                              f'({self.session.live["mode"]})')
