@@ -188,7 +188,7 @@ class EcuBridgeNode(Node):
         stamp, plan, offsets = parse_command(data)
         if plan is None:
             self.rejected_msgs += 1
-            self.core.counts['commands_rejected'] += 1
+            self.core.watchdog.reject()
             return
         # The stamp is the sample the command was computed for (synchronised clocks
         # across hosts, docs/hil.md): a command delivered late, e.g. queued by DDS
