@@ -32,8 +32,8 @@ strictly increase (the plant drops a command not newer than the last, the bag ho
 sample once).
 
 The scenario is finished once the state of its last sample (``n_samples`` after the
-first) has been solved *and* the node's own clock agrees that the scenario's time has
-passed -- never from a stamp alone.
+first) has its command (solved, or the safe one when the state came after it) *and* the
+node's own clock agrees that the scenario's time has passed -- never from a stamp alone.
 """
 
 from collections import deque
@@ -148,8 +148,8 @@ class SampleScheduler:
                 self.timed_out = True
                 self.count['state_timeouts'] += 1
             # Stamped with the sample it stands in for (on the grid of the last state,
-            # never ahead of the clock), so the command of the next state that does
-            # arrive supersedes it.
+            # never ahead of the clock): the command of a newer state supersedes it; a
+            # state of this sample that comes late is not solved (one command a sample).
             last = self.state[0]
             safe = last + max(1, (now_ns - last) // self.ts_ns) * self.ts_ns
             if safe <= self.answered:
