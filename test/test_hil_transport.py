@@ -46,13 +46,15 @@ def test_frames_cross_processes_with_kernel_timestamps():
     try:
         deadline = time.monotonic() + 20
         reply = None
+        t_first = time.time()
         while reply is None and time.monotonic() < deadline:
             bus.send(can.Message(arbitration_id=0x123, data=b'\x01\x02\x03',
                                  is_extended_id=False))
             reply = bus.recv(0.2)
         assert reply is not None
         assert (reply.arbitration_id, bytes(reply.data)) == (0x124, b'\x03\x02\x01')
-        assert abs(time.time() - reply.timestamp) < 5.0
+        # An epoch time between the first frame out and the reply read.
+        assert t_first <= reply.timestamp <= time.time()
     finally:
         proc.wait(20)
         bus.shutdown()
@@ -68,12 +70,13 @@ def test_datagrams_from_others_are_ignored_and_counted():
         peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         peer.bind(('127.0.0.1', b))
         peer.sendto(b'garbage', ('127.0.0.1', a))
-        t_sent = time.time()
+        t_before = time.time()
         peer.sendto(b'EC\x01\x00\x00\x00\x01\x00\x02\xab\xcd', ('127.0.0.1', a))
+        t_after = time.time()                 # loopback: queued during sendto
         time.sleep(0.1)                       # read well after arrival
         msg = bus.recv(1.0)
         assert msg.arbitration_id == 0x100 and bytes(msg.data) == b'\xab\xcd'
-        assert msg.timestamp - t_sent < 0.05  # kernel arrival time
+        assert t_before <= msg.timestamp <= t_after    # the kernel's arrival time
         assert bus.foreign_datagrams == 2
         peer.close()
     finally:

@@ -28,15 +28,16 @@ def _group_gone(pgid):
 
 
 def _read_bag(bag_dir, wanted):
-    """Count messages per topic with mcap-ros2-support's reader (not ours)."""
+    """Return the header stamps (ns) per topic, read with mcap-ros2-support (not ours)."""
     from mcap_ros2.reader import read_ros2_messages
     mcaps = [f for f in os.listdir(bag_dir) if f.endswith('.mcap')]
     assert len(mcaps) == 1, os.listdir(bag_dir)
-    counts = dict.fromkeys(wanted, 0)
+    stamps = {t: [] for t in wanted}
     for msg in read_ros2_messages(os.path.join(bag_dir, mcaps[0]), topics=list(wanted)):
-        assert msg.ros_msg.header.stamp.sec > 0
-        counts[msg.channel.topic] += 1
-    return counts
+        h = msg.ros_msg.header.stamp
+        assert h.sec > 0
+        stamps[msg.channel.topic].append(h.sec * 1_000_000_000 + h.nanosec)
+    return stamps
 
 
 @pytest.fixture(scope='module')
@@ -45,38 +46,51 @@ def hil_run(tmp_path_factory):
     bags = tmp_path_factory.mktemp('bags')
     proc = run_erva('run', '--ecu', 'virtual', '--duration', DURATION, '--json',
                     '--record', bags, timeout=240)
+    # Kept for a failure's diagnosis (pytest keeps the last runs' temporary directories).
+    (bags / 'stderr.txt').write_text(proc.stderr)
+    (bags / 'summary.json').write_text(proc.stdout)
     assert proc.returncode == 0, proc.stderr
     pids = {n: int(p) for n, p in re.findall(r'(\w+) \(pid (\d+)\)', proc.stderr)}
     return json.loads(proc.stdout), proc.stderr, pids
 
 
-def test_hil_loop_runs_at_50_hz_and_controls_like_the_plain_loop(hil_run, erva):
+def test_hil_loop_closes_on_the_50_hz_grid_and_controls(hil_run, erva):
     s, err, _ = hil_run
     assert s['ok'] and not s['errors'], s['errors']
     assert s['scenario']['ecu'] == 'virtual' and s['scenario']['mode'] == 'realtime'
-    # One command per ECU cycle t_0..t_150, each an NMPC solve with its preview: a loop
-    # whose states never met their previews (or stalled) publishes passive or safe ones.
+    # Counts that hold on any machine; the rate and the latencies are benchmark figures
+    # (docs/hil.md).  Each command the monitor received is one the NMPC published: a solve
+    # (or, without a preview, the passive plan) for a state, or a safe command while no
+    # state came (an estimator a stall held up for 3 periods).
     n = round(DURATION / 0.02) + 1
     cmd, nmpc = s['commands'], s['nmpc']
-    assert n - 5 <= cmd['for_samples'] <= cmd['received'] <= n, cmd
-    assert abs(cmd['rate_hz'] - 50.0) < 2.5
-    assert nmpc['solves'] >= n - 5 and nmpc['no_preview'] == 0, nmpc
-    assert nmpc['state_timeouts'] == 0 and nmpc['safe_commands'] == 0
-    assert s['plant']['steps'] == n - 1 and s['metrics']['samples'] == n - 1
-    for key in ('sample_to_command_ms', 'monitor'):
+    assert cmd['received'] == nmpc['commands'] + nmpc['safe_commands'], (cmd, nmpc)
+    assert nmpc['commands'] == nmpc['solves'] + nmpc['no_preview'], nmpc
+    assert nmpc['commands'] <= cmd['for_samples'] <= cmd['received'], (cmd, nmpc)
+    # The loop closed: commands came at all, most of them solved with the state's own
+    # preview (a loop whose states never met their previews publishes passive ones).  A
+    # stall of more than 1.5 s in all would leave fewer.
+    assert cmd['for_samples'] > n // 2 and nmpc['solves'] > n // 2, (cmd, nmpc)
+    for key in ('rate_hz', 'sample_to_command_ms', 'monitor'):
         assert key in cmd
     assert 'state_to_command_ms' not in cmd          # no plant node to measure it
-    # Comfort on the ECU's ground truth.  The ECU applies each command when it arrives
-    # (a real actuator), not over the whole period as plant_sim_node does, so the run
-    # depends on the loop's latency: measured 1.1-1.4x the offline NMPC (= a plain
-    # `erva run` whose commands are all on time).  Passive damping is 2.4x worse.
+    # The ECU integrated every cycle; it sent and published each but those a stall made
+    # it skip (integrated, not sent: counted), and the comfort is over those.
+    skipped = s['hil']['ecu']['cycles_skipped']
+    assert s['plant']['steps'] == n - 1
+    assert n - 1 - skipped <= s['metrics']['samples'] <= n - 1, (s['metrics'], skipped)
+    # Comfort on the ECU's ground truth.  How close it comes to the plain loop depends on
+    # the loop's latency (the ECU applies each command when it arrives): a benchmark
+    # figure (docs/hil.md, 1.1-1.5x the offline NMPC).  Here: the NMPC acted, so the
+    # run is better than passive damping (2.4x worse than the NMPC offline), also when a
+    # loaded machine left some samples passive.
     ref = {c: json.loads(erva('sim', '--duration', DURATION, '--controller', c, '--json',
                               check=True).stdout) for c in ('preview', 'passive')}
     m = s['metrics']
     assert all(math.isfinite(m[k]) for k in ('acc_2norm', 'acc_rms', 'power_w'))
-    assert 0.6 < m['acc_2norm'] / ref['preview']['acc_2norm'] < 1.6, (m, ref['preview'])
-    assert m['acc_2norm'] < 0.75 * ref['passive']['acc_2norm']
-    assert 0 < m['power_w'] < 3 * ref['preview']['power_w']
+    assert m['acc_2norm'] < ref['passive']['acc_2norm'], (m, ref)
+    # Harvested power: positive, and below what any mix of these dampings harvests.
+    assert 0 < m['power_w'] < 3 * max(ref['preview']['power_w'], ref['passive']['power_w'])
     assert s['messages']['dropped_total'] == 0, s['messages']
 
 
@@ -87,12 +101,22 @@ def test_hil_block_reports_a_clean_link_latencies_and_estimation_error(hil_run):
         for kind in ('crc', 'counter', 'length'):
             assert hil[side][f'dropped_{kind}'] == 0, (side, hil[side])
         assert hil[side]['bus_errors'] == 0
-    assert hil['bridge']['command_timeouts'] == 0        # none during the scenario
-    assert hil['bridge']['commands_received'] == s['commands']['received']
-    assert hil['ecu']['overruns'] is not None and hil['ecu']['mode'] == 'CONTROLLED'
+    # The bridge took every command of the scenario: accepted, or refused as stale (older
+    # than 3 periods when it came: a stall); safe commands after the scenario's last sample
+    # may come after it stopped.  Timeouts a stall caused are counted, each declared
+    # after at most the two plan frames of 1.5 and 3 periods (the bridge's logic).
+    b = hil['bridge']
+    n = round(DURATION / 0.02) + 1
+    stamps = _read_bag(s['bag'], ('/erva/damping_cmd', '/erva/state'))
+    last = min(stamps['/erva/state']) + (n - 1) * 20_000_000
+    scenario = sum(1 for t in stamps['/erva/damping_cmd'] if t <= last)
+    took = b['commands_received'] + b['commands_stale'] + b['commands_rejected']
+    assert scenario <= took <= s['commands']['received'], (scenario, b, s['commands'])
+    assert b['timeout_plan_frames_max'] <= 2, b
+    assert hil['ecu']['overruns'] is not None and hil['ecu']['road_mismatches'] == 0
     for key in ('bridge_ros_to_can', 'bridge_can_to_ros', 'estimator'):
         lat = hil['latency_ms'][key]
-        assert lat['samples'] > 50 and 0 < lat['p50'] <= lat['p99'] <= lat['max'], key
+        assert lat['samples'] > 0 and 0 < lat['p50'] <= lat['p99'] <= lat['max'], key
     # realtime_priority (config/live.yaml) reaches every process of the loop.
     fifo = fifo_permitted(20)
     sched = s['scheduling']
@@ -102,7 +126,7 @@ def test_hil_block_reports_a_clean_link_latencies_and_estimation_error(hil_run):
                else v.startswith('unavailable') for n, v in sched.items()), sched
     est = hil['estimator']
     assert est['updates'] == s['messages']['published']['state']
-    assert est['error']['matched'] > 100
+    assert est['error']['matched'] > 0
     assert all(r < 0.3 for r in est['error']['relative_rms'].values()), est['error']
 
 
@@ -110,12 +134,18 @@ def test_hil_session_is_recorded_and_readable(hil_run, erva):
     s = hil_run[0]
     wanted = ('/erva/ecu/sprung_accel', '/erva/state', '/erva/damping_cmd',
               '/erva/ecu_sim/state')
-    counts = _read_bag(s['bag'], wanted)
-    assert all(counts[t] > 100 for t in wanted), counts
+    stamps = _read_bag(s['bag'], wanted)
+    counts = {t: len(v) for t, v in stamps.items()}
     published = s['messages']['published']
-    assert counts['/erva/state'] == published['state'], counts
     assert s['recording']['lost'] == 0, s['recording']
-    assert counts['/erva/ecu_sim/state'] == published['ecu_sim/state'], counts
+    for topic in ('state', 'damping_cmd', 'ecu_sim/state'):
+        assert counts[f'/erva/{topic}'] == published[topic], (topic, counts, published)
+    # The bridge published every ECU cycle sent: all but the cycles a stall made it skip.
+    n = round(DURATION / 0.02) + 1
+    assert counts['/erva/ecu/sprung_accel'] == n - s['hil']['ecu']['cycles_skipped'], counts
+    # One command per sample, on the 50 Hz grid of the states (also the safe ones).
+    first, cmds = min(stamps['/erva/state']), stamps['/erva/damping_cmd']
+    assert cmds == sorted(set(cmds)) and all((t - first) % 20_000_000 == 0 for t in cmds)
     info = json.loads(erva('bag', 'info', s['bag'], '--json', check=True).stdout)
     assert info['complete'] and info['session']['ecu'] == 'virtual'
     assert {t['name'] for t in info['topics']} >= set(wanted)

@@ -112,6 +112,39 @@ def test_no_state_for_three_periods_gives_safe_stamps_on_the_grid_until_states_r
     assert s.on_tick(T0 + 6 * TS)[1] is None
 
 
+def test_each_sample_gets_one_command_also_when_its_state_comes_after_the_safe_one():
+    # Seen on a loaded machine: the estimator stalled, the NMPC published the safe command
+    # for a sample, then that sample's late state arrived and was solved: two
+    # damping_cmd with one stamp (the plant refuses the second, the bag holds both).
+    s = scheduler()
+    s.on_preview(T0, H, T0)
+    s.on_state(T0, X, T0)
+    _, safe = s.on_tick(T0 + 3 * TS + 1)
+    assert safe == T0 + 3 * TS
+    # A tick late into the next period, then the next one on time in that same period.
+    assert s.on_tick(T0 + 4 * TS + TS - 1)[1] == T0 + 4 * TS
+    assert s.on_tick(T0 + 4 * TS + TS + 1)[1] == T0 + 5 * TS
+    assert s.on_tick(T0 + 5 * TS + TS // 2) == (None, None)       # 5 answered already
+    # The states come back in a burst, up to the sample the last safe command stood for.
+    for k in (1, 2, 3, 4, 5):
+        s.on_preview(T0 + k * TS, H, T0 + 5 * TS + TS // 2)
+        assert s.on_state(T0 + k * TS, X, T0 + 5 * TS + TS // 2) is None
+    assert not s.timed_out and s.count['superseded_states'] == 5
+    assert s.on_tick(T0 + 6 * TS + 1) == (None, None)             # no second command
+    s.on_preview(T0 + 6 * TS, H, T0 + 6 * TS + 2)
+    job = s.on_state(T0 + 6 * TS, X, T0 + 6 * TS + 2)             # the next sample: solved
+    assert job.stamp_ns == T0 + 6 * TS and s.count['missed_samples'] == 5
+
+
+def test_a_last_sample_answered_by_the_safe_command_finishes_the_scenario():
+    s = scheduler(n_samples=5)
+    s.on_preview(T0, H, T0)
+    s.on_state(T0, X, T0)
+    assert s.on_tick(T0 + 4 * TS + 1)[1] == T0 + 4 * TS
+    assert s.on_state(T0 + 4 * TS, X, T0 + 4 * TS + 3) is None and s.finished
+    assert s.on_tick(T0 + 8 * TS) == (None, None)
+
+
 def test_lockstep_solves_each_state_when_its_preview_is_there():
     s = scheduler(realtime=False)
     for k in range(4):

@@ -127,7 +127,6 @@ class EcuBridgeNode(Node):
         self.proc_sensor = LatencyStats()
         self.rejected_msgs = 0
 
-        qos = ros_qos.control_qos()
         # Counted (erva run checks the bag against them), with a history that lets a
         # stalled recorder catch up (publisher_history_s of the loop, at the ECU's rate).
         counted = diag.CountedPublisher
@@ -152,9 +151,12 @@ class EcuBridgeNode(Node):
         self.enc_gen = JointStateEncoder((topics.GENERATOR_JOINT,))
         self.enc_meas = JointStateEncoder(hil_topics.MEASUREMENT_NAMES)
         # The command is on the loop's critical path: taken by its own thread, not the
-        # executor (erva_ros/ros/rt_subscription.py; ~0.5 ms less per command).
-        self.cmd_sub = RealtimeSubscription(self, JointTrajectory, topics.DAMPING_CMD, qos,
-                                            self._on_command, raw=True)
+        # executor (erva_ros/ros/rt_subscription.py; ~0.5 ms less per command).  Its queue
+        # keeps as much as the NMPC's writer (publisher_history_s): after a stall of the
+        # bridge or a link drop every command is taken and counted -- the old ones refused
+        # as stale -- instead of a keep-last 10 dropping them unseen.
+        self.cmd_sub = RealtimeSubscription(self, JointTrajectory, topics.DAMPING_CMD,
+                                            pub_qos, self._on_command, raw=True)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         # The Ts/4 watchdog runs in the CAN thread (below), not as an rclpy timer: the
         # executor then wakes only for commands, and never holds the GIL while a CAN
@@ -186,7 +188,7 @@ class EcuBridgeNode(Node):
         stamp, plan, offsets = parse_command(data)
         if plan is None:
             self.rejected_msgs += 1
-            self.core.counts['commands_rejected'] += 1
+            self.core.watchdog.reject()
             return
         # The stamp is the sample the command was computed for (synchronised clocks
         # across hosts, docs/hil.md): a command delivered late, e.g. queued by DDS

@@ -161,6 +161,8 @@ class NMPCNode(Node):
             self._align(stamp)
         if job is not None:
             self._run(job)
+        elif self.sched.finished:       # the last sample came late, its safe command stands
+            self._finish()
 
     def _on_preview(self, msg: JointTrajectory) -> None:
         try:

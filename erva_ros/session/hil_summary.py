@@ -94,7 +94,7 @@ def hil_block(values: Values, estimates: Dict[int, np.ndarray],
                for k, names in DROPS.items()}
     ecu_out.update({k: value_int(ecu.get(k)) for k in (
         'cycles', 'commands_applied', 'command_timeouts', 'duty_out_of_range', 'overruns',
-        'cycles_skipped', 'recomputed')})
+        'cycles_skipped', 'recomputed', 'mode_changes_unlogged')})
     ecu_out['bus_errors'] = _sum(ecu, ('send_errors', 'bus_losses'))
     ecu_out['mode'] = ecu.get('ecu_mode')
     ecu_out['mode_changes'] = ecu.get('mode_changes')

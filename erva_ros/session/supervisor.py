@@ -139,6 +139,8 @@ class Supervisor:
             if self.phase == 'connecting':
                 if self._connecting(now):
                     return
+                if self.phase == 'running':
+                    last_progress = now   # the no-progress limit starts when connected
             elif self.phase == 'running':
                 states = self.monitor.received[topics.STATE]
                 if states != last_states:

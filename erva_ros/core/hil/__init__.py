@@ -7,8 +7,11 @@ module                 role
 ``e2e``                AUTOSAR E2E profile 1 style CRC-8 + alive counter, checks
 ``codec``              the DBC (config/erva_ecu.dbc) with cantools: frames ↔ values
 ``transport``          bus selection: SocketCAN, python-can virtual, loopback UDP
-``bridge``             bridge core: commands → frames (watchdog, safe command),
-                       frames → sensor sets, bus loss and retry
+``bridge``             bridge core joining the four units below
+``bus_link``           the bridge's CAN bus: open, send, loss and retry
+``command_watchdog``   commands → frames at Ts: plan while late, safe command
+``ecu_cycles``         ECU frames → cycles (incomplete ones too), ECU heartbeat
+``bridge_diagnostics`` the bridge's statuses: command link, CAN bus, ECU
 ``ecu_sim``            simulated ECU core on erva_ros.core.plant.PlantSimulator
 ``road_buffer``        w(t) from time-stamped road samples
 ``evaluation``         offline closed loop on estimated vs true state

@@ -120,14 +120,16 @@ class _CyclePlan(NamedTuple):
     out_of_range: int
     timeouts: int
     first_controlled: Optional[float]   # latch instant of the first CONTROLLED command
+    changes: List[Tuple[str, float]]    # mode changes at the latch instants: (mode, c_e)
     step: ProfileStep
     road_end: float          # m, w at the cycle's end
 
 
 COUNTER_NAMES = ('cycles', 'commands_applied', 'duty_out_of_range', 'command_timeouts',
                  'frames_sent', 'send_errors', 'bus_losses', 'reconnects', 'overruns',
-                 'cycles_skipped', 'recomputed')
-#: Mode changes kept for the status (cycle, mode, applied c_e): enough for a run's story.
+                 'cycles_skipped', 'recomputed', 'mode_changes_unlogged')
+#: Mode changes kept for the status (cycle, mode, applied c_e): enough for a run's story;
+#: later ones are only counted (``mode_changes_unlogged``).
 MODE_LOG_SIZE = 64
 
 
@@ -170,6 +172,7 @@ class EcuSimCore:
         self._pending: List[_Command] = []    # valid, not yet latched (arrival order)
         self._plan: Optional[_CyclePlan] = None
         self.mode_log: List[Tuple[int, str, float]] = []
+        self._logged_mode = ''                # the newest change, logged or only counted
         self.t0: Optional[float] = None       # epoch s of cycle 0
         self.k = 0
 
@@ -268,6 +271,7 @@ class EcuSimCore:
         i = applied = out_of_range = timeouts = 0
         first = None
         c_e = []
+        changes = []
         for j in range(n + 1):
             tau = t_start + j * dt
             while i < due and pending[i].t <= tau:
@@ -284,6 +288,10 @@ class EcuSimCore:
                 timeouts += 1
             if mode in (EcuMode.INIT, EcuMode.SAFE_TIMEOUT):
                 duty = self._safe_duty
+            # Every change, also one undone within the cycle (a timeout the next command
+            # ends before the sample): the log must account for every timeout counted.
+            if mode is not (changes[-1][0] if changes else self.mode):
+                changes.append((mode, self.hw.c_e_from_duty(duty)))
             if j < n:
                 c_e.append(self.hw.c_e_from_duty(duty))
         road = [self.road(t_start + j * dt) for j in range(n + 1)]
@@ -291,7 +299,8 @@ class EcuSimCore:
         if self._plan is not None and self._plan.key[0] == self.k:
             self.counts['recomputed'] += 1
         self._plan = _CyclePlan(key, due, c_e, duty, mode, last, applied, out_of_range,
-                                timeouts, first, step, road[-1])
+                                timeouts, first, [(m.name, u) for m, u in changes], step,
+                                road[-1])
         return self._plan
 
     def start(self, t0: float) -> EcuSample:
@@ -335,6 +344,8 @@ class EcuSimCore:
         self._plan = None
         self.k += 1
         self.counts['cycles'] += 1
+        for mode, c_e in plan.changes:
+            self._log_mode(mode, c_e)
         sample = self._measure_and_send(self.t0 + self.k * self.cfg.period_s,
                                         sum(plan.c_e) / self._n_latch, plan.road_end, send)
         sample.command_latched = plan.first_controlled
@@ -363,13 +374,21 @@ class EcuSimCore:
             self._send(Kind.CHASSIS, chassis)
             self._send(Kind.GENERATOR, gen)
             sent_at = time.time()
-        if not self.mode_log or self.mode_log[-1][1] != self.mode.name:
-            if len(self.mode_log) < MODE_LOG_SIZE:
-                self.mode_log.append((self.k, self.mode.name, u))
+        self._log_mode(self.mode.name, u)
         return EcuSample(t=t_epoch - self.t0, x=s.x, road_height=w, c_e=u, c_e_mean=c_e_mean,
                          sprung_accel=s.sprung_accel, v_gen=v_gen, power_w=s.power_w,
                          harvested_j=s.harvested_j, mode=self.mode, gen_position=position,
                          sent_at=sent_at)
+
+    def _log_mode(self, mode: str, c_e: float) -> None:
+        """Log a change to ``mode`` (applying ``c_e``) in the cycle that ends at sample k."""
+        if mode == self._logged_mode:
+            return
+        self._logged_mode = mode
+        if len(self.mode_log) < MODE_LOG_SIZE:
+            self.mode_log.append((self.k, mode, c_e))
+        else:
+            self.counts['mode_changes_unlogged'] += 1
 
     def rx_counts(self) -> Dict[str, int]:
         """Return the E2E counters of the received command frames."""
@@ -382,7 +401,12 @@ class EcuSimCore:
         return out
 
     def mode_changes(self) -> str:
-        """Return the mode changes as ``cycle:MODE:c_e`` items (c_e applied, Ns/m)."""
+        """Return the mode changes as ``cycle:MODE:c_e`` items (c_e applied, Ns/m).
+
+        ``cycle`` is the sample k that ends the cycle in which the mode changed (at a 1 ms
+        latch instant); a change undone within one cycle is listed too (two items with
+        the same k), so every ``command_timeouts`` count has its SAFE_TIMEOUT item.
+        """
         return ','.join(f'{k}:{mode}:{c_e:.0f}' for k, mode, c_e in self.mode_log)
 
 

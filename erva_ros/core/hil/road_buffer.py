@@ -25,8 +25,8 @@ class RoadBuffer:
         return len(self._s)
 
     def add(self, t: float, w: float) -> bool:
-        """Append a sample; an out-of-order or repeated time is rejected (False)."""
-        if self._s and t <= self._s[-1][0]:
+        """Append a sample; a non-finite, out-of-order or repeated one is rejected (False)."""
+        if not (math.isfinite(t) and math.isfinite(w)) or self._s and t <= self._s[-1][0]:
             self.rejected += 1
             return False
         self._s.append((float(t), float(w)))
@@ -94,9 +94,14 @@ class KnownRoad:
         k = int(round(distance_m / (self.speed_mps * self.ts))) if self.speed_mps > 0 else 0
         self.origin_ns = int(stamp_ns) - k * self.ts_ns
 
+    def _origin(self) -> int:
+        if self.origin_ns is None:
+            raise RuntimeError('KnownRoad: anchor() places the sample grid first')
+        return self.origin_ns
+
     def check(self, stamp_ns: int, w: float) -> bool:
         """Return True if a received sample agrees with this road (else count a mismatch)."""
-        k, rest = divmod(int(stamp_ns) - self.origin_ns, self.ts_ns)
+        k, rest = divmod(int(stamp_ns) - self._origin(), self.ts_ns)
         self.checked += 1
         ok = rest == 0 and abs(self.sample(k) - w) <= 1e-9
         self.mismatches += not ok
@@ -104,7 +109,7 @@ class KnownRoad:
 
     def height(self, t: float) -> float:
         """Return w(t) (m) at epoch time t (s); needs :meth:`anchor` first."""
-        x = (t * 1e9 - self.origin_ns) / self.ts_ns
+        x = (t * 1e9 - self._origin()) / self.ts_ns
         k = math.floor(x)
         frac = x - k
         if frac < 1e-6 or frac > 1 - 1e-6:      # on the grid (epoch floats: 0.2 us coarse)

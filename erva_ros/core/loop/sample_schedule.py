@@ -18,16 +18,22 @@ What it refuses or counts:
   Ts grid of the first state is rejected (:class:`MessageRejected`): a foreign message
   can neither block the real states (by being "newer") nor end the scenario;
 * a state not newer than the newest one (``out_of_order``);
-* a state replaced by a newer one before it was solved (``superseded_states``: the node
-  was still busy), and the samples between two solved ones (``missed_samples``);
+* a state replaced before it was solved (``superseded_states``): by a newer state (the
+  node was still busy), or by the safe command already published for its sample (a
+  state that arrives after its sample timed out); and the samples between two solved
+  ones (``missed_samples``);
 * a preview older than the state, shifted to it (``stale_previews``), or none at all
   (``no_preview``: the job then has ``preview=None``);
 * no state for ``state_timeout_ns``: each tick returns a safe stamp, the sample the
   passive command stands in for (``state_timeouts`` counts the outages).
 
+Every sample gets at most one command: the stamps of the jobs and safe stamps together
+strictly increase (the plant drops a command not newer than the last, the bag holds each
+sample once).
+
 The scenario is finished once the state of its last sample (``n_samples`` after the
-first) has been solved *and* the node's own clock agrees that the scenario's time has
-passed -- never from a stamp alone.
+first) has its command (solved, or the safe one when the state came after it) *and* the
+node's own clock agrees that the scenario's time has passed -- never from a stamp alone.
 """
 
 from collections import deque
@@ -68,6 +74,7 @@ class SampleScheduler:
         self.first_stamp: Optional[int] = None
         self.first_rx_ns: Optional[int] = None
         self.last_solved = -1
+        self.answered = -1                      # newest stamp given a command (job or safe)
         self.armed = True
         self.awaiting: Optional[int] = None     # stamp of a state waiting for its preview
         self.timed_out = False
@@ -90,12 +97,19 @@ class SampleScheduler:
         if self.state is not None and stamp <= self.state[0]:
             self.count['out_of_order'] += 1
             return None
-        if self.state is not None and self.state[0] > self.last_solved:
+        if self.state is not None and self.state[0] > self.answered:
             self.count['superseded_states'] += 1
         self.state = (stamp, x, now_ns)
         if self.first_stamp is None:
             self.first_stamp, self.first_rx_ns = stamp, now_ns
         self.timed_out = False
+        if stamp <= self.answered:
+            # Late: its sample timed out and has the safe command already.  The states are
+            # back (no more safe commands), but a second command for the sample would be
+            # refused by the plant and recorded twice.
+            self.count['superseded_states'] += 1
+            self._check_finished(stamp, now_ns)
+            return None
         if not self.realtime:
             return self._job_if_ready()
         if self.armed:
@@ -121,7 +135,7 @@ class SampleScheduler:
     def on_tick(self, now_ns: int) -> Tuple[Optional[Job], Optional[int]]:
         """Realtime tick: return (job to solve now, safe command's stamp); either may be None."""
         job = None
-        if not self.finished and self.state is not None and self.state[0] > self.last_solved:
+        if not self.finished and self.state is not None and self.state[0] > self.answered:
             # Arrived before this tick while disarmed, or its preview never came.
             job = self._job()
         # Re-armed every tick, also after solving here: a late period must not make every
@@ -134,15 +148,19 @@ class SampleScheduler:
                 self.timed_out = True
                 self.count['state_timeouts'] += 1
             # Stamped with the sample it stands in for (on the grid of the last state,
-            # never ahead of the clock), so the command of the next state that does
-            # arrive supersedes it.
+            # never ahead of the clock): the command of a newer state supersedes it; a
+            # state of this sample that comes late is not solved (one command a sample).
             last = self.state[0]
             safe = last + max(1, (now_ns - last) // self.ts_ns) * self.ts_ns
+            if safe <= self.answered:
+                safe = None     # a late tick's sample: this one came in the same period
+            else:
+                self.answered = safe
         return job, safe
 
     # -- jobs --------------------------------------------------------------------------
     def _job_if_ready(self) -> Optional[Job]:
-        if self.state is None or self.state[0] <= self.last_solved:
+        if self.state is None or self.state[0] <= self.answered:
             return None
         if any(p_stamp == self.state[0] for p_stamp, _ in self.previews):
             return self._job()
@@ -153,17 +171,21 @@ class SampleScheduler:
         self.awaiting = None
         if self.last_solved >= 0 and stamp - self.last_solved > self.ts_ns:
             self.count['missed_samples'] += (stamp - self.last_solved) // self.ts_ns - 1
-        self.last_solved = stamp
+        self.last_solved = self.answered = stamp
         preview = self._preview_for(stamp)
         if preview is None:
             self.count['no_preview'] += 1
+        self._check_finished(stamp, rx_ns)
+        return Job(stamp, x, preview, rx_ns)
+
+    def _check_finished(self, stamp: int, rx_ns: int) -> None:
+        """Finish once the last sample (by the stamps) has its command."""
         if stamp >= self.first_stamp + (self.n_samples - 1) * self.ts_ns:
-            # The last sample by the stamps; the node's clock must agree (a stamp alone,
-            # even inside the window, cannot end the scenario early).  One period of slack:
-            # in lock-step the node's /clock may lag the samples by one.
+            # The node's clock must agree (a stamp alone, even inside the window, cannot
+            # end the scenario early).  One period of slack: in lock-step the node's /clock
+            # may lag the samples by one.
             self.finished = (rx_ns - self.first_rx_ns
                              >= (self.n_samples - 2) * self.ts_ns)
-        return Job(stamp, x, preview, rx_ns)
 
     def _preview_for(self, stamp: int) -> Optional[np.ndarray]:
         """Return the preview of sample ``stamp``: exact, else a recent one shifted, else None."""
