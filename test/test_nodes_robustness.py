@@ -20,7 +20,7 @@ from erva_ros import topics
 from erva_ros.live import msgs
 from erva_ros.live.diagnostics import ERROR, OK, WARN
 
-from test_live_harness import Harness, start_node, stop_node, TS_NS
+from live_harness import Harness, start_node, stop_node, TS_NS
 
 C_E0 = 10000.0
 

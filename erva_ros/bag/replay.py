@@ -1,8 +1,9 @@
 """Publish a bag's messages with their original timing, as ``ros2 bag play`` does (rclpy).
 
 Messages are published in log-time (receive-time) order; message i goes out when
-(log_i − log_0)/rate of wall time has passed since the start, as raw CDR bytes (no
-re-serialisation), from one publisher per topic that offers the QoS recorded for it
+(log_i − log_0)/rate of wall time has passed since the start (never earlier; a busy
+machine may make it later, and ``lateness_ms`` reports by how much each message was
+out after its time), as raw CDR bytes (no re-serialisation), from one publisher per topic that offers the QoS recorded for it
 (``erva_ros.bag.qos.playback_qos``).  ``clock_hz`` > 0 publishes the playback time
 (bag time) on /clock at that rate, like ``ros2 bag play --clock``; a /clock recorded
 in the bag is then not replayed.
@@ -114,8 +115,10 @@ class Player:
                 target = wall0 + (m.log_time_ns - bag0) * 1e-9 / self.rate
                 if not self._sleep_until(target, wall0, bag0, should_stop):
                     return self._stats(passes, started, stopped=True)
-                self.lateness_s.append(time.monotonic() - target)
                 self.publishers[m.topic].publish(m.data)
+                # Measured once the message is out: its source timestamp then lies in
+                # [target, target + lateness], a bound a subscriber can check.
+                self.lateness_s.append(time.monotonic() - target)
                 self.published[m.topic] += 1
             if not self.loop or should_stop() or bag0 is None:
                 return self._stats(passes, started, stopped=should_stop())
