@@ -15,50 +15,30 @@ import time
 import pytest
 
 from conftest import REPO, ros_env
+from run_helpers import SampleWatch
 
 pytestmark = pytest.mark.ros
 
 HOUR_NS = 3600 * 10**9
 
 
-def _inject_state(stamp_ns_of, timeout_s=120.0, after_samples=10):
-    """Publish one valid JointState on /erva/state once the loop has run ``after_samples``.
-
-    Waiting for the loop's own samples (not for a time) puts the foreign state inside the
-    run on any machine, fast or busy.  They are counted on /erva/sprung_accel: a reader of
-    /erva/state (erva run's start gate) could let the loop start before erva run's
-    monitor listens.
-    """
-    import rclpy
-    from geometry_msgs.msg import AccelStamped
+def _inject_state(stamp_ns_of, after_samples=10):
+    """Publish one valid JointState on /erva/state once the loop has run ``after_samples``."""
     from rclpy.duration import Duration
-    from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
 
     from erva_ros.live.msgs import state_msg
     from erva_ros import topics
 
-    context = rclpy.Context()
-    rclpy.init(context=context)
+    watch = SampleWatch()
     try:
-        node = rclpy.create_node('foreign_publisher', context=context)
-        seen = []
-        node.create_subscription(AccelStamped, '/erva/sprung_accel', seen.append,
-                                 topics.control_qos())
-        pub = node.create_publisher(JointState, '/erva/state', topics.control_qos())
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
-        end = time.monotonic() + timeout_s
-        while len(seen) < after_samples and time.monotonic() < end:
-            executor.spin_once(timeout_sec=0.05)
-        assert len(seen) >= after_samples, 'the loop did not start'
+        pub = watch.node.create_publisher(JointState, '/erva/state', topics.control_qos())
+        watch.wait(after_samples)
         assert pub.get_subscription_count() >= 2        # nmpc, monitor
         pub.publish(state_msg(stamp_ns_of(), [1e-3, 0.0, 0.0, 0.0, 0.0, 0.0], 'erva'))
         assert pub.wait_for_all_acked(Duration(seconds=30))
-        executor.shutdown()
-        node.destroy_node()
     finally:
-        rclpy.try_shutdown(context=context)
+        watch.close()
 
 
 def _run_with_foreign_state(mode, duration, stamp_ns_of):
