@@ -3,10 +3,10 @@
 Messages are published in log-time (receive-time) order; message i goes out when
 (log_i − log_0)/rate of wall time has passed since the start (never earlier; a busy
 machine may make it later, and ``lateness_ms`` reports by how much each message was
-out after its time), as raw CDR bytes (no re-serialisation), from one publisher per topic that offers the QoS recorded for it
-(``erva_ros.bag.qos.playback_qos``).  ``clock_hz`` > 0 publishes the playback time
-(bag time) on /clock at that rate, like ``ros2 bag play --clock``; a /clock recorded
-in the bag is then not replayed.
+out after its time), as raw CDR bytes (no re-serialisation), from one publisher per
+topic that offers the QoS recorded for it (``erva_ros.bag.qos.playback_qos``).
+``clock_hz`` > 0 publishes the playback time (bag time) on /clock at that rate, like
+``ros2 bag play --clock``; a /clock recorded in the bag is then not replayed.
 
 The what-if mode (:func:`drive_plant`) does not publish: the road recorded at the tyre
 drives a fresh offline closed loop with another controller, written as a new session.
