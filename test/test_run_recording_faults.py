@@ -21,9 +21,9 @@ from run_helpers import wait_connected as _wait_connected
 pytestmark = pytest.mark.ros
 
 
-def _stalled_run(tmp_path, duration, stop_after_s, stop_for_s):
+def _stalled_run(tmp_path, duration, stop_after_s, stop_for_s, *args):
     """Run erva run, SIGSTOP the recorder ``stop_after_s`` after the start for ``stop_for_s``."""
-    proc = _start('--duration', duration, '--record', tmp_path, '--json')
+    proc = _start('--duration', duration, '--record', tmp_path, '--json', *args)
     try:
         pids = _wait_connected(proc)
         time.sleep(stop_after_s)
@@ -60,9 +60,14 @@ def test_a_recorder_stopped_for_three_seconds_loses_nothing(
 
 
 def test_a_stall_longer_than_the_writers_history_is_reported_as_a_loss(tmp_path):
-    # 12 s stopped: the writers keep 10 s (publisher_history_s), so about 2 s of samples
-    # are gone for good -- and erva run must say so, with exit status 1.
-    code, s, _ = _stalled_run(tmp_path, 13, 0.5, 12.0)
+    # The writers keep 1 s here (publisher_history_s, 10 s by default) and the recorder is
+    # stopped for 5 s: about 2.5 s of samples are gone for good (the transport buffers
+    # ~1.5 s more) -- and erva run must say so, with exit status 1.
+    live = tmp_path / 'live.yaml'
+    live.write_text('/**:\n  ros__parameters:\n    publisher_history_s: 1.0\n')
+    bags = tmp_path / 'bags'
+    bags.mkdir()
+    code, s, _ = _stalled_run(bags, 6, 0.5, 5.0, '--live', live)
     assert code == 1 and not s['ok']
     rec = s['recording']
     assert rec['lost'] > 0
