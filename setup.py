@@ -46,6 +46,7 @@ setup(
         'hil': ['python-can', 'cantools'],
         'test': [
             'pytest',
+            'pytest-xdist',   # .ci/run: two test processes (each its own DDS domain)
             'flake8',
             'pydocstyle',
             'mcap-ros2-support',
