@@ -8,11 +8,11 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 
 from conftest import REPO, ros_env
 import pytest
+from recorder_helpers import DiagnosticsWatcher, wait_recorded
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import get_typestore, Stores
 
@@ -72,65 +72,23 @@ def traffic(*args, timeout=120):
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-class DiagnosticsWatcher:
-    """Collect /diagnostics statuses in this process (rclpy in a thread)."""
-
-    def __init__(self):
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.executors import SingleThreadedExecutor
-        self.context = rclpy.context.Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node('diag_watcher', context=self.context)
-        self.statuses = []
-        self.node.create_subscription(DiagnosticArray, contract.DIAGNOSTICS,
-                                      lambda m: self.statuses.extend(m.status),
-                                      contract.control_qos())
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self.running = True
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self):
-        while self.running:
-            self.executor.spin_once(timeout_sec=0.05)
-
-    def values(self, name_part):
-        """Return the key-values of each status so far whose name contains ``name_part``."""
-        return [{kv.key: kv.value for kv in s.values} for s in list(self.statuses)
-                if name_part in s.name]
-
-    def wait(self, condition, timeout=60.0):
-        """Wait until ``condition()`` holds (generous ``timeout``); return whether it did."""
-        end = time.monotonic() + timeout
-        while time.monotonic() < end and not condition():
-            time.sleep(0.05)
-        return condition()
-
-    def errors(self, name_part):
-        return [s for s in self.statuses
-                if name_part in s.name and s.level == b'\x02' or
-                (name_part in s.name and s.level == 2)]
-
-    def close(self):
-        import rclpy
-        self.running = False
-        self.thread.join()
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.context)
-
-
 def test_records_the_contract_and_sigint_finishes_the_file(tmp_path):
     bag = str(tmp_path / 'session')
     meta = {'scenario': 'unit', 'controller': 'echo', 'seed': 3,
             'parameters': {'M_s': 250.0}}
     before_ns = time.time_ns()
-    rec = start_recorder(bag, meta)
-    wait_for(bag, rec)
-    result = traffic('--duration', '3')
-    assert result['acked']         # all in the recorder's reader: SIGINT now loses nothing
-    rc, err = stop(rec)
+    watcher = DiagnosticsWatcher()
+    try:
+        rec = start_recorder(bag, meta, params=['diagnostics_period_s:=0.2'])
+        wait_for(bag, rec)
+        result = traffic('--duration', '3', '--ack-timeout', '60')
+        assert result['acked']
+        # Stopped once it says it wrote all that, as erva run does (a busy machine may
+        # keep it seconds behind the publisher).
+        wait_recorded(watcher, result['published'])
+        rc, err = stop(rec)
+    finally:
+        watcher.close()
     after_ns = time.time_ns()
     assert rc == 0, err
     published = result['published']

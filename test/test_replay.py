@@ -16,6 +16,7 @@ from rclpy.serialization import deserialize_message
 from erva_ros.bag.reader import open_bag
 from erva_ros.bag.schemas import message_class
 from erva_ros.bag.session import recorder_ros_args
+from recorder_helpers import DiagnosticsWatcher, wait_recorded
 
 pytestmark = pytest.mark.ros
 STARTED = []   # processes started here, killed if a failing test left them running
@@ -34,7 +35,8 @@ def no_stray_processes():
 def start_recorder(bag_dir, node_name, topics=None):
     proc = subprocess.Popen([sys.executable, '-m', 'erva_ros.nodes.recorder_node',
                              *recorder_ros_args(bag_dir, {'scenario': node_name},
-                                                node_name=node_name, topics=topics)],
+                                                node_name=node_name, topics=topics,
+                                                parameters={'diagnostics_period_s': 0.2})],
                             env=ros_env(), cwd=REPO, text=True, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE)
     STARTED.append(proc)
@@ -45,8 +47,9 @@ def start_recorder(bag_dir, node_name, topics=None):
     return proc
 
 
-def stop(proc):
-    """Stop a recorder once the publisher saw every message acknowledged (no wait needed)."""
+def stop(proc, watcher, published, name):
+    """Stop recorder ``name`` once it says it wrote ``published`` ({topic: n})."""
+    wait_recorded(watcher, published, name)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
@@ -98,17 +101,22 @@ def check_timing(original, played, stats, rate):
 def recorded(tmp_path_factory):
     """Return a bag recorded from the contract traffic (3 s at 50 Hz)."""
     bag = str(tmp_path_factory.mktemp('replay') / 'original')
-    rec = start_recorder(bag, 'rec_a')
-    pub = subprocess.run([sys.executable, '-m', 'erva_ros.bag.traffic', 'contract',
-                          '--duration', '3'], env=ros_env(), cwd=REPO, capture_output=True,
-                         text=True, timeout=120)
-    assert pub.returncode == 0, pub.stderr
-    assert json.loads(pub.stdout.strip().splitlines()[-1])['acked']
-    stop(rec)
+    watcher = DiagnosticsWatcher()
+    try:
+        rec = start_recorder(bag, 'rec_a')
+        pub = subprocess.run([sys.executable, '-m', 'erva_ros.bag.traffic', 'contract',
+                              '--duration', '3', '--ack-timeout', '60'], env=ros_env(),
+                             cwd=REPO, capture_output=True, text=True, timeout=600)
+        assert pub.returncode == 0, pub.stderr
+        result = json.loads(pub.stdout.strip().splitlines()[-1])
+        assert result['acked']
+        stop(rec, watcher, result['published'], 'rec_a')
+    finally:
+        watcher.close()
     return bag
 
 
-def replay(*args, timeout=120):
+def replay(*args, timeout=600):
     proc = subprocess.run([sys.executable, '-m', 'erva_ros.cli', 'replay', *args, '--json'],
                           env=ros_env(), cwd=REPO, capture_output=True, text=True,
                           timeout=timeout)
@@ -118,9 +126,13 @@ def replay(*args, timeout=120):
 
 def test_record_replay_record_gives_the_same_messages(recorded, tmp_path):
     again = str(tmp_path / 'again')
-    rec = start_recorder(again, 'rec_b')
-    stats = replay(recorded, '--wait-for-subscribers', '20')
-    stop(rec)
+    watcher = DiagnosticsWatcher()
+    try:
+        rec = start_recorder(again, 'rec_b')
+        stats = replay(recorded, '--wait-for-subscribers', '60')
+        stop(rec, watcher, stats['published'], 'rec_b')
+    finally:
+        watcher.close()
     assert stats['acknowledged'] and not stats['stopped']
     first, second = by_topic(recorded), by_topic(again, skip_status_of='rec_b')
     assert sorted(first) == sorted(second)
@@ -140,10 +152,14 @@ def test_record_replay_record_gives_the_same_messages(recorded, tmp_path):
 
 def test_rate_topics_and_clock(recorded, tmp_path):
     out = str(tmp_path / 'fast')
-    rec = start_recorder(out, 'rec_c', topics=['state', 'sprung_accel', '/clock'])
-    stats = replay(recorded, '--rate', '4', '--topics', '/erva/state', '--clock', '50',
-                   '--wait-for-subscribers', '20')
-    stop(rec)
+    watcher = DiagnosticsWatcher()
+    try:
+        rec = start_recorder(out, 'rec_c', topics=['state', 'sprung_accel', '/clock'])
+        stats = replay(recorded, '--rate', '4', '--topics', '/erva/state', '--clock', '50',
+                       '--wait-for-subscribers', '60')
+        stop(rec, watcher, {**stats['published'], '/clock': stats['clock_ticks']}, 'rec_c')
+    finally:
+        watcher.close()
     assert stats['acknowledged'] and not stats['stopped']
     got = by_topic(out)
     original = by_topic(recorded)

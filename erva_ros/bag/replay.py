@@ -4,7 +4,10 @@ Messages are published in log-time (receive-time) order; message i goes out when
 (log_i − log_0)/rate of wall time has passed since the start (never earlier; a busy
 machine may make it later, and ``lateness_ms`` reports by how much each message was
 out after its time), as raw CDR bytes (no re-serialisation), from one publisher per
-topic that offers the QoS recorded for it (``erva_ros.bag.qos.playback_qos``).
+topic that offers the QoS recorded for it (``erva_ros.bag.qos.playback_qos``) but keeps
+the history of the live loop's writers (``publisher_history_s``, 10 s of the topic's
+messages at the playback rate, where rosbag2 keeps 10 messages): a subscriber -- a
+recorder of the replay -- may stall that long and still get every message.
 ``clock_hz`` > 0 publishes the playback time (bag time) on /clock at that rate, like
 ``ros2 bag play --clock``; a /clock recorded in the bag is then not replayed.
 
@@ -13,6 +16,7 @@ drives a fresh offline closed loop with another controller, written as a new ses
 """
 
 import dataclasses
+import math
 import time
 from typing import Callable, Dict, Iterable, List, Optional
 
@@ -31,6 +35,7 @@ class Player:
                  loop: bool = False, clock_hz: float = 0.0):
         from erva_ros.bag.qos import playback_qos
         from erva_ros.bag.schemas import message_class
+        from erva_ros.live.parameters import LIVE_DEFAULTS
 
         if not rate > 0:
             raise BagError(f'rate {rate} must be positive')
@@ -49,10 +54,12 @@ class Player:
         if not self.topics:
             raise BagError(f'{bag.path}: nothing to play')
         self.publishers = {}
+        history_s = LIVE_DEFAULTS['publisher_history_s']
         for name in self.topics:
             info = bag.topics[name]
-            self.publishers[name] = node.create_publisher(
-                message_class(info.type), name, playback_qos(info.offered_qos))
+            qos = playback_qos(info.offered_qos)
+            qos.depth = max(qos.depth, self._depth(info.count, history_s))
+            self.publishers[name] = node.create_publisher(message_class(info.type), name, qos)
         self.clock_pub = None
         if self.clock_hz > 0:
             from rosgraph_msgs.msg import Clock
@@ -61,6 +68,13 @@ class Player:
         self.clock_ticks = 0
         self.clock_ticks_this_pass = 0
         self.lateness_s: List[float] = []
+
+    def _depth(self, count: int, history_s: float) -> int:
+        """Return how many of a topic's ``count`` messages are played in ``history_s``."""
+        span = self.bag.duration_s
+        if span <= 0:
+            return count
+        return min(count, int(math.ceil(count * history_s * self.rate / span)))
 
     def wait_for_subscribers(self, timeout_s: float) -> bool:
         """Wait until every publisher has a matched subscription (or ``timeout_s``)."""
