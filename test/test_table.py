@@ -12,7 +12,8 @@ def _json(proc):
 
 def test_table_json_shape_with_the_bound(erva, tmp_path):
     out = tmp_path / 'table'
-    res = _json(erva('table', '--seeds', 2, '--duration', 1, '--weights', '0,1;1,0.01',
+    # Two seeds (a mean and a spread), 0.5 s: the shape and the bound's place in it.
+    res = _json(erva('table', '--seeds', 2, '--duration', 0.5, '--weights', '0,1;1,0.01',
                      '--controllers', 'passive,no_preview,preview', '--json', '--out', out))
     assert res['seeds'] == 2
     rows = res['rows']
