@@ -49,7 +49,7 @@ def start_node(name, namespace, log_path, *params):
     return proc
 
 
-def stop_node(proc, sig=signal.SIGINT, timeout=10.0):
+def stop_node(proc, sig=signal.SIGINT, timeout=60.0):
     """Stop a node process with ``sig``; return its exit status (killed if it hangs)."""
     if proc.poll() is None:
         os.killpg(proc.pid, sig)

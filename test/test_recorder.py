@@ -57,13 +57,13 @@ def wait_for(path, proc, timeout=60.0):   # generous: Python starts slowly on a 
     raise AssertionError(f'{path} did not appear')
 
 
-def stop(proc, sig=signal.SIGINT, timeout=30):
+def stop(proc, sig=signal.SIGINT, timeout=60):
     proc.send_signal(sig)
     out, err = proc.communicate(timeout=timeout)
     return proc.returncode, err
 
 
-def traffic(*args, timeout=120):
+def traffic(*args, timeout=600):
     """Run the contract traffic publisher; return its JSON result."""
     proc = subprocess.run([sys.executable, '-m', 'erva_ros.bag.traffic', 'contract', *args],
                           env=ros_env(), cwd=REPO, capture_output=True, text=True,

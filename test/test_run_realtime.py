@@ -118,13 +118,14 @@ def test_killed_nmpc_plant_holds_plan_then_passive_and_run_fails(tmp_path):
 @pytest.mark.parametrize('sig, code', [(signal.SIGINT, 130), (signal.SIGTERM, 143),
                                        (signal.SIGKILL, -9)])
 def test_signals_stop_every_process(sig, code):
+    watch = SampleWatch()
     proc = _start('--duration', 60, '--no-record')
     try:
         pids = _wait_connected(proc)
         assert set(pids) == {'nmpc_node', 'plant_sim_node', 'road_preview_node'}
         argv = open(f'/proc/{pids["nmpc_node"]}/cmdline').read().split('\0')
         params_file = argv[argv.index('--params-file') + 1]
-        time.sleep(1.5)
+        watch.wait(50)                   # a second of samples ran: a summary to print
         proc.send_signal(sig)
         out, err = proc.communicate(timeout=60)
         assert proc.returncode == code, err
@@ -142,5 +143,6 @@ def test_signals_stop_every_process(sig, code):
             assert os.path.isdir(session_dir)       # nobody left to clean up: the test does
             shutil.rmtree(session_dir)
     finally:
+        watch.close()
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)

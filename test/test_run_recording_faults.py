@@ -15,18 +15,23 @@ import time
 
 import pytest
 
-from run_helpers import bag_counts as _bag_counts, start_run as _start
+from run_helpers import bag_counts as _bag_counts, SampleWatch, start_run as _start
 from run_helpers import wait_connected as _wait_connected
 
 pytestmark = pytest.mark.ros
 
 
 def _stalled_run(tmp_path, duration, stop_after_s, stop_for_s, *args):
-    """Run erva run, SIGSTOP the recorder ``stop_after_s`` after the start for ``stop_for_s``."""
+    """Run erva run; SIGSTOP the recorder ``stop_after_s`` into the run for ``stop_for_s``.
+
+    "Into the run" counts the loop's samples (SampleWatch), not the test's wall time, so
+    a busy machine cannot move the stall out of the run.
+    """
+    watch = SampleWatch()
     proc = _start('--duration', duration, '--record', tmp_path, '--json', *args)
     try:
         pids = _wait_connected(proc)
-        time.sleep(stop_after_s)
+        watch.wait(int(round(stop_after_s / 0.02)))
         os.kill(pids['recorder_node'], signal.SIGSTOP)
         try:
             time.sleep(stop_for_s)
@@ -34,6 +39,7 @@ def _stalled_run(tmp_path, duration, stop_after_s, stop_for_s, *args):
             os.kill(pids['recorder_node'], signal.SIGCONT)
         out, err = proc.communicate(timeout=240)
     finally:
+        watch.close()
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
     return proc.returncode, json.loads(out), err
