@@ -51,6 +51,15 @@ os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
 os.environ.setdefault('MPLBACKEND', 'Agg')
 
 
+def pytest_collection_modifyitems(config, items):
+    """Put the files with slow tests first (stable otherwise).
+
+    With two workers the suite ends when the last file does: a minute-long test must not
+    start last.  (pytest-xdist's loadfile hands out files in the order of their first test.)
+    """
+    items.sort(key=lambda item: item.get_closest_marker('slow') is None)
+
+
 def fifo_permitted(priority: int = 20) -> bool:
     """Return whether this kernel lets a process take SCHED_FIFO (asked, not assumed)."""
     probe = f'import os; os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param({priority}))'

@@ -13,6 +13,7 @@ def test_bad_rates_are_one_line(erva):
         assert proc.stderr.strip().splitlines()[-1].startswith('erva bag'), proc.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.ros
 def test_a_short_benchmark_run(erva):
     proc = erva('bag', 'bench', '--window', '4', '--pairs', '1', '--contract-rates', '100',
