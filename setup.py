@@ -52,6 +52,7 @@ setup(
         'dask': ['dask[distributed]'],
         'test': [
             'pytest',
+            'pytest-xdist',   # .ci/run: two test processes (each its own DDS domain)
             'flake8',
             'pydocstyle',
             'mcap-ros2-support',

@@ -10,12 +10,23 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def _domain_id() -> int:
-    # One DDS domain per pytest process so parallel runs on a machine never cross.
-    # Fast DDS allows 0..232 on localhost; 1..101 keeps clear of the default 0.
-    return 1 + os.getpid() % 101
+    """Return this test process's DDS domain: its own, so parallel runs never cross.
+
+    ERVA_TEST_DOMAIN_ID=D[,D2,...] gives the domains: D to the run (or to pytest-xdist's
+    worker gw0), D2 to worker gw1, and so on.  Otherwise, and for workers beyond the list,
+    one in 1..101 (clear of the default 0; Fast DDS allows up to 232 on localhost) from
+    the pid of the run -- the workers' parent -- plus the worker's number, so the
+    workers of one run never share one.
+    """
+    worker = os.environ.get('PYTEST_XDIST_WORKER')          # gw0, gw1, ... under xdist
+    k = int(worker[2:]) if worker else 0
+    given = [d for d in os.environ.get('ERVA_TEST_DOMAIN_ID', '').split(',') if d.strip()]
+    if k < len(given):
+        return int(given[k])
+    return 1 + ((os.getppid() if worker else os.getpid()) + k) % 101
 
 
-ROS_DOMAIN_ID = int(os.environ.get('ERVA_TEST_DOMAIN_ID', _domain_id()))
+ROS_DOMAIN_ID = _domain_id()
 
 
 def ros_env(extra=None):
@@ -38,6 +49,15 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ['ROS_DOMAIN_ID'] = str(ROS_DOMAIN_ID)
 os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
 os.environ.setdefault('MPLBACKEND', 'Agg')
+
+
+def pytest_collection_modifyitems(config, items):
+    """Put the files with slow tests first (stable otherwise).
+
+    With two workers the suite ends when the last file does: a minute-long test must not
+    start last.  (pytest-xdist's loadfile hands out files in the order of their first test.)
+    """
+    items.sort(key=lambda item: item.get_closest_marker('slow') is None)
 
 
 def fifo_permitted(priority: int = 20) -> bool:

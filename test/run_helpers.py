@@ -31,6 +31,47 @@ def wait_connected(proc, timeout=120.0):
     raise AssertionError('erva run did not connect:\n' + ''.join(lines))
 
 
+class SampleWatch:
+    """Count the loop's samples on /erva/sprung_accel in this process (rclpy, own context).
+
+    For tests that act *during* a run: waiting for samples, not for a time, puts the
+    action inside the run on any machine.  Not /erva/state: a reader there could open
+    erva run's start gate before erva run's own monitor listens.
+    """
+
+    def __init__(self):
+        import rclpy
+        from geometry_msgs.msg import AccelStamped
+        from rclpy.executors import SingleThreadedExecutor
+
+        from erva_ros.core import topics
+        from erva_ros.ros import qos as ros_qos
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node('sample_watch', context=self.context)
+        self.samples = 0
+        self.node.create_subscription(AccelStamped, f'{topics.NAMESPACE}/{topics.SPRUNG_ACCEL}',
+                                      self._on_sample, ros_qos.control_qos())
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def _on_sample(self, _msg):
+        self.samples += 1
+
+    def wait(self, n, timeout=120.0):
+        """Spin until ``n`` samples came (generous ``timeout``); fail if they did not."""
+        end = time.monotonic() + timeout
+        while self.samples < n and time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.05)
+        assert self.samples >= n, f'the loop ran {self.samples} of {n} samples'
+
+    def close(self):
+        import rclpy
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
 def bag_counts(bag_dir, decode=False):
     """Return the messages per topic of a bag, read with the mcap package (not erva_ros)."""
     from mcap.reader import make_reader

@@ -13,7 +13,7 @@ from erva_ros.core.roads import make_road
 P = paper_params()
 # Quality tests: no real-time budget, so a loaded CI machine cannot change results.
 S = ControllerSettings(time_budget_s=10.0)
-DURATION = 1.5
+DURATION = 1.0   # 50 samples: every start of the bound and each causal run
 
 
 @pytest.mark.parametrize('alpha', [(0.0, 1.0), (1.0, 0.0)])

@@ -83,12 +83,12 @@ def test_commands_and_plans_stay_in_the_box_at_every_step():
 
 
 def test_warm_start_reduces_iterations():
-    road = make_road('paper', 1.0, seed=0)
+    road = make_road('paper', 0.5, seed=0)
     s = S.with_(solver='ipopt', alpha1=1.0, alpha2=0.0)
-    warm = simulate_closed_loop(P, make_controller('preview', P, s), road, 1.0)
+    warm = simulate_closed_loop(P, make_controller('preview', P, s), road, 0.5)
     from erva_ros.core.controllers.nmpc import NMPCController
     cold = simulate_closed_loop(P, NMPCController(P, s.with_(controller='preview'),
-                                                  warm_start=False), road, 1.0)
+                                                  warm_start=False), road, 0.5)
     assert np.mean(warm.iterations) < 0.8 * np.mean(cold.iterations)
 
 

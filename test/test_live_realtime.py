@@ -67,21 +67,40 @@ def _wakeup_latency_us():
         return struct.unpack('i', fh.read(4))[0]
 
 
+def _latency_holders():
+    """Return the pids of processes holding /dev/cpu_dma_latency open (a request each)."""
+    pids = set()
+    for pid in filter(str.isdigit, os.listdir('/proc')):
+        try:
+            fds = os.listdir(f'/proc/{pid}/fd')
+        except OSError:
+            continue
+        for fd in fds:
+            try:
+                if os.readlink(f'/proc/{pid}/fd/{fd}') == '/dev/cpu_dma_latency':
+                    pids.add(int(pid))
+            except OSError:
+                pass
+    return pids
+
+
 def test_a_fifo_process_holds_the_cpu_wakeup_latency_at_zero_while_it_lives():
     if not (fifo_permitted(7) and os.access('/dev/cpu_dma_latency', os.R_OK | os.W_OK)):
         pytest.skip('needs SCHED_FIFO and /dev/cpu_dma_latency (root)')
-    before = _wakeup_latency_us()
     script = ('import sys, time\nfrom erva_ros.ros.realtime import set_fifo_priority\n'
               'print(set_fifo_priority(7, print), flush=True)\nsys.stdin.readline()\n')
     proc = subprocess.Popen([sys.executable, '-c', script], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout.readline().strip() == 'SCHED_FIFO 7'
-        assert _wakeup_latency_us() == 0                 # idle CPUs poll now
+        # The effective target is the lowest request: 0 while the process holds its own.
+        assert proc.pid in _latency_holders() and _wakeup_latency_us() == 0
     finally:
         proc.communicate('\n', timeout=30)
+    # Released with the process (the kernel drops a request when its file closes).  The
+    # target itself is the lowest of all requests on the machine -- other tests' nodes,
+    # other users' loops -- so it is not compared with its value before.
     assert proc.returncode == 0
-    assert _wakeup_latency_us() == before                # released with the process
 
 
 def test_the_wakeup_latency_request_reports_a_missing_device(tmp_path, monkeypatch):

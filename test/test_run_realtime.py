@@ -10,7 +10,8 @@ import time
 import pytest
 
 from conftest import fifo_permitted
-from run_helpers import bag_counts, start_run as _start, wait_connected as _wait_connected
+from run_helpers import bag_counts, SampleWatch, start_run as _start
+from run_helpers import wait_connected as _wait_connected
 
 
 def _gone(pid):
@@ -88,13 +89,15 @@ def test_erva_run_realtime_records_and_summarises(tmp_path, erva):
 
 
 def test_killed_nmpc_plant_holds_plan_then_passive_and_run_fails(tmp_path):
+    watch = SampleWatch()
     proc = _start('--duration', 3, '--no-record', '--json')
     try:
         pids = _wait_connected(proc)
-        time.sleep(1.2)
+        watch.wait(30)                   # killed well into the run, on any machine
         os.kill(pids['nmpc_node'], signal.SIGKILL)
         out, err = proc.communicate(timeout=120)
     finally:
+        watch.close()
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == 1, err
@@ -102,12 +105,13 @@ def test_killed_nmpc_plant_holds_plan_then_passive_and_run_fails(tmp_path):
     assert any(e.startswith('nmpc_node died (exit status -9)') for e in s['errors']), s['errors']
     assert 'nmpc_node died' in err and 'the run goes on without it' in err
     plant = s['plant']
-    # The run went on to the end: after the kill the plant used the last plan (N - 1 =
-    # 9 samples), then passive damping for the rest of the 150 steps, and reported both.
+    # The run went on to the end: after the kill (at sample 30 or a little later) the
+    # plant used the last plan (N - 1 = 9 samples), then passive damping for the rest of
+    # the 150 steps, and reported both.
     assert plant['steps'] == 150
+    assert plant['u_from_command'] + plant['u_from_plan'] + plant['u_from_passive'] == 150
     assert plant['u_from_plan'] >= 9
-    assert plant['u_from_passive'] >= 150 - plant['u_from_command'] - plant['u_from_plan']
-    assert plant['u_from_passive'] >= 150 - 1.2 / 0.02 - 30
+    assert plant['u_from_passive'] >= 1
     events = [(e['level'], e['message']) for e in s['events'] if e['node'] == 'plant_sim_node']
     last_plan = max(i for i, (lvl, m) in enumerate(events) if lvl == 'WARN' and 'plan' in m)
     assert events[last_plan + 1] == ('ERROR', 'no command and plan used up: passive damping c_e0')
@@ -122,13 +126,14 @@ def test_killed_nmpc_plant_holds_plan_then_passive_and_run_fails(tmp_path):
 @pytest.mark.parametrize('sig, code', [(signal.SIGINT, 130), (signal.SIGTERM, 143),
                                        (signal.SIGKILL, -9)])
 def test_signals_stop_every_process(sig, code):
+    watch = SampleWatch()
     proc = _start('--duration', 60, '--no-record')
     try:
         pids = _wait_connected(proc)
         assert set(pids) == {'nmpc_node', 'plant_sim_node', 'road_preview_node'}
         argv = open(f'/proc/{pids["nmpc_node"]}/cmdline').read().split('\0')
         params_file = argv[argv.index('--params-file') + 1]
-        time.sleep(1.5)
+        watch.wait(50)                   # a second of samples ran: a summary to print
         proc.send_signal(sig)
         out, err = proc.communicate(timeout=60)
         assert proc.returncode == code, err
@@ -137,7 +142,7 @@ def test_signals_stop_every_process(sig, code):
             assert 'comfort' in out                     # the summary of what ran
         # No stray process: each node (and its process group) is gone; after SIGKILL of
         # erva run the kernel's parent-death signal stops the nodes.
-        end = time.monotonic() + 15
+        end = time.monotonic() + 60      # generous: only a failure waits this long
         while time.monotonic() < end and not all(_gone(p) for p in pids.values()):
             time.sleep(0.1)
         assert all(_gone(p) for p in pids.values()), pids
@@ -146,5 +151,6 @@ def test_signals_stop_every_process(sig, code):
             assert os.path.isdir(session_dir)       # nobody left to clean up: the test does
             shutil.rmtree(session_dir)
     finally:
+        watch.close()
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)

@@ -15,18 +15,23 @@ import time
 
 import pytest
 
-from run_helpers import bag_counts as _bag_counts, start_run as _start
+from run_helpers import bag_counts as _bag_counts, SampleWatch, start_run as _start
 from run_helpers import wait_connected as _wait_connected
 
 pytestmark = pytest.mark.ros
 
 
-def _stalled_run(tmp_path, duration, stop_after_s, stop_for_s):
-    """Run erva run, SIGSTOP the recorder ``stop_after_s`` after the start for ``stop_for_s``."""
-    proc = _start('--duration', duration, '--record', tmp_path, '--json')
+def _stalled_run(tmp_path, duration, stop_after_s, stop_for_s, *args):
+    """Run erva run; SIGSTOP the recorder ``stop_after_s`` into the run for ``stop_for_s``.
+
+    "Into the run" counts the loop's samples (SampleWatch), not the test's wall time, so
+    a busy machine cannot move the stall out of the run.
+    """
+    watch = SampleWatch()
+    proc = _start('--duration', duration, '--record', tmp_path, '--json', *args)
     try:
         pids = _wait_connected(proc)
-        time.sleep(stop_after_s)
+        watch.wait(int(round(stop_after_s / 0.02)))
         os.kill(pids['recorder_node'], signal.SIGSTOP)
         try:
             time.sleep(stop_for_s)
@@ -34,6 +39,7 @@ def _stalled_run(tmp_path, duration, stop_after_s, stop_for_s):
             os.kill(pids['recorder_node'], signal.SIGCONT)
         out, err = proc.communicate(timeout=240)
     finally:
+        watch.close()
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
     return proc.returncode, json.loads(out), err
@@ -60,9 +66,14 @@ def test_a_recorder_stopped_for_three_seconds_loses_nothing(
 
 
 def test_a_stall_longer_than_the_writers_history_is_reported_as_a_loss(tmp_path):
-    # 12 s stopped: the writers keep 10 s (publisher_history_s), so about 2 s of samples
-    # are gone for good -- and erva run must say so, with exit status 1.
-    code, s, _ = _stalled_run(tmp_path, 13, 0.5, 12.0)
+    # The writers keep 1 s here (publisher_history_s, 10 s by default) and the recorder is
+    # stopped for 5 s: about 2.5 s of samples are gone for good (the transport buffers
+    # ~1.5 s more) -- and erva run must say so, with exit status 1.
+    live = tmp_path / 'live.yaml'
+    live.write_text('/**:\n  ros__parameters:\n    publisher_history_s: 1.0\n')
+    bags = tmp_path / 'bags'
+    bags.mkdir()
+    code, s, _ = _stalled_run(bags, 6, 0.5, 5.0, '--live', live)
     assert code == 1 and not s['ok']
     rec = s['recording']
     assert rec['lost'] > 0

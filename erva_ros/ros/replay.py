@@ -1,17 +1,22 @@
 """Publish a bag's messages with their original timing, as ``ros2 bag play`` does (rclpy).
 
 Messages are published in log-time (receive-time) order; message i goes out when
-(log_i − log_0)/rate of wall time has passed since the start, as raw CDR bytes (no
-re-serialisation), from one publisher per topic that offers the QoS recorded for it
-(``erva_ros.ros.qos.playback_qos``), and hands it to ``sink(topic, bytes, log time)``
-when one is given (`erva replay --foxglove`).  ``clock_hz`` > 0 publishes the playback time
-(bag time) on /clock at that rate, like ``ros2 bag play --clock``; a /clock recorded
-in the bag is then not replayed.
+(log_i − log_0)/rate of wall time has passed since the start (never earlier; a busy
+machine may make it later, and ``lateness_ms`` reports by how much each message was
+out after its time), as raw CDR bytes (no re-serialisation), from one publisher per
+topic that offers the QoS recorded for it (``erva_ros.ros.qos.playback_qos``) but keeps
+the history of the live loop's writers (``publisher_history_s``, 10 s of the topic's
+messages at the playback rate, where rosbag2 keeps 10 messages): a subscriber -- a
+recorder of the replay -- may stall that long and still get every message.
+``sink(topic, bytes, log time)`` receives each message too when given (`erva replay
+--foxglove`).  ``clock_hz`` > 0 publishes the playback time (bag time) on /clock at that
+rate, like ``ros2 bag play --clock``; a /clock recorded in the bag is then not replayed.
 
 The what-if mode (erva_ros/session/whatif.py) does not publish: the road recorded at the
 tyre drives a fresh offline closed loop with another controller, written as a new session.
 """
 
+import math
 import time
 from typing import Callable, Dict, Iterable, List, Optional
 
@@ -33,6 +38,7 @@ class Player:
                  sink: Optional[Callable[[str, bytes, int], None]] = None):
         from erva_ros.ros.qos import playback_qos
         from erva_ros.ros.bag_messages import message_class
+        from erva_ros.ros.parameters import LIVE_DEFAULTS
 
         if not rate > 0:
             raise BagError(f'rate {rate} must be positive')
@@ -52,10 +58,12 @@ class Player:
         if not self.topics:
             raise BagError(f'{bag.path}: nothing to play')
         self.publishers = {}
+        history_s = LIVE_DEFAULTS['publisher_history_s']
         for name in self.topics:
             info = bag.topics[name]
-            self.publishers[name] = node.create_publisher(
-                message_class(info.type), name, playback_qos(info.offered_qos))
+            qos = playback_qos(info.offered_qos)
+            qos.depth = max(qos.depth, self._depth(info.count, history_s))
+            self.publishers[name] = node.create_publisher(message_class(info.type), name, qos)
         self.clock_pub = None
         if self.clock_hz > 0:
             from rosgraph_msgs.msg import Clock
@@ -64,6 +72,13 @@ class Player:
         self.clock_ticks = 0
         self.clock_ticks_this_pass = 0
         self.lateness_s: List[float] = []
+
+    def _depth(self, count: int, history_s: float) -> int:
+        """Return how many of a topic's ``count`` messages are played in ``history_s``."""
+        span = self.bag.duration_s
+        if span <= 0:
+            return count
+        return min(count, int(math.ceil(count * history_s * self.rate / span)))
 
     def wait_for_subscribers(self, timeout_s: float) -> bool:
         """Wait until every publisher has a matched subscription (or ``timeout_s``)."""
@@ -116,10 +131,12 @@ class Player:
                 target = wall0 + (m.log_time_ns - bag0) * 1e-9 / self.rate
                 if not self._sleep_until(target, wall0, bag0, should_stop):
                     return self._stats(passes, started, stopped=True)
-                self.lateness_s.append(time.monotonic() - target)
                 self.publishers[m.topic].publish(m.data)
                 if self.sink is not None:
                     self.sink(m.topic, m.data, m.log_time_ns)
+                # Measured once the message is out: its source timestamp then lies in
+                # [target, target + lateness], a bound a subscriber can check.
+                self.lateness_s.append(time.monotonic() - target)
                 self.published[m.topic] += 1
             if not self.loop or should_stop() or bag0 is None:
                 return self._stats(passes, started, stopped=should_stop())

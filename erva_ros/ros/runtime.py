@@ -11,7 +11,12 @@ them with it.  Instead the signal stops the spin loop, then the node publishes a
 status (its final counts: ``published:<topic>``) and waits, bounded by
 ``SHUTDOWN_ACK_S``, until every subscriber has acknowledged everything its
 :class:`~erva_ros.ros.diagnostics.CountedPublisher` s and its status wrote
-(``Publisher.wait_for_all_acked``).  A second signal skips the wait.
+(``Publisher.wait_for_all_acked``).  A second signal skips the wait.  Whatever hangs on
+the way out, the process is gone ``SHUTDOWN_ACK_S + SHUTDOWN_GRACE_S`` after the first
+signal: the kernel then ends it with SIGALRM (no Python needed).  Seen once: after `erva
+run` was SIGKILLed, a road_preview_node kept one core at SCHED_FIFO 20 busy (95 %, the RT
+throttling cap) for over an hour, never exiting -- a middleware thread spinning after its
+peer's death, as in eProsima/Fast-DDS#2398.
 """
 
 import gc
@@ -27,6 +32,8 @@ from erva_ros.core.params import ParamError
 EXIT_BAD_PARAMETER = 2
 #: How long (s) a stopping node waits for its subscribers to acknowledge what it published.
 SHUTDOWN_ACK_S = 5.0
+#: After the acknowledgement wait, how long (s) tearing the node down may take at most.
+SHUTDOWN_GRACE_S = 10.0
 #: The spin loop wakes at least this often to see a stop request (s).
 SPIN_TIMEOUT_S = 0.1
 
@@ -41,6 +48,8 @@ def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]]
     signalled: List[int] = []
 
     def note(signum, frame):
+        if not signalled:
+            signal.alarm(int(SHUTDOWN_ACK_S + SHUTDOWN_GRACE_S))   # the last resort
         signalled.append(signum)
 
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -114,4 +123,5 @@ def finish_publishing(node, signalled: List[int], limit_s: float = SHUTDOWN_ACK_
     return True
 
 
-__all__ = ['EXIT_BAD_PARAMETER', 'SHUTDOWN_ACK_S', 'finish_publishing', 'run_node']
+__all__ = ['EXIT_BAD_PARAMETER', 'SHUTDOWN_ACK_S', 'SHUTDOWN_GRACE_S', 'finish_publishing',
+           'run_node']

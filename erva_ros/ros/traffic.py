@@ -13,7 +13,12 @@ Roles (``python -m erva_ros.ros.traffic ROLE --help``):
 ``flood``     publishes states as fast as it can (or at ``--rate``) for a throughput run.
 
 Every publisher waits until ``--subscribers`` readers have matched before the first
-message and for all of them to acknowledge the last, so that counts are exact.
+message and for all of them to acknowledge the last, so that counts are exact.  The
+contract's writers keep ``--history`` seconds of samples, as the live loop's do
+(``publisher_history_s``): a reader (the recorder) may stall that long and still get
+every message; a keep-last-10 writer would drop what a stalled reader had not yet
+acknowledged, and still report everything acknowledged.  The flood keeps the contract
+QoS's keep-last 10 (the throughput benchmark measures what a reader sustains with it).
 """
 
 import argparse
@@ -32,6 +37,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from erva_ros.core import topics as contract
 from erva_ros.ros import diagnostics as diag, msgs, qos as ros_qos
+from erva_ros.ros.parameters import LIVE_DEFAULTS
 
 HORIZON = 10
 
@@ -53,16 +59,16 @@ def _wait_acked(publishers: List, timeout_s: float = 5.0) -> bool:
 class ContractTraffic(Node):
     """Publish the contract's topics at their rates (see module doc)."""
 
-    def __init__(self, rate_hz: float, echo: bool, clock: bool):
+    def __init__(self, rate_hz: float, echo: bool, clock: bool, history_s: float):
         super().__init__('contract_traffic', namespace=contract.NAMESPACE)
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import AccelStamped, PointStamped
         from rosgraph_msgs.msg import Clock
         from sensor_msgs.msg import JointState
         from trajectory_msgs.msg import JointTrajectory
-        qos = ros_qos.control_qos()
         self.ts = 1.0 / rate_hz
         self.ts_ns = msgs.s_to_ns(self.ts)
+        qos = ros_qos.publisher_qos(history_s, self.ts)
         self.echo = echo
         self.pubs = {
             contract.STATE: self.create_publisher(JointState, contract.STATE, qos),
@@ -86,7 +92,8 @@ class ContractTraffic(Node):
         self.latency_stamps_ns: List[int] = []
         self.k = 0
         if echo:
-            self.create_subscription(JointTrajectory, contract.DAMPING_CMD, self._on_cmd, qos)
+            self.create_subscription(JointTrajectory, contract.DAMPING_CMD, self._on_cmd,
+                                     ros_qos.control_qos())
 
     def _publish(self, key: str, msg) -> None:
         pub = self.pubs[key]
@@ -158,7 +165,7 @@ def _stop_flag():
 
 
 def _contract(args) -> int:
-    node = ContractTraffic(args.rate, args.echo, not args.no_clock)
+    node = ContractTraffic(args.rate, args.echo, not args.no_clock, args.history)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     flag = _stop_flag()
@@ -261,6 +268,9 @@ def main(argv=None) -> int:
     p.add_argument('--wait', type=float, default=20.0, help='seconds to wait for them')
     p.add_argument('--ack-timeout', type=float, default=5.0,
                    help='seconds to wait for acknowledgements at the end (per topic)')
+    p.add_argument('--history', type=float, default=LIVE_DEFAULTS['publisher_history_s'],
+                   help='seconds of samples each writer keeps for a stalled reader '
+                        '(default: the live loop\'s publisher_history_s, 10)')
     sub.add_parser('echo', help='answer states with commands')
     p = sub.add_parser('flood', help='states as fast as possible')
     p.add_argument('--duration', type=float, default=5.0)

@@ -11,9 +11,10 @@
 2. Throughput: the whole contract (8 topics) is published at a multiple of the live
    rate, and a flood publisher sends states on one topic at the given rates (0 = as
    fast as it can); the bag's count against the published count gives the rate the
-   recorder sustained and what it lost.  Every topic has the contract's reliable
-   keep-last-10 QoS, so one topic at 1 kHz leaves the recorder 10 ms of slack where
-   the live 50 Hz topics leave it 200 ms.
+   recorder sustained and what it lost.  The flood has the contract's reliable
+   keep-last-10 QoS, so one topic at 1 kHz leaves the recorder 10 ms of slack; the
+   contract traffic keeps 10 s of samples per writer, as the live loop's writers do
+   (``publisher_history_s``), so it loses only what a recorder cannot catch up with.
 
 Processes are started with the caller's ROS_DOMAIN_ID and local-only discovery.
 """

@@ -2,7 +2,9 @@
 
 :class:`Harness` is an ordinary rclpy node (own context, same QoS as the nodes) that
 publishes what the node under test subscribes to, on the Ts grid of wall time, and
-records everything the node publishes with its arrival time.
+records everything the node publishes with its arrival time.  It stands in for loop
+nodes, so it runs at their priority (SCHED_FIFO 20, where the kernel permits it, as the
+node under test does): a busy machine then delays it no more than the loop itself.
 """
 
 import os
@@ -27,6 +29,8 @@ from erva_ros.ros.msgs import time_to_ns
 
 from conftest import REPO, ros_env
 
+#: Priority of the loop nodes (config/live.yaml realtime_priority), taken by the harness.
+LOOP_PRIORITY = 20
 TS = 0.02
 TS_NS = 20_000_000
 PAPER = os.path.join(REPO, 'config', 'erva_paper.yaml')
@@ -46,7 +50,7 @@ def start_node(name, namespace, log_path, *params):
     return proc
 
 
-def stop_node(proc, sig=signal.SIGINT, timeout=10.0):
+def stop_node(proc, sig=signal.SIGINT, timeout=60.0):
     """Stop a node process with ``sig``; return its exit status (killed if it hangs)."""
     if proc.poll() is None:
         os.killpg(proc.pid, sig)
@@ -67,6 +71,8 @@ class Harness:
         self.ctx = rclpy.Context()
         rclpy.init(args=[], context=self.ctx)
         self.node = Node('test_harness', namespace=namespace, context=self.ctx)
+        # Every thread of this process, DDS's too (they exist now); undone by close().
+        self.realtime = _set_scheduling(os.SCHED_FIFO, LOOP_PRIORITY)
         self.ns = namespace
         self.executor = SingleThreadedExecutor(context=self.ctx)
         self.executor.add_node(self.node)
@@ -131,12 +137,31 @@ class Harness:
             on_tick(k, due)
         return start_ns + k1 * TS_NS
 
-    def wait_matched(self, pubs, subs, timeout=60.0, settle=0.5):
-        """Spin until each publisher and subscription is matched, then ``settle`` s more."""
+    def wait_matched(self, pubs, subs, timeout=120.0):
+        """Spin until both ends of each publisher and subscription are matched.
+
+        This side is asked directly; the node under test's writers report the readers
+        they matched on /diagnostics (``subscribers:<topic>``): a message it published
+        before its writer matched ours would never reach the harness.  (A reliable writer
+        of the harness repairs what a reader got before it matched.)
+        """
+        def node_sees_us():
+            if not self.diag:
+                return False
+            values = self.diag[-1][4]
+            return all(int(values.get(f'subscribers:{s.topic_name}', 1)) >= 1 for s in subs)
         ok = self.spin_until(lambda: all(p.get_subscription_count() >= 1 for p in pubs)
-                             and all(s.get_publisher_count() >= 1 for s in subs), timeout)
+                             and all(s.get_publisher_count() >= 1 for s in subs)
+                             and node_sees_us(), timeout)
         assert ok, 'the node under test did not come up'
-        self.spin_for(settle)
+
+    def wait_for_diag(self, node, condition, timeout=120.0):
+        """Spin until the newest diagnostics values of ``node`` satisfy ``condition``.
+
+        Returns those values (the caller asserts on them: a timeout leaves the last seen).
+        """
+        self.spin_until(lambda: condition(self.last_diag(node)), timeout)
+        return self.last_diag(node)
 
     def spin_for(self, seconds):
         """Spin for ``seconds`` of wall time."""
@@ -155,3 +180,18 @@ class Harness:
         self.executor.shutdown()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.ctx)
+        if self.realtime:
+            _set_scheduling(os.SCHED_OTHER, 0)
+
+
+def _set_scheduling(policy, priority):
+    """Set every thread of this process to ``policy``; return False if not permitted."""
+    try:
+        for tid in os.listdir('/proc/self/task'):
+            try:
+                os.sched_setscheduler(int(tid), policy, os.sched_param(priority))
+            except ProcessLookupError:
+                continue        # ended since the listing
+    except PermissionError:     # no CAP_SYS_NICE: the nodes run at normal priority too
+        return False
+    return True
