@@ -14,10 +14,9 @@ import pytest
 from rclpy.serialization import deserialize_message
 
 from erva_ros.core.bag.reader import open_bag
-from erva_ros.core.bag.schemas import message_class
 from erva_ros.core.bag.session import recorder_ros_args
+from erva_ros.ros.bag_messages import decoded, message_class
 from recorder_helpers import DiagnosticsWatcher, wait_recorded
-from erva_ros.ros.bag_messages import decoded
 
 pytestmark = pytest.mark.ros
 STARTED = []   # processes started here, killed if a failing test left them running
