@@ -172,14 +172,14 @@ def _messages_on_disk(data):
 def test_sigkill_then_repair_keeps_everything_flushed(tmp_path, erva):
     bag = str(tmp_path / 'killed')
     rec = start_recorder(bag, {'scenario': 'kill'}, params=['flush_period_s:=0.2'])
-    wait_for(bag, rec)
+    mcap = os.path.join(bag, os.path.basename(bag) + '_0.mcap')
+    wait_for(mcap, rec)     # the file, not the directory: it is opened just after
     pub = subprocess.Popen([sys.executable, '-m', 'erva_ros.ros.traffic', 'contract',
                             '--duration', '60', '--ack-timeout', '0.2'], env=ros_env(),
                            cwd=REPO, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     STARTED.append(pub)
     # Killed once a good part is on disk, however slowly a loaded machine got there: the
     # chunks (768 KiB by default) are flushed every 0.2 s, far before they are full.
-    mcap = os.path.join(bag, os.path.basename(bag) + '_0.mcap')
     end = time.monotonic() + 120
     while time.monotonic() < end and os.path.getsize(mcap) < 60_000:
         assert pub.poll() is None, pub.communicate()
