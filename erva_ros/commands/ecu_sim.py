@@ -104,16 +104,17 @@ def _session_road(path, ts):
     agree to the bit (checked against every received sample).
     """
     from erva_ros.core.hil.road_buffer import KnownRoad
-    from erva_ros.ros.parameters import LIVE_DEFAULTS
+    from erva_ros.ros.parameters import LIVE_DEFAULTS, LIVE_SPECS
     from erva_ros.core.loop.scenario import build_road
     from erva_ros.core.params import ParamError, read_ros_params
+    from erva_ros.core.specs import check_all
     if path is None:
         raise CLIError('--road session needs --params FILE (the session params file of '
                        '`erva run`)')
     try:
         values = read_ros_params(path, 'road_preview_node', required=False)
-        cfg = dict(LIVE_DEFAULTS)
-        cfg.update({k: v for k, v in values.items() if k in LIVE_DEFAULTS})
+        cfg = check_all(LIVE_SPECS, {k: v for k, v in values.items() if k in LIVE_SPECS},
+                        path, LIVE_DEFAULTS)
         if abs(float(cfg['ts']) - ts) > 1e-12:
             raise CLIError(f'{path}: ts = {cfg["ts"]} s differs from --ts {ts:g} s')
         road = build_road(cfg)
@@ -235,14 +236,13 @@ def _print(args, result) -> None:
 
 def _publisher_history_s(path) -> float:
     """Return the session's publisher_history_s (its params file), else the default."""
-    from erva_ros.ros.parameters import LIVE_DEFAULTS, LIVE_NUMERIC
-    from erva_ros.core.params import check_number, ParamError, read_ros_params
+    from erva_ros.ros.parameters import LIVE_DEFAULTS, LIVE_SPECS
+    from erva_ros.core.params import ParamError, read_ros_params
     value = LIVE_DEFAULTS['publisher_history_s']
     if path:
         try:
             value = read_ros_params(path, 'ecu_sim').get('publisher_history_s', value)
-            value = check_number('publisher_history_s', value,
-                                 LIVE_NUMERIC['publisher_history_s'], path)
+            value = LIVE_SPECS['publisher_history_s'].check('publisher_history_s', value, path)
         except ParamError as exc:
             raise CLIError(str(exc)) from None
     return float(value)

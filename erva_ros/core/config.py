@@ -10,7 +10,7 @@ core ring stays free of ROS imports, and a PyPI install (no ament index) works t
 import functools
 import os
 import sys
-from typing import List
+from typing import Any, Dict, List, Optional
 
 from erva_ros.core.params import ParamError
 
@@ -37,6 +37,21 @@ def shipped_config(name: str, hint: str = '') -> str:
 
 
 @functools.lru_cache(maxsize=None)
+def _shipped_section(name: str, node: Optional[str]) -> Dict[str, Any]:
+    from erva_ros.core.params import read_ros_params
+    return read_ros_params(shipped_config(name), node, wildcard=node is None)
+
+
+def shipped_defaults(name: str, node: Optional[str] = None) -> Dict[str, Any]:
+    """Return the defaults a shipped params file gives: its ``/**`` or ``/**/<node>`` section.
+
+    The one home of every default value: ``config/<name>`` as shipped (a copy; read once).
+    ``node=None`` reads the wildcard section, else only the node's own sections.
+    """
+    return dict(_shipped_section(name, node))
+
+
+@functools.lru_cache(maxsize=None)
 def share_directory(package: str) -> str:
     """Return ``<prefix>/share/<package>`` of the first prefix that indexes ``package``.
 
@@ -56,4 +71,5 @@ def share_directory(package: str) -> str:
                      f'{sys.prefix}/share)')
 
 
-__all__ = ['PACKAGE', 'SOURCE_CONFIG', 'prefixes', 'shipped_config', 'share_directory']
+__all__ = ['PACKAGE', 'SOURCE_CONFIG', 'prefixes', 'shipped_config', 'shipped_defaults',
+           'share_directory']

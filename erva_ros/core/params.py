@@ -14,30 +14,16 @@ the key, the value and the allowed range.
 """
 
 from dataclasses import dataclass, fields, replace
-import math
 import os
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import yaml
 
-
-class ParamError(ValueError):
-    """A parameter is missing, of the wrong type, or out of its allowed range."""
+from erva_ros.core.specs import Number, ParamError
 
 
-@dataclass(frozen=True)
-class Spec:
-    """Allowed range and meaning of one parameter (used for validation and ROS descriptors)."""
-
-    lo: float
-    hi: float
-    unit: str
-    doc: str
-    lo_open: bool = False
-
-    def describe(self) -> str:
-        left = '(' if self.lo_open else '['
-        return f'{left}{self.lo:g}, {self.hi:g}] {self.unit}'.rstrip()
+#: The one numeric spec (``Spec`` is its historical name): see :mod:`erva_ros.core.specs`.
+Spec = Number
 
 
 # Physical parameters of the quarter car with ERVA (paper Table I, eq. (10)).
@@ -96,22 +82,6 @@ class ERVAParams:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
-def check_number(key: str, value: Any, spec: Spec, source: str = '') -> float:
-    """Return ``value`` as float or raise a one-line :class:`ParamError`."""
-    where = f'{source}: ' if source else ''
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ParamError(
-            f'{where}parameter {key!r} must be a number in {spec.describe()}, '
-            f'got {type(value).__name__} {value!r}')
-    v = float(value)
-    too_low = v <= spec.lo if spec.lo_open else v < spec.lo
-    if not math.isfinite(v) or too_low or v > spec.hi:
-        raise ParamError(
-            f'{where}parameter {key!r} = {value!r} is out of range; allowed {spec.describe()} '
-            f'({spec.doc})')
-    return v
-
-
 def validate_erva(values: Dict[str, Any], source: str = '') -> ERVAParams:
     """Validate a mapping of physical parameters; every key of ERVA_SPECS is required."""
     where = f'{source}: ' if source else ''
@@ -120,7 +90,7 @@ def validate_erva(values: Dict[str, Any], source: str = '') -> ERVAParams:
         if key not in values:
             raise ParamError(
                 f'{where}missing parameter {key!r} (expected {spec.describe()}, {spec.doc})')
-        out[key] = check_number(key, values[key], spec, source)
+        out[key] = spec.check(key, values[key], source)
     return ERVAParams(**out)
 
 
@@ -228,7 +198,7 @@ def paper_params() -> ERVAParams:
     return ERVAParams()
 
 
-__all__ = ['ParamError', 'Spec', 'ERVA_SPECS', 'PAPER_VALUES', 'ERVAParams', 'check_number',
+__all__ = ['ParamError', 'Spec', 'ERVA_SPECS', 'PAPER_VALUES', 'ERVAParams',
            'validate_erva', 'WILDCARD_SECTIONS', 'node_sections', 'read_sections',
            'read_ros_params', 'load_erva_params', 'load_section',
            'default_params_file', 'paper_params', 'replace']

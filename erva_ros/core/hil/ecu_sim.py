@@ -156,6 +156,7 @@ class EcuSimCore:
         self.plant.integrate_profile([config.c_e_safe] * self._n_latch,
                                      [0.0] * (self._n_latch + 1))
         self._generator = BufferedCall(self.plant.model.generator)
+        self._measurements = BufferedCall(self.plant.model.measurements)
         self._rng = np.random.default_rng(noise.seed)
         self._factory = bus_factory
         self.bus: Optional[can.BusABC] = None
@@ -356,10 +357,11 @@ class EcuSimCore:
         u = self.hw.c_e_from_duty(self.duty)
         s = self.plant.sample(u, w)
         position, v_gen, _ = self._generator(s.x, u)
+        _, deflection, speed = self._measurements(s.x, u, w)
         n, r = self.noise, self._rng
         chassis = Chassis(sprung_accel=s.sprung_accel + n.sprung_accel * r.standard_normal(),
-                          deflection=float(s.x[0] - s.x[2]) + n.deflection * r.standard_normal())
-        gen = Generator(speed=v_gen / self.params.l + n.speed * r.standard_normal(),
+                          deflection=deflection + n.deflection * r.standard_normal())
+        gen = Generator(speed=speed + n.speed * r.standard_normal(),
                         current=self.hw.current(u, v_gen) + n.current * r.standard_normal(),
                         voltage=self.hw.back_emf(v_gen) + n.voltage * r.standard_normal())
         rx = self._rx.counts()
