@@ -4,8 +4,8 @@ import math
 import signal
 import sys
 
-from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
-                                       print_json, realtime_priority)
+from erva_ros.commands._common import (add_json_option, add_params_option, live_type,
+                                       positive_float, print_json, realtime_priority)
 from erva_ros.core import topics
 from erva_ros.core.errors import CLIError
 
@@ -60,7 +60,8 @@ def add_arguments(parser):
                              'the grid of /erva/road/height), ros (/erva/road/height as it '
                              'arrives), flat, or a road of erva_ros.core.roads started with the '
                              'ECU (default paper)')
-    parser.add_argument('--seed', type=int, default=0, help='road seed (default 0)')
+    parser.add_argument('--seed', type=live_type('seed'), default=0,
+                        help='road seed (default 0)')
     parser.add_argument('--duration', type=float, default=0.0, metavar='S',
                         help='stop after S seconds (default 0: until Ctrl-C / SIGTERM)')
     parser.add_argument('--ros', action='store_true',
@@ -128,8 +129,6 @@ def _check_args(args) -> None:
     from erva_ros.core.hil.transport import parse_spec
     if not (math.isfinite(args.duration) and args.duration >= 0):
         raise CLIError(f'--duration must be >= 0, got {args.duration}')
-    if args.seed < 0:
-        raise CLIError(f'--seed must be >= 0, got {args.seed}')
     try:
         parse_spec(args.bus)
     except ValueError as exc:

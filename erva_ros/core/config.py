@@ -20,10 +20,23 @@ SOURCE_CONFIG = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__
                                               '..', '..', 'config'))
 
 
+def _own_prefix() -> List[str]:
+    # The prefix this package is installed in (<prefix>/lib/pythonX.Y/site-packages/
+    # erva_ros/core/config.py): an install space finds its own config/ unsourced.
+    parts = os.path.abspath(__file__).split(os.sep)
+    if 'lib' in parts:
+        i = len(parts) - 1 - parts[::-1].index('lib')
+        return [os.sep.join(parts[:i]) or os.sep]
+    return []
+
+
 def prefixes() -> List[str]:
-    """Return the install prefixes to search: AMENT_PREFIX_PATH, then sys.prefix."""
+    """Return the install prefixes to search: AMENT_PREFIX_PATH, sys.prefix, this package's."""
     out = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
-    return out + ([sys.prefix] if sys.prefix not in out else [])
+    for extra in [sys.prefix] + _own_prefix():
+        if extra not in out:
+            out.append(extra)
+    return out
 
 
 def shipped_config(name: str, hint: str = '') -> str:

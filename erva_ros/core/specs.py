@@ -46,7 +46,8 @@ class Number:
     def describe(self) -> str:
         """Return the allowed range as text, e.g. ``(0, 10] m/rad``."""
         left = '(' if self.lo_open else '['
-        return f'{left}{self.lo:g}, {self.hi:g}] {self.unit}'.rstrip()
+        unit = '' if self.unit == '-' else self.unit      # '-': dimensionless
+        return f'{left}{self.lo:g}, {self.hi:g}] {unit}'.rstrip()
 
     def allowed(self) -> str:
         """Return what is allowed and what it means (for --help and descriptors)."""
@@ -77,8 +78,9 @@ class Number:
         try:
             return self.check('', self._convert(text))
         except (ValueError, ParamError):
+            article = 'an' if self.kind[0] in 'aeiou' else 'a'
             raise _argparse.ArgumentTypeError(
-                f'{text!r} is not a {self.kind} in {self.describe()}') from None
+                f'{text!r} is not {article} {self.kind} in {self.describe()}') from None
 
     def argparse(self, help: str = '') -> Dict[str, Any]:
         """Return ``add_argument`` keywords: ``type`` and ``help`` (``help`` or the doc)."""
