@@ -357,7 +357,7 @@ class EcuSimCore:
         u = self.hw.c_e_from_duty(self.duty)
         s = self.plant.sample(u, w)
         position, v_gen, _ = self._generator(s.x, u)
-        _, deflection, speed = self._measurements(s.x, u, w)
+        _, deflection, speed = map(float, self._measurements(s.x, u, w)[0])
         n, r = self.noise, self._rng
         chassis = Chassis(sprung_accel=s.sprung_accel + n.sprung_accel * r.standard_normal(),
                           deflection=deflection + n.deflection * r.standard_normal())
