@@ -45,10 +45,14 @@ def seed_int(text: str) -> int:
 
 def add_settings_options(parser: argparse.ArgumentParser, controller: bool = True) -> None:
     """Add --settings and the common controller overrides (checked by the settings' specs)."""
-    from erva_ros.core.controllers.settings import SPECS
+    from erva_ros.core.controllers.settings import NUMERIC_SPECS, SPECS
 
     def option(flag, key, text, **kw):
-        parser.add_argument(flag, default=None, **kw, **SPECS[key].argparse(text))
+        # Numbers are checked by load_settings (the spec's check: one line naming the key).
+        spec = SPECS[key]
+        extra = spec.argparse(text, checked=False) if key in NUMERIC_SPECS else \
+            spec.argparse(text)
+        parser.add_argument(flag, default=None, **kw, **extra)
 
     parser.add_argument('--settings', metavar='FILE', default=None,
                         help='controller settings, a ROS 2 params file with an nmpc_node '

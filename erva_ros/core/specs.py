@@ -42,6 +42,7 @@ class Number:
     lo_open: bool = False
 
     kind = 'number'
+    python_type = float
 
     def describe(self) -> str:
         """Return the allowed range as text, e.g. ``(0, 10] m/rad``."""
@@ -70,21 +71,23 @@ class Number:
             raise self._out_of_range(key, value, source)
         return float(value)
 
-    def _convert(self, text: str):
-        return float(text)
-
     def parse(self, text: str):
         """Parse a command-line value (argparse ``type``): the value or ArgumentTypeError."""
         try:
-            return self.check('', self._convert(text))
+            return self.check('', self.python_type(text))
         except (ValueError, ParamError):
             article = 'an' if self.kind[0] in 'aeiou' else 'a'
             raise _argparse.ArgumentTypeError(
                 f'{text!r} is not {article} {self.kind} in {self.describe()}') from None
 
-    def argparse(self, help: str = '') -> Dict[str, Any]:
-        """Return ``add_argument`` keywords: ``type`` and ``help`` (``help`` or the doc)."""
-        return {'type': self.parse, 'help': f'{help or self.doc}; {self.describe()}'}
+    def argparse(self, help: str = '', checked: bool = True) -> Dict[str, Any]:
+        """Return ``add_argument`` keywords: ``type`` and ``help`` (``help`` or the doc).
+
+        ``checked=False`` only converts the text (int or float): for an option whose value
+        is checked later with :meth:`check`, whose one-line error names the parameter.
+        """
+        kind = self.parse if checked else self.python_type
+        return {'type': kind, 'help': f'{help or self.doc}; {self.describe()}'}
 
 
 @dataclass(frozen=True)
@@ -92,6 +95,7 @@ class Integer(Number):
     """A whole number in ``[lo, hi]``; a float that is a whole number (YAML ``4.0``) is one."""
 
     kind = 'integer'
+    python_type = int
 
     def check(self, key: str, value: Any, source: str = '') -> int:
         """Return ``value`` as int or raise a one-line :class:`ParamError`."""
@@ -104,9 +108,6 @@ class Integer(Number):
         if not self._in_range(float(value)):
             raise self._out_of_range(key, value, source)
         return int(value)
-
-    def _convert(self, text: str):
-        return int(text)
 
 
 @dataclass(frozen=True)
