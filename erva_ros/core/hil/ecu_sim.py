@@ -40,6 +40,7 @@ from erva_ros.core.codegen import BufferedCall
 from erva_ros.core.hil.codec import (Chassis, CommandMode, E2EReceiver, EcuCodec, EcuMode,
                                      Generator, Kind, Status)
 from erva_ros.core.hil.hardware import GeneratorHardware
+from erva_ros.core.hil.settings import ECU_SIM_DEFAULTS as _SIM
 from erva_ros.core.params import ERVAParams
 from erva_ros.core.plant import PlantSimulator, ProfileStep
 
@@ -60,18 +61,19 @@ class EcuSimConfig:
 class SensorNoise:
     """Standard deviations of the simulated sensors' white noise (SI units).
 
-    Defaults resemble automotive parts at a 50 Hz sample rate: a MEMS accelerometer
-    (≈ 0.02 m/s²), a ride-height potentiometer (0.1 mm), the generator's encoder speed
-    (0.01 rad/s), current shunt (10 mA) and back-emf sampling (50 mV).  The DBC's
+    Defaults (the ecu_sim section of the shipped config/hil.yaml) resemble automotive
+    parts at a 50 Hz sample rate: a MEMS accelerometer (≈ 0.02 m/s²), a ride-height
+    potentiometer (0.1 mm), the generator's encoder speed (0.01 rad/s), current shunt
+    (10 mA) and back-emf sampling (50 mV).  The DBC's
     quantisation (1 mm/s², 10 µm, 1 mrad/s, 1 mA, 10 mV) comes on top.
     """
 
-    sprung_accel: float = 0.02        # m/s²
-    deflection: float = 1e-4          # m
-    speed: float = 0.01               # rad/s
-    current: float = 0.01             # A
-    voltage: float = 0.05             # V
-    seed: int = 0
+    sprung_accel: float = _SIM['noise_sprung_accel']     # m/s²
+    deflection: float = _SIM['noise_deflection']         # m
+    speed: float = _SIM['noise_speed']                   # rad/s
+    current: float = _SIM['noise_current']               # A
+    voltage: float = _SIM['noise_voltage']               # V
+    seed: int = _SIM['seed']
 
     @staticmethod
     def none() -> 'SensorNoise':
