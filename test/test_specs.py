@@ -160,16 +160,19 @@ def test_no_default_table_or_declared_default_is_written_in_code():
         tree = ast.parse(open(path, encoding='utf-8').read(), path)
         for node in ast.walk(tree):
             # A *DEFAULTS* table given as a literal dict of constants.
-            if isinstance(node, ast.Assign) and isinstance(node.value, ast.Dict):
-                names = [t.id for t in node.targets if isinstance(t, ast.Name)]
+            if isinstance(node, (ast.Assign, ast.AnnAssign)) and isinstance(node.value,
+                                                                            ast.Dict):
+                targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+                names = [t.id for t in targets if isinstance(t, ast.Name)]
                 literal = any(isinstance(v, ast.Constant) for v in node.value.values)
                 if literal and any('DEFAULTS' in n and n != 'COMMAND_LINE_DEFAULTS'
                                    for n in names):
                     offenders.append(f'{path}:{node.lineno} {names}')
-            # declare(node, name, spec, <a literal default>).
-            if (isinstance(node, ast.Call) and getattr(node.func, 'id', '') == 'declare'
-                    and len(node.args) == 4 and isinstance(node.args[3], ast.Constant)):
-                offenders.append(f'{path}:{node.lineno} declare(..., {node.args[3].value!r})')
+            # declare*(node, name, <a literal default>, ...) of ros/parameters.py.
+            name = getattr(node, 'func', None) if isinstance(node, ast.Call) else None
+            if (isinstance(name, ast.Name) and name.id.startswith('declare')
+                    and any(isinstance(a, ast.Constant) for a in node.args[2:])):
+                offenders.append(f'{path}:{node.lineno} {name.id}(...) with a literal')
     assert not offenders, offenders
 
 
