@@ -15,6 +15,7 @@ Importing this file needs no ROS (only erva_ros's core): the launch imports are 
 
 import os
 
+from erva_ros.core.config import shipped_defaults
 from erva_ros.core.params import read_ros_params
 from erva_ros.core.topics import NAMESPACE
 
@@ -23,17 +24,20 @@ NODES = ('nmpc_node', 'plant_sim_node', 'road_preview_node')
 #: Parameter files of the package's config/ directory.
 CONFIG_FILES = ('erva_paper.yaml', 'nmpc.yaml', 'live.yaml')
 #: Launch arguments: (name, default, ROS parameter type, description).
-ARGUMENTS = (
+#: Defaults of the launch arguments: the shipped config/live.yaml and config/nmpc.yaml.
+_DEFAULTS = {**shipped_defaults('nmpc.yaml', 'nmpc_node'), **shipped_defaults('live.yaml')}
+ARGUMENTS = tuple((name, default if name == 'namespace' else str(_DEFAULTS[name]), kind, doc)
+                  for name, default, kind, doc in (
     ('namespace', NAMESPACE, str, 'namespace of the nodes and topics'),
-    ('mode', 'realtime', str, 'realtime (wall clock) or lockstep (plant publishes /clock)'),
-    ('model', 'erva', str, 'plant and controller model: erva or benchmark'),
-    ('controller', 'preview', str, 'passive, skyhook, no_preview, preview, preview_long'),
-    ('alpha1', '1.0', float, 'comfort weight alpha1 (paper eq. (12))'),
-    ('alpha2', '0.0', float, 'energy weight alpha2 (paper eq. (12))'),
-    ('road', 'paper', str, 'road profile: paper, iso8608, bump, sine'),
-    ('seed', '0', int, 'road noise and preview error seed'),
-    ('duration_s', '4.0', float, 'scenario length (s)'),
-)
+    ('mode', None, str, 'realtime (wall clock) or lockstep (plant publishes /clock)'),
+    ('model', None, str, 'plant and controller model: erva or benchmark'),
+    ('controller', None, str, 'passive, skyhook, no_preview, preview, preview_long'),
+    ('alpha1', None, float, 'comfort weight alpha1 (paper eq. (12))'),
+    ('alpha2', None, float, 'energy weight alpha2 (paper eq. (12))'),
+    ('road', None, str, 'road profile: paper, iso8608, bump, sine'),
+    ('seed', None, int, 'road noise and preview error seed'),
+    ('duration_s', None, float, 'scenario length (s)'),
+))
 
 
 def node_section(path: str, node: str) -> dict:

@@ -15,7 +15,7 @@ from erva_ros.ros.diagnostics import ERROR, parse_status, StatusReporter
 from erva_ros.session.run_config import (prepare_session, read_live_file, RunConfig,
                                          validate_live)
 from erva_ros.ros.parameters import (declare_controller_settings, declare_erva_params,
-                                     declare_live, LIVE_CHOICES, LIVE_DEFAULTS, LIVE_NUMERIC)
+                                     declare_live, LIVE_DEFAULTS, LIVE_SPECS)
 from erva_ros.session.report import format_summary, jsonable
 from erva_ros.core.loop.scenario import build_road, load_road_file
 from erva_ros.core.loop.timing import next_grid_delay_ns, PeriodStats
@@ -164,11 +164,9 @@ def test_a_bad_parameter_is_one_line(ros_context, arg, match):
 
 
 def test_live_tables_cover_the_defaults_and_live_yaml():
+    assert set(LIVE_DEFAULTS) == set(LIVE_SPECS)
     for key, value in LIVE_DEFAULTS.items():
-        if key in LIVE_NUMERIC:
-            assert LIVE_NUMERIC[key].lo <= value <= LIVE_NUMERIC[key].hi, key
-        elif key in LIVE_CHOICES:
-            assert value in LIVE_CHOICES[key][0], key
+        assert LIVE_SPECS[key].check(key, value) == value, key
     values = read_live_file(os.path.join(REPO, 'config', 'live.yaml'))
     assert validate_live(values) == validate_live({})     # the file states the defaults
 

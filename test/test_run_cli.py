@@ -66,10 +66,10 @@ def test_option_values_are_checked_by_argparse(erva):
 def test_option_choices_match_the_code():
     from erva_ros.commands import run
     from erva_ros.core.controllers.settings import CONTROLLER_NAMES
-    from erva_ros.ros.parameters import LIVE_CHOICES, MODES
+    from erva_ros.ros.parameters import LIVE_SPECS, MODES
     from erva_ros.core.model import MODEL_KINDS
     assert run.CONTROLLERS == CONTROLLER_NAMES
-    assert run.ROADS == LIVE_CHOICES['road'][0]
+    assert run.ROADS == LIVE_SPECS['road'].options
     assert run.MODES == MODES and run.MODELS == MODEL_KINDS
 
 

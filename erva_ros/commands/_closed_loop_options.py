@@ -44,40 +44,39 @@ def seed_int(text: str) -> int:
 
 
 def add_settings_options(parser: argparse.ArgumentParser, controller: bool = True) -> None:
-    """Add --settings and the common controller overrides."""
-    from erva_ros.core.controllers.settings import (CODEGEN_MODES, CONTROLLER_NAMES, COST_KINDS,
-                                                    SOLVER_KINDS)
+    """Add --settings and the common controller overrides (checked by the settings' specs)."""
+    from erva_ros.core.controllers.settings import NUMERIC_SPECS, SPECS
+
+    def option(flag, key, text, **kw):
+        # Numbers are checked by load_settings (the spec's check: one line naming the key).
+        spec = SPECS[key]
+        extra = spec.argparse(text, checked=False) if key in NUMERIC_SPECS else \
+            spec.argparse(text)
+        parser.add_argument(flag, default=None, **kw, **extra)
+
     parser.add_argument('--settings', metavar='FILE', default=None,
                         help='controller settings, a ROS 2 params file with an nmpc_node '
                              'section (default: the shipped config/nmpc.yaml)')
     if controller:
-        parser.add_argument('--controller', choices=CONTROLLER_NAMES, default=None,
-                            help='control law (default: "controller" in the settings file)')
-    parser.add_argument('--cost', choices=COST_KINDS, default=None,
-                        help='stage cost of every NMPC: paper (as printed, jerk-like comfort '
-                             'term, node-sampled power) or continuous (alpha1 a^2 - alpha2 P '
-                             'integrated); default: cost (and long_cost for preview_long) '
-                             'in the settings file')
-    parser.add_argument('--solver', choices=SOLVER_KINDS, default=None,
-                        help='NMPC solver: sqp (real-time) or ipopt (converged reference)')
-    parser.add_argument('--horizon', type=int, default=None, metavar='N',
-                        help='NMPC horizon N in samples (paper: 10)')
-    parser.add_argument('--max-iter', type=int, default=None, metavar='K',
-                        help='real-time SQP iterations per sample')
-    parser.add_argument('--codegen', choices=CODEGEN_MODES, default=None,
-                        help='compile the real-time solver\'s model functions to C: on, off, '
-                             'or auto = on when cc/gcc is on PATH (first use of a '
-                             'configuration compiles for ~5 s, then cached in '
-                             '~/.cache/erva_ros; default: settings file, auto)')
-    parser.add_argument('--u-min', type=float, default=None, metavar='NS_PER_M',
-                        help='lower bound of the damping command (Ns/m)')
-    parser.add_argument('--u-max', type=float, default=None, metavar='NS_PER_M',
-                        help='upper bound of the damping command (Ns/m)')
-    parser.add_argument('--command-delay', type=float, default=None, metavar='S',
-                        help='compensate a known delay from the sample to the command '
-                             'acting: plan from the state predicted S seconds ahead '
-                             '(0 <= S < ts; default: command_delay_s in the settings '
-                             'file, 0)')
+        option('--controller', 'controller',
+               'control law (default: "controller" in the settings file)')
+    option('--cost', 'cost',
+           'stage cost of every NMPC: paper (as printed, jerk-like comfort term, '
+           'node-sampled power) or continuous (alpha1 a^2 - alpha2 P integrated); '
+           'default: cost (and long_cost for preview_long) in the settings file')
+    option('--solver', 'solver', 'NMPC solver: sqp (real-time) or ipopt (converged reference)')
+    option('--horizon', 'horizon', 'NMPC horizon N in samples (paper: 10)', metavar='N')
+    option('--max-iter', 'max_iter', 'real-time SQP iterations per sample', metavar='K')
+    option('--codegen', 'codegen',
+           'compile the real-time solver\'s model functions to C: on, off, or auto = on '
+           'when cc/gcc is on PATH (first use of a configuration compiles for ~5 s, then '
+           'cached in ~/.cache/erva_ros; default: settings file, auto)')
+    option('--u-min', 'u_min', 'lower bound of the damping command', metavar='NS_PER_M')
+    option('--u-max', 'u_max', 'upper bound of the damping command', metavar='NS_PER_M')
+    option('--command-delay', 'command_delay_s',
+           'compensate a known delay from the sample to the command acting: plan from the '
+           'state predicted S seconds ahead (S < ts; default: command_delay_s in the '
+           'settings file, 0)', metavar='S')
 
 
 def add_road_options(parser: argparse.ArgumentParser, seed: bool = True) -> None:

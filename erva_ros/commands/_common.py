@@ -6,7 +6,6 @@ import sys
 from typing import Optional
 
 from erva_ros.core.errors import CLIError
-from erva_ros.ros.realtime import MAX_PRIORITY
 from erva_ros.session.report import print_json  # noqa: F401 (one home, for the commands)
 
 
@@ -46,26 +45,28 @@ def positive_int(text: str) -> int:
     return v
 
 
-def bounded(kind, lo: float, hi: float, describe: str):
-    """Return an argparse type parsing ``kind`` (int or float) within [lo, hi].
+def live_type(key: str):
+    """Return an argparse type checked by the spec of live parameter ``key``.
 
-    ``describe`` completes the error "'X' must be ..." (e.g. 'in [0, 10] s').
+    The spec (``erva_ros.ros.parameters.LIVE_SPECS``) is imported when the option is
+    given, so ``--help`` stays light.
     """
-    noun = 'an integer' if kind is int else 'a number'
-
     def parse(text: str):
-        try:
-            v = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f'{text!r} is not {noun}') from None
-        if not lo <= v <= hi:
-            raise argparse.ArgumentTypeError(f'{text!r} must be {describe}')
-        return v
+        from erva_ros.ros.parameters import LIVE_SPECS
+        return LIVE_SPECS[key].parse(text)
+    return parse
+
+
+def settings_type(key: str):
+    """Return an argparse type checked by the spec of controller setting ``key``."""
+    def parse(text: str):
+        from erva_ros.core.controllers.settings import SPECS
+        return SPECS[key].parse(text)
     return parse
 
 
 #: argparse type of --realtime-priority (erva run, bench --live, bench-hil, ecu-sim).
-realtime_priority = bounded(int, 0, MAX_PRIORITY, f'in [0, {MAX_PRIORITY}]')
+realtime_priority = live_type('realtime_priority')
 
 
 def ensure_out_dir(path: Optional[str]) -> Optional[str]:

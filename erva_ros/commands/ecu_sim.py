@@ -4,8 +4,8 @@ import math
 import signal
 import sys
 
-from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
-                                       print_json, realtime_priority)
+from erva_ros.commands._common import (add_json_option, add_params_option, live_type,
+                                       positive_float, print_json, realtime_priority)
 from erva_ros.core import topics
 from erva_ros.core.errors import CLIError
 
@@ -60,7 +60,8 @@ def add_arguments(parser):
                              'the grid of /erva/road/height), ros (/erva/road/height as it '
                              'arrives), flat, or a road of erva_ros.core.roads started with the '
                              'ECU (default paper)')
-    parser.add_argument('--seed', type=int, default=0, help='road seed (default 0)')
+    parser.add_argument('--seed', type=live_type('seed'), default=0,
+                        help='road seed (default 0)')
     parser.add_argument('--duration', type=float, default=0.0, metavar='S',
                         help='stop after S seconds (default 0: until Ctrl-C / SIGTERM)')
     parser.add_argument('--ros', action='store_true',
@@ -104,16 +105,17 @@ def _session_road(path, ts):
     agree to the bit (checked against every received sample).
     """
     from erva_ros.core.hil.road_buffer import KnownRoad
-    from erva_ros.ros.parameters import LIVE_DEFAULTS
+    from erva_ros.ros.parameters import LIVE_DEFAULTS, LIVE_SPECS
     from erva_ros.core.loop.scenario import build_road
     from erva_ros.core.params import ParamError, read_ros_params
+    from erva_ros.core.specs import check_all
     if path is None:
         raise CLIError('--road session needs --params FILE (the session params file of '
                        '`erva run`)')
     try:
         values = read_ros_params(path, 'road_preview_node', required=False)
-        cfg = dict(LIVE_DEFAULTS)
-        cfg.update({k: v for k, v in values.items() if k in LIVE_DEFAULTS})
+        cfg = check_all(LIVE_SPECS, {k: v for k, v in values.items() if k in LIVE_SPECS},
+                        path, LIVE_DEFAULTS)
         if abs(float(cfg['ts']) - ts) > 1e-12:
             raise CLIError(f'{path}: ts = {cfg["ts"]} s differs from --ts {ts:g} s')
         road = build_road(cfg)
@@ -127,8 +129,6 @@ def _check_args(args) -> None:
     from erva_ros.core.hil.transport import parse_spec
     if not (math.isfinite(args.duration) and args.duration >= 0):
         raise CLIError(f'--duration must be >= 0, got {args.duration}')
-    if args.seed < 0:
-        raise CLIError(f'--seed must be >= 0, got {args.seed}')
     try:
         parse_spec(args.bus)
     except ValueError as exc:
@@ -235,14 +235,13 @@ def _print(args, result) -> None:
 
 def _publisher_history_s(path) -> float:
     """Return the session's publisher_history_s (its params file), else the default."""
-    from erva_ros.ros.parameters import LIVE_DEFAULTS, LIVE_NUMERIC
-    from erva_ros.core.params import check_number, ParamError, read_ros_params
+    from erva_ros.ros.parameters import LIVE_DEFAULTS, LIVE_SPECS
+    from erva_ros.core.params import ParamError, read_ros_params
     value = LIVE_DEFAULTS['publisher_history_s']
     if path:
         try:
             value = read_ros_params(path, 'ecu_sim').get('publisher_history_s', value)
-            value = check_number('publisher_history_s', value,
-                                 LIVE_NUMERIC['publisher_history_s'], path)
+            value = LIVE_SPECS['publisher_history_s'].check('publisher_history_s', value, path)
         except ParamError as exc:
             raise CLIError(str(exc)) from None
     return float(value)

@@ -4,8 +4,9 @@ import os
 import shlex
 import sys
 
-from erva_ros.commands._common import (add_json_option, add_params_option, bounded,
-                                       positive_float, print_json, realtime_priority)
+from erva_ros.commands._common import (add_json_option, add_params_option, live_type,
+                                       positive_float, print_json, realtime_priority,
+                                       settings_type)
 from erva_ros.core import topics
 from erva_ros.core.errors import CLIError
 
@@ -50,11 +51,11 @@ MODELS = ('erva', 'benchmark')
 FOXGLOVE_DEFAULT = '127.0.0.1:8765'
 
 
-# Upper bound of a weight: the largest float, so inf (and NaN) are rejected.
-_weight = bounded(float, 0.0, 1.7976931348623157e308, 'a finite number >= 0')
-_seed = bounded(int, 0, 1_000_000_000, 'in [0, 1e9]')
-_snr = bounded(float, -40.0, 200.0, 'in [-40, 200] dB')
-_delay = bounded(float, 0.0, 10.0, 'in [0, 10] s')
+# Checked by the parameters' own specs (the session file checks the same).
+_weight = settings_type('alpha1')
+_seed = live_type('seed')
+_snr = live_type('preview_snr_db')
+_delay = live_type('preview_delay_s')
 
 
 def add_scenario_arguments(parser, duration_default: str = 'config/live.yaml: 4 s') -> None:

@@ -10,7 +10,7 @@ core ring stays free of ROS imports, and a PyPI install (no ament index) works t
 import functools
 import os
 import sys
-from typing import List
+from typing import Any, Dict, List, Optional
 
 from erva_ros.core.params import ParamError
 
@@ -20,10 +20,23 @@ SOURCE_CONFIG = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__
                                               '..', '..', 'config'))
 
 
+def _own_prefix() -> List[str]:
+    # The prefix this package is installed in (<prefix>/lib/pythonX.Y/site-packages/
+    # erva_ros/core/config.py): an install space finds its own config/ unsourced.
+    parts = os.path.abspath(__file__).split(os.sep)
+    if 'lib' in parts:
+        i = len(parts) - 1 - parts[::-1].index('lib')
+        return [os.sep.join(parts[:i]) or os.sep]
+    return []
+
+
 def prefixes() -> List[str]:
-    """Return the install prefixes to search: AMENT_PREFIX_PATH, then sys.prefix."""
+    """Return the install prefixes to search: AMENT_PREFIX_PATH, sys.prefix, this package's."""
     out = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
-    return out + ([sys.prefix] if sys.prefix not in out else [])
+    for extra in [sys.prefix] + _own_prefix():
+        if extra not in out:
+            out.append(extra)
+    return out
 
 
 def shipped_config(name: str, hint: str = '') -> str:
@@ -34,6 +47,21 @@ def shipped_config(name: str, hint: str = '') -> str:
         if os.path.isfile(cand):
             return os.path.normpath(cand)
     raise ParamError(f'cannot find config/{name}' + (f'; {hint}' if hint else ''))
+
+
+@functools.lru_cache(maxsize=None)
+def _shipped_section(name: str, node: Optional[str]) -> Dict[str, Any]:
+    from erva_ros.core.params import read_ros_params
+    return read_ros_params(shipped_config(name), node, wildcard=node is None)
+
+
+def shipped_defaults(name: str, node: Optional[str] = None) -> Dict[str, Any]:
+    """Return the defaults a shipped params file gives: its ``/**`` or ``/**/<node>`` section.
+
+    The one home of every default value: ``config/<name>`` as shipped (a copy; read once).
+    ``node=None`` reads the wildcard section, else only the node's own sections.
+    """
+    return dict(_shipped_section(name, node))
 
 
 @functools.lru_cache(maxsize=None)
@@ -56,4 +84,5 @@ def share_directory(package: str) -> str:
                      f'{sys.prefix}/share)')
 
 
-__all__ = ['PACKAGE', 'SOURCE_CONFIG', 'prefixes', 'shipped_config', 'share_directory']
+__all__ = ['PACKAGE', 'SOURCE_CONFIG', 'prefixes', 'shipped_config', 'shipped_defaults',
+           'share_directory']

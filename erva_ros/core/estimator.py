@@ -49,37 +49,45 @@ import numpy as np
 
 from erva_ros.core.codegen import BufferedCall, compile_for
 from erva_ros.core.model import get_model, rk4_stable_substeps
-from erva_ros.core.params import ERVAParams, Spec
+from erva_ros.core.config import shipped_defaults
+from erva_ros.core.params import ERVAParams
+from erva_ros.core.specs import Number
 
 #: Measurement names, in the order of y.
 MEASUREMENTS = ('sprung_accel', 'deflection', 'generator_speed')
 
 #: Noise parameters: allowed range, unit, meaning (ROS descriptors reuse this table).
-NOISE_SPECS: Dict[str, Spec] = {
-    'q_accel_s': Spec(0.0, 1e3, 'm/s^2', 'process noise: unmodelled sprung-mass acceleration'),
-    'q_accel_us': Spec(0.0, 1e4, 'm/s^2',
-                       'process noise: unmodelled unsprung acceleration (incl. road error)'),
-    'q_accel_d': Spec(0.0, 1e3, 'm/s^2', 'process noise: unmodelled rotor (z_d) acceleration'),
-    'r_sprung_accel': Spec(0.0, 1e2, 'm/s^2', 'accelerometer noise std', lo_open=True),
-    'r_deflection': Spec(0.0, 1.0, 'm', 'deflection sensor noise std', lo_open=True),
-    'r_speed': Spec(0.0, 1e2, 'rad/s', 'generator speed noise std', lo_open=True),
-    'p0_position': Spec(0.0, 1.0, 'm', 'initial position uncertainty (std)', lo_open=True),
-    'p0_velocity': Spec(0.0, 10.0, 'm/s', 'initial velocity uncertainty (std)', lo_open=True),
+NOISE_SPECS: Dict[str, Number] = {
+    'q_accel_s': Number(0.0, 1e3, 'm/s^2', 'process noise: unmodelled sprung-mass acceleration'),
+    'q_accel_us': Number(0.0, 1e4, 'm/s^2',
+                         'process noise: unmodelled unsprung acceleration (incl. road error)'),
+    'q_accel_d': Number(0.0, 1e3, 'm/s^2', 'process noise: unmodelled rotor (z_d) acceleration'),
+    'r_sprung_accel': Number(0.0, 1e2, 'm/s^2', 'accelerometer noise std', lo_open=True),
+    'r_deflection': Number(0.0, 1.0, 'm', 'deflection sensor noise std', lo_open=True),
+    'r_speed': Number(0.0, 1e2, 'rad/s', 'generator speed noise std', lo_open=True),
+    'p0_position': Number(0.0, 1.0, 'm', 'initial position uncertainty (std)', lo_open=True),
+    'p0_velocity': Number(0.0, 10.0, 'm/s', 'initial velocity uncertainty (std)', lo_open=True),
 }
+
+
+#: Default noise: the state_estimator_node section of the shipped config/hil.yaml.
+_DEFAULT_NOISE = {key: spec.check(key, shipped_defaults('hil.yaml', 'state_estimator_node')[key],
+                                  'config/hil.yaml')
+                  for key, spec in NOISE_SPECS.items()}
 
 
 @dataclass(frozen=True)
 class EstimatorNoise:
     """Standard deviations of the EKF's noise model (see the module docstring)."""
 
-    q_accel_s: float = 0.1
-    q_accel_us: float = 1.0
-    q_accel_d: float = 0.1
-    r_sprung_accel: float = 0.02
-    r_deflection: float = 1e-4
-    r_speed: float = 0.01
-    p0_position: float = 0.01
-    p0_velocity: float = 0.1
+    q_accel_s: float = _DEFAULT_NOISE['q_accel_s']
+    q_accel_us: float = _DEFAULT_NOISE['q_accel_us']
+    q_accel_d: float = _DEFAULT_NOISE['q_accel_d']
+    r_sprung_accel: float = _DEFAULT_NOISE['r_sprung_accel']
+    r_deflection: float = _DEFAULT_NOISE['r_deflection']
+    r_speed: float = _DEFAULT_NOISE['r_speed']
+    p0_position: float = _DEFAULT_NOISE['p0_position']
+    p0_velocity: float = _DEFAULT_NOISE['p0_velocity']
 
     def as_dict(self) -> Dict[str, float]:
         return asdict(self)
@@ -115,8 +123,7 @@ class ExtendedKalmanFilter:
         xn = step(x, u, w0, w1)
         self._pred = ca.Function('ekf_predict', [x, u, w0, w1], [xn, ca.jacobian(xn, x)],
                                  ['x', 'u', 'w0', 'w1'], ['xn', 'A'])
-        y = ca.vertcat(self.model.sprung_accel(x, u, w0), x[0] - x[2],
-                       self.model.generator_velocity(x) / params.l)
+        y = self.model.measurements(x, u, w0)
         self._meas = ca.Function('ekf_measure', [x, u, w0], [y, ca.jacobian(y, x)],
                                  ['x', 'u', 'w'], ['y', 'H'])
         self._cycle = self._cycle_function(x, xn, ca.jacobian(xn, x), u, w0, w1)
@@ -261,8 +268,7 @@ class ExtendedKalmanFilter:
 
 def validate_noise(values: Dict, source: str = '') -> EstimatorNoise:
     """Validate noise parameters (missing keys keep their defaults); one-line errors."""
-    from erva_ros.core.params import check_number
     base = EstimatorNoise().as_dict()
-    out = {k: check_number(k, values.get(k, base[k]), spec, source)
+    out = {k: spec.check(k, values.get(k, base[k]), source)
            for k, spec in NOISE_SPECS.items()}
     return EstimatorNoise(**out)

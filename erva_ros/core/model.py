@@ -12,8 +12,10 @@ Linear benchmark (paper eq. (15)), generator rigidly coupled to the screw:
 Both models expose the same numeric CasADi functions (built once, evaluated
 without Python overhead): ``ode`` (ẋ), ``sprung_accel`` (z̈_s, paper x_a = ẋ_2),
 ``power`` (harvested electrical power P = u·v_gen², eq. (12)), ``energy`` (stored
-mechanical energy), and a discrete ``step`` (RK4 with sub-steps; the road is
-interpolated linearly inside the interval so the tyre force is continuous).
+mechanical energy), ``generator`` (its position, v_gen, P), ``deflection``
+(z_s − z_us), ``measurements`` (what the ECU's sensors see), and a discrete
+``step`` (RK4 with sub-steps; the road is interpolated linearly inside the interval
+so the tyre force is continuous).
 
 Why sub-steps: the dynamics are stiff at high c_e (fastest eigenvalue ≈ -1300 1/s
 at 50 kNs/m, see NOTES.md); explicit RK4 is stable only for h·|λ| < 2.78, so
@@ -129,7 +131,7 @@ def _erva_symbolic(p: ERVAParams):
                      + (p.m_r + p.m_d * (1 + p.epsilon * r1) ** 2) * x[5] ** 2
                      + p.m_d * p.epsilon ** 2 * r1p ** 2 * v_gen ** 2)
     potential = 0.5 * (p.k_s * d13 ** 2 + p.k_t * (x[2] - w) ** 2 + p.k_d * (x[4] - d13) ** 2)
-    return x, u, w, xdot, power, kinetic + potential, v_gen, position
+    return x, u, w, xdot, power, kinetic + potential, v_gen, position, d13
 
 
 def _benchmark_symbolic(p: ERVAParams):
@@ -150,7 +152,7 @@ def _benchmark_symbolic(p: ERVAParams):
     power = u * v24 ** 2
     energy = (0.5 * (p.M_s * x[1] ** 2 + p.M_us * x[3] ** 2 + mx * v24 ** 2)
               + 0.5 * (p.k_s * d13 ** 2 + p.k_t * (x[2] - w) ** 2))
-    return x, u, w, xdot, power, energy, v24, d13
+    return x, u, w, xdot, power, energy, v24, d13, d13
 
 
 class QuarterCarModel:
@@ -166,7 +168,7 @@ class QuarterCarModel:
         self.params = params
         self.kind = kind
         build = _erva_symbolic if kind == 'erva' else _benchmark_symbolic
-        x, u, w, xdot, power, energy, v_gen, position = build(params)
+        x, u, w, xdot, power, energy, v_gen, position, deflection = build(params)
         self.nx = int(x.shape[0])
         self.state_names = STATE_NAMES[kind]
         #: Symbolic primitives, for users that build bigger graphs (NMPC, estimator).
@@ -183,6 +185,13 @@ class QuarterCarModel:
         self.generator = ca.Function('generator', [x, u], [position, v_gen, power],
                                      ['x', 'u'], ['position', 'v_gen', 'power'])
         self.energy = ca.Function('energy', [x, w], [energy], ['x', 'w'], ['energy'])
+        #: Suspension deflection z_s - z_us (m), what a ride-height sensor measures.
+        self.deflection = ca.Function('deflection', [x], [deflection], ['x'], ['deflection'])
+        #: What the ECU measures (erva_ros.core.estimator.MEASUREMENTS): sprung acceleration
+        #: (m/s^2), deflection (m) and generator speed v_gen / l (rad/s).
+        self.measurements = ca.Function(
+            'measurements', [x, u, w], [ca.vertcat(xdot[1], deflection, v_gen / params.l)],
+            ['x', 'u', 'w'], ['y'])
         #: [sprung_accel, power] for many samples at once: columns are samples.
         self.outputs = ca.Function('outputs', [x, u, w], [xdot[1], power],
                                    ['x', 'u', 'w'], ['sprung_accel', 'power'])

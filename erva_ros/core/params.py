@@ -14,48 +14,34 @@ the key, the value and the allowed range.
 """
 
 from dataclasses import dataclass, fields, replace
-import math
 import os
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import yaml
 
-
-class ParamError(ValueError):
-    """A parameter is missing, of the wrong type, or out of its allowed range."""
+from erva_ros.core.specs import Number, ParamError
 
 
-@dataclass(frozen=True)
-class Spec:
-    """Allowed range and meaning of one parameter (used for validation and ROS descriptors)."""
-
-    lo: float
-    hi: float
-    unit: str
-    doc: str
-    lo_open: bool = False
-
-    def describe(self) -> str:
-        left = '(' if self.lo_open else '['
-        return f'{left}{self.lo:g}, {self.hi:g}] {self.unit}'.rstrip()
+#: The one numeric spec (``Spec`` is its historical name): see :mod:`erva_ros.core.specs`.
+Spec = Number
 
 
 # Physical parameters of the quarter car with ERVA (paper Table I, eq. (10)).
 # Ranges are generous physical envelopes; they exist to catch unit and sign
 # errors (a mass in tonnes, a negative stiffness), not to restrict design studies.
-ERVA_SPECS: Dict[str, Spec] = {
-    'M_s': Spec(1.0, 5000.0, 'kg', 'sprung mass (quarter of the body)'),
-    'M_us': Spec(1.0, 1000.0, 'kg', 'unsprung mass (wheel, hub, strut)'),
-    'k_t': Spec(1e3, 1e7, 'N/m', 'tyre vertical stiffness'),
-    'k_s': Spec(1e2, 1e7, 'N/m', 'suspension spring stiffness'),
-    'c': Spec(0.0, 1e5, 'Ns/m', 'parasitic viscous damping of the strut'),
-    'k_d': Spec(0.0, 1e7, 'N/m', 'torsion-spring stiffness, translational (k_d = kbar_d/l^2)'),
-    'l': Spec(0.0, 10.0, 'm/rad', 'ball-screw effective moment arm (z = l*theta)', lo_open=True),
-    'c_e0': Spec(0.0, 1e6, 'Ns/m', 'passive electrical damping (c_e = kappa^2/R)'),
-    'm_d': Spec(0.0, 1e4, 'kg', 'sliding-mass equivalent mass (m r0^2 / l^2)'),
-    'm_r': Spec(0.0, 1e4, 'kg', 'rotor equivalent mass (J_r / l^2)'),
-    'm_b': Spec(0.0, 1e4, 'kg', 'ball-screw + housing equivalent mass (J_b / l^2)'),
-    'epsilon': Spec(0.0, 10.0, '-', 'inertia nonlinearity epsilon = lambda / r0'),
+ERVA_SPECS: Dict[str, Number] = {
+    'M_s': Number(1.0, 5000.0, 'kg', 'sprung mass (quarter of the body)'),
+    'M_us': Number(1.0, 1000.0, 'kg', 'unsprung mass (wheel, hub, strut)'),
+    'k_t': Number(1e3, 1e7, 'N/m', 'tyre vertical stiffness'),
+    'k_s': Number(1e2, 1e7, 'N/m', 'suspension spring stiffness'),
+    'c': Number(0.0, 1e5, 'Ns/m', 'parasitic viscous damping of the strut'),
+    'k_d': Number(0.0, 1e7, 'N/m', 'torsion-spring stiffness, translational (k_d = kbar_d/l^2)'),
+    'l': Number(0.0, 10.0, 'm/rad', 'ball-screw effective moment arm (z = l*theta)', lo_open=True),
+    'c_e0': Number(0.0, 1e6, 'Ns/m', 'passive electrical damping (c_e = kappa^2/R)'),
+    'm_d': Number(0.0, 1e4, 'kg', 'sliding-mass equivalent mass (m r0^2 / l^2)'),
+    'm_r': Number(0.0, 1e4, 'kg', 'rotor equivalent mass (J_r / l^2)'),
+    'm_b': Number(0.0, 1e4, 'kg', 'ball-screw + housing equivalent mass (J_b / l^2)'),
+    'epsilon': Number(0.0, 10.0, '-', 'inertia nonlinearity epsilon = lambda / r0'),
 }
 
 # Values printed in paper Table I.
@@ -96,22 +82,6 @@ class ERVAParams:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
-def check_number(key: str, value: Any, spec: Spec, source: str = '') -> float:
-    """Return ``value`` as float or raise a one-line :class:`ParamError`."""
-    where = f'{source}: ' if source else ''
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ParamError(
-            f'{where}parameter {key!r} must be a number in {spec.describe()}, '
-            f'got {type(value).__name__} {value!r}')
-    v = float(value)
-    too_low = v <= spec.lo if spec.lo_open else v < spec.lo
-    if not math.isfinite(v) or too_low or v > spec.hi:
-        raise ParamError(
-            f'{where}parameter {key!r} = {value!r} is out of range; allowed {spec.describe()} '
-            f'({spec.doc})')
-    return v
-
-
 def validate_erva(values: Dict[str, Any], source: str = '') -> ERVAParams:
     """Validate a mapping of physical parameters; every key of ERVA_SPECS is required."""
     where = f'{source}: ' if source else ''
@@ -120,7 +90,7 @@ def validate_erva(values: Dict[str, Any], source: str = '') -> ERVAParams:
         if key not in values:
             raise ParamError(
                 f'{where}missing parameter {key!r} (expected {spec.describe()}, {spec.doc})')
-        out[key] = check_number(key, values[key], spec, source)
+        out[key] = spec.check(key, values[key], source)
     return ERVAParams(**out)
 
 
@@ -228,7 +198,7 @@ def paper_params() -> ERVAParams:
     return ERVAParams()
 
 
-__all__ = ['ParamError', 'Spec', 'ERVA_SPECS', 'PAPER_VALUES', 'ERVAParams', 'check_number',
+__all__ = ['ParamError', 'Spec', 'ERVA_SPECS', 'PAPER_VALUES', 'ERVAParams',
            'validate_erva', 'WILDCARD_SECTIONS', 'node_sections', 'read_sections',
            'read_ros_params', 'load_erva_params', 'load_section',
            'default_params_file', 'paper_params', 'replace']

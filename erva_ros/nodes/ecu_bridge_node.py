@@ -49,14 +49,13 @@ from erva_ros.core.hil import topics as hil_topics
 from erva_ros.core.hil.bridge import BridgeConfig, BridgeCore, EcuCycle, SensorFrame
 from erva_ros.core.hil.codec import EcuCodec, Kind
 from erva_ros.core.hil.latency import LatencyStats
-from erva_ros.core.hil.settings import (BRIDGE_DEFAULTS, BRIDGE_NUMERIC, BRIDGE_STRINGS,
-                                        hardware_of, INTEGER_KEYS, TS_SPEC)
+from erva_ros.core.hil.settings import BRIDGE_DEFAULTS, BRIDGE_SPECS, hardware_of, TS_SPEC
 from erva_ros.core.hil.transport import open_bus, parse_spec
 from erva_ros.ros import diagnostics as diag
 from erva_ros.ros.cdr import (CdrError, decode_joint_trajectory, encode_accel_stamped,
                               JointStateEncoder)
-from erva_ros.ros.parameters import (declare_erva_params, declare_live, declare_number,
-                                     declare_string, loop_priority)
+from erva_ros.ros.parameters import (declare, declare_all, declare_erva_params, declare_live,
+                                     LIVE_DEFAULTS, loop_priority)
 from erva_ros.ros.rt_subscription import RealtimeSubscription
 from erva_ros.ros.runtime import run_node
 from erva_ros.core.params import ParamError
@@ -92,17 +91,11 @@ class EcuBridgeNode(Node):
     def __init__(self):
         super().__init__('ecu_bridge_node')
         self.params = declare_erva_params(self)
-        self.ts = declare_number(self, 'ts', 0.02, TS_SPEC)
+        self.ts = declare(self, 'ts', TS_SPEC, LIVE_DEFAULTS['ts'])
         # SCHED_FIFO once started (run_node, live/realtime.py): the node is on the loop.
         live = declare_live(self, ('realtime_priority', 'publisher_history_s'))
         self.realtime_priority = loop_priority(live)
-        cfg = {}
-        for key, default in BRIDGE_DEFAULTS.items():
-            if key in BRIDGE_STRINGS:
-                cfg[key] = declare_string(self, key, default, BRIDGE_STRINGS[key])
-            else:
-                cfg[key] = declare_number(self, key, default, BRIDGE_NUMERIC[key],
-                                          integer=key in INTEGER_KEYS)
+        cfg = declare_all(self, BRIDGE_SPECS, BRIDGE_DEFAULTS)
         try:
             parse_spec(cfg['bus'])
             codec = EcuCodec(cfg['dbc_file'] or None)

@@ -50,14 +50,13 @@ from erva_ros.core.estimator import ExtendedKalmanFilter
 from erva_ros.core.hil import topics as hil_topics
 from erva_ros.core.hil.latency import LatencyStats
 from erva_ros.core.hil.road_buffer import RoadBuffer
-from erva_ros.core.hil.settings import (ESTIMATOR_DEFAULTS, ESTIMATOR_NUMERIC, INTEGER_KEYS,
-                                        noise_of, TS_SPEC)
+from erva_ros.core.hil.settings import (COMMAND_LINE_DEFAULTS, ESTIMATOR_DEFAULTS,
+                                        ESTIMATOR_SPECS, noise_of, ROAD_GRID_SPEC, TS_SPEC)
 from erva_ros.ros import diagnostics as diag
 from erva_ros.ros.cdr import CdrError, decode_joint_state, JointStateEncoder
 from erva_ros.ros.msgs import NS, state_joint_names, time_to_ns
-from erva_ros.ros.parameters import (declare_bool, declare_choice, declare_erva_params,
-                                     declare_live, declare_number, LIVE_CHOICES,
-                                     loop_priority)
+from erva_ros.ros.parameters import (declare, declare_all, declare_erva_params, declare_live,
+                                     LIVE_DEFAULTS, LIVE_SPECS, loop_priority)
 from erva_ros.ros.rt_subscription import RealtimeSubscription
 from erva_ros.ros.runtime import run_node
 
@@ -108,20 +107,15 @@ class StateEstimatorNode(Node):
     def __init__(self):
         super().__init__('state_estimator_node')
         self.params = declare_erva_params(self)
-        self.ts = declare_number(self, 'ts', 0.02, TS_SPEC)
-        choices, doc = LIVE_CHOICES['model']
-        self.kind = declare_choice(self, 'model', 'erva', choices, doc)
+        self.ts = declare(self, 'ts', TS_SPEC, LIVE_DEFAULTS['ts'])
+        self.kind = declare(self, 'model', LIVE_SPECS['model'], LIVE_DEFAULTS['model'])
         # SCHED_FIFO once started (run_node, live/realtime.py): the node is on the loop.
         live = declare_live(self, ('realtime_priority', 'publisher_history_s'))
         self.realtime_priority = loop_priority(live)
-        cfg = {key: declare_number(self, key, default, ESTIMATOR_NUMERIC[key],
-                                   integer=key in INTEGER_KEYS)
-               for key, default in ESTIMATOR_DEFAULTS.items()}
+        cfg = declare_all(self, ESTIMATOR_SPECS, ESTIMATOR_DEFAULTS)
         self.cfg = cfg
-        self.on_road_grid = declare_bool(
-            self, 'stamp_on_road_grid', False, 'stamp each ECU cycle with the road sample '
-            'instant in [-Ts/4, 3Ts/4) around its CAN receive time (an ECU sampling on the '
-            'road grid and sending at once)')
+        self.on_road_grid = declare(self, 'stamp_on_road_grid', ROAD_GRID_SPEC,
+                                    COMMAND_LINE_DEFAULTS['stamp_on_road_grid'])
         self.grid_ns: Optional[int] = None  # a road sample instant: the grid's phase
         self.ekf = ExtendedKalmanFilter(self.params, self.kind, self.ts, noise_of(cfg),
                                         u_max=cfg['u_max'])

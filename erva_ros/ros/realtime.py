@@ -25,12 +25,14 @@ import os
 import struct
 from typing import Callable, Optional
 
+from erva_ros.core.config import shipped_defaults
+
 #: Highest priority a node may ask for (99 is left to the kernel's own threads).
 MAX_PRIORITY = 98
-#: Default of the ``realtime_priority`` parameter (config/live.yaml): below the threaded
-#: IRQ handlers of a PREEMPT_RT kernel (50), so network and timer interrupts still
-#: preempt the loop.
-DEFAULT_PRIORITY = 20
+#: Default of the ``realtime_priority`` parameter, as config/live.yaml ships it (20: below
+#: the threaded IRQ handlers of a PREEMPT_RT kernel (50), so network and timer interrupts
+#: still preempt the loop).
+DEFAULT_PRIORITY = int(shipped_defaults('live.yaml')['realtime_priority'])
 #: The PM QoS device of the CPU wake-up latency request.
 CPU_DMA_LATENCY = '/dev/cpu_dma_latency'
 

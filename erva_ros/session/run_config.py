@@ -19,9 +19,9 @@ from erva_ros.core.config import shipped_config
 from erva_ros.core.controllers.settings import load_controller_settings
 from erva_ros.core.errors import CLIError
 from erva_ros.core.loop.scenario import build_road, required_preview_steps
-from erva_ros.core.params import check_number, load_erva_params, ParamError, read_sections
-from erva_ros.ros.parameters import (LIVE_CHOICES, LIVE_DEFAULTS, LIVE_INTEGERS,
-                                     LIVE_NUMERIC, LIVE_OTHER)
+from erva_ros.core.params import load_erva_params, ParamError, read_sections
+from erva_ros.core.specs import check_all
+from erva_ros.ros.parameters import LIVE_DEFAULTS, LIVE_SPECS
 
 #: The live nodes in start order (the slowest to start first).
 NODES = ('nmpc_node', 'plant_sim_node', 'road_preview_node')
@@ -65,30 +65,9 @@ def read_live_file(path: Optional[str]) -> Dict[str, Any]:
 
 
 def validate_live(values: Dict[str, Any], source: str = '') -> Dict[str, Any]:
-    """Return the live parameters (defaults filled in) checked against the tables."""
-    where = f'{source}: ' if source else ''
-    out = dict(LIVE_DEFAULTS)
-    out.update({k: v for k, v in values.items() if k != 'use_sim_time'})
-    for key, value in out.items():
-        if key in LIVE_NUMERIC:
-            spec = LIVE_NUMERIC[key]
-            if key in LIVE_INTEGERS and (isinstance(value, bool) or not isinstance(value, int)):
-                raise ParamError(f'{where}parameter {key!r} must be an integer in '
-                                 f'{spec.describe()}, got {value!r}')
-            out[key] = check_number(key, value, spec, source)
-            if key in LIVE_INTEGERS:
-                out[key] = int(out[key])
-        elif key in LIVE_CHOICES:
-            choices, doc = LIVE_CHOICES[key]
-            if value not in choices:
-                raise ParamError(f'{where}parameter {key!r} = {value!r} is not allowed; '
-                                 f'choose one of {", ".join(choices)} ({doc})')
-        elif isinstance(LIVE_DEFAULTS[key], bool) and not isinstance(value, bool):
-            raise ParamError(f'{where}parameter {key!r} must be true or false '
-                             f'({LIVE_OTHER[key]}), got {value!r}')
-        elif isinstance(LIVE_DEFAULTS[key], str) and not isinstance(value, str):
-            raise ParamError(f'{where}parameter {key!r} must be a string, got {value!r}')
-    return out
+    """Return the live parameters (defaults filled in) checked by their specs (LIVE_SPECS)."""
+    return check_all(LIVE_SPECS, {k: v for k, v in values.items() if k != 'use_sim_time'},
+                     source, LIVE_DEFAULTS)
 
 
 @dataclass

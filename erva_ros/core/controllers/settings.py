@@ -14,7 +14,8 @@ stable over the whole box: it is Radau IIA collocation (L-stable), see nmpc.py.
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, Dict, Mapping, Optional, Tuple
 
-from erva_ros.core.params import check_number, ERVA_SPECS, ParamError, read_ros_params, Spec
+from erva_ros.core.params import ERVA_SPECS, ParamError, read_ros_params
+from erva_ros.core.specs import Choice, Integer, Number
 
 #: Controllers understood by make_controller (and `erva sim --controller`).
 CONTROLLER_NAMES = ('passive', 'skyhook', 'no_preview', 'preview', 'preview_long')
@@ -31,39 +32,44 @@ ROAD_PREDICTIONS = ('hold', 'zero')
 NODE_NAME = 'nmpc_node'
 
 #: Numeric settings: allowed range, unit and meaning (reused for ROS descriptors).
-NUMERIC_SPECS: Dict[str, Spec] = {
-    'horizon': Spec(1, 200, 'steps', 'prediction horizon N (paper: 10)'),
-    'ts': Spec(1e-3, 1.0, 's', 'control sample time Ts (paper: 0.02)', lo_open=False),
-    'alpha1': Spec(0.0, 1e6, '-', 'comfort weight alpha1 on chassis acceleration (eq. (12))'),
-    'alpha2': Spec(0.0, 1e6, '-', 'energy weight alpha2 on harvested power (eq. (12))'),
-    'u_min': Spec(0.0, 1e6, 'Ns/m', 'lower bound of the electrical damping c_e'),
-    'u_max': Spec(0.0, 1e6, 'Ns/m', 'upper bound of the electrical damping c_e', lo_open=True),
-    'max_iter': Spec(1, 50, 'iterations', 'real-time SQP iterations per sample'),
-    'ipopt_max_iter': Spec(1, 100000, 'iterations', 'IPOPT iteration limit (reference)'),
-    'ipopt_starts': Spec(1, 4, 'starts', 'IPOPT reference: converge from the warm start, '
-                         '+ constant c_e0, + first move at u_max, + at u_min; keep the best'),
-    'time_budget_s': Spec(0.0, 10.0, 's', 'solve time beyond which the plan is not used'),
-    'command_delay_s': Spec(0.0, 1.0, 's', 'known delay from the sample t_k to the command '
-                            'acting (0: none); plan from x(t_k + delay), < ts',
-                            lo_open=False),
-    'collocation_degree': Spec(1, 6, '-', 'Radau collocation points per interval (model)'),
-    'long_steps': Spec(0, 200, 'steps', 'preview_long: coarse intervals after the first N'),
-    'long_step_s': Spec(1e-3, 1.0, 's', 'preview_long: length of a coarse interval'),
-    'terminal_weight': Spec(0.0, 1e6, '-', 'preview_long: weight of the terminal energy cost'),
+NUMERIC_SPECS: Dict[str, Number] = {
+    'horizon': Integer(1, 200, 'steps', 'prediction horizon N (paper: 10)'),
+    'ts': Number(1e-3, 1.0, 's', 'control sample time Ts (paper: 0.02)', lo_open=False),
+    'alpha1': Number(0.0, 1e6, '-', 'comfort weight alpha1 on chassis acceleration (eq. (12))'),
+    'alpha2': Number(0.0, 1e6, '-', 'energy weight alpha2 on harvested power (eq. (12))'),
+    'u_min': Number(0.0, 1e6, 'Ns/m', 'lower bound of the electrical damping c_e'),
+    'u_max': Number(0.0, 1e6, 'Ns/m', 'upper bound of the electrical damping c_e', lo_open=True),
+    'max_iter': Integer(1, 50, 'iterations', 'real-time SQP iterations per sample'),
+    'ipopt_max_iter': Integer(1, 100000, 'iterations', 'IPOPT iteration limit (reference)'),
+    'ipopt_starts': Integer(1, 4, 'starts', 'IPOPT reference: converge from the warm start, '
+                            '+ constant c_e0, + first move at u_max, + at u_min; keep the best'),
+    'time_budget_s': Number(0.0, 10.0, 's', 'solve time beyond which the plan is not used'),
+    'command_delay_s': Number(0.0, 1.0, 's', 'known delay from the sample t_k to the command '
+                              'acting (0: none); plan from x(t_k + delay), < ts',
+                              lo_open=False),
+    'collocation_degree': Integer(1, 6, '-', 'Radau collocation points per interval (model)'),
+    'long_steps': Integer(0, 200, 'steps', 'preview_long: coarse intervals after the first N'),
+    'long_step_s': Number(1e-3, 1.0, 's', 'preview_long: length of a coarse interval'),
+    'terminal_weight': Number(0.0, 1e6, '-', 'preview_long: weight of the terminal energy cost'),
 }
 #: Settings that must be whole numbers.
-INTEGER_KEYS = frozenset({'horizon', 'max_iter', 'ipopt_max_iter', 'ipopt_starts',
-                          'long_steps', 'collocation_degree'})
+INTEGER_KEYS = frozenset(k for k, spec in NUMERIC_SPECS.items() if isinstance(spec, Integer))
 #: String settings and their allowed values.
-CHOICE_SPECS: Dict[str, Tuple[Tuple[str, ...], str]] = {
-    'controller': (CONTROLLER_NAMES, 'control law'),
-    'cost': (COST_KINDS, 'NMPC stage cost: paper (discrete, eq. (14)) or continuous (eq. (12))'),
-    'solver': (SOLVER_KINDS, 'NMPC solver: sqp (real-time SQP) or ipopt (converged reference)'),
-    'road_prediction': (ROAD_PREDICTIONS, 'no_preview road model: hold last height or zero'),
-    'long_cost': (COST_KINDS, 'stage cost of preview_long (paper or continuous)'),
-    'codegen': (CODEGEN_MODES, 'compile the real-time solver\'s model functions to C '
-                               '(auto: when cc/gcc is on PATH; cached in ~/.cache/erva_ros)'),
+CHOICE_SPECS: Dict[str, Choice] = {
+    'controller': Choice(CONTROLLER_NAMES, 'control law'),
+    'cost': Choice(COST_KINDS,
+                   'NMPC stage cost: paper (discrete, eq. (14)) or continuous (eq. (12))'),
+    'solver': Choice(SOLVER_KINDS,
+                     'NMPC solver: sqp (real-time SQP) or ipopt (converged reference)'),
+    'road_prediction': Choice(ROAD_PREDICTIONS,
+                              'no_preview road model: hold last height or zero'),
+    'long_cost': Choice(COST_KINDS, 'stage cost of preview_long (paper or continuous)'),
+    'codegen': Choice(CODEGEN_MODES, 'compile the real-time solver\'s model functions to C '
+                                     '(auto: when cc/gcc is on PATH; cached in '
+                                     '~/.cache/erva_ros)'),
 }
+#: Every setting's spec (erva_ros.core.specs): the one table of allowed values.
+SPECS: Dict[str, Any] = {**NUMERIC_SPECS, **CHOICE_SPECS}
 
 
 @dataclass(frozen=True)
@@ -112,33 +118,13 @@ DEFAULTS: Dict[str, Any] = asdict(ControllerSettings())
 
 def describe(key: str) -> str:
     """Return the allowed values of ``key`` as text (for --help and descriptors)."""
-    if key in CHOICE_SPECS:
-        choices, doc = CHOICE_SPECS[key]
-        return f'one of {", ".join(choices)} ({doc})'
-    spec = NUMERIC_SPECS[key]
-    kind = 'integer' if key in INTEGER_KEYS else 'number'
-    return f'{kind} in {spec.describe()} ({spec.doc})'
+    return SPECS[key].allowed()
 
 
 def _check(key: str, value: Any, source: str) -> Any:
-    where = f'{source}: ' if source else ''
     if key == 'codegen' and isinstance(value, bool):
         value = 'on' if value else 'off'   # YAML 1.1 reads a bare on/off as a boolean
-    if key in CHOICE_SPECS:
-        choices, _ = CHOICE_SPECS[key]
-        if not isinstance(value, str) or value not in choices:
-            raise ParamError(f'{where}parameter {key!r} = {value!r} is not allowed; '
-                             f'choose one of {", ".join(choices)}')
-        return value
-    spec = NUMERIC_SPECS[key]
-    if key in INTEGER_KEYS:
-        if isinstance(value, float) and value.is_integer():
-            value = int(value)
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ParamError(f'{where}parameter {key!r} must be an integer in '
-                             f'{spec.describe()}, got {type(value).__name__} {value!r}')
-        return int(check_number(key, value, spec, source))
-    return check_number(key, value, spec, source)
+    return SPECS[key].check(key, value, source)
 
 
 def validate_settings(values: Mapping[str, Any], source: str = '') -> ControllerSettings:
@@ -196,6 +182,7 @@ def load_controller_settings(path: Optional[str] = None,
 
 
 __all__ = ['CONTROLLER_NAMES', 'COST_KINDS', 'SOLVER_KINDS', 'ROAD_PREDICTIONS', 'NODE_NAME',
-           'NUMERIC_SPECS', 'INTEGER_KEYS', 'CHOICE_SPECS', 'DEFAULTS', 'ControllerSettings',
+           'NUMERIC_SPECS', 'INTEGER_KEYS', 'CHOICE_SPECS', 'SPECS', 'DEFAULTS',
+           'ControllerSettings',
            'describe', 'validate_settings', 'load_controller_settings',
            'default_settings_file']

@@ -40,6 +40,7 @@ from erva_ros.core.codegen import BufferedCall
 from erva_ros.core.hil.codec import (Chassis, CommandMode, E2EReceiver, EcuCodec, EcuMode,
                                      Generator, Kind, Status)
 from erva_ros.core.hil.hardware import GeneratorHardware
+from erva_ros.core.hil.settings import ECU_SIM_DEFAULTS as _SIM
 from erva_ros.core.params import ERVAParams
 from erva_ros.core.plant import PlantSimulator, ProfileStep
 
@@ -60,18 +61,19 @@ class EcuSimConfig:
 class SensorNoise:
     """Standard deviations of the simulated sensors' white noise (SI units).
 
-    Defaults resemble automotive parts at a 50 Hz sample rate: a MEMS accelerometer
-    (≈ 0.02 m/s²), a ride-height potentiometer (0.1 mm), the generator's encoder speed
-    (0.01 rad/s), current shunt (10 mA) and back-emf sampling (50 mV).  The DBC's
+    Defaults (the ecu_sim section of the shipped config/hil.yaml) resemble automotive
+    parts at a 50 Hz sample rate: a MEMS accelerometer (≈ 0.02 m/s²), a ride-height
+    potentiometer (0.1 mm), the generator's encoder speed (0.01 rad/s), current shunt
+    (10 mA) and back-emf sampling (50 mV).  The DBC's
     quantisation (1 mm/s², 10 µm, 1 mrad/s, 1 mA, 10 mV) comes on top.
     """
 
-    sprung_accel: float = 0.02        # m/s²
-    deflection: float = 1e-4          # m
-    speed: float = 0.01               # rad/s
-    current: float = 0.01             # A
-    voltage: float = 0.05             # V
-    seed: int = 0
+    sprung_accel: float = _SIM['noise_sprung_accel']     # m/s²
+    deflection: float = _SIM['noise_deflection']         # m
+    speed: float = _SIM['noise_speed']                   # rad/s
+    current: float = _SIM['noise_current']               # A
+    voltage: float = _SIM['noise_voltage']               # V
+    seed: int = _SIM['seed']
 
     @staticmethod
     def none() -> 'SensorNoise':
@@ -156,6 +158,7 @@ class EcuSimCore:
         self.plant.integrate_profile([config.c_e_safe] * self._n_latch,
                                      [0.0] * (self._n_latch + 1))
         self._generator = BufferedCall(self.plant.model.generator)
+        self._measurements = BufferedCall(self.plant.model.measurements)
         self._rng = np.random.default_rng(noise.seed)
         self._factory = bus_factory
         self.bus: Optional[can.BusABC] = None
@@ -356,10 +359,11 @@ class EcuSimCore:
         u = self.hw.c_e_from_duty(self.duty)
         s = self.plant.sample(u, w)
         position, v_gen, _ = self._generator(s.x, u)
+        _, deflection, speed = map(float, self._measurements(s.x, u, w)[0])
         n, r = self.noise, self._rng
         chassis = Chassis(sprung_accel=s.sprung_accel + n.sprung_accel * r.standard_normal(),
-                          deflection=float(s.x[0] - s.x[2]) + n.deflection * r.standard_normal())
-        gen = Generator(speed=v_gen / self.params.l + n.speed * r.standard_normal(),
+                          deflection=deflection + n.deflection * r.standard_normal())
+        gen = Generator(speed=speed + n.speed * r.standard_normal(),
                         current=self.hw.current(u, v_gen) + n.current * r.standard_normal(),
                         voltage=self.hw.back_emf(v_gen) + n.voltage * r.standard_normal())
         rx = self._rx.counts()

@@ -71,9 +71,7 @@ def _run(params: ERVAParams, controller, road, duration_s: float, ts: float,
         if estimator is not None:
             if k > 0:
                 estimator.predict(u_prev, w_prev, w_k)
-            truth = np.array([float(model.sprung_accel(plant.x, u_prev, w_k)),
-                              plant.x[0] - plant.x[2],
-                              float(model.generator_velocity(plant.x)) / params.l])
+            truth = np.asarray(model.measurements(plant.x, u_prev, w_k)).ravel()
             y = np.round((truth + sig * rng.standard_normal(3)) / QUANTUM) * QUANTUM
             estimator.update(y, u_prev, w_k)
             x_ctrl = estimator.x.copy()

@@ -33,25 +33,23 @@ from dataclasses import asdict, dataclass
 import math
 from typing import Any, Dict, Mapping, Tuple
 
-from erva_ros.core.params import check_number, ParamError, Spec
+from erva_ros.core.config import shipped_defaults
+from erva_ros.core.specs import Number, ParamError
 
 #: Hardware parameters of the generator and its PWM load switch (ROS parameter names).
-HARDWARE_SPECS: Dict[str, Spec] = {
-    'kappa_n_per_a': Spec(0.0, 1e5, 'N/A', 'generator force constant kappa = kappabar / l '
-                          '(paper eq. (10)); c_e = kappa^2 / R', lo_open=True),
-    'r_internal_ohm': Spec(0.0, 1e3, 'Ohm', 'generator winding resistance R_int'),
-    'r_switch_ohm': Spec(0.0, 1e3, 'Ohm', 'load resistance while the PWM switch is on R_sw'),
-    'duty_min': Spec(0.0, 1.0, '-', 'lowest PWM duty the ECU accepts (0 = open circuit)'),
-    'duty_max': Spec(0.0, 1.0, '-', 'highest PWM duty the ECU accepts', lo_open=True),
+HARDWARE_SPECS: Dict[str, Number] = {
+    'kappa_n_per_a': Number(0.0, 1e5, 'N/A', 'generator force constant kappa = kappabar / l '
+                            '(paper eq. (10)); c_e = kappa^2 / R', lo_open=True),
+    'r_internal_ohm': Number(0.0, 1e3, 'Ohm', 'generator winding resistance R_int'),
+    'r_switch_ohm': Number(0.0, 1e3, 'Ohm', 'load resistance while the PWM switch is on R_sw'),
+    'duty_min': Number(0.0, 1.0, '-', 'lowest PWM duty the ECU accepts (0 = open circuit)'),
+    'duty_max': Number(0.0, 1.0, '-', 'highest PWM duty the ECU accepts', lo_open=True),
 }
 
+#: Defaults: the ecu_bridge_node section of the shipped config/hil.yaml (their one home).
 DEFAULTS: Dict[str, float] = {
-    'kappa_n_per_a': 120.0,
-    'r_internal_ohm': 0.4,
-    'r_switch_ohm': 0.2,
-    'duty_min': 0.0,
-    'duty_max': 0.95,
-}
+    key: spec.check(key, shipped_defaults('hil.yaml', 'ecu_bridge_node')[key], 'config/hil.yaml')
+    for key, spec in HARDWARE_SPECS.items()}
 
 
 @dataclass(frozen=True)
@@ -121,7 +119,7 @@ def validate_hardware(values: Mapping[str, Any], source: str = '') -> GeneratorH
     """Validate hardware parameters (missing keys take the defaults); one-line errors."""
     out = {}
     for key, spec in HARDWARE_SPECS.items():
-        out[key] = check_number(key, values.get(key, DEFAULTS[key]), spec, source)
+        out[key] = spec.check(key, values.get(key, DEFAULTS[key]), source)
     if out['r_internal_ohm'] + out['r_switch_ohm'] <= 0:
         raise ParamError(f'{source + ": " if source else ""}r_internal_ohm + r_switch_ohm '
                          'must be > 0 (the generator circuit needs a resistance)')

@@ -14,15 +14,16 @@ not operating limits (the controller's input box [u_min, u_max] is).
 import math
 from typing import Callable, Dict, Iterable, Optional
 
-from erva_ros.core.params import ERVA_SPECS, Spec
+from erva_ros.core.params import ERVA_SPECS
+from erva_ros.core.specs import Number
 
 #: Absurdity bounds of incoming values (SI units).
-LIMITS: Dict[str, Spec] = {
-    'position': Spec(-1.0, 1.0, 'm', 'displacement z_s, z_us, z_d (strut travel is ~0.2 m)'),
-    'velocity': Spec(-20.0, 20.0, 'm/s', 'velocity of z_s, z_us, z_d'),
-    'road_height': Spec(-1.0, 1.0, 'm', 'road height at the tyre'),
-    'distance': Spec(-1e9, 1e9, 'm', 'distance travelled'),
-    'damping': Spec(0.0, ERVA_SPECS['c_e0'].hi, 'Ns/m', 'electrical damping c_e'),
+LIMITS: Dict[str, Number] = {
+    'position': Number(-1.0, 1.0, 'm', 'displacement z_s, z_us, z_d (strut travel is ~0.2 m)'),
+    'velocity': Number(-20.0, 20.0, 'm/s', 'velocity of z_s, z_us, z_d'),
+    'road_height': Number(-1.0, 1.0, 'm', 'road height at the tyre'),
+    'distance': Number(-1e9, 1e9, 'm', 'distance travelled'),
+    'damping': Number(0.0, ERVA_SPECS['c_e0'].hi, 'Ns/m', 'electrical damping c_e'),
 }
 
 

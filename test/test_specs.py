@@ -1,0 +1,227 @@
+"""The typed spec family (core/specs.py), defaults only in config/, the model's outputs."""
+
+import argparse
+import ast
+import os
+
+import numpy as np
+import pytest
+import rclpy
+import yaml
+
+from erva_ros.core.config import shipped_defaults
+from erva_ros.core.controllers.settings import ControllerSettings, SPECS as SETTINGS_SPECS
+from erva_ros.core.hil import settings as hs
+from erva_ros.core.hil.ecu_sim import SensorNoise
+from erva_ros.core.model import get_model
+from erva_ros.core.params import ERVA_SPECS, ERVAParams, ParamError, Spec
+from erva_ros.core.specs import check_all, Choice, Flag, Integer, Number, Text
+from erva_ros.ros.parameters import (declare_all, declare_controller_settings,
+                                     declare_erva_params, declare_live, descriptor,
+                                     LIVE_DEFAULTS, LIVE_SPECS)
+
+from conftest import REPO
+
+
+def _one_line(info) -> str:
+    text = str(info.value)
+    assert text and '\n' not in text
+    return text
+
+
+def test_number_checks_range_type_and_openness():
+    spec = Number(0.0, 10.0, 'm/rad', 'arm', lo_open=True)
+    assert Spec is Number
+    assert spec.describe() == '(0, 10] m/rad'
+    assert spec.check('l', 3) == 3.0 and type(spec.check('l', 3)) is float
+    for bad, needle in ((0.0, "'l' = 0.0 is out of range; allowed (0, 10] m/rad (arm)"),
+                        (10.5, "'l' = 10.5 is out of range"),
+                        (float('nan'), "'l' = nan is out of range"),
+                        (float('inf'), "'l' = inf is out of range"),
+                        (True, "'l' must be a number in (0, 10] m/rad, got bool True"),
+                        ('3', "'l' must be a number in (0, 10] m/rad, got str '3'")):
+        with pytest.raises(ParamError) as info:
+            spec.check('l', bad, 'f.yaml')
+        text = _one_line(info)
+        assert text.startswith('f.yaml: parameter ') and needle in text, text
+    assert Number(0.0, 1.0, '-', 'x').describe() == '[0, 1]'     # dimensionless
+
+
+def test_integer_takes_whole_numbers_and_returns_int():
+    spec = Integer(1, 200, 'steps', 'horizon')
+    got = spec.check('horizon', 10.0)                # YAML 10.0
+    assert got == 10 and type(got) is int
+    for bad in (10.5, True, '10', None):
+        with pytest.raises(ParamError) as info:
+            spec.check('horizon', bad)
+        assert "'horizon' must be an integer in [1, 200] steps" in _one_line(info)
+    with pytest.raises(ParamError) as info:
+        spec.check('horizon', 0)
+    assert "'horizon' = 0 is out of range; allowed [1, 200] steps" in _one_line(info)
+
+
+def test_choice_flag_text():
+    choice = Choice(('a', 'b'), 'letters')
+    assert choice.check('k', 'b') == 'b'
+    for bad in ('c', 1, None):
+        with pytest.raises(ParamError) as info:
+            choice.check('k', bad)
+        assert f"'k' = {bad!r} is not allowed; choose one of a, b (letters)" in _one_line(info)
+    assert Flag('f').check('f', False) is False
+    with pytest.raises(ParamError, match="'f' must be true or false"):
+        Flag('f').check('f', 'false')
+    assert Text('t').check('t', '') == ''
+    with pytest.raises(ParamError, match="'t' must be a string"):
+        Text('t').check('t', 3)
+
+
+def test_argparse_uses_the_same_check():
+    p = argparse.ArgumentParser()
+    p.add_argument('--n', **Integer(1, 5, 'steps', 'n').argparse())
+    p.add_argument('--x', **Number(0.0, 1.0, 's', 'x').argparse('a time'))
+    p.add_argument('--c', **Choice(('a', 'b'), 'c').argparse())
+    args = p.parse_args(['--n', '3', '--x', '0.5', '--c', 'a'])
+    assert (args.n, args.x, args.c) == (3, 0.5, 'a') and type(args.n) is int
+    for argv in (['--n', '0'], ['--n', '2.5'], ['--x', 'nan'], ['--x', '2'], ['--c', 'z']):
+        with pytest.raises(SystemExit) as info:
+            p.parse_args(argv)
+        assert info.value.code == 2, argv
+    assert 'a time; [0, 1] s' in p.format_help()
+
+
+def test_check_all_fills_defaults_and_refuses_unknown_keys():
+    specs = {'a': Integer(0, 9, '-', 'a'), 'b': Flag('b')}
+    assert check_all(specs, {'a': 2.0}, '', {'a': 1, 'b': True}) == {'a': 2, 'b': True}
+    with pytest.raises(ParamError, match=r"src: unknown parameter\(s\) z; known: a, b"):
+        check_all(specs, {'z': 1}, 'src')
+
+
+# -- defaults only in config/ ----------------------------------------------------------------
+
+def _yaml(name):
+    with open(os.path.join(REPO, 'config', name), encoding='utf-8') as fh:
+        return yaml.safe_load(fh)
+
+
+#: (spec table, config file, section) of every table a node declares from.
+TABLES = {
+    'live': (LIVE_SPECS, 'live.yaml', '/**'),
+    'physical': (ERVA_SPECS, 'erva_paper.yaml', '/**'),
+    'controller': (SETTINGS_SPECS, 'nmpc.yaml', '/**/nmpc_node'),
+    'bridge': (hs.BRIDGE_SPECS, 'hil.yaml', '/**/ecu_bridge_node'),
+    'estimator': (hs.ESTIMATOR_SPECS, 'hil.yaml', '/**/state_estimator_node'),
+    'ecu_sim': (hs.ECU_SIM_SPECS, 'hil.yaml', '/**/ecu_sim'),
+}
+
+
+@pytest.mark.parametrize('table', TABLES)
+def test_every_parameter_has_its_default_in_config_and_it_is_valid(table):
+    specs, name, section = TABLES[table]
+    values = _yaml(name)[section]['ros__parameters']
+    # The command-line-only keys (rcl lets a node section win over -p) are the exception.
+    assert set(specs) - set(hs.COMMAND_LINE_DEFAULTS) == set(values), table
+    for key, value in values.items():
+        assert specs[key].check(key, value) == value, (table, key)
+
+
+def test_the_tables_defaults_are_the_config_files():
+    assert LIVE_DEFAULTS == _yaml('live.yaml')['/**']['ros__parameters']
+    hil = _yaml('hil.yaml')
+    assert hs.ESTIMATOR_DEFAULTS == hil['/**/state_estimator_node']['ros__parameters']
+    assert hs.ECU_SIM_DEFAULTS == hil['/**/ecu_sim']['ros__parameters']
+    bridge = dict(hs.BRIDGE_DEFAULTS)
+    assert bridge.pop('bus') == hs.COMMAND_LINE_DEFAULTS['bus']
+    assert bridge == hil['/**/ecu_bridge_node']['ros__parameters']
+    assert shipped_defaults('live.yaml') is not shipped_defaults('live.yaml')   # copies
+
+
+def test_the_dataclass_defaults_equal_the_shipped_files():
+    # The offline tools' dataclasses keep literal defaults; they must say what config/ says.
+    nmpc = _yaml('nmpc.yaml')['/**/nmpc_node']['ros__parameters']
+    assert ControllerSettings().as_dict() == nmpc
+    assert ERVAParams().as_dict() == _yaml('erva_paper.yaml')['/**']['ros__parameters']
+    sim = _yaml('hil.yaml')['/**/ecu_sim']['ros__parameters']
+    assert SensorNoise() == SensorNoise(sim['noise_sprung_accel'], sim['noise_deflection'],
+                                        sim['noise_speed'], sim['noise_current'],
+                                        sim['noise_voltage'], sim['seed'])
+
+
+def _module_files():
+    for top in ('erva_ros', 'launch'):
+        for dirpath, _, files in os.walk(os.path.join(REPO, top)):
+            for f in files:
+                if f.endswith('.py'):
+                    yield os.path.join(dirpath, f)
+
+
+def test_no_default_table_or_declared_default_is_written_in_code():
+    offenders = []
+    for path in _module_files():
+        tree = ast.parse(open(path, encoding='utf-8').read(), path)
+        for node in ast.walk(tree):
+            # A *DEFAULTS* table given as a literal dict of constants.
+            if isinstance(node, (ast.Assign, ast.AnnAssign)) and isinstance(node.value,
+                                                                            ast.Dict):
+                targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+                names = [t.id for t in targets if isinstance(t, ast.Name)]
+                literal = any(isinstance(v, ast.Constant) for v in node.value.values)
+                if literal and any('DEFAULTS' in n and n != 'COMMAND_LINE_DEFAULTS'
+                                   for n in names):
+                    offenders.append(f'{path}:{node.lineno} {names}')
+            # declare*(node, name, <a literal default>, ...) of ros/parameters.py.
+            name = getattr(node, 'func', None) if isinstance(node, ast.Call) else None
+            if (isinstance(name, ast.Name) and name.id.startswith('declare')
+                    and any(isinstance(a, ast.Constant) for a in node.args[2:])):
+                offenders.append(f'{path}:{node.lineno} {name.id}(...) with a literal')
+    assert not offenders, offenders
+
+
+@pytest.fixture
+def ros_context():
+    ctx = rclpy.Context()
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+def test_nodes_declare_the_config_defaults_with_their_descriptors(ros_context):
+    from rclpy.node import Node
+    rclpy.init(args=['x'], context=ros_context)
+    node = Node('specs_test_node', context=ros_context)
+    try:
+        assert declare_erva_params(node) == ERVAParams()
+        nmpc = _yaml('nmpc.yaml')['/**/nmpc_node']['ros__parameters']
+        assert declare_controller_settings(node).as_dict() == nmpc
+        assert declare_live(node, [k for k in LIVE_SPECS if k != 'ts']) == {
+            k: v for k, v in LIVE_DEFAULTS.items() if k != 'ts'}
+        est = declare_all(node, hs.ESTIMATOR_SPECS, hs.ESTIMATOR_DEFAULTS,
+                          ['max_gap_periods', 'q_accel_s'])
+        assert est['max_gap_periods'] == 50 and type(est['max_gap_periods']) is int
+        desc = node.describe_parameter('horizon')
+        assert desc.read_only and desc.additional_constraints == '[1, 200] steps'
+        assert (desc.integer_range[0].from_value, desc.integer_range[0].to_value) == (1, 200)
+        desc = node.describe_parameter('l')
+        assert desc.floating_point_range[0].to_value == 10.0
+        assert node.describe_parameter('mode').additional_constraints == \
+            'one of realtime, lockstep'
+    finally:
+        node.destroy_node()
+    assert descriptor('x', Text('free')).description == 'free'
+
+
+# -- the model owns its outputs ---------------------------------------------------------------
+
+@pytest.mark.parametrize('kind', ['erva', 'benchmark'])
+def test_deflection_and_measurements_come_from_the_model(kind):
+    model = get_model(ERVAParams(), kind)
+    rng = np.random.default_rng(3)
+    x = rng.normal(scale=0.01, size=model.nx)
+    u, w = 12000.0, 0.003
+    assert float(model.deflection(x)) == x[0] - x[2]
+    y = np.asarray(model.measurements(x, u, w)).ravel()
+    assert y.shape == (3,)
+    assert y[0] == float(model.sprung_accel(x, u, w))
+    assert y[1] == x[0] - x[2]
+    np.testing.assert_allclose(y[2], float(model.generator_velocity(x)) / ERVAParams().l,
+                               rtol=1e-15)
+    if kind == 'benchmark':             # the generator moves with the strut
+        assert float(model.generator(x, u)[0]) == y[1]
