@@ -40,19 +40,23 @@ credit acts only when α2 > 0.
 Road: ``preview`` uses the preview w(t_k + j·Ts); ``no_preview`` the measured height
 w(t_k) held over the horizon (``road_prediction: hold``) or 0 (``zero``).
 
+Command delay (``command_delay_s`` = d > 0, or :meth:`NMPCController.compensate_delay`):
+the command computed at t_k acts from t_k + d on (HIL: the ECU), the previous one until
+then.  The OCP models it exactly: a prefix interval [t_k, t_k + d] with the acting
+command (a parameter), then the plan's intervals on the grid t_k + d + j·Ts, the road
+interpolated on it (linear between preview samples, held past the last).  d is an OCP
+parameter: :attr:`NMPCController.command_delay_s` may change between solves.
+
 Solvers (``solver``):
 
-``sqp``    real-time: a reduced-space SQP built once as *one* CasADi Function with
-           ``max_iter`` unrolled iterations (no Python per iteration).  It starts from
-           the best (by the true objective) of the warm start, a constant-c_e0 plan
-           and the warm start with its first move at u_max or u_min.  Each iteration:
-           roll the plan out with the model's RK4 (a nearly feasible point), linearise
-           the collocation NLP there, condense onto the N inputs (sparse LU of the
-           constraint Jacobian), build the reduced Hessian
-           from the cost's exact Hessian (Gauss-Newton type: constraint curvature
-           left out), solve the N-variable box QP (qpOASES, dense; not convexified,
-           qpOASES returns a local solution), and keep the best of the steps 1, ½, 0
-           by the true objective -- so the cost never increases.
+``sqp``    real-time: an SQP on the collocation NLP condensed onto the N inputs, one
+           CasADi Function (:mod:`erva_ros.controllers.sqp`): exact condensing,
+           ``hessian`` exact or Gauss-Newton (comfort) + exact (economic term),
+           eigenvalues mirrored, box QP, Armijo line search with every candidate put
+           back on the collocation equations (Newton), stop at ``sqp_tol`` or
+           ``max_iter``.  It starts from the best, by its value in the NLP, of the
+           warm start, a constant-c_e0 plan and the warm start with its first move at
+           u_max or u_min.
 ``ipopt``  converged reference on the same collocation NLP (tol 1e-8), solved from
            ``ipopt_starts`` of the SQP's starts (default 2: the warm start and constant
            c_e0), keeping the best local optimum.
@@ -61,12 +65,9 @@ Warm start: the previous plan shifted by one sample (last value repeated).
 Variables are scaled (u by 10 kNs/m, positions by 1 cm, velocities by 0.1 m/s).
 """
 
-from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import lru_cache
 import math
-import os
-import sys
 from typing import Tuple
 
 import casadi as ca
@@ -90,23 +91,6 @@ COLLOCATION_DEGREE = 3
 ROLLOUT_SUBSTEP_S = 2.5e-3
 #: Other starts the real-time SQP compares with the warm start (NMPCController._alternatives).
 N_ALTERNATIVES = 3
-#: Step lengths tried by the real-time SQP's line search (0: keep the iterate).
-LINE_SEARCH_STEPS = (1.0, 0.5)
-
-
-@contextmanager
-def _quiet_stdout():
-    """Silence file descriptor 1: qpOASES prints its licence banner on first use."""
-    sys.stdout.flush()
-    saved = os.dup(1)
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 1)
-        yield
-    finally:
-        os.dup2(saved, 1)
-        os.close(devnull)
-        os.close(saved)
 
 
 def stable_rollout_substep(model: QuarterCarModel, u_max: float) -> float:
@@ -324,11 +308,37 @@ class OCP:
         return xs * self.x_scale
 
 
+def _road_rest(model: QuarterCarModel) -> np.ndarray:
+    """Return the rest state per metre of a held road height (body and wheel follow)."""
+    return np.array([1.0, 0, 1.0, 0] + [0.0] * (model.nx - 4))
+
+
+def passive_tail(model: QuarterCarModel, c_e0: float):
+    """Return (Q_a, Q_P): ∫₀^∞ z̈_s² dt = ξᵀQ_aξ and ∫₀^∞ P dt = ξᵀQ_Pξ under c_e0.
+
+    The free response from a deviation ξ of the linearised model with the passive
+    damping c_e0: Lyapunov equations AᵀQ + QA + CᵀC = 0, C the acceleration row of A,
+    resp. c_e0·GᵀG with v_gen = G·x.  A principled terminal cost: what a finite horizon
+    leaves out, valued as if the passive damping took over.
+    """
+    a, _, _ = linearize(model, u0=c_e0)
+    n = model.nx
+    v_gen = model.generator_velocity(model.x_sym)      # linear in x
+    gen = np.asarray(ca.evalf(ca.jacobian(v_gen, model.x_sym))).reshape(1, n)
+    out = []
+    for c in (a[1:2, :], np.sqrt(c_e0) * gen):
+        lhs = np.kron(np.eye(n), a.T) + np.kron(a.T, np.eye(n))
+        q = np.linalg.solve(lhs, -(c.T @ c).reshape(-1, order='F')).reshape(n, n, order='F')
+        out.append(tuple(map(tuple, 0.5 * (q + q.T))))
+    return tuple(out)
+
+
 @lru_cache(maxsize=32)
 def build_ocp(model: QuarterCarModel, ts: float, blocks: Tuple[int, ...], cost: str,
               u_min: float, u_max: float, terminal_weight: float = 0.0,
               degree: int = COLLOCATION_DEGREE,
-              rollout_substep_s: float = ROLLOUT_SUBSTEP_S, delayed: bool = False) -> OCP:
+              rollout_substep_s: float = ROLLOUT_SUBSTEP_S, delayed: bool = False,
+              tail=None) -> OCP:
     """Build (once per configuration) the collocation NLP and the RK4 rollout.
 
     ``cost`` is 'paper' or 'continuous' (see the module doc) or 'bound', the objective
@@ -368,9 +378,15 @@ def build_ocp(model: QuarterCarModel, ts: float, blocks: Tuple[int, ...], cost: 
     w_end_sym = ca.SX.sym('w_end')
     stored = model.energy(xt_sym[:nx] * xs_col, w_end_sym) / ts
     # Stored mechanical energy is worth harvesting later: credit a share of it.
-    terminal = ca.Function('terminal', [xt_sym, w_end_sym, a_sym],
-                           [-terminal_weight * a_sym[1] * stored if terminal_weight > 0
-                            else ca.SX(0)], ['xt', 'w_end', 'alpha'], ['cost'])
+    term = -terminal_weight * a_sym[1] * stored if terminal_weight > 0 else ca.SX(0)
+    if tail is not None:
+        # The cost beyond the horizon if the passive damping took over (linearised,
+        # road held): α1·∫a² − α2·∫P from the deviation of x_N from rest on the road.
+        comfort, harvest = (ca.DM(np.array(m)) for m in tail)
+        dev = xt_sym[:nx] * xs_col - w_end_sym * ca.DM(_road_rest(model))
+        term += (a_sym[0] * ca.bilin(comfort, dev, dev) - a_sym[1] * ca.bilin(harvest, dev, dev)) / ts
+    terminal = ca.Function('terminal', [xt_sym, w_end_sym, a_sym], [term],
+                           ['xt', 'w_end', 'alpha'], ['cost'])
 
     w = ca.SX.sym('w', horizon + 1)
     alpha = ca.SX.sym('alpha', 2)
@@ -495,6 +511,7 @@ class NMPCController(Controller):
         #: Delay d from the sample to the command acting (s), modelled in the OCP;
         #: may change between solves (e.g. measured online), 0 <= d < ts.
         self.command_delay_s = settings.command_delay_s
+        self.c_e0_param = min(max(params.c_e0, settings.u_min), settings.u_max)
         self._build(delayed=settings.command_delay_s > 0)
         budget = math.inf if settings.solver == 'ipopt' else settings.time_budget_s
         super().__init__(self.ocp.horizon, settings.ts, settings.u_min, settings.u_max,
@@ -508,15 +525,19 @@ class NMPCController(Controller):
 
     def _build(self, delayed: bool) -> None:
         s = self.settings
+        # The passive tail values what lies beyond the horizon in the continuous cost's
+        # own terms; the paper cost's jerk-like sum has no such continuation.
+        tail = (passive_tail(self.model, self.c_e0_param)
+                if s.terminal_cost == 'passive' and self.cost == 'continuous' else None)
         self.ocp = build_ocp(self.model, s.ts, self.blocks, self.cost, s.u_min, s.u_max,
                              s.terminal_weight if self.name == 'preview_long' else 0.0,
                              s.collocation_degree, stable_rollout_substep(self.model, s.u_max),
-                             delayed=delayed)
+                             delayed=delayed, tail=tail)
         if s.solver == 'ipopt':
             self._ipopt = build_ipopt(self.ocp, s.ipopt_max_iter)
         else:
             # Called through fixed buffers (erva_ros/codegen.py): no DM conversions.
-            self._rti = BufferedCall(build_rti(self.ocp, s.max_iter, s.sqp_tol,
+                self._rti = BufferedCall(build_rti(self.ocp, s.max_iter, s.sqp_tol,
                                                s.codegen, N_ALTERNATIVES, s.hessian))
 
     def compensate_delay(self, model, delay_s: float) -> None:

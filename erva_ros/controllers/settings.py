@@ -21,8 +21,10 @@ from erva_ros.params import check_number, ERVA_SPECS, ParamError, read_ros_param
 CONTROLLER_NAMES = ('passive', 'skyhook', 'no_preview', 'preview', 'preview_long')
 #: Stage-cost variants of the NMPC (see erva_ros.controllers.nmpc).
 COST_KINDS = ('paper', 'continuous')
-#: NMPC solvers: 'sqp' = real-time SQP (qrqp QPs, built once), 'ipopt' = converged reference.
+#: NMPC solvers: 'sqp' = real-time SQP (one CasADi Function), 'ipopt' = converged reference.
 SOLVER_KINDS = ('sqp', 'ipopt')
+#: Terminal costs of the continuous NMPC cost (erva_ros/controllers/nmpc.py passive_tail).
+TERMINAL_COSTS = ('passive', 'none')
 #: Reduced Hessians of the real-time SQP (erva_ros/controllers/sqp.py).
 HESSIANS = ('exact', 'gauss_newton')
 #: codegen: auto = compile when a C compiler is on PATH (else run the CasADi VM).
@@ -66,6 +68,9 @@ CHOICE_SPECS: Dict[str, Tuple[Tuple[str, ...], str]] = {
     'solver': (SOLVER_KINDS, 'NMPC solver: sqp (real-time SQP) or ipopt (converged reference)'),
     'road_prediction': (ROAD_PREDICTIONS, 'no_preview road model: hold last height or zero'),
     'long_cost': (COST_KINDS, 'stage cost of preview_long (paper or continuous)'),
+    'terminal_cost': (TERMINAL_COSTS, 'continuous cost: value of the state at the horizon '
+                                      'end as if the passive damping took over (passive) '
+                                      'or none (the paper\'s NMPC)'),
     'hessian': (HESSIANS, 'real-time SQP Hessian: exact (Lagrangian) or gauss_newton '
                           '(comfort Gauss-Newton + exact economic term)'),
     'codegen': (CODEGEN_MODES, 'compile the real-time solver\'s model functions to C '
@@ -84,11 +89,12 @@ class ControllerSettings:
     alpha2: float = 0.0
     u_min: float = 0.0
     u_max: float = 20000.0
-    cost: str = 'paper'
+    cost: str = 'continuous'
     solver: str = 'sqp'
-    max_iter: int = 2
-    sqp_tol: float = 1e-4
+    max_iter: int = 4
+    sqp_tol: float = 1e-3
     hessian: str = 'exact'
+    terminal_cost: str = 'passive'
     ipopt_max_iter: int = 3000
     ipopt_starts: int = 2
     time_budget_s: float = 0.01
