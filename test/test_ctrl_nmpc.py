@@ -5,7 +5,8 @@ import pytest
 
 from erva_ros.core.closed_loop import simulate_closed_loop
 from erva_ros.core.controllers import ControllerSettings, make_controller
-from erva_ros.core.controllers.nmpc import build_ocp, build_rti, stable_rollout_substep, U_SCALE
+from erva_ros.core.controllers.nmpc import (build_ocp, build_rti, OCPSpec,
+                                            stable_rollout_substep, U_SCALE)
 from erva_ros.core.controllers.sqp import plan_value_function
 from erva_ros.core.model import get_model
 from erva_ros.core.params import paper_params
@@ -55,8 +56,9 @@ def test_prediction_matches_the_plant_over_the_whole_box(plan, degree, tol):
     for k in range(n):
         xs.append(plant.step(u[k], w[k], w[k + 1]).copy())
     energy = plant.harvested_j - e0
-    ocp = build_ocp(MODEL, S.ts, (1,) * n, 'continuous', S.u_min, S.u_max, 0.0, degree,
-                    stable_rollout_substep(MODEL, S.u_max))
+    ocp = build_ocp(MODEL, OCPSpec(S.ts, (1,) * n, 'continuous', S.u_min, S.u_max,
+                                   degree=degree,
+                                   rollout_substep_s=stable_rollout_substep(MODEL, S.u_max)))
     p = np.r_[w, 0.0, 1.0]
     z = _collocation_solution(ocp, x0, u, w, p)
     predicted_energy = -float(ocp.nlp(z, p)[0]) * S.ts

@@ -6,7 +6,8 @@ import pytest
 
 from erva_ros.core.closed_loop import simulate_closed_loop
 from erva_ros.core.controllers import ControllerSettings, make_controller
-from erva_ros.core.controllers.nmpc import build_ocp, stable_rollout_substep, U_SCALE
+from erva_ros.core.controllers.nmpc import (build_ocp, OCPSpec, stable_rollout_substep,
+                                            U_SCALE)
 from erva_ros.core.controllers.sqp import (convexify, plan_value_function, projection_function,
                                            qp_model_function)
 from erva_ros.core.model import get_model
@@ -21,8 +22,8 @@ X0 = np.array([1e-3, 1e-2, 5e-4, -2e-2, 2e-3, 3e-2])
 
 
 def _ocp(cost='continuous', blocks=(1,) * 10, terminal=0.0, delayed=False):
-    return build_ocp(MODEL, S.ts, blocks, cost, S.u_min, S.u_max, terminal, 3,
-                     stable_rollout_substep(MODEL, S.u_max), delayed=delayed)
+    return build_ocp(MODEL, OCPSpec(S.ts, blocks, cost, S.u_min, S.u_max, terminal, 3,
+                                    stable_rollout_substep(MODEL, S.u_max), delayed=delayed))
 
 
 def _reference(ocp, z, p):

@@ -68,7 +68,7 @@ Variables are scaled (u by 10 kNs/m, positions by 1 cm, velocities by 0.1 m/s).
 from dataclasses import dataclass
 from functools import lru_cache
 import math
-from typing import Tuple
+from typing import Optional, Tuple
 
 import casadi as ca
 import numpy as np
@@ -333,20 +333,44 @@ def passive_tail(model: QuarterCarModel, c_e0: float):
     return tuple(out)
 
 
-@lru_cache(maxsize=32)
-def build_ocp(model: QuarterCarModel, ts: float, blocks: Tuple[int, ...], cost: str,
-              u_min: float, u_max: float, terminal_weight: float = 0.0,
-              degree: int = COLLOCATION_DEGREE,
-              rollout_substep_s: float = ROLLOUT_SUBSTEP_S, delayed: bool = False,
-              tail=None) -> OCP:
-    """Build (once per configuration) the collocation NLP and the RK4 rollout.
+@dataclass(frozen=True)
+class OCPSpec:
+    """What defines one OCP (with the model): the key :func:`build_ocp` caches on.
 
     ``cost`` is 'paper' or 'continuous' (see the module doc) or 'bound', the objective
     of the clairvoyant bound: Σ_k α1·x_a(t_k)² − α2·E_k/Ts, i.e. n·(α1·acc_rms² −
     α2·P_avg) with the acceleration sampled at t_k and the energy E_k integrated.
-    ``delayed`` models a command delay d (parameter): over [t_k, t_k + d] the acting
-    command u_acting (parameter), then the plan's intervals from t_k + d on.
+    ``blocks`` are the interval lengths in samples; ``terminal_weight`` the stored-
+    energy credit (preview_long); ``tail`` the passive-tail quadratic forms
+    (:func:`passive_tail`) or None; ``delayed`` models a command delay d (parameter):
+    over [t_k, t_k + d] the acting command u_acting (parameter), then the plan's
+    intervals from t_k + d on.
     """
+
+    ts: float
+    blocks: Tuple[int, ...]
+    cost: str
+    u_min: float
+    u_max: float
+    terminal_weight: float = 0.0
+    degree: int = COLLOCATION_DEGREE
+    rollout_substep_s: float = ROLLOUT_SUBSTEP_S
+    delayed: bool = False
+    tail: Optional[tuple] = None
+
+    def __post_init__(self):
+        if self.cost not in ('paper', 'continuous', 'bound'):
+            raise ParamError(f'OCP cost {self.cost!r} unknown: paper, continuous or bound')
+        object.__setattr__(self, 'blocks', tuple(int(m) for m in self.blocks))
+
+
+@lru_cache(maxsize=32)
+def build_ocp(model: QuarterCarModel, spec: OCPSpec) -> OCP:
+    """Build (once per model and :class:`OCPSpec`) the collocation NLP and the RK4 rollout."""
+    ts, blocks, cost = spec.ts, spec.blocks, spec.cost
+    u_min, u_max, terminal_weight = spec.u_min, spec.u_max, spec.terminal_weight
+    degree, rollout_substep_s = spec.degree, spec.rollout_substep_s
+    delayed, tail = spec.delayed, spec.tail
     nx = model.nx
     horizon = int(sum(blocks))
     xs = np.array(X_SCALE[model.kind])
@@ -530,10 +554,12 @@ class NMPCController(Controller):
         # own terms; the paper cost's jerk-like sum has no such continuation.
         tail = (passive_tail(self.model, self.c_e0_param)
                 if s.terminal_cost == 'passive' and self.cost == 'continuous' else None)
-        self.ocp = build_ocp(self.model, s.ts, self.blocks, self.cost, s.u_min, s.u_max,
-                             s.terminal_weight if self.name == 'preview_long' else 0.0,
-                             s.collocation_degree, stable_rollout_substep(self.model, s.u_max),
-                             delayed=delayed, tail=tail)
+        self.ocp = build_ocp(self.model, OCPSpec(
+            s.ts, self.blocks, self.cost, s.u_min, s.u_max,
+            terminal_weight=s.terminal_weight if self.name == 'preview_long' else 0.0,
+            degree=s.collocation_degree,
+            rollout_substep_s=stable_rollout_substep(self.model, s.u_max),
+            delayed=delayed, tail=tail))
         if s.solver == 'ipopt':
             self._ipopt = build_ipopt(self.ocp, s.ipopt_max_iter)
         else:
@@ -695,5 +721,5 @@ def converge_from(ocp: OCP, ipopt: ca.Function, x, a_prev, p, starts):
     return best, status, iterations
 
 
-__all__ = ['NMPCController', 'build_ocp', 'build_rti', 'build_ipopt', 'nmpc_blocks',
+__all__ = ['NMPCController', 'OCPSpec', 'build_ocp', 'build_rti', 'build_ipopt', 'nmpc_blocks',
            'stable_rollout_substep', 'OCP', 'U_SCALE', 'COLLOCATION_DEGREE']
