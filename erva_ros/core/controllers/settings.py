@@ -90,7 +90,7 @@ class ControllerSettings:
     u_max: float = 20000.0
     cost: str = 'continuous'
     solver: str = 'sqp'
-    max_iter: int = 4
+    max_iter: int = 10
     sqp_tol: float = 1e-3
     hessian: str = 'exact'
     terminal_cost: str = 'passive'
