@@ -34,3 +34,19 @@ def test_bench_errors_are_one_line(erva):
         proc = erva('bench', *args)
         assert proc.returncode == 2, args
         assert message in proc.stderr.strip().splitlines()[-1]
+
+
+def test_bench_several_seeds_one_line_each(erva):
+    proc = erva('bench', '--steps', 20, '--seeds', '0,3', '--no-reference', '--json')
+    assert proc.returncode == 0, proc.stderr
+    res = json.loads(proc.stdout)
+    assert [r['seed'] for r in res['runs']] == [0, 3] and res['summary']['seeds'] == [0, 3]
+    assert all(r['samples'] == 20 and r['iterations_mean'] >= 1 for r in res['runs'])
+    assert res['runs'][0]['acc_2norm'] != res['runs'][1]['acc_2norm']    # different roads
+    text = erva('bench', '--steps', 20, '--seeds', '0,3', '--no-reference', check=True).stdout
+    rows = [line.split('|')[1].strip() for line in text.splitlines() if line.startswith('| ')]
+    assert rows == ['seed', '0', '3']
+    for args, message in [(['--seeds', '1,1'], 'repeats a seed'),
+                          (['--seeds', '1', '--seed', '2'], 'either --seed or --seeds')]:
+        bad = erva('bench', *args)
+        assert bad.returncode == 2 and message in bad.stderr.strip().splitlines()[-1]

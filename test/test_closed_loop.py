@@ -56,5 +56,7 @@ def test_metrics_and_costs():
     assert closed_loop_cost(run, 1.0, 0.0) == pytest.approx(np.sum(jerk ** 2) / S.ts ** 2)
     assert closed_loop_cost(run, 0.0, 1.0, 'continuous') == pytest.approx(
         -run.harvested_j / S.ts)
+    assert closed_loop_cost(run, 1.0, 0.0, 'continuous') == pytest.approx(
+        m['acc_rms_continuous'] ** 2 * run.t.size)
     with pytest.raises(ValueError, match='shorter than one sample'):
         simulate_closed_loop(P, make_controller('passive', P, S), road, 0.001)

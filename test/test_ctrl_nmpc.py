@@ -5,7 +5,9 @@ import pytest
 
 from erva_ros.core.closed_loop import simulate_closed_loop
 from erva_ros.core.controllers import ControllerSettings, make_controller
-from erva_ros.core.controllers.nmpc import build_ocp, build_rti, stable_rollout_substep, U_SCALE
+from erva_ros.core.controllers.nmpc import (build_ocp, build_rti, OCPSpec,
+                                            stable_rollout_substep, U_SCALE)
+from erva_ros.core.controllers.sqp import plan_value_function
 from erva_ros.core.model import get_model
 from erva_ros.core.params import paper_params
 from erva_ros.core.plant import PlantSimulator
@@ -54,8 +56,9 @@ def test_prediction_matches_the_plant_over_the_whole_box(plan, degree, tol):
     for k in range(n):
         xs.append(plant.step(u[k], w[k], w[k + 1]).copy())
     energy = plant.harvested_j - e0
-    ocp = build_ocp(MODEL, S.ts, (1,) * n, 'continuous', S.u_min, S.u_max, 0.0, degree,
-                    stable_rollout_substep(MODEL, S.u_max))
+    ocp = build_ocp(MODEL, OCPSpec(S.ts, (1,) * n, 'continuous', S.u_min, S.u_max,
+                                   degree=degree,
+                                   rollout_substep_s=stable_rollout_substep(MODEL, S.u_max)))
     p = np.r_[w, 0.0, 1.0]
     z = _collocation_solution(ocp, x0, u, w, p)
     predicted_energy = -float(ocp.nlp(z, p)[0]) * S.ts
@@ -95,6 +98,7 @@ def test_warm_start_reduces_iterations():
 def test_real_time_sqp_never_increases_the_objective():
     ocp = make_controller('preview', P, S).ocp
     rti = build_rti(ocp, 2)
+    value = plan_value_function(ocp)
     road = make_road('paper', 2.0, seed=3)
     rng = np.random.default_rng(0)
     x0 = np.array([1e-3, 1e-2, 5e-4, -2e-2, 2e-3, 3e-2])
@@ -104,10 +108,13 @@ def test_real_time_sqp_never_increases_the_objective():
         guess = rng.uniform(0, 2, 10)
         alt = np.ones(10)
         u, z, f, _ = rti(x0, 0.1, guess, alt, p)
-        f_guess = float(ocp.nlp(ocp.rollout(x0, 0.1, guess, w), p)[0])
-        f_alt = float(ocp.nlp(ocp.rollout(x0, 0.1, alt, w), p)[0])
+        f_guess = float(value(x0, 0.1, guess, p)[1])
+        f_alt = float(value(x0, 0.1, alt, p)[1])
         assert float(f) <= min(f_guess, f_alt) + 1e-12
         assert np.all(np.asarray(u) >= 0) and np.all(np.asarray(u) <= 2.0)
+        # the plan returned is on the collocation equations: its cost is the NLP's
+        assert float(value(x0, 0.1, np.asarray(u).ravel(), p)[1]) == pytest.approx(
+            float(f), rel=1e-9, abs=1e-12)
 
 
 def test_a_late_solve_publishes_its_own_plan_not_an_older_one():

@@ -122,3 +122,20 @@ def test_a_diverging_prediction_falls_back_instead_of_reaching_the_law():
     res = ctrl.compute(x_absurd, np.zeros(11), 0.0)
     assert res.status == 'fallback_passive' and 'delay compensation' in res.reason
     assert ctrl.counters['failures'] == 1 and res.damping_cmd == P.c_e0
+
+
+def test_delay_study_prints_every_variant_and_rejects_a_bad_delay(erva):
+    run = erva('delay-study', '--seeds', '2', '--duration', '0.4', '--controller', 'preview',
+               '--json')
+    assert run.returncode == 0, run.stderr
+    import json
+    out = json.loads(run.stdout)
+    assert sorted(out['seeds']) == ['0', '1'] and out['delay_s'] == 0.008
+    for seed in out['seeds'].values():
+        assert set(seed) == {'no_delay', 'delayed', 'predicted', 'modelled'}
+        assert all(v['acc_rms_continuous'] > 0 and v['fallbacks'] == 0 for v in seed.values())
+    # the command acting 8 ms late changes the run; modelling it changes it again
+    s0 = out['seeds']['0']
+    assert len({s0[v]['acc_rms_continuous'] for v in s0}) == 4
+    bad = erva('delay-study', '--seeds', '1', '--delay', '0.02')
+    assert bad.returncode == 2 and 'must be below ts' in bad.stderr.strip().splitlines()[-1]

@@ -43,6 +43,16 @@ def seed_int(text: str) -> int:
     return v
 
 
+def seed_list(text: str):
+    """Parse 'S1,S2,...' into a list of distinct non-negative seeds (argparse type)."""
+    seeds = [seed_int(part.strip()) for part in text.split(',') if part.strip()]
+    if not seeds:
+        raise argparse.ArgumentTypeError(f'{text!r} names no seed')
+    if len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f'{text!r} repeats a seed')
+    return seeds
+
+
 def add_settings_options(parser: argparse.ArgumentParser, controller: bool = True) -> None:
     """Add --settings and the common controller overrides (checked by the settings' specs)."""
     from erva_ros.core.controllers.settings import NUMERIC_SPECS, SPECS
@@ -139,4 +149,4 @@ def preview_model_from_args(args, seed: int, ts: float):
 
 __all__ = ['add_settings_options', 'add_road_options', 'load_settings',
            'make_road_from_args', 'preview_model_from_args', 'weights', 'weight_list',
-           'seed_int', 'PAPER_T1_S']
+           'seed_int', 'seed_list', 'PAPER_T1_S']

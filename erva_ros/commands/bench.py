@@ -5,7 +5,7 @@ import platform
 import numpy as np
 
 from erva_ros.commands._closed_loop_options import (add_settings_options, load_settings,
-                                                    seed_int, weights)
+                                                    seed_int, seed_list, weights)
 from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
                                        positive_int, print_json, realtime_priority)
 from erva_ros.core.errors import CLIError
@@ -42,6 +42,9 @@ def add_arguments(parser):
     parser.add_argument('--steps', type=positive_int, default=2000,
                         help='closed-loop samples (default 2000)')
     parser.add_argument('--seed', type=seed_int, default=0, help='paper-road seed (default 0)')
+    parser.add_argument('--seeds', type=seed_list, default=None, metavar='S1,S2,..',
+                        help='several paper-road seeds: one line each (real-time vs IPOPT) '
+                             'and the mean, instead of --seed')
     parser.add_argument('--no-reference', action='store_true',
                         help='skip the IPOPT reference runs (suboptimality_pct and '
                              'step_gap_pct are null)')
@@ -107,13 +110,12 @@ def _main(args) -> int:
         return run_live_bench(args)
     if args.duration is not None:
         raise CLIError('--duration applies to --live only; use --steps offline')
+    if args.seeds is not None and args.seed != 0:
+        raise CLIError('give either --seed or --seeds')
     if args.realtime_priority is not None:
         raise CLIError('--realtime-priority applies to --live only')
 
-    from erva_ros.core.closed_loop import closed_loop_cost, simulate_closed_loop
-    from erva_ros.core.controllers import make_controller
     from erva_ros.core.params import load_erva_params
-    from erva_ros.core.roads import make_road
 
     params = load_erva_params(args.params)
     extra = {} if args.alpha is None else {'alpha1': args.alpha[0], 'alpha2': args.alpha[1]}
@@ -123,9 +125,46 @@ def _main(args) -> int:
         raise CLIError(f'--controller {name} has no solver to benchmark; use no_preview, '
                        'preview or preview_long')
     settings = settings.with_(controller=name)
+    seeds = args.seeds if args.seeds is not None else [args.seed]
+    results = [bench_seed(args, params, settings, seed) for seed in seeds]
+    if len(results) > 1:
+        return _print_seeds(args, results)
+    result = results[0]
+    if args.json:
+        print_json(result)
+    else:
+        sm = result['solve_ms']
+        print(f'{name} / {settings.solver}: {result["samples"]} closed-loop samples on the '
+              f'paper road, alpha = ({settings.alpha1:g}, {settings.alpha2:g}), '
+              f'{result["cost"]} cost')
+        print(f'  solve time   p50 {sm["p50"]:.3f} ms, p99 {sm["p99"]:.3f} ms, '
+              f'max {sm["max"]:.3f} ms; late {result["late"]}')
+        line = f'  closed-loop cost {result["closed_loop_cost"]:.6g}'
+        if 'reference' in result:
+            line += (f' vs IPOPT {result["reference"]["closed_loop_cost"]:.6g} '
+                     f'(suboptimality {result["suboptimality_pct"]:+.2f} %)')
+        print(line)
+        gap = result['step_gap_pct']
+        if gap:
+            print(f'  per-sample objective gap to IPOPT (solver alone, {gap["samples"]} '
+                  f'samples): p50 {gap["p50"]:.3f} %, p99 {gap["p99"]:.3f} %, '
+                  f'max {gap["max"]:.3f} %')
+        print(f'  SQP iterations per sample: mean {result["iterations_mean"]:.2f} '
+              f'(max_iter {result["max_iter"]})')
+        print(f'  real-time factor {result["realtime_factor"]:.1f}x')
+    return 0
+
+
+def bench_seed(args, params, settings, seed: int) -> dict:
+    """Run the benchmark of ``settings`` on the paper road of ``seed``; return the result."""
+    from erva_ros.core.closed_loop import closed_loop_cost, simulate_closed_loop
+    from erva_ros.core.controllers import make_controller
+    from erva_ros.core.roads import make_road
+
+    name = settings.controller
     cost_kind = settings.long_cost if name == 'preview_long' else settings.cost
     duration = args.steps * settings.ts
-    road = make_road('paper', duration, seed=args.seed)
+    road = make_road('paper', duration, seed=seed)
 
     def run(s, record=False):
         ctrl = make_controller(name, params, s)
@@ -138,14 +177,16 @@ def _main(args) -> int:
     cost = closed_loop_cost(main_run, settings.alpha1, settings.alpha2, cost_kind)
     result = {
         'solver': settings.solver, 'controller': name, 'samples': int(main_run.t.size),
-        'solve_ms': {k: m['solve_ms'][k] for k in ('p50', 'p99', 'max')},
+        'seed': seed, 'solve_ms': {k: m['solve_ms'][k] for k in ('p50', 'p99', 'max')},
         'late': int(m['fallbacks']['late']),
         'suboptimality_pct': None, 'step_gap_pct': None,
         'realtime_factor': m['realtime_factor'],
         'weights': [settings.alpha1, settings.alpha2], 'cost': cost_kind,
-        'max_iter': settings.max_iter, 'time_budget_ms': settings.time_budget_s * 1e3,
+        'max_iter': settings.max_iter, 'iterations_mean': m['iterations_mean'],
+        'time_budget_ms': settings.time_budget_s * 1e3,
         'closed_loop_cost': cost, 'fallbacks': m['fallbacks'],
-        'acc_2norm': m['acc_2norm'], 'power_w': m['power_w'],
+        'acc_2norm': m['acc_2norm'], 'acc_rms_continuous': m['acc_rms_continuous'],
+        'power_w': m['power_w'],
         'machine': f'{platform.machine()}, {platform.python_implementation()} '
                    f'{platform.python_version()}',
     }
@@ -168,27 +209,40 @@ def _main(args) -> int:
                                'solve_ms': {k: ref.metrics['solve_ms'][k]
                                             for k in ('p50', 'p99', 'max')},
                                'acc_2norm': ref.metrics['acc_2norm'],
+                               'acc_rms_continuous': ref.metrics['acc_rms_continuous'],
                                'power_w': ref.metrics['power_w']}
     elif settings.solver == 'ipopt':
         result['suboptimality_pct'] = 0.0
+    return result
+
+
+def _print_seeds(args, results) -> int:
+    """Print one line per seed (real-time vs IPOPT) and the mean; or the JSON list."""
+    subs = [r['suboptimality_pct'] for r in results if r['suboptimality_pct'] is not None]
+    summary = {'seeds': [r['seed'] for r in results],
+               'suboptimality_pct_mean': float(np.mean(subs)) if subs else None,
+               'suboptimality_pct_max': float(np.max(subs)) if subs else None}
     if args.json:
-        print_json(result)
-    else:
-        sm = result['solve_ms']
-        print(f'{name} / {settings.solver}: {result["samples"]} closed-loop samples on the '
-              f'paper road, alpha = ({settings.alpha1:g}, {settings.alpha2:g}), '
-              f'{cost_kind} cost')
-        print(f'  solve time   p50 {sm["p50"]:.3f} ms, p99 {sm["p99"]:.3f} ms, '
-              f'max {sm["max"]:.3f} ms; late {result["late"]}')
-        line = f'  closed-loop cost {cost:.6g}'
-        if 'reference' in result:
-            line += (f' vs IPOPT {result["reference"]["closed_loop_cost"]:.6g} '
-                     f'(suboptimality {result["suboptimality_pct"]:+.2f} %)')
-        print(line)
-        gap = result['step_gap_pct']
-        if gap:
-            print(f'  per-sample objective gap to IPOPT (solver alone, {gap["samples"]} '
-                  f'samples): p50 {gap["p50"]:.3f} %, p99 {gap["p99"]:.3f} %, '
-                  f'max {gap["max"]:.3f} %')
-        print(f'  real-time factor {result["realtime_factor"]:.1f}x')
+        print_json({'runs': results, 'summary': summary})
+        return 0
+    r0 = results[0]
+    print(f'{r0["controller"]} / {r0["solver"]}: {r0["samples"]} samples per seed on the paper '
+          f'road, alpha = ({r0["weights"][0]:g}, {r0["weights"][1]:g}), {r0["cost"]} cost')
+    print('| seed | closed-loop cost | IPOPT | vs IPOPT | acc 2-norm | acc RMS cont. | '
+          'power (W) | IPOPT acc 2-norm / cont. / power | solve p50 / p99 ms | iter. |')
+    print('|---|---|---|---|---|---|---|---|---|---|')
+    for r in results:
+        ref = r.get('reference')
+        sub = r['suboptimality_pct']
+        print(f'| {r["seed"]} | {r["closed_loop_cost"]:.5g} | '
+              f'{ref["closed_loop_cost"]:.5g} | {sub:+.2f} % | ' if ref else
+              f'| {r["seed"]} | {r["closed_loop_cost"]:.5g} | - | - | ', end='')
+        print(f'{r["acc_2norm"]:.3f} | {r["acc_rms_continuous"]:.4f} | {r["power_w"]:.3f} | '
+              + (f'{ref["acc_2norm"]:.3f} / {ref["acc_rms_continuous"]:.4f} / '
+                 f'{ref["power_w"]:.3f}' if ref else '-')
+              + f' | {r["solve_ms"]["p50"]:.3f} / {r["solve_ms"]["p99"]:.3f} | '
+                f'{r["iterations_mean"]:.2f} |')
+    if subs:
+        print(f'mean vs IPOPT {summary["suboptimality_pct_mean"]:+.2f} %, worst '
+              f'{summary["suboptimality_pct_max"]:+.2f} % (negative = better)')
     return 0

@@ -280,7 +280,10 @@ def main(args) -> int:
     params = load_erva_params(args.params)
     # Offline quality runs: the real-time budget is not enforced (10 s), so results do
     # not depend on machine load; `erva bench` measures timing.
-    settings = load_settings(args, time_budget_s=10.0)
+    # The paper comparison uses the paper's stage cost unless --cost says otherwise
+    # (config/nmpc.yaml's default is the live one; preview_long keeps long_cost).
+    settings = load_settings(args, time_budget_s=10.0,
+                             **({} if args.cost else {'cost': 'paper'}))
     weights = [tuple(w) for w in args.weights]
     bound = None if args.no_bound else {'local_search': args.bound_search,
                                         'polish_iter': args.bound_polish}

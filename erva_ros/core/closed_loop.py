@@ -145,13 +145,14 @@ def closed_loop_cost(r: ClosedLoopResult, alpha1: float, alpha2: float,
     """Return the NMPC stage cost summed along the closed loop (for suboptimality).
 
     ``paper``: Σ_k α1/Ts²·(a_k − a_{k−1})² − α2·P_k (a_{−1} = a_0);
-    ``continuous``: Σ_k α1·a_k² − α2·E_h/Ts (energy integrated by the plant).
+    ``continuous``: (α1·∫ z̈_s² dt − α2·E_h)/Ts, both integrated by the plant -- what
+    the continuous stage cost predicts, between the samples too.
     """
     a = r.sprung_accel
     if cost == 'paper':
         jerk = np.diff(a, prepend=a[0])
         return float(np.sum(alpha1 / r.ts ** 2 * jerk ** 2 - alpha2 * r.power))
-    return float(np.sum(alpha1 * a ** 2) - alpha2 * r.harvested_j / r.ts)
+    return float((alpha1 * r.accel_sq_int - alpha2 * r.harvested_j) / r.ts)
 
 
 __all__ = ['ClosedLoopResult', 'simulate_closed_loop', 'closed_loop_metrics', 'closed_loop_cost',

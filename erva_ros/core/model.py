@@ -214,6 +214,14 @@ class QuarterCarModel:
         """
         return _rk4_step(self, float(dt), int(substeps), True)
 
+    def rk4_flow(self, substeps: int = 1) -> ca.Function:
+        """Like :meth:`rk4_step`, the duration an input: (x, u, w0, w1, dt) -> x⁺.
+
+        For steps whose length is known only at run time (the NMPC's command delay);
+        ``substeps`` must keep h = dt/substeps stable for the largest dt used.
+        """
+        return _rk4_step(self, None, int(substeps))
+
     def simulate(self, x0, u, w, dt: float, substeps: int = 1) -> np.ndarray:
         """Integrate over samples: u[k] held on [t_k, t_k+1), w sampled at t_k (len(u)+1 values).
 
@@ -243,13 +251,14 @@ class QuarterCarModel:
 
 
 @lru_cache(maxsize=64)
-def _rk4_step(model: QuarterCarModel, dt: float, substeps: int,
+def _rk4_step(model: QuarterCarModel, dt, substeps: int,
               with_energy: bool = False) -> ca.Function:
     x = ca.SX.sym('x', model.nx)
     u = ca.SX.sym('u')
     w0 = ca.SX.sym('w0')
     w1 = ca.SX.sym('w1')
-    h = dt / substeps
+    dt_in = [] if dt is not None else [ca.SX.sym('dt')]    # None: dt is an input
+    h = (dt if dt is not None else dt_in[0]) / substeps
     # Augmented state [x; E_h; A] with Ė_h = P(x, u), Ȧ = z̈_s²: one RK4 for all.
     nx = model.nx
 
@@ -271,8 +280,8 @@ def _rk4_step(model: QuarterCarModel, dt: float, substeps: int,
         return ca.Function(f'plant_step_{model.kind}', [x, u, w0, w1],
                            [zk[:nx], zk[nx], zk[nx + 1]], ['x', 'u', 'w0', 'w1'],
                            ['xn', 'harvested_j', 'accel_sq_int'])
-    return ca.Function(f'rk4_{model.kind}', [x, u, w0, w1], [zk[:nx]],
-                       ['x', 'u', 'w0', 'w1'], ['xn'])
+    return ca.Function(f'rk4_{model.kind}', [x, u, w0, w1] + dt_in, [zk[:nx]],
+                       ['x', 'u', 'w0', 'w1'] + ['dt'] * len(dt_in), ['xn'])
 
 
 @lru_cache(maxsize=64)

@@ -46,7 +46,8 @@ import numpy as np
 
 from erva_ros.core.codegen import BufferedCall, compile_for
 from erva_ros.core.controllers.base import Controller
-from erva_ros.core.controllers.nmpc import build_ipopt, build_ocp, stable_rollout_substep, U_SCALE
+from erva_ros.core.controllers.nmpc import (build_ipopt, build_ocp, OCPSpec,
+                                            stable_rollout_substep, U_SCALE)
 from erva_ros.core.metrics import comfort_power, evaluation_objective
 from erva_ros.core.model import get_model, PLANT_SUBSTEP_S, QuarterCarModel
 from erva_ros.core.params import ERVAParams
@@ -247,8 +248,8 @@ def clairvoyant_bound(params: ERVAParams, road: Road, duration_s: float, ts: flo
             raise ValueError(f'start {name!r} has {seq.size} commands, need {n}')
         all_starts[name] = np.clip(seq, u_min, u_max)
     t0 = time.perf_counter()
-    ocp = build_ocp(model, ts, (1,) * n, 'bound', u_min, u_max, 0.0,
-                    rollout_substep_s=stable_rollout_substep(model, u_max))
+    ocp = build_ocp(model, OCPSpec(ts, (1,) * n, 'bound', u_min, u_max,
+                                   rollout_substep_s=stable_rollout_substep(model, u_max)))
     solver = build_ipopt(ocp, cfg.max_iter)
     p = np.r_[w, alpha[0] / n, alpha[1] / n]   # objective scaled to J(α)
     x0 = model.zero_state()

@@ -40,19 +40,23 @@ credit acts only when α2 > 0.
 Road: ``preview`` uses the preview w(t_k + j·Ts); ``no_preview`` the measured height
 w(t_k) held over the horizon (``road_prediction: hold``) or 0 (``zero``).
 
+Command delay (``command_delay_s`` = d > 0, or :meth:`NMPCController.compensate_delay`):
+the command computed at t_k acts from t_k + d on (HIL: the ECU), the previous one until
+then.  The OCP models it exactly: a prefix interval [t_k, t_k + d] with the acting
+command (a parameter), then the plan's intervals on the grid t_k + d + j·Ts, the road
+interpolated on it (linear between preview samples, held past the last).  d is an OCP
+parameter: :attr:`NMPCController.command_delay_s` may change between solves.
+
 Solvers (``solver``):
 
-``sqp``    real-time: a reduced-space SQP built once as *one* CasADi Function with
-           ``max_iter`` unrolled iterations (no Python per iteration).  It starts from
-           the best (by the true objective) of the warm start, a constant-c_e0 plan
-           and the warm start with its first move at u_max or u_min.  Each iteration:
-           roll the plan out with the model's RK4 (a nearly feasible point), linearise
-           the collocation NLP there, condense onto the N inputs (sparse LU of the
-           constraint Jacobian), build the reduced Hessian
-           from the cost's exact Hessian (Gauss-Newton type: constraint curvature
-           left out), solve the N-variable box QP (qpOASES, dense; not convexified,
-           qpOASES returns a local solution), and keep the best of the steps 1, ½, 0
-           by the true objective -- so the cost never increases.
+``sqp``    real-time: an SQP on the collocation NLP condensed onto the N inputs, one
+           CasADi Function (:mod:`erva_ros.core.controllers.sqp`): exact condensing,
+           ``hessian`` exact or Gauss-Newton (comfort) + exact (economic term),
+           eigenvalues mirrored, box QP, Armijo line search with every candidate put
+           back on the collocation equations (Newton), stop at ``sqp_tol`` or
+           ``max_iter``.  It starts from the best, by its value in the NLP, of the
+           warm start, a constant-c_e0 plan and the warm start with its first move at
+           u_max or u_min.
 ``ipopt``  converged reference on the same collocation NLP (tol 1e-8), solved from
            ``ipopt_starts`` of the SQP's starts (default 2: the warm start and constant
            c_e0), keeping the best local optimum.
@@ -61,20 +65,18 @@ Warm start: the previous plan shifted by one sample (last value repeated).
 Variables are scaled (u by 10 kNs/m, positions by 1 cm, velocities by 0.1 m/s).
 """
 
-from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import lru_cache
 import math
-import os
-import sys
-from typing import Tuple
+from typing import Optional, Tuple
 
 import casadi as ca
 import numpy as np
 
 from erva_ros.core.controllers.base import Controller, SolveFailure
-from erva_ros.core.codegen import BufferedCall, compile_for
+from erva_ros.core.codegen import BufferedCall
 from erva_ros.core.controllers.settings import ControllerSettings
+from erva_ros.core.controllers.sqp import build_rti, plan_value_function
 from erva_ros.core.model import get_model, linearize, QuarterCarModel
 from erva_ros.core.params import ERVAParams, ParamError
 
@@ -89,23 +91,6 @@ COLLOCATION_DEGREE = 3
 ROLLOUT_SUBSTEP_S = 2.5e-3
 #: Other starts the real-time SQP compares with the warm start (NMPCController._alternatives).
 N_ALTERNATIVES = 3
-#: Step lengths tried by the real-time SQP's line search (0: keep the iterate).
-LINE_SEARCH_STEPS = (1.0, 0.5)
-
-
-@contextmanager
-def _quiet_stdout():
-    """Silence file descriptor 1: qpOASES prints its licence banner on first use."""
-    sys.stdout.flush()
-    saved = os.dup(1)
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 1)
-        yield
-    finally:
-        os.dup2(saved, 1)
-        os.close(devnull)
-        os.close(saved)
 
 
 def stable_rollout_substep(model: QuarterCarModel, u_max: float) -> float:
@@ -135,19 +120,101 @@ def _road_weights(blocks: Tuple[int, ...], taus) -> Tuple[np.ndarray, np.ndarray
     return w_start, w_col
 
 
+def _road_points(w, blocks: Tuple[int, ...], taus, delta=None):
+    """Return the road heights of every interval: at its start and its collocation points.
+
+    A (1 + degree) x B SX matrix, column i for interval i, and the height at the end
+    of the horizon.  The road is linear between preview samples, as in the plant.
+    With a command delay (``delta`` = d/Ts, symbolic, in [0, 1)) every interval starts
+    d later: a point s + delta (s in samples) lies before or after the next preview
+    sample depending on delta (if_else); heights past the last sample hold it.
+    """
+    horizon = int(sum(blocks))
+    if delta is None:
+        w_start, w_col = _road_weights(blocks, taus)
+        cols = [ca.vertcat(ca.mtimes(w_start[i:i + 1, :], w),
+                           *[ca.mtimes(w_col[i, r:r + 1, :], w) for r in range(len(taus))])
+                for i in range(len(blocks))]
+        return ca.horzcat(*cols), w[horizon]
+
+    def at(s):
+        j = int(np.floor(s + 1e-12))
+        f = s - j
+        w_at = [w[min(j + n, horizon)] for n in range(3)]
+        early = w_at[0] + (w_at[1] - w_at[0]) * (f + delta)
+        late = w_at[1] + (w_at[2] - w_at[1]) * (f + delta - 1)
+        return ca.if_else(f + delta < 1, early, late)
+
+    starts = np.cumsum((0,) + tuple(blocks[:-1]))
+    cols = [ca.vertcat(at(s), *[at(s + tau * m) for tau in taus])
+            for s, m in zip(starts, blocks)]
+    return ca.horzcat(*cols), w[horizon]
+
+
+def _interval(model: QuarterCarModel, cost: str, ts: float, xt_s, v, k_s, wv, h, alpha,
+              a=None):
+    """Transcribe one interval of length h: collocation defects, end state, stage cost.
+
+    The single definition of the OCP's intervals, used by the NLP (IPOPT, the bound)
+    and by the real-time SQP.  ``xt_s`` is the scaled state at the interval start
+    (plus x_a(k−1) for the paper cost), v = u/U_SCALE held over the interval, ``k_s``
+    the scaled collocation states, ``wv`` the road at the start and at the collocation
+    points.  ``a`` is x_a(k) (a variable of the NLP), else the node acceleration.
+    Returns (defects, x_end_s, node acceleration, residuals r, weights c, econ): the
+    stage cost is α1·Σ c·r² + econ.
+    """
+    nx = model.nx
+    degree = wv.numel() - 1
+    c_mat, d_vec, b_vec, _ = _collocation(degree)
+    xs_col = ca.DM(X_SCALE[model.kind])
+    x = xt_s[:nx] * xs_col
+    u = U_SCALE * v
+    k = ca.reshape(k_s, nx, degree)
+    xc = [k[:, r] * xs_col for r in range(degree)]
+    pts = [x] + xc
+    a_node = model.sprung_accel(x, u, wv[0])
+    a = a_node if a is None else a
+    defects, res, res_w, econ = [], [], [], 0
+    for r in range(degree):
+        slope = sum(c_mat[s, r] * pts[s] for s in range(degree + 1))
+        defects.append((slope - h * model.ode(xc[r], u, wv[1 + r])) / xs_col)
+        if cost == 'continuous':
+            res.append(model.sprung_accel(xc[r], u, wv[1 + r]))
+            res_w.append(h * b_vec[r] / ts)
+        if cost in ('continuous', 'bound'):
+            econ -= h * b_vec[r] * alpha[1] * model.power(xc[r], u) / ts
+    if cost == 'paper':
+        res.append(a - xt_s[nx])
+        res_w.append(1 / (h * ts))
+        econ -= alpha[1] * h / ts * model.power(x, u)
+    elif cost == 'bound':
+        res.append(a)
+        res_w.append(h / ts)
+    x_end = sum(d_vec[s] * pts[s] for s in range(degree + 1)) / xs_col
+    return ca.vertcat(*defects), x_end, a_node, res, res_w, econ
+
+
+@lru_cache(maxsize=8)
+def _collocation(degree: int):
+    """Return the Radau IIA collocation matrices (C, D, B) of ``degree`` and its points."""
+    taus = [float(t) for t in ca.collocation_points(degree, 'radau')]
+    return tuple(np.asarray(m) for m in ca.collocation_coeff(taus)) + (taus,)
+
+
 @dataclass(eq=False)   # hashed by identity: one OCP per configuration (lru_cache)
 class OCP:
     """The collocation NLP of one configuration, its layout and its solvers (shareable).
 
-    Decision vector z, stage by stage: x_k = [state/scale, x_a(k−1)], u_k = [u/U_SCALE,
-    x_a(k), collocation states/scale]; then x_B (x_a only with the paper cost).
-    Constraints per stage: the shooting gap x_{k+1} − [last collocation state, x_a(k)],
-    then the path equalities (collocation, x_a(k) = ẋ_2(x_k, u_k, w_k)).
-    Parameters p = [w (H + 1 preview heights), α1, α2].
+    Decision vector z: [prefix: x(t_k)/scale (+ x_a(k−1)), its collocation states] if
+    the OCP models a command delay, then stage by stage: x_k = [state/scale, x_a(k−1)],
+    u_k = [u/U_SCALE, x_a(k), collocation states/scale]; then x_B (x_a only with the
+    paper cost).  Constraints per stage: the shooting gap x_{k+1} − [last collocation
+    state, x_a(k)], then the path equalities (collocation, x_a(k) = ẋ_2(x_k, u_k, w_k)).
+    Parameters p = [w (H + 1 preview heights), α1, α2], plus [d, u_acting] with a delay.
     """
 
     nlp: ca.Function             # (z, p) -> (f, g)
-    rollout: ca.Function         # (x0, a_prev, u per interval, w) -> z, by RK4
+    rollout: ca.Function         # (x0, a_prev, u per interval, q) -> z, by RK4
     blocks: Tuple[int, ...]
     nx: int
     degree: int
@@ -155,6 +222,12 @@ class OCP:
     u_min: float
     u_max: float
     x_scale: np.ndarray
+    ts: float
+    delayed: bool
+    interval: ca.Function        # (xt, v, k, wv, h, alpha) -> (defects, phi, cost, r, c, e)
+    prefix: ca.Function          # (xt, v, k, wv, h) -> (defects, phi): the delay
+    terminal: ca.Function        # (x_B, w_end, alpha) -> terminal cost
+    road: ca.Function            # p -> (road per interval, w_end, prefix road, d, v_acting)
 
     @property
     def horizon(self) -> int:
@@ -167,108 +240,223 @@ class OCP:
         return self.nx + int(self.with_acc)
 
     @property
+    def nk(self) -> int:
+        """Return the number of collocation states per interval."""
+        return self.degree * self.nx
+
+    @property
     def stage(self) -> int:
         """Return the number of decision variables per stage."""
-        return self.nxa + 1 + int(self.with_acc) + self.degree * self.nx
+        return self.nxa + 1 + int(self.with_acc) + self.nk
+
+    @property
+    def offset(self) -> int:
+        """Return where the first stage starts in z (after the delay prefix)."""
+        return (self.nxa + self.nk) if self.delayed else 0
 
     @property
     def nz(self) -> int:
         """Return the size of the decision vector."""
-        return len(self.blocks) * self.stage + self.nxa
+        return self.offset + len(self.blocks) * self.stage + self.nxa
+
+    @property
+    def n_p(self) -> int:
+        """Return the size of the parameter vector p."""
+        return self.horizon + 3 + 2 * int(self.delayed)
+
+    @property
+    def v_min(self) -> float:
+        """Return the lower input bound, scaled (v = u/U_SCALE)."""
+        return self.u_min / U_SCALE
+
+    @property
+    def v_max(self) -> float:
+        """Return the upper input bound, scaled."""
+        return self.u_max / U_SCALE
 
     @property
     def u_index(self) -> np.ndarray:
         """Return the positions of the scaled inputs in z."""
-        return np.arange(len(self.blocks)) * self.stage + self.nxa
+        return self.offset + np.arange(len(self.blocks)) * self.stage + self.nxa
+
+    def params(self, w, alpha, delay_s: float = 0.0, u_acting: float = 0.0) -> np.ndarray:
+        """Return p for preview ``w`` (H + 1 heights), weights, and the delay if modelled."""
+        extra = [delay_s, u_acting / U_SCALE] if self.delayed else []
+        return np.r_[w, alpha, extra]
+
+    def road_params(self, p):
+        """Return the rollout's q: p without the weights."""
+        h1 = self.horizon + 1
+        return ca.vertcat(p[:h1], p[h1 + 2:]) if self.delayed else p[:h1]
 
     def bounds(self, x0: np.ndarray, a_prev: float) -> Tuple[np.ndarray, np.ndarray]:
         """Return (lbz, ubz): the input box, and the first stage state fixed to x(t_k)."""
         lbz = np.full(self.nz, -np.inf)
         ubz = np.full(self.nz, np.inf)
-        lbz[self.u_index] = self.u_min / U_SCALE
-        ubz[self.u_index] = self.u_max / U_SCALE
+        lbz[self.u_index] = self.v_min
+        ubz[self.u_index] = self.v_max
         x0s = np.r_[x0 / self.x_scale, [a_prev] if self.with_acc else []]
         lbz[:self.nxa] = ubz[:self.nxa] = x0s
         return lbz, ubz
 
     def nodes(self, z: np.ndarray) -> np.ndarray:
-        """Return the predicted states at the interval ends, (B + 1, nx) in SI units."""
+        """Return the predicted states at the interval starts and the end, (B + 1, nx), SI."""
         nb = len(self.blocks)
+        z = z[self.offset:]
         body = z[:nb * self.stage].reshape(nb, self.stage)
         xs = np.vstack([body[:, :self.nx], z[nb * self.stage:][None, :self.nx]])
         return xs * self.x_scale
 
 
-@lru_cache(maxsize=32)
-def build_ocp(model: QuarterCarModel, ts: float, blocks: Tuple[int, ...], cost: str,
-              u_min: float, u_max: float, terminal_weight: float = 0.0,
-              degree: int = COLLOCATION_DEGREE,
-              rollout_substep_s: float = ROLLOUT_SUBSTEP_S) -> OCP:
-    """Build (once per configuration) the collocation NLP and the RK4 rollout.
+def _road_rest(model: QuarterCarModel) -> np.ndarray:
+    """Return the rest state per metre of a held road height (body and wheel follow)."""
+    return np.array([1.0, 0, 1.0, 0] + [0.0] * (model.nx - 4))
+
+
+def passive_tail(model: QuarterCarModel, c_e0: float):
+    """Return (Q_a, Q_P): ∫₀^∞ z̈_s² dt = ξᵀQ_aξ and ∫₀^∞ P dt = ξᵀQ_Pξ under c_e0.
+
+    The free response from a deviation ξ of the linearised model with the passive
+    damping c_e0: Lyapunov equations AᵀQ + QA + CᵀC = 0, C the acceleration row of A,
+    resp. c_e0·GᵀG with v_gen = G·x.  A principled terminal cost: what a finite horizon
+    leaves out, valued as if the passive damping took over.
+    """
+    a, _, _ = linearize(model, u0=c_e0)
+    n = model.nx
+    v_gen = model.generator_velocity(model.x_sym)      # linear in x
+    gen = np.asarray(ca.evalf(ca.jacobian(v_gen, model.x_sym))).reshape(1, n)
+    out = []
+    for c in (a[1:2, :], np.sqrt(c_e0) * gen):
+        lhs = np.kron(np.eye(n), a.T) + np.kron(a.T, np.eye(n))
+        q = np.linalg.solve(lhs, -(c.T @ c).reshape(-1, order='F')).reshape(n, n, order='F')
+        out.append(tuple(map(tuple, 0.5 * (q + q.T))))
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class OCPSpec:
+    """What defines one OCP (with the model): the key :func:`build_ocp` caches on.
 
     ``cost`` is 'paper' or 'continuous' (see the module doc) or 'bound', the objective
     of the clairvoyant bound: Σ_k α1·x_a(t_k)² − α2·E_k/Ts, i.e. n·(α1·acc_rms² −
     α2·P_avg) with the acceleration sampled at t_k and the energy E_k integrated.
+    ``blocks`` are the interval lengths in samples; ``terminal_weight`` the stored-
+    energy credit (preview_long); ``tail`` the passive-tail quadratic forms
+    (:func:`passive_tail`) or None; ``delayed`` models a command delay d (parameter):
+    over [t_k, t_k + d] the acting command u_acting (parameter), then the plan's
+    intervals from t_k + d on.
     """
+
+    ts: float
+    blocks: Tuple[int, ...]
+    cost: str
+    u_min: float
+    u_max: float
+    terminal_weight: float = 0.0
+    degree: int = COLLOCATION_DEGREE
+    rollout_substep_s: float = ROLLOUT_SUBSTEP_S
+    delayed: bool = False
+    tail: Optional[tuple] = None
+
+    def __post_init__(self):
+        if self.cost not in ('paper', 'continuous', 'bound'):
+            raise ParamError(f'OCP cost {self.cost!r} unknown: paper, continuous or bound')
+        object.__setattr__(self, 'blocks', tuple(int(m) for m in self.blocks))
+
+
+@lru_cache(maxsize=32)
+def build_ocp(model: QuarterCarModel, spec: OCPSpec) -> OCP:
+    """Build (once per model and :class:`OCPSpec`) the collocation NLP and the RK4 rollout."""
+    ts, blocks, cost = spec.ts, spec.blocks, spec.cost
+    u_min, u_max, terminal_weight = spec.u_min, spec.u_max, spec.terminal_weight
+    degree, rollout_substep_s = spec.degree, spec.rollout_substep_s
+    delayed, tail = spec.delayed, spec.tail
     nx = model.nx
     horizon = int(sum(blocks))
     xs = np.array(X_SCALE[model.kind])
     xs_col = ca.DM(xs)
-    taus = [float(t) for t in ca.collocation_points(degree, 'radau')]
-    c_mat, d_vec, b_vec = (np.asarray(m) for m in ca.collocation_coeff(taus))
-    w_start, w_col = _road_weights(blocks, taus)
+    taus = _collocation(degree)[3]
     with_acc = cost in ('paper', 'bound')
     nxa = nx + int(with_acc)
+    nk = nx * degree
+
+    # One interval, as a Function of its data (the real-time SQP differentiates it).
+    xt_sym, v_sym = ca.SX.sym('xt', nxa), ca.SX.sym('v')
+    k_sym, wv_sym = ca.SX.sym('k', nk), ca.SX.sym('wv', degree + 1)
+    h_sym, a_sym = ca.SX.sym('h'), ca.SX.sym('alpha', 2)
+    defects, x_end, a_node, res, res_w, econ = _interval(
+        model, cost, ts, xt_sym, v_sym, k_sym, wv_sym, h_sym, a_sym)
+    weight = a_sym[0] * ca.vertcat(*res_w)
+    res = ca.vertcat(*res)
+    cost_i = ca.dot(weight, res ** 2) + econ
+    phi = ca.vertcat(x_end, a_node) if with_acc else x_end
+    interval = ca.Function('interval', [xt_sym, v_sym, k_sym, wv_sym, h_sym, a_sym],
+                           [defects, phi, cost_i, res, weight, econ],
+                           ['xt', 'v', 'k', 'wv', 'h', 'alpha'],
+                           ['defects', 'phi', 'cost', 'res', 'weight', 'econ'])
+    # The delay's prefix: the acting command, no cost (nothing in it can be decided);
+    # x_a(k−1) passes through.
+    phi_pre = ca.vertcat(x_end, xt_sym[nx]) if with_acc else x_end
+    prefix = ca.Function('prefix', [xt_sym, v_sym, k_sym, wv_sym, h_sym],
+                         [defects, phi_pre], ['xt', 'v', 'k', 'wv', 'h'], ['defects', 'phi'])
+    w_end_sym = ca.SX.sym('w_end')
+    stored = model.energy(xt_sym[:nx] * xs_col, w_end_sym) / ts
+    # Stored mechanical energy is worth harvesting later: credit a share of it.
+    term = -terminal_weight * a_sym[1] * stored if terminal_weight > 0 else ca.SX(0)
+    if tail is not None:
+        # The cost beyond the horizon if the passive damping took over (linearised,
+        # road held): α1·∫a² − α2·∫P from the deviation of x_N from rest on the road.
+        comfort, harvest = (ca.DM(np.array(m)) for m in tail)
+        dev = xt_sym[:nx] * xs_col - w_end_sym * ca.DM(_road_rest(model))
+        term += (a_sym[0] * ca.bilin(comfort, dev, dev)
+                 - a_sym[1] * ca.bilin(harvest, dev, dev)) / ts
+    terminal = ca.Function('terminal', [xt_sym, w_end_sym, a_sym], [term],
+                           ['xt', 'w_end', 'alpha'], ['cost'])
 
     w = ca.SX.sym('w', horizon + 1)
     alpha = ca.SX.sym('alpha', 2)
+    extra = ca.SX.sym('delay', 2 if delayed else 0)    # [d, u_acting/U_SCALE]
+    delta = extra[0] / ts if delayed else None
+    road_mat, w_end = _road_points(w, blocks, taus, delta)
+    if delayed:
+        road_pre = ca.vertcat(w[0], *[w[0] + (w[1] - w[0]) * delta * tau for tau in taus])
+        h_pre, v_pre = extra[0], extra[1]
+    else:
+        road_pre, h_pre, v_pre = ca.DM.zeros(degree + 1), ca.SX(0), ca.SX(0)
+    p_sym = ca.vertcat(w, alpha, extra)
+    road = ca.Function('road', [p_sym], [road_mat, w_end, road_pre, h_pre, v_pre],
+                       ['p'], ['w', 'w_end', 'w_pre', 'h_pre', 'v_pre'])
+
     z, g = [], []
     obj = 0
     xk_s = ca.SX.sym('x0', nxa)
     z.append(xk_s)
+    if delayed:
+        kp = ca.SX.sym('k_pre', nk)
+        dfc, phi_k = prefix(xk_s, v_pre, kp, road_pre, h_pre)
+        xk_s = ca.SX.sym('x_acts', nxa)
+        z += [kp, xk_s]
+        g += [xk_s - phi_k, dfc]
     for i, m in enumerate(blocks):
-        h = m * ts
-        x = xk_s[:nx] * xs_col
         v = ca.SX.sym(f'v{i}')
-        u = U_SCALE * v
-        w_i = ca.mtimes(w_start[i:i + 1, :], w)
         z.append(v)
-        path = []
+        a = None
         if with_acc:
             # x_a(k) as a variable: the jerk-like term is a convex quadratic inside
             # the stage (x_a(k−1) is carried in the stage state).
             a = ca.SX.sym(f'a{i}')
             z.append(a)
-            if cost == 'paper':
-                obj += alpha[0] / (m * ts ** 2) * (a - xk_s[nx]) ** 2 \
-                    - alpha[1] * m * model.power(x, u)
-            else:
-                obj += alpha[0] * m * a ** 2
-        xc_s = ca.SX.sym(f'xc{i}', nx, degree)
-        z.append(ca.vec(xc_s))
-        xc = [xc_s[:, r] * xs_col for r in range(degree)]
-        pts = [x] + xc
-        for r in range(degree):
-            w_r = ca.mtimes(w_col[i, r:r + 1, :], w)
-            slope = sum(c_mat[s, r] * pts[s] for s in range(degree + 1))
-            path.append((slope - h * model.ode(xc[r], u, w_r)) / xs_col)
-            if cost == 'continuous':
-                acc = model.sprung_accel(xc[r], u, w_r)
-                obj += h * b_vec[r] * (alpha[0] * acc ** 2
-                                       - alpha[1] * model.power(xc[r], u)) / ts
-            elif cost == 'bound':
-                obj -= h * b_vec[r] * alpha[1] * model.power(xc[r], u) / ts
-        if with_acc:
-            path.append(a - model.sprung_accel(x, u, w_i))
-        x_end = sum(d_vec[s] * pts[s] for s in range(degree + 1)) / xs_col
+        k = ca.SX.sym(f'xc{i}', nk)
+        z.append(k)
+        dfc, x_end, a_node, res, res_w, econ = _interval(
+            model, cost, ts, xk_s, v, k, road_mat[:, i], m * ts, alpha, a)
+        obj += alpha[0] * ca.dot(ca.vertcat(*res_w), ca.vertcat(*res) ** 2) + econ
         xk_s = ca.SX.sym(f'x{i + 1}', nxa)
         z.append(xk_s)
         g.append(xk_s - (ca.vertcat(x_end, a) if with_acc else x_end))
-        g.append(ca.vertcat(*path))
-    if terminal_weight > 0:
-        # Stored mechanical energy is worth harvesting later: credit a share of it.
-        obj -= terminal_weight * alpha[1] * model.energy(xk_s[:nx] * xs_col, w[horizon]) / ts
-    nlp = ca.Function('nlp', [ca.vertcat(*z), ca.vertcat(w, alpha)], [obj, ca.vertcat(*g)],
+        g.append(ca.vertcat(dfc, a - a_node) if with_acc else dfc)
+    obj += terminal(xk_s, w_end, alpha)
+    nlp = ca.Function('nlp', [ca.vertcat(*z), p_sym], [obj, ca.vertcat(*g)],
                       ['z', 'p'], ['f', 'g'])
 
     # Rollout: the decision vector of a plan, by the model's RK4 through every
@@ -278,27 +466,36 @@ def build_ocp(model: QuarterCarModel, ts: float, blocks: Tuple[int, ...], cost: 
     ub = ca.SX.sym('ub', len(blocks))
     xr = x0
     a_last = a_prev
-    zr = []
-    for i, m in enumerate(blocks):
-        h = m * ts
-        w_i = ca.mtimes(w_start[i:i + 1, :], w)
-        acc = model.sprung_accel(xr, U_SCALE * ub[i], w_i)
-        zr += [xr / xs_col] + ([a_last] if with_acc else []) + [ub[i]] + \
-            ([acc] if with_acc else [])
-        a_last = acc
-        tau_prev, w_prev = 0.0, w_i
+    zr = [xr / xs_col] + ([a_last] if with_acc else [])
+
+    def through_points(u, wv, h, fixed=True):
+        nonlocal xr
+        tau_prev = 0.0
         for r in range(degree):
-            w_r = ca.mtimes(w_col[i, r:r + 1, :], w)
-            dt = (taus[r] - tau_prev) * h
-            step = model.rk4_step(dt, max(1, int(np.ceil(dt / rollout_substep_s - 1e-9))))
-            xr = step(xr, U_SCALE * ub[i], w_prev, w_r)
+            dt = (taus[r] - tau_prev) * (h if fixed else ts)
+            n_sub = max(1, int(np.ceil(dt / rollout_substep_s - 1e-9)))
+            if fixed:
+                xr = model.rk4_step(dt, n_sub)(xr, u, wv[r], wv[r + 1])
+            else:     # the prefix: h = d < Ts, sub-steps for the longest
+                xr = model.rk4_flow(n_sub)(xr, u, wv[r], wv[r + 1], (taus[r] - tau_prev) * h)
             zr.append(xr / xs_col)
-            tau_prev, w_prev = taus[r], w_r
-    zr += [xr / xs_col] + ([a_last] if with_acc else [])
-    rollout = ca.Function('rollout', [x0, a_prev, ub, w], [ca.vertcat(*zr)],
-                          ['x0', 'a_prev', 'u', 'w'], ['z'])
+            tau_prev = taus[r]
+
+    if delayed:
+        through_points(U_SCALE * v_pre, road_pre, h_pre, fixed=False)
+        zr += [xr / xs_col] + ([a_last] if with_acc else [])
+    for i, m in enumerate(blocks):
+        wv = road_mat[:, i]
+        acc = model.sprung_accel(xr, U_SCALE * ub[i], wv[0])
+        zr += [ub[i]] + ([acc] if with_acc else [])
+        a_last = acc
+        through_points(U_SCALE * ub[i], wv, m * ts)
+        zr += [xr / xs_col] + ([a_last] if with_acc else [])
+    q = ca.vertcat(w, extra)
+    rollout = ca.Function('rollout', [x0, a_prev, ub, q], [ca.vertcat(*zr)],
+                          ['x0', 'a_prev', 'u', 'q'], ['z'])
     return OCP(nlp, rollout, tuple(blocks), nx, degree, with_acc, float(u_min), float(u_max),
-               xs)
+               xs, float(ts), bool(delayed), interval, prefix, terminal, road)
 
 
 @lru_cache(maxsize=32)
@@ -311,91 +508,6 @@ def build_ipopt(ocp: OCP, max_iter: int) -> ca.Function:
                       'sb': 'yes', 'mu_strategy': 'adaptive'},
             'print_time': False, 'error_on_fail': False}
     return ca.nlpsol('nmpc_ipopt', 'ipopt', {'x': zs, 'p': ps, 'f': f, 'g': g}, opts)
-
-
-@lru_cache(maxsize=32)
-def build_rti(ocp: OCP, iterations: int, codegen: str = 'off',
-              n_alt: int = 1) -> ca.Function:
-    """Return the real-time reduced-space SQP as one Function (see module doc).
-
-    (x0, a_prev, u_guess, u_alt (scaled, per interval), p) -> (u, z, f, improved).
-    ``codegen`` (auto/on/off) compiles its model functions to C (erva_ros/core/codegen.py).
-    """
-    nz, nb = ocp.nz, len(ocp.blocks)
-    zs = ca.SX.sym('z', nz)
-    ps = ca.SX.sym('p', ocp.nlp.size1_in(1))
-    f, g = ocp.nlp(zs, ps)
-    first = ca.Function('first_order', [zs, ps], [f, g, ca.gradient(f, zs), ca.jacobian(g, zs)])
-    # Gauss-Newton-type Hessian: the exact Hessian of the cost, constraint curvature
-    # left out (measured: fewer stalls and ~4x cheaper than the exact Lagrangian one).
-    hess = ca.Function('cost_hessian', [zs, ps], [ca.hessian(f, zs)[0]])
-    nlp, rollout = ocp.nlp, ocp.rollout
-    first, hess, nlp, rollout = compile_for(codegen, (first, hess, nlp, rollout),
-                                            'the NMPC solver')
-    u_idx = [int(i) for i in ocp.u_index]
-    dep = [i for i in range(ocp.nxa, nz) if i not in set(u_idx)]   # x_0 is fixed
-    p_u = ca.DM(ca.Sparsity.triplet(nz, nb, u_idx, list(range(nb))), 1.0)
-    p_d = ca.DM(ca.Sparsity.triplet(nz, len(dep), dep, list(range(len(dep)))), 1.0)
-    with _quiet_stdout():
-        qp = ca.conic('rti_qp', 'qpoases',
-                      {'h': ca.Sparsity.dense(nb, nb), 'a': ca.Sparsity(0, nb)},
-                      {'printLevel': 'none', 'error_on_fail': False})
-    lo, hi = ocp.u_min / U_SCALE, ocp.u_max / U_SCALE
-
-    x0 = ca.MX.sym('x0', ocp.nx)
-    a_prev = ca.MX.sym('a_prev')
-    u_guess = ca.MX.sym('u_guess', nb)
-    p = ca.MX.sym('p', ps.shape[0])
-    w = p[:ocp.horizon + 1]
-
-    def objective(uu):
-        zz = rollout(x0, a_prev, uu, w)
-        return zz, nlp(zz, p)[0]
-
-    # Start from the best of the warm start and the alternatives (columns of u_alt):
-    # the OCP is non-convex and a shifted plan can sit in a poor basin.
-    u_alt = ca.MX.sym('u_alt', nb, n_alt)
-    u = ca.fmin(ca.fmax(u_guess, lo), hi)
-    z, fz = objective(u)
-    for j in range(n_alt):
-        ua = ca.fmin(ca.fmax(u_alt[:, j], lo), hi)
-        za, fa = objective(ua)
-        use_alt = fa < fz
-        u = ca.if_else(use_alt, ua, u)
-        z = ca.if_else(use_alt, za, z)
-        fz = ca.fmin(fa, fz)
-    improved = 0
-    for _ in range(iterations):
-        fz, gz, grad, jac = first(z, p)
-        jd = jac[:, dep]
-        sens = -ca.solve(jd, ca.horzcat(gz, jac[:, u_idx]), 'csparse')
-        zp = ca.mtimes(p_d, sens[:, 0])                        # closes the tiny defects
-        zu = ca.mtimes(p_d, sens[:, 1:]) + p_u                 # dz/du on the constraints
-        h = hess(z, p)
-        hr = ca.mtimes([zu.T, h, zu])
-        # Not convexified: qpOASES returns a local solution of the (bounded) QP and
-        # the line search below only accepts a decrease of the true objective.
-        hr = 0.5 * (hr + hr.T) + 1e-9 * ca.MX.eye(nb)
-        gr = ca.mtimes(zu.T, grad + ca.mtimes(h, zp))
-        du = qp(h=hr, g=gr, lbx=lo - u, ubx=hi - u)['x']
-        best_u, best_z, best_f, gain = u, z, fz, 0
-        for step in LINE_SEARCH_STEPS:
-            # Clipping maps NaN to a bound, so candidates are always finite inputs.
-            uc = ca.fmin(ca.fmax(u + step * du, lo), hi)
-            zc, fc = objective(uc)
-            better = fc < best_f      # False for NaN: a failed QP never moves the plan
-            best_u = ca.if_else(better, uc, best_u)
-            best_z = ca.if_else(better, zc, best_z)
-            best_f = ca.fmin(fc, best_f)
-            gain = ca.fmax(gain, better)
-        u, z, fz = best_u, best_z, best_f
-        improved = improved + gain
-    rti = ca.Function('nmpc_rti', [x0, a_prev, u_guess, u_alt, p], [u, z, fz, improved],
-                      ['x0', 'a_prev', 'u_guess', 'u_alt', 'p'], ['u', 'z', 'f', 'improved'])
-    with _quiet_stdout():   # first call allocates the QP memory (and prints the banner)
-        rti(np.zeros(ocp.nx), 0.0, np.full(nb, hi), np.full((nb, n_alt), lo),
-            np.zeros(ps.shape[0]))
-    return rti
 
 
 def nmpc_blocks(settings: ControllerSettings, name: str) -> Tuple[int, ...]:
@@ -421,19 +533,12 @@ class NMPCController(Controller):
         self.warm_start = bool(warm_start)
         self.blocks = nmpc_blocks(settings, name)
         self.cost = settings.long_cost if name == 'preview_long' else settings.cost
-        self.ocp = build_ocp(self.model, settings.ts, self.blocks, self.cost,
-                             settings.u_min, settings.u_max,
-                             settings.terminal_weight if name == 'preview_long' else 0.0,
-                             settings.collocation_degree,
-                             stable_rollout_substep(self.model, settings.u_max))
-        if settings.solver == 'ipopt':
-            self._ipopt = build_ipopt(self.ocp, settings.ipopt_max_iter)
-            budget = math.inf      # the reference is not a real-time solver
-        else:
-            # Called through fixed buffers (erva_ros/core/codegen.py): no DM conversions.
-            self._rti = BufferedCall(build_rti(self.ocp, settings.max_iter, settings.codegen,
-                                               n_alt=N_ALTERNATIVES))
-            budget = settings.time_budget_s
+        #: Delay d from the sample to the command acting (s), modelled in the OCP;
+        #: may change between solves (e.g. measured online), 0 <= d < ts.
+        self.command_delay_s = settings.command_delay_s
+        self.c_e0_param = min(max(params.c_e0, settings.u_min), settings.u_max)
+        self._build(delayed=settings.command_delay_s > 0)
+        budget = math.inf if settings.solver == 'ipopt' else settings.time_budget_s
         super().__init__(self.ocp.horizon, settings.ts, settings.u_min, settings.u_max,
                          params.c_e0, budget)
         self._block_start = np.cumsum((0,) + self.blocks[:-1])
@@ -442,6 +547,39 @@ class NMPCController(Controller):
         self.last_prediction = None
         #: Set to a list to keep every real-time solve's OCP (for :meth:`reference_gap`).
         self.recorded_problems = None
+
+    def _build(self, delayed: bool) -> None:
+        s = self.settings
+        # The passive tail values what lies beyond the horizon in the continuous cost's
+        # own terms; the paper cost's jerk-like sum has no such continuation.
+        tail = (passive_tail(self.model, self.c_e0_param)
+                if s.terminal_cost == 'passive' and self.cost == 'continuous' else None)
+        self.ocp = build_ocp(self.model, OCPSpec(
+            s.ts, self.blocks, self.cost, s.u_min, s.u_max,
+            terminal_weight=s.terminal_weight if self.name == 'preview_long' else 0.0,
+            degree=s.collocation_degree,
+            rollout_substep_s=stable_rollout_substep(self.model, s.u_max),
+            delayed=delayed, tail=tail))
+        if s.solver == 'ipopt':
+            self._ipopt = build_ipopt(self.ocp, s.ipopt_max_iter)
+        else:
+            # Called through fixed buffers (erva_ros/core/codegen.py): no DM conversions.
+            self._rti = BufferedCall(build_rti(self.ocp, s.max_iter, s.sqp_tol,
+                                               s.codegen, N_ALTERNATIVES, s.hessian))
+
+    def compensate_delay(self, model, delay_s: float) -> None:
+        """Model a command delay of ``delay_s`` exactly in the OCP (see the module doc).
+
+        Unlike other laws (erva_ros/core/controllers/delay.py) the NMPC does not predict
+        x(t_k + d) outside: its OCP holds the acting command over [t_k, t_k + d].  Set
+        :attr:`command_delay_s` to change d between solves (no rebuild).
+        """
+        if not 0.0 <= delay_s < self.ts:
+            raise ValueError(f'command delay must be in [0, Ts = {self.ts:g} s), '
+                             f'got {delay_s:g} s')
+        if not self.ocp.delayed:
+            self._build(delayed=True)
+        self.command_delay_s = float(delay_s)
 
     # -- memory -------------------------------------------------------------------------
     def _reset_law(self) -> None:
@@ -496,20 +634,20 @@ class NMPCController(Controller):
         self._pending = (x.copy(), float(preview[0]))
         w = self.road_prediction(preview)
         a_prev = self._a_prev(x, float(preview[0]))
-        p = np.append(w, (self.settings.alpha1, self.settings.alpha2))
+        p = self.ocp.params(w, (self.settings.alpha1, self.settings.alpha2),
+                            self.command_delay_s, self._acting)
         u_guess = self._guess_plan()[self._block_start] / U_SCALE
         try:
             if self.settings.solver == 'ipopt':
-                u_blocks, z, cost, iterations = self._solve_ipopt(x, a_prev, u_guess, w, p)
+                u_blocks, z, cost, iterations = self._solve_ipopt(x, a_prev, u_guess, p)
             else:
                 out = self._rti(x, a_prev, u_guess, self._alternatives(u_guess), p)
                 u_blocks = np.asarray(out[0]).ravel()
                 z = np.asarray(out[1]).ravel()
                 cost = float(out[2])
-                iterations = self.settings.max_iter
-                self._improved = int(out[3])
+                iterations = int(out[3])
                 if self.recorded_problems is not None:
-                    self.recorded_problems.append((x.copy(), a_prev, u_guess, w, p,
+                    self.recorded_problems.append((x.copy(), a_prev, u_guess, p,
                                                    u_blocks.copy(), cost))
         except RuntimeError as exc:   # evaluation error inside CasADi
             self._warm = None
@@ -519,13 +657,19 @@ class NMPCController(Controller):
             raise SolveFailure(f'{self.settings.solver}: non-finite solution')
         plan = np.repeat(np.clip(u_blocks * U_SCALE, self.u_min, self.u_max), self.blocks)
         self._warm = plan
-        self._prev_sample = (x.copy(), float(plan[0]), float(preview[0]))
+        nodes = self.ocp.nodes(z)
+        if self.ocp.delayed:
+            # x_a(k−1) of the next solve: its previous node is this solve's first one,
+            # t_k + d, where u_k starts acting.
+            w_d = np.interp(self.command_delay_s, [0.0, self.ts], w[:2])
+            self._prev_sample = (nodes[0], float(plan[0]), float(w_d))
+        else:
+            self._prev_sample = (x.copy(), float(plan[0]), float(preview[0]))
         self._pending = None
-        self.last_prediction = {'x_nodes': self.ocp.nodes(z), 'cost': cost,
-                                'improved_steps': getattr(self, '_improved', None)}
+        self.last_prediction = {'x_nodes': nodes, 'cost': cost, 'iterations': iterations}
         return plan, iterations
 
-    def _solve_ipopt(self, x, a_prev, u_guess, w, p):
+    def _solve_ipopt(self, x, a_prev, u_guess, p):
         # Non-convex OCP: converge from the first ``ipopt_starts`` of the starts the
         # real-time SQP compares (warm start, constant c_e0, first move at u_max, at
         # u_min) and keep the best local optimum.
@@ -533,7 +677,7 @@ class NMPCController(Controller):
         starts = [u_guess] + [alt[:, j] for j in range(self.settings.ipopt_starts - 1)]
         if self.settings.ipopt_starts == 2 and np.allclose(u_guess, self._u_alt):
             starts = starts[:1]             # the same start twice
-        best, status, iterations = converge_from(self.ocp, self._ipopt, x, a_prev, w, p, starts)
+        best, status, iterations = converge_from(self.ocp, self._ipopt, x, a_prev, p, starts)
         if best is None:
             raise SolveFailure(f'ipopt: {status}')
         z = np.asarray(best['x']).ravel()
@@ -547,15 +691,16 @@ class NMPCController(Controller):
         warm start, from c_e0 and from the real-time solution itself, so the reference
         is never worse than what it judges: (f_rt − f_ref) / |f_ref|.
         """
-        x, a_prev, u_guess, w, p, u_rt, f_rt = problem
+        x, a_prev, u_guess, p, u_rt, _ = problem
+        # The plan's cost on the collocation equations (the solver's own z may be a start).
+        f_rt = float(plan_value_function(self.ocp, self.settings.codegen)(x, a_prev, u_rt, p)[1])
         ipopt = build_ipopt(self.ocp, self.settings.ipopt_max_iter)
-        best, _, _ = converge_from(self.ocp, ipopt, x, a_prev, w, p,
-                                   (u_guess, self._u_alt, u_rt))
+        best, _, _ = converge_from(self.ocp, ipopt, x, a_prev, p, (u_guess, self._u_alt, u_rt))
         f_ref = f_rt if best is None else min(f_rt, float(best['f']))
         return (f_rt - f_ref) / abs(f_ref) if f_ref != 0 else 0.0
 
 
-def converge_from(ocp: OCP, ipopt: ca.Function, x, a_prev, w, p, starts):
+def converge_from(ocp: OCP, ipopt: ca.Function, x, a_prev, p, starts):
     """Solve the OCP with IPOPT from each start plan (scaled inputs); keep the best.
 
     Returns (the best converged solution or None, the last return status, the
@@ -564,7 +709,7 @@ def converge_from(ocp: OCP, ipopt: ca.Function, x, a_prev, w, p, starts):
     lbz, ubz = ocp.bounds(x, a_prev)
     best, status, iterations = None, 'failed', []
     for u0 in starts:
-        z0 = np.asarray(ocp.rollout(x, a_prev, u0, w)).ravel()
+        z0 = np.asarray(ocp.rollout(x, a_prev, u0, ocp.road_params(p))).ravel()
         sol = ipopt(x0=z0, p=p, lbx=lbz, ubx=ubz, lbg=0, ubg=0)
         stats = ipopt.stats()
         iterations.append(int(stats.get('iter_count', 0)))
@@ -576,5 +721,5 @@ def converge_from(ocp: OCP, ipopt: ca.Function, x, a_prev, w, p, starts):
     return best, status, iterations
 
 
-__all__ = ['NMPCController', 'build_ocp', 'build_rti', 'build_ipopt', 'nmpc_blocks',
+__all__ = ['NMPCController', 'OCPSpec', 'build_ocp', 'build_rti', 'build_ipopt', 'nmpc_blocks',
            'stable_rollout_substep', 'OCP', 'U_SCALE', 'COLLOCATION_DEGREE']

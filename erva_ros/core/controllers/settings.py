@@ -21,8 +21,12 @@ from erva_ros.core.specs import Choice, Integer, Number
 CONTROLLER_NAMES = ('passive', 'skyhook', 'no_preview', 'preview', 'preview_long')
 #: Stage-cost variants of the NMPC (see erva_ros.core.controllers.nmpc).
 COST_KINDS = ('paper', 'continuous')
-#: NMPC solvers: 'sqp' = real-time SQP (qrqp QPs, built once), 'ipopt' = converged reference.
+#: NMPC solvers: 'sqp' = real-time SQP (one CasADi Function), 'ipopt' = converged reference.
 SOLVER_KINDS = ('sqp', 'ipopt')
+#: Terminal costs of the continuous NMPC cost (erva_ros/core/controllers/nmpc.py passive_tail).
+TERMINAL_COSTS = ('passive', 'none')
+#: Reduced Hessians of the real-time SQP (erva_ros/core/controllers/sqp.py).
+HESSIANS = ('exact', 'gauss_newton')
 #: codegen: auto = compile when a C compiler is on PATH (else run the CasADi VM).
 CODEGEN_MODES = ('auto', 'on', 'off')
 #: How the no-preview NMPC predicts the road: hold the last measured height, or zero.
@@ -39,7 +43,9 @@ NUMERIC_SPECS: Dict[str, Number] = {
     'alpha2': Number(0.0, 1e6, '-', 'energy weight alpha2 on harvested power (eq. (12))'),
     'u_min': Number(0.0, 1e6, 'Ns/m', 'lower bound of the electrical damping c_e'),
     'u_max': Number(0.0, 1e6, 'Ns/m', 'upper bound of the electrical damping c_e', lo_open=True),
-    'max_iter': Integer(1, 50, 'iterations', 'real-time SQP iterations per sample'),
+    'max_iter': Integer(1, 50, 'iterations', 'real-time SQP: most iterations per sample'),
+    'sqp_tol': Number(0.0, 1.0, '-', 'real-time SQP: stop when an iteration is predicted to '
+                      'gain less than this share of the objective', lo_open=False),
     'ipopt_max_iter': Integer(1, 100000, 'iterations', 'IPOPT iteration limit (reference)'),
     'ipopt_starts': Integer(1, 4, 'starts', 'IPOPT reference: converge from the warm start, '
                             '+ constant c_e0, + first move at u_max, + at u_min; keep the best'),
@@ -64,6 +70,11 @@ CHOICE_SPECS: Dict[str, Choice] = {
     'road_prediction': Choice(ROAD_PREDICTIONS,
                               'no_preview road model: hold last height or zero'),
     'long_cost': Choice(COST_KINDS, 'stage cost of preview_long (paper or continuous)'),
+    'terminal_cost': Choice(TERMINAL_COSTS, 'continuous cost: value of the state at the '
+                            'horizon end as if the passive damping took over (passive) or '
+                            'none (the paper\'s NMPC)'),
+    'hessian': Choice(HESSIANS, 'real-time SQP Hessian: exact (Lagrangian) or gauss_newton '
+                                '(comfort Gauss-Newton + exact economic term)'),
     'codegen': Choice(CODEGEN_MODES, 'compile the real-time solver\'s model functions to C '
                                      '(auto: when cc/gcc is on PATH; cached in '
                                      '~/.cache/erva_ros)'),
@@ -83,9 +94,12 @@ class ControllerSettings:
     alpha2: float = 0.0
     u_min: float = 0.0
     u_max: float = 20000.0
-    cost: str = 'paper'
+    cost: str = 'continuous'
     solver: str = 'sqp'
-    max_iter: int = 2
+    max_iter: int = 10
+    sqp_tol: float = 1e-3
+    hessian: str = 'exact'
+    terminal_cost: str = 'passive'
     ipopt_max_iter: int = 3000
     ipopt_starts: int = 2
     time_budget_s: float = 0.01

@@ -1,0 +1,411 @@
+r"""The NMPC's real-time solver: an SQP on the collocation NLP, condensed onto the N inputs.
+
+The OCP (:mod:`erva_ros.core.controllers.nmpc`) is a collocation NLP in z = (states, inputs,
+collocation states).  It is non-convex (bilinear u·v_gen, near bang-bang optima).
+Each iteration, at the current point z:
+
+1. *Condensing* (one compiled SX function).  A forward sweep over the intervals gives
+   the sensitivities Z_i = dy_i/du of every interval's variables y_i on the linearised
+   equalities, and the Newton correction ζ_i of their defects (one sparse LU of each
+   interval's 18 x 18 collocation Jacobian, no pivoting needed: its pivots are those of
+   the L-stable Radau matrix); a backward sweep the multipliers.  The reduced Hessian
+   Σ_i Z_iᵀ H_i Z_i and gradient follow, with H_i either ``exact`` (the interval
+   Lagrangian: cost plus multipliers times defects and transition) or
+   ``gauss_newton``: the comfort residuals' Gauss-Newton term plus the *exact* Hessian
+   of the economic term −α2·u·v_gen² (a Gauss-Newton model alone misfits it), the
+   dynamics' curvature left out.
+2. *Convexification*: the N x N reduced Hessian's eigenvalues are mirrored, |λ|, and
+   floored (Jacobi, compiled), so the QP is convex and its step a descent direction
+   where F is concave.
+3. *Box QP* (qrqp, N variables, diagonally scaled) for du; the full step Δz = ζ + Z·du.
+4. *Globalisation*: the candidate z + t·Δz is put back on the collocation equations
+   (two Newton steps per interval from that linear prediction: a simulation with the
+   NLP's own integrator), and accepted by Armijo's rule on the ℓ1 merit
+   f + ρ·‖g‖₁ of the very NLP that IPOPT solves, over t = 1, ½, ¼, ⅛; a step is
+   evaluated only if the longer one failed (short-circuit conditionals).  Candidates
+   judged by an RK4 rollout instead (the solver this one replaces) are a different
+   model: for bang-bang plans its quadrature of the cost was off by up to 50 %, and
+   its gradient disagreed with the NLP's, so steps were rejected or misjudged.
+5. *Stop* when an iteration is predicted to gain less than ``tol``·|f(start)| or no
+   step decreases the merit, else after ``max_iter`` iterations.  Counts, never the
+   wall clock, end a solve: offline results do not depend on the machine's load.
+
+Starts: the warm start and the alternatives, each an RK4 rollout put on the collocation
+equations; the best by its cost in the NLP is iterated.
+
+The whole solver is one CasADi Function with conditionals (no Python per iteration);
+its SX parts are compiled to C with ``codegen``.
+"""
+
+from functools import lru_cache
+
+import casadi as ca
+import numpy as np
+
+from erva_ros.core.codegen import compile_for
+
+#: Reduced Hessians the real-time SQP can use (see the module doc).
+HESSIANS = ('exact', 'gauss_newton')
+#: Backtracking steps of the line search (a step is tried only if the longer one failed).
+LINE_SEARCH_STEPS = (1.0, 0.5, 0.25, 0.125)
+#: Armijo constant: accept a step that gains this share of the predicted merit decrease.
+ARMIJO = 1e-4
+#: Sweeps of the Jacobi eigen-decomposition of the reduced Hessian (10 x 10: ~1e-5).
+JACOBI_SWEEPS = 5
+#: Eigenvalue floor of the convexified Hessian, relative to its largest |eigenvalue|.
+EIG_FLOOR = 1e-6
+#: Newton steps per interval when a candidate is put back on the collocation equations.
+NEWTON_STEPS = 2
+#: ℓ1 merit: ρ = RHO_FACTOR·max|multiplier| + RHO_MIN.
+RHO_FACTOR, RHO_MIN = 2.0, 1e-6
+
+
+def _elements(a):
+    """Return a dense SX matrix as nested lists of scalars (zeros as the constant 0)."""
+    a = ca.densify(a)
+    return [[a[i, j] for j in range(a.size2())] for i in range(a.size1())]
+
+
+def _lu(a):
+    """Factor a square SX matrix A = L·U without pivoting (L unit lower); skip zeros."""
+    m = _elements(a)
+    n = len(m)
+    for j in range(n):
+        for i in range(j + 1, n):
+            if m[i][j].is_zero():
+                continue
+            m[i][j] = m[i][j] / m[j][j]
+            for k in range(j + 1, n):
+                if not m[j][k].is_zero():
+                    m[i][k] = m[i][k] - m[i][j] * m[j][k]
+    return m
+
+
+def _lu_solve(lu, b, transpose: bool = False):
+    """Solve A·x = b (or Aᵀ·x = b) for the columns of the SX matrix b, from :func:`_lu`."""
+    n = len(lu)
+    cols = []
+    for c in range(b.size2()):
+        x = [b[i, c] for i in range(n)]
+        if not transpose:      # L y = b, then U x = y
+            order = [(range(n), lambda i, k: lu[i][k], False),
+                     (range(n - 1, -1, -1), lambda i, k: lu[i][k], True)]
+        else:                  # Uᵀ y = b, then Lᵀ x = y
+            order = [(range(n), lambda i, k: lu[k][i], True),
+                     (range(n - 1, -1, -1), lambda i, k: lu[k][i], False)]
+        for rows, entry, divide in order:
+            done = []
+            for i in rows:
+                for k in done:
+                    e = entry(i, k)
+                    if not e.is_zero():
+                        x[i] = x[i] - e * x[k]
+                if divide:
+                    x[i] = x[i] / lu[i][i]
+                done.append(i)
+        cols.append(ca.vertcat(*x))
+    return ca.horzcat(*cols)
+
+
+def convexify(h, sweeps: int = JACOBI_SWEEPS):
+    """Return V·max(|Λ|, floor)·Vᵀ for symmetric h = V·Λ·Vᵀ (SX, straight-line code).
+
+    The eigenvalues are mirrored: along a direction of negative curvature the model
+    keeps its magnitude (a modified Cholesky, tried first, inflated the curvature of
+    near-singular directions 10-60x and made the SQP creep).  Cyclic Jacobi rotations
+    with the smaller angle (|θ| ≤ π/4) converge quadratically; ``sweeps`` fixed.
+    """
+    n = h.size1()
+    a = [[0.5 * (h[i, j] + h[j, i]) for j in range(n)] for i in range(n)]
+    v = [[ca.SX(float(i == j)) for j in range(n)] for i in range(n)]
+    for _ in range(sweeps):
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                dlt = a[q][q] - a[p][p]
+                sign = 2 * (dlt >= 0) - 1
+                t = 2 * a[p][q] * sign / (ca.fabs(dlt) + ca.sqrt(dlt ** 2 + 4 * a[p][q] ** 2)
+                                          + 1e-300)
+                c = 1 / ca.sqrt(1 + t ** 2)
+                s = t * c
+                for k in range(n):
+                    a[k][p], a[k][q] = c * a[k][p] - s * a[k][q], s * a[k][p] + c * a[k][q]
+                    v[k][p], v[k][q] = c * v[k][p] - s * v[k][q], s * v[k][p] + c * v[k][q]
+                for k in range(n):
+                    a[p][k], a[q][k] = c * a[p][k] - s * a[q][k], s * a[p][k] + c * a[q][k]
+    lam = ca.vertcat(*[a[i][i] for i in range(n)])
+    floor = EIG_FLOOR * ca.fmax(ca.mmax(ca.fabs(lam)), 1e-12)
+    vm = ca.vertcat(*[ca.horzcat(*row) for row in v])
+    return ca.mtimes([vm, ca.diag(ca.fmax(ca.fabs(lam), floor)), vm.T])
+
+
+def qp_model_function(ocp, hessian: str = 'exact', convex: bool = True) -> ca.Function:
+    """Return the condensed QP of the OCP at a point z (module doc, steps 1-2).
+
+    (z, p) -> (H (convexified), g, g_lin, dz0, dz_du, [∇fᵀ dz0, ρ]): the QP
+    min ½ duᵀ H du + gᵀ du; the full step Δz = dz0 + dz_du·du; g_lin = dz_duᵀ∇f
+    (the gradient without the curvature correction); ρ the ℓ1 merit's weight.
+    """
+    if hessian not in HESSIANS:
+        raise ValueError(f'hessian {hessian!r} unknown; choose one of {", ".join(HESSIANS)}')
+    nxa, nk, nb, nz = ocp.nxa, ocp.nk, len(ocp.blocks), ocp.nz
+    xt, v, k = ca.SX.sym('xt', nxa), ca.SX.sym('v'), ca.SX.sym('k', nk)
+    wv, h, al = ca.SX.sym('wv', ocp.degree + 1), ca.SX.sym('h'), ca.SX.sym('alpha', 2)
+    mu, nu = ca.SX.sym('mu', nk), ca.SX.sym('nu', nxa)
+    y = ca.vertcat(xt, v, k)
+    g, phi, cost, res, weight, econ = ocp.interval(xt, v, k, wv, h, al)
+    inline = {'never_inline': True}    # one compiled copy, called per interval
+    jac = ca.Function('interval_jac', [xt, v, k, wv, h, al],
+                      [g, phi, cost, ca.jacobian(g, y), ca.jacobian(phi, y),
+                       ca.gradient(cost, y), ca.jacobian(res, y), weight], inline)
+    if hessian == 'exact':
+        curv = ca.hessian(cost + ca.dot(mu, g) - ca.dot(nu, phi), y)[0]
+    else:
+        curv = ca.hessian(econ, y)[0]
+    hess = ca.Function('interval_hess', [xt, v, k, wv, h, al, mu, nu], [curv], inline)
+    g_pre, phi_pre = ocp.prefix(xt, v, k, wv, h)
+    jac_pre = ca.Function('prefix_jac', [xt, v, k, wv, h],
+                          [g_pre, phi_pre, ca.jacobian(g_pre, k), ca.jacobian(phi_pre, k)],
+                          inline)
+    xb, wb = ca.SX.sym('x_end', nxa), ca.SX.sym('w_end')
+    term = ocp.terminal(xb, wb, al)
+    h_term, g_term = ca.hessian(term, xb)
+    terminal = ca.Function('terminal_derivs', [xb, wb, al], [term, g_term, h_term])
+
+    z = ca.SX.sym('z', nz)
+    p = ca.SX.sym('p', ocp.n_p)
+    alpha = p[ocp.horizon + 1:ocp.horizon + 3]
+    road, w_end, road_pre, h_pre, v_pre = ocp.road(p)
+    dz_du = ca.SX.zeros(nz, nb)          # rows filled stage by stage
+    dz0 = ca.SX.zeros(nz)
+    sens = ca.SX.zeros(nxa, nb)          # d x_i / du on the linearised equalities
+    corr = ca.SX.zeros(nxa)              # Newton correction of x_i (closes the defects)
+    lam_max = 0
+    if ocp.delayed:
+        # The prefix depends on nothing decided: only its defects are corrected.
+        gp, php, gk, phk = jac_pre(z[:nxa], v_pre, z[nxa:nxa + nk], road_pre, h_pre)
+        dk = -_lu_solve(_lu(gk), gp)
+        dz0[nxa:nxa + nk] = dk
+        x_next = z[nxa + nk:ocp.offset + nxa]
+        corr = ca.mtimes(phk, dk) + php - x_next
+    sweep = []
+    for i, m in enumerate(ocp.blocks):
+        o = ocp.offset + i * ocp.stage
+        xi, vi = z[o:o + nxa], z[o + nxa]
+        ki = z[o + ocp.stage - nk:o + ocp.stage]
+        args = (xi, vi, ki, road[:, i], m * ocp.ts, alpha)
+        gi, phii, _, jg, jphi, grad, jres, wres = jac(*args)
+        gx, gv, gk = jg[:, :nxa], jg[:, nxa], jg[:, nxa + 1:]
+        unit = ca.DM.zeros(1, nb)
+        unit[i] = 1.0
+        lu = _lu(gk)          # collocation states: one sparse LU per interval
+        rhs = ca.horzcat(ca.mtimes(gx, sens) + ca.mtimes(gv, unit), gi + ca.mtimes(gx, corr))
+        sol = -_lu_solve(lu, rhs)
+        zi = ca.vertcat(sens, unit, sol[:, :nb])
+        zeta = ca.vertcat(corr, 0, sol[:, nb])
+        x_next = z[o + ocp.stage:o + ocp.stage + nxa]
+        sens = ca.mtimes(jphi, zi)
+        corr = ca.mtimes(jphi, zeta) + phii - x_next
+        # Rows of z: the stage's own variables, then (paper cost) x_a(k) = next x_a.
+        dz_du[o:o + nxa, :] = zi[:nxa, :]
+        dz0[o:o + nxa] = zeta[:nxa]
+        dz_du[o + nxa, :] = unit
+        dz_du[o + ocp.stage - nk:o + ocp.stage, :] = sol[:, :nb]
+        dz0[o + ocp.stage - nk:o + ocp.stage] = sol[:, nb]
+        if ocp.with_acc:
+            # the NLP's x_a(k) variable moves to the stage's new node acceleration
+            dz_du[o + nxa + 1, :] = sens[nxa - 1, :]
+            dz0[o + nxa + 1] = corr[nxa - 1] + x_next[nxa - 1] - z[o + nxa + 1]
+        sweep.append((args, zi, zeta, grad, gx, jphi, lu, jres, wres))
+    o_end = nz - nxa
+    dz_du[o_end:, :] = sens
+    dz0[o_end:] = corr
+    _, t_grad, t_hess = terminal(z[o_end:], w_end, alpha)
+    hr = ca.mtimes([sens.T, t_hess, sens])
+    gr = ca.mtimes(sens.T, t_grad + ca.mtimes(t_hess, corr))
+    g_lin = ca.mtimes(sens.T, t_grad)
+    df0 = ca.dot(t_grad, corr)
+    nu_next = -t_grad                    # multiplier of x_{i+1} = phi_i
+    for args, zi, zeta, grad, gx, jphi, lu, jres, wres in reversed(sweep):
+        jphi_x, jphi_k = jphi[:, :nxa], jphi[:, nxa + 1:]
+        rhs = grad[nxa + 1:] - ca.mtimes(jphi_k.T, nu_next)
+        mu_i = -_lu_solve(lu, rhs, transpose=True)          # collocation multipliers
+        h_i = hess(*args, mu_i, nu_next)
+        if hessian == 'gauss_newton':
+            jz = ca.mtimes(jres, zi)
+            hr += 2 * ca.mtimes([jz.T, ca.diag(wres), jz])
+            gr += 2 * ca.mtimes(jz.T, wres * ca.mtimes(jres, zeta))
+        hr += ca.mtimes([zi.T, h_i, zi])
+        gr += ca.mtimes(zi.T, grad + ca.mtimes(h_i, zeta))
+        g_lin += ca.mtimes(zi.T, grad)
+        df0 += ca.dot(grad, zeta)
+        lam_max = ca.fmax(lam_max, ca.fmax(ca.mmax(ca.fabs(mu_i)), ca.mmax(ca.fabs(nu_next))))
+        nu_next = -(grad[:nxa] + ca.mtimes(gx.T, mu_i) - ca.mtimes(jphi_x.T, nu_next))
+    rho = RHO_FACTOR * lam_max + RHO_MIN
+    merit = ca.vertcat(df0, rho)
+    return ca.Function('qp_model', [z, p],
+                       [convexify(hr) if convex else hr, gr, g_lin, dz0, dz_du, merit],
+                       ['z', 'p'], ['h', 'g', 'g_lin', 'dz0', 'dz_du', 'merit'])
+
+
+def projection_function(ocp, newton_steps: int = NEWTON_STEPS) -> ca.Function:
+    """Return (z, p) -> z on the collocation equations, for z's inputs (compiled SX).
+
+    Interval by interval from x(t_k): ``newton_steps`` Newton steps on the interval's
+    collocation equations from z's collocation states (a good guess: the SQP's linear
+    prediction), then its end state starts the next interval.  A simulation with the
+    NLP's own integrator, so a candidate's cost is the NLP's.
+    """
+    nxa, nk, nz = ocp.nxa, ocp.nk, ocp.nz
+    xt, v, k = ca.SX.sym('xt', nxa), ca.SX.sym('v'), ca.SX.sym('k', nk)
+    wv, h, al = ca.SX.sym('wv', ocp.degree + 1), ca.SX.sym('h'), ca.SX.sym('alpha', 2)
+    g, phi = ocp.prefix(xt, v, k, wv, h)      # the same defects as every interval
+    step = ca.Function('newton_step', [xt, v, k, wv, h],
+                       [k - _lu_solve(_lu(ca.jacobian(g, k)), g)], {'never_inline': True})
+    end = ca.Function('interval_end', [xt, v, k, wv, h], [ocp.interval(xt, v, k, wv, h, al)[1]])
+    end_pre = ca.Function('prefix_end', [xt, v, k, wv, h], [phi])
+
+    z = ca.SX.sym('z', nz)
+    p = ca.SX.sym('p', ocp.n_p)
+    road, _, road_pre, h_pre, v_pre = ocp.road(p)
+    out = [z[:nxa]]
+    x = z[:nxa]
+    if ocp.delayed:
+        kp = z[nxa:nxa + nk]
+        for _ in range(newton_steps):
+            kp = step(x, v_pre, kp, road_pre, h_pre)
+        x = end_pre(x, v_pre, kp, road_pre, h_pre)
+        out += [kp, x]
+    for i, m in enumerate(ocp.blocks):
+        o = ocp.offset + i * ocp.stage
+        vi, ki = z[o + nxa], z[o + ocp.stage - nk:o + ocp.stage]
+        for _ in range(newton_steps):
+            ki = step(x, vi, ki, road[:, i], m * ocp.ts)
+        x_next = end(x, vi, ki, road[:, i], m * ocp.ts)
+        out += [vi] + ([x_next[nxa - 1]] if ocp.with_acc else []) + [ki, x_next]
+        x = x_next
+    return ca.Function('projection', [z, p], [ca.vertcat(*out)], ['z', 'p'], ['z_on'])
+
+
+@lru_cache(maxsize=32)
+def plan_value_function(ocp, codegen: str = 'off') -> ca.Function:
+    """Return (x0, a_prev, u, p) -> (z, f): a plan (scaled inputs) in the NLP, its cost.
+
+    The RK4 rollout put onto the collocation equations (:func:`projection_function`):
+    what the real-time SQP's starts and IPOPT's solutions are compared by.
+    """
+    project, nlp, rollout = compile_for(codegen, (projection_function(ocp), ocp.nlp,
+                                                  ocp.rollout), 'the NMPC solver')
+    x0, a_prev = ca.MX.sym('x0', ocp.nx), ca.MX.sym('a_prev')
+    u, p = ca.MX.sym('u', len(ocp.blocks)), ca.MX.sym('p', ocp.n_p)
+    z = project(rollout(x0, a_prev, u, ocp.road_params(p)), p)
+    return ca.Function('plan_value', [x0, a_prev, u, p], [z, nlp(z, p)[0]],
+                       ['x0', 'a_prev', 'u', 'p'], ['z', 'f'])
+
+
+@lru_cache(maxsize=32)
+def build_rti(ocp, max_iter: int, tol: float = 1e-4, codegen: str = 'off',
+              n_alt: int = 1, hessian: str = 'exact') -> ca.Function:
+    """Return the real-time SQP as one Function (module doc).
+
+    (x0, a_prev, u_guess, u_alt, p) -> (u, z, f, iterations): inputs scaled as in
+    the OCP (v = u/U_SCALE), u_alt holds other starts (columns); the best start by
+    the objective of its rollout is iterated until the step is below ``tol`` or
+    ``max_iter`` iterations.
+    """
+    nb, nz = len(ocp.blocks), ocp.nz
+    fns = (qp_model_function(ocp, hessian), projection_function(ocp), ocp.nlp, ocp.rollout)
+    qp_model, project, nlp, rollout = compile_for(codegen, fns, 'the NMPC solver')
+    qp = ca.conic('rti_qp', 'qrqp', {'h': ca.Sparsity.dense(nb, nb), 'a': ca.Sparsity(0, nb)},
+                  {'print_iter': False, 'print_header': False, 'print_info': False,
+                   'error_on_fail': False})
+    lo, hi = ocp.v_min, ocp.v_max
+    u_idx = [int(i) for i in ocp.u_index]
+
+    x0 = ca.MX.sym('x0', ocp.nx)
+    a_prev = ca.MX.sym('a_prev')
+    p = ca.MX.sym('p', ocp.n_p)
+
+    def merit(zz, rho):
+        f, g = nlp(zz, p)
+        return f, f + rho * ca.norm_1(g)
+
+    # -- line search: step t is evaluated only if every longer step failed -----------
+    z, dz, phi0, slope, rho = (ca.MX.sym('z', nz), ca.MX.sym('dz', nz), ca.MX.sym('phi0'),
+                               ca.MX.sym('slope'), ca.MX.sym('rho'))
+    ls_in = [p, z, dz, phi0, slope, rho]
+    fail = ca.Function('ls_fail', ls_in, [ca.vertcat(z, phi0, 0)])
+    tail = fail
+    for n, t in reversed(list(enumerate(LINE_SEARCH_STEPS))):
+        zc = z + t * dz
+        # The QP's step keeps the inputs in the box; clip against rounding.
+        zc[u_idx] = ca.fmin(ca.fmax(zc[u_idx], lo), hi)
+        zc = project(zc, p)        # from the linear prediction back onto the equalities
+        fc, phic = merit(zc, rho)
+        ok = phic <= phi0 + ARMIJO * t * slope      # False for NaN: never a failed step
+        out = ca.if_else(ok, ca.vertcat(zc, fc, 1), tail(*ls_in), True)
+        tail = ca.Function(f'line_search_{n}', ls_in, [out])
+    line_search = tail
+
+    # -- one iteration: state = [z; f; done; iterations] -------------------------------
+    ns = nz + 3
+    state = ca.MX.sym('state', ns)
+    f_ref = ca.MX.sym('f_ref')
+    z = state[:nz]
+    h_red, g_red, g_lin, dz0, dz_du, mdata = qp_model(z, p)
+    u = z[u_idx]
+    # Diagonal scaling: the paper cost's Hessian spans 1e6 and qrqp then returned steps
+    # outside the box; scaled, its condition number drops to ~1e3.
+    scale = 1 / ca.sqrt(ca.fmax(ca.diag(h_red), 1e-12 * ca.mmax(ca.diag(h_red)) + 1e-300))
+    ds = qp(h=h_red * ca.mtimes(scale, scale.T), g=g_red * scale, lbx=(lo - u) / scale,
+            ubx=(hi - u) / scale)['x']
+    du = ca.fmin(ca.fmax(scale * ds, lo - u), hi - u)
+    dz = dz0 + ca.mtimes(dz_du, du)
+    df0, rho = mdata[0], mdata[1]
+    f_cur, g_cur = nlp(z, p)
+    infeas = ca.norm_1(g_cur)
+    # Directional derivative of the ℓ1 merit along a step that solves the linearised
+    # equalities: ∇fᵀΔz − ρ‖g‖₁ (< 0 unless converged).
+    slope = ca.fmin(df0 + ca.dot(g_lin, du) - rho * infeas, 0)
+    res = line_search(p, z, dz, f_cur + rho * infeas, slope, rho)
+    accepted = res[nz + 1]
+    # Converged when the QP predicts less than tol·|f| to gain (f of the start).
+    gain = -(ca.dot(g_red, du) + 0.5 * ca.dot(du, ca.mtimes(h_red, du)))
+    done = ca.logic_or(accepted == 0, gain <= tol * ca.fabs(f_ref))
+    new = ca.vertcat(ca.if_else(accepted, res[:nz + 1], ca.vertcat(z, f_cur)), done,
+                     state[ns - 1] + accepted)
+    iterate = ca.Function('sqp_iteration', [p, f_ref, state], [new])
+    keep = ca.Function('sqp_done', [p, f_ref, state], [state])
+    step_fn = ca.Function.if_else('sqp_step', keep, iterate)   # (done, ...) -> state
+
+    # -- starts, then the iterations ---------------------------------------------------
+    u_guess = ca.MX.sym('u_guess', nb)
+    u_alt = ca.MX.sym('u_alt', nb, n_alt)
+    q_road = ocp.road_params(p)
+
+    def rollout_objective(uu):
+        # RK4 rollout (a close guess), then onto the collocation equations: the start's
+        # value in the very NLP solved.
+        zz = project(rollout(x0, a_prev, uu, q_road), p)
+        return zz, nlp(zz, p)[0]
+
+    # Start from the best of the warm start and the alternatives (columns of u_alt):
+    # the OCP is non-convex and a shifted plan can sit in a poor basin.
+    z, fz = rollout_objective(ca.fmin(ca.fmax(u_guess, lo), hi))
+    for j in range(n_alt):
+        za, fa = rollout_objective(ca.fmin(ca.fmax(u_alt[:, j], lo), hi))
+        use_alt = fa < fz
+        z = ca.if_else(use_alt, za, z)
+        fz = ca.fmin(fa, fz)
+    st = ca.vertcat(z, fz, 0, 0)
+    for _ in range(max_iter):
+        st = step_fn(st[ns - 2], p, fz, st)
+    z = st[:nz]
+    rti = ca.Function('nmpc_rti', [x0, a_prev, u_guess, u_alt, p],
+                      [z[u_idx], z, st[nz], st[ns - 1]],
+                      ['x0', 'a_prev', 'u_guess', 'u_alt', 'p'],
+                      ['u', 'z', 'f', 'iterations'])
+    rti(np.zeros(ocp.nx), 0.0, np.full(nb, hi), np.full((nb, n_alt), lo), np.zeros(ocp.n_p))
+    return rti
+
+
+__all__ = ['build_rti', 'qp_model_function', 'convexify', 'HESSIANS', 'LINE_SEARCH_STEPS']

@@ -1,0 +1,183 @@
+"""Real-time SQP (controllers/sqp.py) and the command delay modelled in the OCP."""
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from erva_ros.core.closed_loop import simulate_closed_loop
+from erva_ros.core.controllers import ControllerSettings, make_controller
+from erva_ros.core.controllers.nmpc import (build_ocp, OCPSpec, stable_rollout_substep,
+                                            U_SCALE)
+from erva_ros.core.controllers.sqp import (convexify, plan_value_function, projection_function,
+                                           qp_model_function)
+from erva_ros.core.model import get_model
+from erva_ros.core.params import paper_params
+from erva_ros.core.plant import PlantSimulator
+from erva_ros.core.roads import make_road
+
+P = paper_params()
+S = ControllerSettings(time_budget_s=10.0)
+MODEL = get_model(P, 'erva')
+X0 = np.array([1e-3, 1e-2, 5e-4, -2e-2, 2e-3, 3e-2])
+
+
+def _ocp(cost='continuous', blocks=(1,) * 10, terminal=0.0, delayed=False):
+    return build_ocp(MODEL, OCPSpec(S.ts, blocks, cost, S.u_min, S.u_max, terminal, 3,
+                                    stable_rollout_substep(MODEL, S.u_max), delayed=delayed))
+
+
+def _reference(ocp, z, p):
+    """Exact reduced Hessian and gradient by dense linear algebra on the whole NLP."""
+    zs, ps = ca.SX.sym('z', ocp.nz), ca.SX.sym('p', ocp.n_p)
+    lam = ca.SX.sym('lam', ocp.nlp.size1_out(1))
+    f, g = ocp.nlp(zs, ps)
+    fn = ca.Function('ref', [zs, ps, lam], [g, ca.gradient(f, zs), ca.jacobian(g, zs),
+                                            ca.hessian(f + ca.dot(lam, g), zs)[0]])
+    g, grad, jac, _ = (np.asarray(ca.densify(v)) for v in fn(z, p, 0))
+    g, grad = g.ravel(), grad.ravel()
+    ui = ocp.u_index
+    dep = np.array([i for i in range(ocp.nxa, ocp.nz) if i not in set(ui)])
+    sens = -np.linalg.solve(jac[:, dep], np.column_stack([g, jac[:, ui]]))
+    dz0 = np.zeros(ocp.nz)
+    dz0[dep] = sens[:, 0]
+    dz_du = np.zeros((ocp.nz, ui.size))
+    dz_du[dep] = sens[:, 1:]
+    dz_du[ui, np.arange(ui.size)] = 1.0
+    lam = -np.linalg.solve(jac[:, dep].T, grad[dep])
+    hess = np.asarray(ca.densify(fn(z, p, lam)[3]))
+    return dz_du.T @ hess @ dz_du, dz_du.T @ (grad + hess @ dz0), dz0, dz_du
+
+
+@pytest.mark.parametrize('cost,blocks,terminal,delayed', [
+    ('continuous', (1,) * 10, 0.0, False), ('paper', (1,) * 10, 0.0, True),
+    ('continuous', (1,) * 6 + (3,) * 2, 0.5, True)])
+def test_condensing_is_the_exact_reduced_problem(cost, blocks, terminal, delayed):
+    # The interval-by-interval sweeps give what dense linear algebra on the whole NLP
+    # gives: the Newton step of the defects, dz/du and the exact reduced Hessian.
+    ocp = _ocp(cost, blocks, terminal, delayed)
+    exact = qp_model_function(ocp, 'exact', convex=False)
+    w = make_road('paper', 2.0, seed=1).preview(0.5, ocp.horizon, S.ts)
+    rng = np.random.default_rng(3)
+    for alpha in [(1.0, 0.0), (0.0, 1.0), (1.0, 0.01)]:
+        p = ocp.params(w, alpha, 0.008, 12000.0)
+        u = rng.uniform(0, 2, len(blocks))
+        z = np.asarray(ocp.rollout(X0, 0.1, u, ocp.road_params(p))).ravel()
+        h_ref, g_ref, dz0_ref, dz_du_ref = _reference(ocp, z, p)
+        h, g, _, dz0, dz_du, _ = (np.asarray(v) for v in exact(z, p))
+        scale = np.max(np.abs(h_ref))
+        np.testing.assert_allclose(h, h_ref, atol=1e-10 * scale)
+        np.testing.assert_allclose(g.ravel(), g_ref, atol=1e-10 * np.max(np.abs(g_ref)))
+        np.testing.assert_allclose(dz0.ravel(), dz0_ref, atol=1e-12)
+        np.testing.assert_allclose(dz_du, dz_du_ref, atol=1e-10)
+
+
+def test_convexify_keeps_a_convex_hessian_and_mirrors_negative_curvature():
+    hs = ca.SX.sym('h', 10, 10)
+    fn = ca.Function('cvx', [hs], [convexify(hs)])
+    rng = np.random.default_rng(0)
+    q, _ = np.linalg.qr(rng.normal(size=(10, 10)))
+    lam = np.array([5.0, 3.0, 2.0, 1.0, 0.5, 0.2, -0.1, -0.4, -2.0, 1e-3])
+    out = np.asarray(fn(q @ np.diag(lam) @ q.T))
+    np.testing.assert_allclose(np.sort(np.linalg.eigvalsh(out)), np.sort(np.abs(lam)),
+                               rtol=1e-6)
+    spd = q @ np.diag(np.abs(lam) + 0.1) @ q.T       # convex already: kept (5 sweeps)
+    np.testing.assert_allclose(np.asarray(fn(spd)), spd, atol=1e-6 * np.max(np.abs(spd)))
+
+
+@pytest.mark.parametrize('delayed', [False, True])
+def test_projection_puts_a_plan_on_the_collocation_equations(delayed):
+    ocp = _ocp('paper', delayed=delayed)
+    w = make_road('paper', 2.0, seed=2).preview(0.3, 10, S.ts)
+    p = ocp.params(w, (1.0, 0.01), 0.006, 3000.0)
+    u = np.random.default_rng(1).choice([0.0, 2.0], 10)     # bang-bang: far from linear
+    z = np.asarray(ocp.rollout(X0, 0.2, u, ocp.road_params(p))).ravel()
+    assert np.max(np.abs(np.asarray(ocp.nlp(z, p)[1]))) > 1e-6      # RK4 is not collocation
+    zp = np.asarray(projection_function(ocp)(z, p)).ravel()
+    assert np.max(np.abs(np.asarray(ocp.nlp(zp, p)[1]))) < 1e-10
+    np.testing.assert_array_equal(zp[ocp.u_index], u)
+    np.testing.assert_array_equal(zp[:ocp.nxa], z[:ocp.nxa])
+
+
+def test_the_delayed_ocp_predicts_the_delayed_plant():
+    # Over [t_k, t_k + d] the acting command, then the plan on a grid shifted by d:
+    # the OCP's nodes are the plant's states at t_k + d + j·Ts (step_delayed), with
+    # the collocation model's accuracy (test_ctrl_nmpc) and not the 8 ms error of
+    # planning as if the command acted at t_k.
+    ocp = _ocp('continuous', delayed=True)
+    d, u_acting = 0.008, 14000.0
+    road = make_road('paper', 2.0, seed=2)
+    t0 = 0.6
+    plant = PlantSimulator(P, 'erva', S.ts)
+    for k in range(int(t0 / S.ts)):
+        plant.step(P.c_e0, road.height(k * S.ts), road.height((k + 1) * S.ts))
+    x0 = plant.x.copy()
+    u = np.random.default_rng(4).uniform(S.u_min, S.u_max, 10)
+    w = road.preview(t0, 10, S.ts)
+    p = ocp.params(w, (1.0, 0.0), d, u_acting)
+    z = np.asarray(plan_value_function(ocp)(x0, 0.0, u / U_SCALE, p)[0]).ravel()
+    nodes = ocp.nodes(z)
+    truth, acting = [], u_acting
+    probe = PlantSimulator(P, 'erva', S.ts, x0=x0)
+    for k in range(10):
+        w0, w1 = w[k], w[k + 1]
+        half = PlantSimulator(P, 'erva', d, x0=probe.x)      # the state at t_k + d
+        truth.append(half.step(acting, w0, w0 + (w1 - w0) * d / S.ts).copy())
+        probe.step_delayed(acting, u[k], d, w0, w1)
+        acting = u[k]
+    truth = np.array(truth)
+    scale = np.max(np.abs(truth), axis=0)
+    err = np.max(np.abs(nodes[:10] - truth) / scale)
+    assert err < 0.03
+    # planning as if the command acted at t_k is an order of magnitude further off
+    undelayed = _ocp('continuous')
+    z0 = np.asarray(plan_value_function(undelayed)(
+        x0, 0.0, u / U_SCALE, undelayed.params(w, (1.0, 0.0)))[0]).ravel()
+    assert np.max(np.abs(undelayed.nodes(z0)[:10] - truth) / scale) > 5 * err
+
+
+def test_the_delay_is_set_per_solve_without_rebuilding():
+    c = make_controller('preview', P, S.with_(cost='continuous', command_delay_s=0.008))
+    rti = c._rti
+    assert c.ocp.delayed and c.delay is None        # modelled, not predicted outside
+    road = make_road('paper', 0.4, seed=0)
+    first = simulate_closed_loop(P, c, road, 0.4, actuation_delay_s=0.008)
+    c.command_delay_s = 0.004
+    second = simulate_closed_loop(P, c, road, 0.4, actuation_delay_s=0.004)
+    assert c._rti is rti and not np.allclose(first.u, second.u)
+    assert set(first.status) == set(second.status) == {'ok'}
+    with pytest.raises(ValueError, match='command delay'):
+        c.compensate_delay(MODEL, S.ts)
+
+
+def test_real_time_sqp_reaches_ipopt_on_a_hard_sample():
+    # Converged (tolerance, not the iteration cap), the real-time SQP's plan is worth
+    # what IPOPT finds from the same starts, within 0.5 %, on the continuous cost.
+    road = make_road('paper', 1.0, seed=0)
+    s = S.with_(cost='continuous', max_iter=30, sqp_tol=1e-7)
+    c = make_controller('preview', P, s)
+    c.recorded_problems = []
+    run = simulate_closed_loop(P, c, road, 0.3)
+    assert np.max(run.iterations) < 30
+    gaps = [c.reference_gap(pr) for pr in c.recorded_problems[::3]]
+    assert max(gaps) < 5e-3
+
+
+def test_passive_tail_is_the_cost_beyond_the_horizon_under_c_e0():
+    # Lyapunov quadratic forms = the integrals of a free response of the plant with the
+    # passive damping (the model is nearly linear for millimetre deviations).
+    from erva_ros.core.controllers.nmpc import passive_tail
+    q_acc, q_pow = (np.array(m) for m in passive_tail(MODEL, P.c_e0))
+    x0 = np.array([2e-3, -1e-2, 5e-4, 3e-2, 1e-3, -2e-2])
+    plant = PlantSimulator(P, 'erva', 0.02, x0=x0)
+    # 30 s: the absorber mode (σ ≈ −0.28 1/s, energy ∝ e^{2σt}) has died out; 5 s leaves 6 %
+    for _ in range(1500):
+        plant.step(P.c_e0, 0.0, 0.0)
+    assert plant.accel_sq_int == pytest.approx(x0 @ q_acc @ x0, rel=0.01)
+    assert plant.harvested_j == pytest.approx(x0 @ q_pow @ x0, rel=0.01)
+    # only the continuous cost gets it, and only when asked
+    for cost, terminal, has_tail in [('continuous', 'passive', True),
+                                     ('continuous', 'none', False), ('paper', 'passive', False)]:
+        c = make_controller('preview', P, S.with_(cost=cost, terminal_cost=terminal))
+        value = float(c.ocp.terminal(np.r_[x0 / c.ocp.x_scale, [0.0] * c.ocp.with_acc], 0.0,
+                                     [1.0, 0.0]))
+        assert (value == pytest.approx(x0 @ q_acc @ x0 / S.ts)) if has_tail else value == 0.0
