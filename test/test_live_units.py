@@ -12,6 +12,7 @@ from erva_ros.core import topics
 from erva_ros.ros import msgs
 from erva_ros.core.loop.command_hold import CommandHold
 from erva_ros.ros.diagnostics import ERROR, parse_status, StatusReporter
+from erva_ros.core.config import shipped_defaults
 from erva_ros.session.run_config import (prepare_session, read_live_file, RunConfig,
                                          validate_live)
 from erva_ros.ros.parameters import (declare_controller_settings, declare_erva_params,
@@ -198,6 +199,21 @@ def test_session_params_file_is_what_rclpy_gives_each_node(tmp_path, ros_context
     node.destroy_node()
     road = doc['/**/road_preview_node']['ros__parameters']
     assert road['seed'] == 3 and road['preview_noise'] is True
+
+
+def test_hil_sessions_model_the_measured_command_delay(tmp_path):
+    # The HIL loop's command acts after its sample: config/hil.yaml's nmpc_node section
+    # (the measured delay) applies over nmpc.yaml with --ecu only; an explicit value wins.
+    hil_delay = shipped_defaults('hil.yaml', 'nmpc_node')['command_delay_s']
+    assert 0 < hil_delay < 0.02
+
+    def delay(**kw):
+        cfg = RunConfig(session_dir=str(tmp_path / str(len(kw))), duration_s=1.0, **kw)
+        return prepare_session(cfg, recording=False).settings.command_delay_s
+
+    assert delay() == shipped_defaults('nmpc.yaml', 'nmpc_node')['command_delay_s'] == 0.0
+    assert delay(ecu='virtual') == hil_delay
+    assert delay(ecu='virtual', settings_overrides={'command_delay_s': 0.0}) == 0.0
 
 
 def test_road_file_is_read_and_bad_rows_are_one_line(tmp_path):

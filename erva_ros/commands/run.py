@@ -56,6 +56,7 @@ _weight = settings_type('alpha1')
 _seed = live_type('seed')
 _snr = live_type('preview_snr_db')
 _delay = live_type('preview_delay_s')
+_command_delay = settings_type('command_delay_s')
 
 
 def add_scenario_arguments(parser, duration_default: str = 'config/live.yaml: 4 s') -> None:
@@ -92,6 +93,10 @@ def add_scenario_arguments(parser, duration_default: str = 'config/live.yaml: 4 
                              'CAP_SYS_NICE, else each node warns once)')
     parser.add_argument('--nmpc', metavar='FILE', default=None,
                         help='controller settings params file (default: config/nmpc.yaml)')
+    parser.add_argument('--command-delay', type=_command_delay, default=None, metavar='S',
+                        help='the NMPC models this delay from the sample t_k to the command '
+                             'acting (s, < Ts; 0 = none; default: the settings file, and '
+                             'with --ecu config/hil.yaml\'s measured 0.006)')
     parser.add_argument('--live', metavar='FILE', default=None,
                         help='live-system params file (default: config/live.yaml)')
     parser.add_argument('--namespace', default=topics.NAMESPACE, metavar='NS',
@@ -143,12 +148,15 @@ def run_config(args, record_dir=None):
         live['road_file'] = os.path.abspath(args.road_file)
     if args.realtime_priority is not None:
         live['realtime_priority'] = args.realtime_priority
+    settings = {}
+    if args.command_delay is not None:
+        settings['command_delay_s'] = args.command_delay
     return RunConfig(controller=args.controller, alpha1=args.alpha1, alpha2=args.alpha2,
                      road=args.road, seed=args.seed, mode=args.mode, model=args.model,
                      duration_s=args.duration, params_file=args.params, nmpc_file=args.nmpc,
                      live_file=args.live, record_dir=record_dir, namespace=args.namespace,
                      live_overrides=live, ecu=args.ecu, ecu_prefix=_ecu_prefix(args),
-                     foxglove=getattr(args, 'foxglove', None))
+                     foxglove=getattr(args, 'foxglove', None), settings_overrides=settings)
 
 
 def _ecu_prefix(args) -> tuple:

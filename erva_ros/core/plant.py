@@ -83,6 +83,10 @@ class PlantSimulator:
         #: ∫ z̈_s² dt since reset (m²/s³): the continuous-time comfort measure.
         self.accel_sq_int = 0.0
 
+    def acc_rms_continuous(self) -> float:
+        """Return sqrt(∫ z̈_s² dt / T) over the periods taken since reset (0 before any)."""
+        return math.sqrt(self.accel_sq_int / (self.k * self.ts)) if self.k else 0.0
+
     def sample(self, u: float, w: float) -> PlantSample:
         """Return the outputs now if command ``u`` is applied with road height ``w``."""
         acc, pw = self._outputs(self.x, u, w)

@@ -266,6 +266,7 @@ class PlantSimNode(Node):
                 'steps_total': self.n_steps, 'finished': self.finished,
                 'sim_time_s': 0.0 if self.k is None else self.k * self.cfg['ts'],
                 'harvested_j': self.plant.harvested_j,
+                'acc_rms_continuous': self.plant.acc_rms_continuous(),
                 'scheduling': getattr(self, 'scheduling', 'off')}
         vals.update({f'u_from_{s}': n for s, n in self.hold.counts.items()})
         vals.update(self.count)

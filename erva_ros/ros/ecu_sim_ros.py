@@ -190,6 +190,7 @@ class EcuSimRos:
         values['finished'] = finished
         values['ecu_mode'] = core.mode.name
         values['harvested_j'] = core.plant.harvested_j
+        values['acc_rms_continuous'] = core.plant.acc_rms_continuous()
         values['samples_published'] = self.published
         values['scheduling'] = self.scheduling
         values['mode_changes'] = core.mode_changes()

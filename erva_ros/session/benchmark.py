@@ -32,6 +32,8 @@ def _run_config(args):
     overrides = {k: getattr(args, k, None)
                  for k in ('cost', 'solver', 'horizon', 'max_iter', 'u_min', 'u_max')}
     overrides = {k: v for k, v in overrides.items() if v is not None}
+    if getattr(args, 'command_delay', None) is not None:
+        overrides['command_delay_s'] = args.command_delay
     alpha = getattr(args, 'alpha', None)
     priority = getattr(args, 'realtime_priority', None)
     live = {} if priority is None else {'realtime_priority': priority}

@@ -63,7 +63,9 @@ def format_summary(s: Dict[str, Any]) -> str:
     ]
     if m.get('samples'):
         lines.append(f'  comfort   chassis acceleration 2-norm {m["acc_2norm"]:.4g} m/s², '
-                     f'RMS {m["acc_rms"]:.4g} m/s² ({m["samples"]} samples)')
+                     f'RMS {m["acc_rms"]:.4g} m/s² ({m["samples"]} samples)'
+                     + (f', continuous RMS {m["acc_rms_continuous"]:.4g} m/s²'
+                        if m.get('acc_rms_continuous') else ''))
         lines.append(f'  energy    average harvested power {m["power_w"]:.4g} W '
                      f'({m["harvested_j"]:.4g} J)')
     if m.get('realtime_factor'):

@@ -15,7 +15,7 @@ from typing import Any, Dict, Optional
 import yaml
 
 from erva_ros.core import topics
-from erva_ros.core.config import shipped_config
+from erva_ros.core.config import shipped_config, shipped_defaults
 from erva_ros.core.controllers.settings import load_controller_settings
 from erva_ros.core.errors import CLIError
 from erva_ros.core.loop.scenario import build_road, required_preview_steps
@@ -176,6 +176,10 @@ def prepare_session(cfg: RunConfig, recording: bool) -> Session:
     """Validate everything and write the session params file; raise ParamError (one line)."""
     erva = load_erva_params(cfg.params_file)
     overrides = {'controller': cfg.controller, 'alpha1': cfg.alpha1, 'alpha2': cfg.alpha2}
+    if cfg.ecu != 'none':
+        # The HIL loop's own NMPC settings (config/hil.yaml): the command acts a measured
+        # delay after its sample there, and the OCP models it (docs/hil.md §3).
+        overrides.update(shipped_defaults('hil.yaml', 'nmpc_node'))
     overrides.update(cfg.settings_overrides)
     settings = load_controller_settings(cfg.nmpc_file, overrides)
     live = live_values(cfg, settings, recording)
