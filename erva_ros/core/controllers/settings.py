@@ -106,9 +106,9 @@ class ControllerSettings:
     command_delay_s: float = 0.0
     collocation_degree: int = 3
     road_prediction: str = 'hold'
-    long_steps: int = 0
+    long_steps: int = 10
     long_step_s: float = 0.06
-    terminal_weight: float = 0.5
+    terminal_weight: float = 0.0
     long_cost: str = 'continuous'
     codegen: str = 'auto'
 
