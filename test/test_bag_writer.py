@@ -251,3 +251,13 @@ def test_zstd_chunks_read_back(tmp_path):
             write_message(w, '/clock', Clock(clock=Time(sec=k)), T0 + k)
     with Reader(str(tmp_path / 'z')) as reader:
         assert sum(1 for _ in reader.messages()) == 100
+
+
+def test_the_recorded_command_has_no_machine_paths():
+    # A bag travels: its session record names the command, not where this checkout lives.
+    import erva_ros
+    from erva_ros.core.bag.session import command_line
+    module = os.path.join(os.path.dirname(erva_ros.__file__), 'session', 'offline_bag.py')
+    assert command_line([module, 'bags/x', '--seed', '1']) == \
+        'python -m erva_ros.session.offline_bag bags/x --seed 1'
+    assert command_line(['/opt/venv/bin/erva', 'run']) == 'erva run'

@@ -91,10 +91,28 @@ def session_metadata(scenario: str, parameters: Optional[Mapping[str, Any]] = No
         'platform': platform.platform(),
         'python': platform.python_version(),
         'start_time': start.isoformat(timespec='milliseconds').replace('+00:00', 'Z'),
-        'command': ' '.join(sys.argv),
+        'command': command_line(),
     }
     meta.update(extra or {})
     return {str(k): _text(v) for k, v in meta.items()}
+
+
+def command_line(argv: Optional[Sequence[str]] = None) -> str:
+    """Return the command that made the session, without this machine's paths.
+
+    ``python -m erva_ros.x.y`` shows as that; a console script (``erva``) by its name.
+    """
+    argv = list(sys.argv if argv is None else argv)
+    if not argv:
+        return ''
+    head = os.path.abspath(argv[0])
+    package = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    if head.endswith('.py') and head.startswith(package + os.sep):
+        module = os.path.relpath(head[:-3], os.path.dirname(package)).replace(os.sep, '.')
+        first = ['python', '-m', module]
+    else:
+        first = [os.path.basename(argv[0])]
+    return ' '.join(first + argv[1:])
 
 
 def recorder_ros_args(bag_dir: str, metadata: Optional[Mapping[str, Any]] = None,
