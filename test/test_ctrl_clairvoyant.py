@@ -73,3 +73,41 @@ def test_polish_descends_to_the_box_minimum_and_never_increases():
     u, f, it = polish(fg, np.full(5, 1.0), 0.0, 2.0, max_iter=50)
     np.testing.assert_allclose(u, np.clip(target, 0.0, 2.0), atol=1e-8)
     assert f <= fg(np.full(5, 1.0))[0] and 1 <= it <= 50
+
+
+def test_lbfgs_direction_skips_pairs_without_curvature_on_the_free_variables():
+    # y·s > 0 over all variables (through a held one) but 0 on the free ones: once this
+    # overflowed rho to 1e300 and the step to NaN, which stopped the bound's polish.
+    import warnings
+    from erva_ros.core.controllers.clairvoyant import lbfgs_direction
+    free = np.array([True, True, False])
+    pg = np.array([1.0, 2.0, 0.0])
+    s_ = np.array([1.0, 1.0, 1.0])
+    y_ = np.array([1.0, -1.0, 5.0])          # y·s = 5 > 0; on the free ones 0
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        d, gamma = lbfgs_direction(pg, free, [(s_, y_)], 0.1)
+    assert np.all(np.isfinite(d)) and gamma > 0 and d @ pg < 0 and d[2] == 0.0
+
+
+def test_polish_stays_finite_when_variables_reach_the_box():
+    # Curvature pairs positive over all variables need not be on the free ones: the
+    # two-loop recursion must skip those (once it overflowed to a NaN step and stopped).
+    import warnings
+    from erva_ros.core.controllers.clairvoyant import polish
+    rng = np.random.default_rng(0)
+    m = rng.normal(size=(40, 40))
+    a = m @ m.T + 0.1 * np.eye(40)
+    b = 50.0 * rng.normal(size=40)
+
+    def fg(u):
+        return 0.5 * u @ a @ u - b @ u, a @ u - b
+
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')          # an overflow or NaN fails the test
+        u, f, _ = polish(fg, np.zeros(40), -1.0, 1.0, max_iter=300)
+    assert np.all(np.isfinite(u)) and f < fg(np.zeros(40))[0]
+    # First-order optimality on the box: no free variable has a gradient left.
+    g = a @ u - b
+    free = ~(((u <= -1.0) & (g > 0)) | ((u >= 1.0) & (g < 0)))
+    assert np.max(np.abs(g[free])) < 1e-3 * np.max(np.abs(b))

@@ -152,6 +152,33 @@ def plant_objective(model: QuarterCarModel, ts: float, n: int, codegen: str = 'a
     return BufferedCall(fn)
 
 
+def lbfgs_direction(pg: np.ndarray, free: np.ndarray, pairs, first_step: float):
+    """Return the L-BFGS descent direction on the ``free`` variables and its scale gamma.
+
+    ``pg`` is the gradient with the held variables zeroed, ``pairs`` the (s, y) history.
+    Only pairs with positive curvature on the free variables are used: y·s > 0 over all
+    variables does not carry over once some are held, and rho = 1/(y·s) would overflow
+    to a NaN step.  Without a usable pair the step is at most ``first_step`` long.
+    """
+    usable = [(s, y) for s, y in pairs
+              if float(np.dot(y[free], s[free])) > 1e-12 * float(np.dot(s[free], s[free]))]
+    q, coefs = pg.copy(), []
+    for s, y in reversed(usable):
+        rho = 1.0 / float(np.dot(y[free], s[free]))
+        a = rho * float(np.dot(s[free], q[free]))
+        coefs.append((rho, a))
+        q[free] -= a * y[free]
+    if usable:
+        s, y = usable[-1]
+        gamma = float(np.dot(s[free], y[free])) / float(np.dot(y[free], y[free]))
+    else:
+        gamma = first_step / float(np.max(np.abs(pg)))
+    r = gamma * q
+    for (rho, a), (s, y) in zip(reversed(coefs), usable):
+        r[free] += s[free] * (a - rho * float(np.dot(y[free], r[free])))
+    return -np.where(free, r, 0.0), gamma
+
+
 def polish(fg, u0: np.ndarray, lo: float, hi: float, max_iter: int = 60, memory: int = 10):
     """Projected L-BFGS on the box [lo, hi]: a local descent that never increases J.
 
@@ -168,23 +195,8 @@ def polish(fg, u0: np.ndarray, lo: float, hi: float, max_iter: int = 60, memory:
         pg = np.where(free, g, 0.0)
         if not np.any(pg):
             break
-        q, coefs = pg.copy(), []
-        for s, y in reversed(pairs):
-            rho = 1.0 / max(float(np.dot(y[free], s[free])), 1e-300)
-            a = rho * float(np.dot(s[free], q[free]))
-            coefs.append((rho, a))
-            q[free] -= a * y[free]
-        if pairs:
-            s, y = pairs[-1]
-            yy = max(float(np.dot(y[free], y[free])), 1e-300)
-            gamma = float(np.dot(s[free], y[free])) / yy
-        else:      # first step: at most a tenth of the box
-            gamma = 0.1 * (hi - lo) / float(np.max(np.abs(pg)))
-        r = gamma * q
-        for (rho, a), (s, y) in zip(reversed(coefs), pairs):
-            r[free] += s[free] * (a - rho * float(np.dot(y[free], r[free])))
-        d = -np.where(free, r, 0.0)
-        if not gamma > 0 or float(np.dot(d, g)) >= 0:
+        d, gamma = lbfgs_direction(pg, free, pairs, 0.1 * (hi - lo))
+        if not gamma > 0 or not np.all(np.isfinite(d)) or not float(np.dot(d, g)) < 0:
             d, pairs = -pg * abs(gamma or 1.0), []
         step, accepted = 1.0, False
         for _ in range(30):
