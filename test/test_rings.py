@@ -2,9 +2,11 @@
 
 * core (erva_ros/core): plain Python -- no rclpy, no message package, not even inside a
   function or through importlib;
-* ros (erva_ros/ros, erva_ros/nodes): may import core and ROS;
+* ros (erva_ros/ros, erva_ros/nodes): may import core and ROS -- the only ring that
+  imports rclpy or a message package;
 * session (erva_ros/session) and the CLI (erva_ros/commands, erva_ros/cli.py): built on
-  both; the CLI may import the session, never the other way round.
+  core and ros (through erva_ros.ros, never rclpy itself); the CLI may import the
+  session, never the other way round.
 """
 
 import ast
@@ -79,8 +81,8 @@ def violations():
         ring = ring_of(module)
         for name, line in imports_of(path, module):
             where = f'{os.path.relpath(path, REPO)}:{line}'
-            if ring == 'core' and (is_ros_package(name) or name.startswith('{}')):
-                out.append(f'{where}: core imports {name}')
+            if ring != 'ros' and (is_ros_package(name) or name.startswith('{}')):
+                out.append(f'{where}: {ring} imports {name}')
             if name.startswith('erva_ros.') and ring_of(name) not in ALLOWED[ring]:
                 out.append(f'{where}: {ring} imports {name} ({ring_of(name)}, upward)')
     return sorted(set(out))
@@ -100,11 +102,15 @@ def test_the_rings_are_folders():
     ('def f():\n    from sensor_msgs.msg import JointState\n', 'core imports sensor_msgs.msg'),
     ('import importlib\nimportlib.import_module(f"{p}.msg")\n', 'core imports {}.msg'),
     ('from erva_ros.session import monitor\n', 'core imports erva_ros.session'),
+    ('def f():\n    import rclpy\n', 'session imports rclpy'),
+    ('from trajectory_msgs.msg import JointTrajectory\n', 'cli imports trajectory_msgs.msg'),
 ])
 def test_the_check_finds_a_violation(tmp_path, monkeypatch, source, found):
+    ring = found.split()[0]
+    folder = {'cli': 'commands'}.get(ring, ring)
     pkg = tmp_path / 'erva_ros'
-    (pkg / 'core').mkdir(parents=True)
-    (pkg / 'core' / 'bad.py').write_text(source)
+    (pkg / folder).mkdir(parents=True)
+    (pkg / folder / 'bad.py').write_text(source)
     monkeypatch.setattr(__import__(__name__), 'PKG', str(pkg))
     monkeypatch.setattr(__import__(__name__), 'REPO', str(tmp_path))
     assert any(found in v for v in violations()), violations()

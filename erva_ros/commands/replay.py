@@ -173,19 +173,16 @@ def _play(args, bag) -> int:
     import signal
     import time
 
-    import rclpy
-    from rclpy.signals import SignalHandlerOptions
-
+    from erva_ros.ros.context import RosContext
     from erva_ros.ros.replay import Player
 
     server = None
     stop = {'flag': False}
-    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    ros = RosContext()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.update(flag=True))
-    node = None
     try:
-        node = rclpy.create_node('erva_replay')
+        node = ros.create_node('erva_replay')
         player = Player(node, bag, rate=args.rate, topics=args.topics, loop=args.loop,
                         clock_hz=args.clock or 0.0)
         if args.foxglove is not None:
@@ -204,9 +201,7 @@ def _play(args, bag) -> int:
     finally:
         if server is not None:
             server.close()
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        ros.close()
     if args.json:
         from erva_ros.session.bag_report import json_safe
         print_json(json_safe(stats))

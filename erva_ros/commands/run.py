@@ -176,16 +176,12 @@ def _ecu_prefix(args) -> tuple:
 
 def _check_namespace(namespace: str) -> str:
     """Return the namespace made absolute, or raise CLIError if ROS would refuse it."""
-    from rclpy.exceptions import InvalidNamespaceException
-    from rclpy.validate_namespace import validate_namespace
-    absolute = namespace if namespace.startswith('/') else '/' + namespace
+    from erva_ros.ros.context import absolute_namespace
     try:
-        validate_namespace(absolute)
-    except InvalidNamespaceException as exc:
-        reason = str(exc).splitlines()[0].rstrip(':')
-        raise CLIError(f'--namespace {namespace!r} is not a valid ROS namespace ({reason})'
+        return absolute_namespace(namespace)
+    except ValueError as exc:
+        raise CLIError(f'--namespace {namespace!r} is not a valid ROS namespace ({exc})'
                        ) from None
-    return absolute
 
 
 def main(args) -> int:

@@ -1,17 +1,9 @@
-"""The live system's ROS 2 plumbing, shared by the nodes, `erva run` and `erva bench --live`.
+"""Sessions: `erva run`, its benchmarks and reports, built on erva_ros.core and erva_ros.ros.
 
-Plain helpers around rclpy, kept out of the node files so the nodes stay thin:
+No rclpy or message import here (test_rings): ROS work goes through erva_ros.ros
+(:class:`~erva_ros.ros.context.RosContext`, :mod:`~erva_ros.ros.monitor`, ...).
 
-* :mod:`~erva_ros.ros.msgs` -- numpy <-> common_interfaces messages (topics.py contract);
-* :mod:`~erva_ros.core.loop.validation` -- NaN/inf/absurd values rejected, counted, logged at a
-  limited rate, before anything reaches a controller or the plant;
-* :mod:`~erva_ros.ros.diagnostics` -- diagnostic_msgs/DiagnosticArray of a node's status;
-* :mod:`~erva_ros.ros.parameters` -- parameters declared with descriptors and ranges from
-  the Spec tables, one-line errors on bad values;
-* :mod:`~erva_ros.core.loop.command_hold` -- the plant's command/plan/passive hold (no ROS);
-* :mod:`~erva_ros.core.loop.timing` -- grid alignment and timing statistics;
-* :mod:`~erva_ros.ros.runtime` -- the main() idiom of every node;
-* :mod:`~erva_ros.session.monitor` -- the in-process monitor node of `erva run`;
+* :mod:`~erva_ros.session.monitor` -- what the monitor observed, as the run's figures;
 * :mod:`~erva_ros.session.hil_summary` -- its HIL figures (`erva run --ecu virtual`);
 * :mod:`~erva_ros.session.orchestrator` -- `erva run`: one session, start to summary;
 * :mod:`~erva_ros.session.run_config` -- its options validated, the session params file;

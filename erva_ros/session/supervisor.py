@@ -46,9 +46,7 @@ class Supervisor:
     HIL_NEEDED = {*HIL_PROCESSES, 'road_preview_node'}
 
     def __init__(self, cfg: RunConfig, session: Session, recording: bool, log):
-        import rclpy
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.signals import SignalHandlerOptions
+        from erva_ros.ros.context import RosContext
         from erva_ros.session.monitor import Monitor
         from erva_ros.session.start_gate import StartGate
 
@@ -69,16 +67,12 @@ class Supervisor:
             self.needed = set(self.HIL_NEEDED)
         self.ended: set = set()     # exited 0 by themselves at the end (the ECU)
         self._ecu_done: Optional[float] = None
-        self.context = rclpy.Context()
-        rclpy.init(args=[], context=self.context,
-                   signal_handler_options=SignalHandlerOptions.NO)
+        self.ros = RosContext()
         # The monitor subscribes to the time master's gate topic last (see Monitor): the
         # time master starts only once that subscription is matched too.
         gate = (topics.ROAD_PREVIEW,) if session.realtime else (topics.STATE,)
-        self.monitor = Monitor(cfg.namespace, context=self.context, gate=gate,
-                               hil=session.hil, window_ns=session.sim_window_ns)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.monitor)
+        self.monitor = self.ros.add(Monitor(cfg.namespace, context=self.ros.context, gate=gate,
+                                            hil=session.hil, window_ns=session.sim_window_ns))
         self.gate = StartGate(self.monitor, cfg.namespace, self.node_names, session.hil,
                               recording, bool(cfg.foxglove))
         self.drain = RecorderDrain()
@@ -128,7 +122,7 @@ class Supervisor:
         self.phase = 'connecting'
         last_progress, last_states, finish_seen, finish_ns = time.monotonic(), 0, 0.0, 0
         while True:
-            self.executor.spin_once(timeout_sec=0.02)
+            self.ros.spin_once(0.02)
             if self.caught:
                 self.errors.append(f'interrupted by {signal.Signals(self.caught[0]).name} '
                                    f'while {self.phase}')
@@ -226,7 +220,6 @@ class Supervisor:
 
     def stop(self) -> None:
         """Stop the nodes, then the recorder (so it records to the end), then the monitor."""
-        import rclpy
         ecu = self.procs.get(hil_summary.ECU)
         if ecu is not None and hil_summary.ECU in self.monitor.finished_rx:
             ecu.wait(STOP_GRACE_S)   # it ends by itself after its last status: let it
@@ -238,9 +231,7 @@ class Supervisor:
         self._take_pending()
         if any(n in self.procs for n in LAST):
             stop_processes([self.procs[n] for n in LAST if n in self.procs], grace_s=10.0)
-        self.executor.shutdown()
-        self.monitor.destroy_node()
-        rclpy.try_shutdown(context=self.context)
+        self.ros.close()
 
     def _take_pending(self, quiet_s: float = 0.2, limit_s: float = 3.0) -> None:
         """Spin the monitor until no loop node's message came for ``quiet_s`` (<= ``limit_s``).
@@ -255,7 +246,7 @@ class Supervisor:
         end = time.monotonic() + limit_s
         last, quiet_since = None, time.monotonic()
         while time.monotonic() < end and time.monotonic() - quiet_since < quiet_s:
-            self.executor.spin_once(timeout_sec=0.02)
+            self.ros.spin_once(0.02)
             now = loop_arrivals()
             if now != last:
                 last, quiet_since = now, time.monotonic()
