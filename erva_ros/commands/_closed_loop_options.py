@@ -32,8 +32,8 @@ def weight_list(text: str):
     return [weights(part) for part in text.split(';') if part.strip()]
 
 
-def seed_int(text: str) -> int:
-    """Parse a non-negative integer seed (argparse type)."""
+def non_negative_int(text: str) -> int:
+    """Parse an integer >= 0, e.g. a seed or a count (argparse type)."""
     try:
         v = int(text)
     except ValueError:
@@ -41,6 +41,10 @@ def seed_int(text: str) -> int:
     if v < 0:
         raise argparse.ArgumentTypeError(f'{text!r} must be >= 0')
     return v
+
+
+#: A road/noise seed: any integer >= 0.
+seed_int = non_negative_int
 
 
 def seed_list(text: str):
@@ -149,4 +153,4 @@ def preview_model_from_args(args, seed: int, ts: float):
 
 __all__ = ['add_settings_options', 'add_road_options', 'load_settings',
            'make_road_from_args', 'preview_model_from_args', 'weights', 'weight_list',
-           'seed_int', 'seed_list', 'PAPER_T1_S']
+           'non_negative_int', 'seed_int', 'seed_list', 'PAPER_T1_S']

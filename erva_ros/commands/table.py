@@ -6,7 +6,8 @@ import os
 import time
 
 from erva_ros.commands._closed_loop_options import (add_settings_options, load_settings,
-                                                    PAPER_T1_S, weight_list)
+                                                    non_negative_int, PAPER_T1_S,
+                                                    weight_list)
 from erva_ros.commands._common import (add_json_option, add_out_option, add_params_option,
                                        ensure_out_dir, positive_float, positive_int,
                                        print_json, Progress)
@@ -71,18 +72,6 @@ def add_arguments(parser):
     add_jobs_options(parser, 'seed')
     add_out_option(parser, 'table.md, table.json and table.csv')
     add_json_option(parser)
-
-
-def non_negative_int(text):
-    """Parse an integer >= 0 (argparse type)."""
-    import argparse
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'{text!r} is not an integer') from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f'{text!r} must be >= 0')
-    return v
 
 
 def _stats(values):
