@@ -205,8 +205,8 @@ def _bench(args) -> int:
                        progress=lambda s: print(f'erva bag bench: {s}', file=sys.stderr,
                                                 flush=True))
     if args.json:
-        from erva_ros.session.bag_report import json_safe
-        print_json(json_safe(result))
+        from erva_ros.session.report import jsonable
+        print_json(jsonable(result))
         return 0
 
     def row(name, p):

@@ -101,7 +101,8 @@ def _native_stdout_to_stderr():
 
 def _drive_plant(args, bag) -> int:
     from erva_ros.session.whatif import drive_plant
-    from erva_ros.session.bag_report import compute_report, json_safe, load_session
+    from erva_ros.session.bag_report import compute_report, load_session
+    from erva_ros.session.report import jsonable
     from erva_ros.core.bag.session import new_bag_dir
     from erva_ros.core.controllers import load_controller_settings
     from erva_ros.core.params import load_erva_params
@@ -132,7 +133,7 @@ def _drive_plant(args, bag) -> int:
                            'solve_ms': m['solve_ms'], 'fallbacks': m['fallbacks']},
                'messages': meta['message_count']}
     if args.json:
-        print_json(json_safe(summary))
+        print_json(jsonable(summary))
         return 0
     r, w = summary['recorded'], summary['what_if']
     print(f'what-if on the road of {bag.path} ({w["duration_s"]:.2f} s simulated)')
@@ -150,7 +151,8 @@ def _drive_plant(args, bag) -> int:
 
 def _reevaluate(args, bag) -> int:
     from erva_ros.session.reevaluate import controller_from_session, reevaluate, summarize
-    from erva_ros.session.bag_report import json_safe, load_session
+    from erva_ros.session.bag_report import load_session
+    from erva_ros.session.report import jsonable
     from erva_ros.core.controllers import make_controller
 
     params, settings = controller_from_session(bag, args.controller)
@@ -160,7 +162,7 @@ def _reevaluate(args, bag) -> int:
         result = summarize(reevaluate(data, controller, args.max_commands))
     result.update({'bag': bag.path, 'controller': settings.controller})
     if args.json:
-        print_json(json_safe(result))
+        print_json(jsonable(result))
     else:
         print(f'{bag.path}: {result["reproduced"]} of {result["commands"]} recorded commands '
               f'reproduced by a fresh {settings.controller} (max |du| '
@@ -203,8 +205,8 @@ def _play(args, bag) -> int:
             server.close()
         ros.close()
     if args.json:
-        from erva_ros.session.bag_report import json_safe
-        print_json(json_safe(stats))
+        from erva_ros.session.report import jsonable
+        print_json(jsonable(stats))
     else:
         state = 'stopped' if stats['stopped'] else 'done'
         print(f'{state}: published {stats["total"]} messages on {len(stats["published"])} '

@@ -40,7 +40,8 @@ def _fmt(p, unit='ms'):
 
 def main(args) -> int:
     from erva_ros.core.bag.reader import open_bag
-    from erva_ros.session.bag_report import compute_report, json_safe, load_session, write_plots
+    from erva_ros.session.bag_report import compute_report, load_session, write_plots
+    from erva_ros.session.report import jsonable
 
     bag = open_bag(args.bag)
     out = ensure_out_dir(args.out)
@@ -49,7 +50,7 @@ def main(args) -> int:
     if out:
         report['files'] = write_plots(data, out, report['timing']['clock'] == 'wall')
     if args.json:
-        print_json(json_safe(report))
+        print_json(jsonable(report))
         return 0
     s = report['session']
     print(f'session {bag.path}: scenario {s.get("scenario") or "-"}, controller '

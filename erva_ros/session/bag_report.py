@@ -345,24 +345,11 @@ def timing_report(data: SessionData, ts: Optional[float]) -> Dict:
     return out
 
 
-def json_safe(obj):
-    """Return ``obj`` with NaN/inf replaced by None and numpy scalars by Python ones."""
-    if isinstance(obj, dict):
-        return {str(k): json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_safe(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        return float(obj) if math.isfinite(obj) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    return obj
-
-
 def write_plots(data: SessionData, out_dir: str, timing: bool = True) -> List[str]:
     """Write the report's PNG figures into ``out_dir`` (timing.png if ``timing``)."""
     from erva_ros.core.bag import report_plots
     return report_plots.write_all(data, out_dir, timing)
 
 
-__all__ = ['SessionData', 'Series', 'load_session', 'compute_report', 'write_plots', 'json_safe',
+__all__ = ['SessionData', 'Series', 'load_session', 'compute_report', 'write_plots',
            'guess_namespace', 'last_diagnostic_values']
