@@ -9,7 +9,7 @@ from erva_ros.core.controllers import ControllerSettings, make_controller
 from erva_ros.core.controllers.nmpc import (build_ocp, OCPSpec, stable_rollout_substep,
                                             U_SCALE)
 from erva_ros.core.controllers.sqp import (convexify, plan_value_function, projection_function,
-                                           qp_model_function)
+                                           qp_model_function, start_function)
 from erva_ros.core.model import get_model
 from erva_ros.core.params import paper_params
 from erva_ros.core.plant import PlantSimulator
@@ -96,6 +96,27 @@ def test_projection_puts_a_plan_on_the_collocation_equations(delayed):
     assert np.max(np.abs(np.asarray(ocp.nlp(zp, p)[1]))) < 1e-10
     np.testing.assert_array_equal(zp[ocp.u_index], u)
     np.testing.assert_array_equal(zp[:ocp.nxa], z[:ocp.nxa])
+
+
+@pytest.mark.parametrize('cost,blocks,delayed', [
+    ('continuous', (1,) * 10, False), ('paper', (1,) * 10, True),
+    ('continuous', (1,) * 6 + (4,) * 4, False)])
+def test_a_start_needs_no_rollout(cost, blocks, delayed):
+    # The SQP's starts: Newton from each interval's start state held.  Two steps reach
+    # the collocation equations as closely as from the RK4 rollout (the guess the
+    # solver used before), for a bang-bang plan far from the held state's motion, also
+    # over preview_long's 80 ms intervals.
+    ocp = _ocp(cost, blocks, delayed=delayed)
+    w = make_road('paper', 2.0, seed=2).preview(0.3, ocp.horizon, S.ts)
+    p = ocp.params(w, (1.0, 0.01), 0.006, 3000.0)
+    u = np.random.default_rng(1).choice([0.0, 2.0], len(blocks))
+    z, f = (np.asarray(v).ravel() for v in start_function(ocp)(X0, 0.2, u, p))
+    assert np.max(np.abs(np.asarray(ocp.nlp(z, p)[1]))) < 1e-10
+    rolled = np.asarray(projection_function(ocp)(
+        np.asarray(ocp.rollout(X0, 0.2, u, ocp.road_params(p))).ravel(), p)).ravel()
+    np.testing.assert_allclose(z, rolled, rtol=0, atol=1e-10)
+    assert f[0] == pytest.approx(float(ocp.nlp(rolled, p)[0]), rel=1e-10)
+    np.testing.assert_array_equal(z[ocp.u_index], u)
 
 
 def test_the_delayed_ocp_predicts_the_delayed_plant():

@@ -30,11 +30,16 @@ Each iteration, at the current point z:
    step decreases the merit, else after ``max_iter`` iterations.  Counts, never the
    wall clock, end a solve: offline results do not depend on the machine's load.
 
-Starts: the warm start and the alternatives, each an RK4 rollout put on the collocation
-equations; the best by its cost in the NLP is iterated.
+Starts: the warm start and the alternatives, each put on the collocation equations
+(Newton from each interval's start state held: :func:`start_function`); the best by its
+cost in the NLP is iterated.
 
-The whole solver is one CasADi Function with conditionals (no Python per iteration);
-its SX parts are compiled to C with ``codegen``.
+The whole solver is one CasADi Function with conditionals (no Python per iteration).
+With ``codegen`` its two pieces are compiled to C as wholes, the starts and one
+iteration (QP model, box QP, line search, stop test): the solver calls the iteration
+``max_iter`` times, and it returns its input unchanged once done.  Compiled whole, no
+matrix operation runs in CasADi's virtual machine, and the pieces do not depend on
+``max_iter`` or ``tol`` (docs/nmpc.md measures both changes).
 """
 
 from functools import lru_cache
@@ -247,15 +252,16 @@ def qp_model_function(ocp, hessian: str = 'exact', convex: bool = True) -> ca.Fu
                        ['z', 'p'], ['h', 'g', 'g_lin', 'dz0', 'dz_du', 'merit'])
 
 
-def projection_function(ocp, newton_steps: int = NEWTON_STEPS) -> ca.Function:
-    """Return (z, p) -> z on the collocation equations, for z's inputs (compiled SX).
+def _project(ocp, p, x, inputs, guess, newton_steps: int = NEWTON_STEPS):
+    """Return the decision vector of ``inputs`` on the collocation equations, from x(t_k).
 
-    Interval by interval from x(t_k): ``newton_steps`` Newton steps on the interval's
-    collocation equations from z's collocation states (a good guess: the SQP's linear
-    prediction), then its end state starts the next interval.  A simulation with the
-    NLP's own integrator, so a candidate's cost is the NLP's.
+    Interval by interval: ``newton_steps`` Newton steps on the interval's collocation
+    equations from ``guess(i, x_i)`` (i = -1: the delay's prefix), then its end state
+    starts the next interval.  A simulation with the NLP's own integrator, so a
+    candidate's cost is the NLP's.  ``x`` is the scaled start state (with x_a(k-1)
+    for the paper cost), ``inputs`` the scaled inputs of the intervals.
     """
-    nxa, nk, nz = ocp.nxa, ocp.nk, ocp.nz
+    nxa, nk = ocp.nxa, ocp.nk
     xt, v, k = ca.SX.sym('xt', nxa), ca.SX.sym('v'), ca.SX.sym('k', nk)
     wv, h, al = ca.SX.sym('wv', ocp.degree + 1), ca.SX.sym('h'), ca.SX.sym('alpha', 2)
     g, phi = ocp.prefix(xt, v, k, wv, h)      # the same defects as every interval
@@ -263,66 +269,94 @@ def projection_function(ocp, newton_steps: int = NEWTON_STEPS) -> ca.Function:
                        [k - _lu_solve(_lu(ca.jacobian(g, k)), g)], {'never_inline': True})
     end = ca.Function('interval_end', [xt, v, k, wv, h], [ocp.interval(xt, v, k, wv, h, al)[1]])
     end_pre = ca.Function('prefix_end', [xt, v, k, wv, h], [phi])
-
-    z = ca.SX.sym('z', nz)
-    p = ca.SX.sym('p', ocp.n_p)
     road, _, road_pre, h_pre, v_pre = ocp.road(p)
-    out = [z[:nxa]]
-    x = z[:nxa]
+    out = [x]
     if ocp.delayed:
-        kp = z[nxa:nxa + nk]
+        kp = guess(-1, x)
         for _ in range(newton_steps):
             kp = step(x, v_pre, kp, road_pre, h_pre)
         x = end_pre(x, v_pre, kp, road_pre, h_pre)
         out += [kp, x]
     for i, m in enumerate(ocp.blocks):
-        o = ocp.offset + i * ocp.stage
-        vi, ki = z[o + nxa], z[o + ocp.stage - nk:o + ocp.stage]
+        ki = guess(i, x)
         for _ in range(newton_steps):
-            ki = step(x, vi, ki, road[:, i], m * ocp.ts)
-        x_next = end(x, vi, ki, road[:, i], m * ocp.ts)
-        out += [vi] + ([x_next[nxa - 1]] if ocp.with_acc else []) + [ki, x_next]
+            ki = step(x, inputs[i], ki, road[:, i], m * ocp.ts)
+        x_next = end(x, inputs[i], ki, road[:, i], m * ocp.ts)
+        out += [inputs[i]] + ([x_next[nxa - 1]] if ocp.with_acc else []) + [ki, x_next]
         x = x_next
-    return ca.Function('projection', [z, p], [ca.vertcat(*out)], ['z', 'p'], ['z_on'])
+    return ca.vertcat(*out)
+
+
+def projection_function(ocp, newton_steps: int = NEWTON_STEPS) -> ca.Function:
+    """Return (z, p) -> z on the collocation equations, for z's inputs (compiled SX).
+
+    The Newton steps start from z's collocation states (a good guess: the SQP's
+    linear prediction); see :func:`_project`.
+    """
+    nxa, nk, nz = ocp.nxa, ocp.nk, ocp.nz
+    z = ca.SX.sym('z', nz)
+    p = ca.SX.sym('p', ocp.n_p)
+    stage = [ocp.offset + i * ocp.stage for i in range(len(ocp.blocks))]
+
+    def guess(i, _x):
+        if i < 0:
+            return z[nxa:nxa + nk]
+        return z[stage[i] + ocp.stage - nk:stage[i] + ocp.stage]
+
+    z_on = _project(ocp, p, z[:nxa], [z[o + nxa] for o in stage], guess, newton_steps)
+    return ca.Function('projection', [z, p], [z_on], ['z', 'p'], ['z_on'])
+
+
+def start_function(ocp, newton_steps: int = NEWTON_STEPS) -> ca.Function:
+    """Return (x0, a_prev, u, p) -> (z, f): the plan u (scaled) on the collocation equations.
+
+    The Newton steps of each interval start from its start state held (no rollout
+    needed: the collocation equations are linear but for the generator kinematics,
+    so two Newton steps reach them to rounding, ~1e-14, measured on the paper road).
+    f is the plan's cost in the NLP: what starts are compared by.
+    """
+    x0, a_prev = ca.SX.sym('x0', ocp.nx), ca.SX.sym('a_prev')
+    u, p = ca.SX.sym('u', len(ocp.blocks)), ca.SX.sym('p', ocp.n_p)
+    x = x0 / ca.DM(ocp.x_scale)
+    x = ca.vertcat(x, a_prev) if ocp.with_acc else x
+
+    def guess(_i, xi):
+        return ca.repmat(xi[:ocp.nx], ocp.degree, 1)
+
+    z = _project(ocp, p, x, [u[i] for i in range(len(ocp.blocks))], guess, newton_steps)
+    return ca.Function('plan_start', [x0, a_prev, u, p], [z, ocp.nlp(z, p)[0]],
+                       ['x0', 'a_prev', 'u', 'p'], ['z', 'f'])
 
 
 @lru_cache(maxsize=32)
 def plan_value_function(ocp, codegen: str = 'off') -> ca.Function:
     """Return (x0, a_prev, u, p) -> (z, f): a plan (scaled inputs) in the NLP, its cost.
 
-    The RK4 rollout put onto the collocation equations (:func:`projection_function`):
-    what the real-time SQP's starts and IPOPT's solutions are compared by.
+    The real-time SQP's start evaluation (:func:`start_function`), compiled as
+    ``codegen`` says: what its starts and IPOPT's solutions are compared by.
     """
-    project, nlp, rollout = compile_for(codegen, (projection_function(ocp), ocp.nlp,
-                                                  ocp.rollout), 'the NMPC solver')
-    x0, a_prev = ca.MX.sym('x0', ocp.nx), ca.MX.sym('a_prev')
-    u, p = ca.MX.sym('u', len(ocp.blocks)), ca.MX.sym('p', ocp.n_p)
-    z = project(rollout(x0, a_prev, u, ocp.road_params(p)), p)
-    return ca.Function('plan_value', [x0, a_prev, u, p], [z, nlp(z, p)[0]],
-                       ['x0', 'a_prev', 'u', 'p'], ['z', 'f'])
+    return compile_for(codegen, (start_function(ocp),), 'the NMPC solver')[0]
 
 
-@lru_cache(maxsize=32)
-def build_rti(ocp, max_iter: int, tol: float = 1e-4, codegen: str = 'off',
-              n_alt: int = 1, hessian: str = 'exact') -> ca.Function:
-    """Return the real-time SQP as one Function (module doc).
+def _sqp_parts(ocp, n_alt: int, hessian: str):
+    """Return (starts, step): the SQP's two compiled-size pieces, as SX-called MX Functions.
 
-    (x0, a_prev, u_guess, u_alt, p) -> (u, z, f, iterations): inputs scaled as in
-    the OCP (v = u/U_SCALE), u_alt holds other starts (columns); the best start by
-    the objective of its rollout is iterated until the step is below ``tol`` or
-    ``max_iter`` iterations.
+    ``starts`` (x0, a_prev, u_guess, u_alt, p) -> state = [z; f; done; iterations]: the
+    best start (module doc).  ``step`` (done, p, f_ref, tol, state) -> state: one
+    iteration (QP model, box QP, line search, stop test), or the state unchanged once
+    ``done``.  Each is generated as one C function; the solver only calls ``step``
+    ``max_iter`` times, so no model, QP or line-search operation runs in CasADi's
+    virtual machine, and the compiled pieces do not depend on ``max_iter`` or ``tol``.
     """
     nb, nz = len(ocp.blocks), ocp.nz
-    fns = (qp_model_function(ocp, hessian), projection_function(ocp), ocp.nlp, ocp.rollout)
-    qp_model, project, nlp, rollout = compile_for(codegen, fns, 'the NMPC solver')
+    qp_model, project, plan_start, nlp = (qp_model_function(ocp, hessian),
+                                          projection_function(ocp), start_function(ocp),
+                                          ocp.nlp)
     qp = ca.conic('rti_qp', 'qrqp', {'h': ca.Sparsity.dense(nb, nb), 'a': ca.Sparsity(0, nb)},
                   {'print_iter': False, 'print_header': False, 'print_info': False,
                    'error_on_fail': False})
     lo, hi = ocp.v_min, ocp.v_max
     u_idx = [int(i) for i in ocp.u_index]
-
-    x0 = ca.MX.sym('x0', ocp.nx)
-    a_prev = ca.MX.sym('a_prev')
     p = ca.MX.sym('p', ocp.n_p)
 
     def merit(zz, rho):
@@ -349,7 +383,7 @@ def build_rti(ocp, max_iter: int, tol: float = 1e-4, codegen: str = 'off',
     # -- one iteration: state = [z; f; done; iterations] -------------------------------
     ns = nz + 3
     state = ca.MX.sym('state', ns)
-    f_ref = ca.MX.sym('f_ref')
+    f_ref, tol = ca.MX.sym('f_ref'), ca.MX.sym('tol')
     z = state[:nz]
     h_red, g_red, g_lin, dz0, dz_du, mdata = qp_model(z, p)
     u = z[u_idx]
@@ -373,37 +407,60 @@ def build_rti(ocp, max_iter: int, tol: float = 1e-4, codegen: str = 'off',
     done = ca.logic_or(accepted == 0, gain <= tol * ca.fabs(f_ref))
     new = ca.vertcat(ca.if_else(accepted, res[:nz + 1], ca.vertcat(z, f_cur)), done,
                      state[ns - 1] + accepted)
-    iterate = ca.Function('sqp_iteration', [p, f_ref, state], [new])
-    keep = ca.Function('sqp_done', [p, f_ref, state], [state])
-    step_fn = ca.Function.if_else('sqp_step', keep, iterate)   # (done, ...) -> state
+    iterate = ca.Function('sqp_iteration', [p, f_ref, tol, state], [new])
+    keep = ca.Function('sqp_done', [p, f_ref, tol, state], [state])
+    switch = ca.Function.if_else('sqp_switch', keep, iterate)   # (done, ...) -> state
+    done_in = ca.MX.sym('done')
+    step = ca.Function('sqp_step', [done_in, p, f_ref, tol, state],
+                       [switch(done_in, p, f_ref, tol, state)],
+                       ['done', 'p', 'f_ref', 'tol', 'state'], ['state_next'])
 
-    # -- starts, then the iterations ---------------------------------------------------
+    # -- starts ------------------------------------------------------------------------
+    x0 = ca.MX.sym('x0', ocp.nx)
+    a_prev = ca.MX.sym('a_prev')
     u_guess = ca.MX.sym('u_guess', nb)
     u_alt = ca.MX.sym('u_alt', nb, n_alt)
-    q_road = ocp.road_params(p)
 
-    def rollout_objective(uu):
-        # RK4 rollout (a close guess), then onto the collocation equations: the start's
-        # value in the very NLP solved.
-        zz = project(rollout(x0, a_prev, uu, q_road), p)
-        return zz, nlp(zz, p)[0]
-
-    # Start from the best of the warm start and the alternatives (columns of u_alt):
-    # the OCP is non-convex and a shifted plan can sit in a poor basin.
-    z, fz = rollout_objective(ca.fmin(ca.fmax(u_guess, lo), hi))
+    # Start from the best, by its value in the very NLP solved, of the warm start and
+    # the alternatives (columns of u_alt): the OCP is non-convex and a shifted plan can
+    # sit in a poor basin.
+    z, fz = plan_start(x0, a_prev, ca.fmin(ca.fmax(u_guess, lo), hi), p)
     for j in range(n_alt):
-        za, fa = rollout_objective(ca.fmin(ca.fmax(u_alt[:, j], lo), hi))
+        za, fa = plan_start(x0, a_prev, ca.fmin(ca.fmax(u_alt[:, j], lo), hi), p)
         use_alt = fa < fz
         z = ca.if_else(use_alt, za, z)
         fz = ca.fmin(fa, fz)
-    st = ca.vertcat(z, fz, 0, 0)
+    starts = ca.Function('sqp_starts', [x0, a_prev, u_guess, u_alt, p],
+                         [ca.vertcat(z, fz, 0, 0)],
+                         ['x0', 'a_prev', 'u_guess', 'u_alt', 'p'], ['state'])
+    return starts, step
+
+
+@lru_cache(maxsize=32)
+def build_rti(ocp, max_iter: int, tol: float = 1e-4, codegen: str = 'off',
+              n_alt: int = 1, hessian: str = 'exact') -> ca.Function:
+    """Return the real-time SQP as one Function (module doc).
+
+    (x0, a_prev, u_guess, u_alt, p) -> (u, z, f, iterations): inputs scaled as in
+    the OCP (v = u/U_SCALE), u_alt holds other starts (columns); the best start by
+    its cost in the NLP is iterated until the step is below ``tol`` or
+    ``max_iter`` iterations.
+    """
+    nb, nz = len(ocp.blocks), ocp.nz
+    ns = nz + 3
+    starts, step = compile_for(codegen, _sqp_parts(ocp, n_alt, hessian), 'the NMPC solver')
+    x0, a_prev, p = ca.MX.sym('x0', ocp.nx), ca.MX.sym('a_prev'), ca.MX.sym('p', ocp.n_p)
+    u_guess, u_alt = ca.MX.sym('u_guess', nb), ca.MX.sym('u_alt', nb, n_alt)
+    st = starts(x0, a_prev, u_guess, u_alt, p)
+    f_start = st[nz]
     for _ in range(max_iter):
-        st = step_fn(st[ns - 2], p, fz, st)
+        st = step(st[ns - 2], p, f_start, tol, st)
     z = st[:nz]
     rti = ca.Function('nmpc_rti', [x0, a_prev, u_guess, u_alt, p],
-                      [z[u_idx], z, st[nz], st[ns - 1]],
+                      [z[[int(i) for i in ocp.u_index]], z, st[nz], st[ns - 1]],
                       ['x0', 'a_prev', 'u_guess', 'u_alt', 'p'],
                       ['u', 'z', 'f', 'iterations'])
+    hi, lo = ocp.v_max, ocp.v_min
     rti(np.zeros(ocp.nx), 0.0, np.full(nb, hi), np.full((nb, n_alt), lo), np.zeros(ocp.n_p))
     return rti
 
