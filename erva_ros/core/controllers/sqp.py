@@ -339,7 +339,7 @@ def plan_value_function(ocp, codegen: str = 'off') -> ca.Function:
 
 
 def _sqp_parts(ocp, n_alt: int, hessian: str):
-    """Return (starts, step): the SQP's two compiled-size pieces, as SX-called MX Functions.
+    """Return (starts, step): the SQP's two pieces, each compiled whole with ``codegen``.
 
     ``starts`` (x0, a_prev, u_guess, u_alt, p) -> state = [z; f; done; iterations]: the
     best start (module doc).  ``step`` (done, p, f_ref, tol, state) -> state: one
