@@ -57,8 +57,12 @@ def seed_list(text: str):
     return seeds
 
 
-def add_settings_options(parser: argparse.ArgumentParser, controller: bool = True) -> None:
-    """Add --settings and the common controller overrides (checked by the settings' specs)."""
+def add_settings_options(parser: argparse.ArgumentParser, controller: bool = True,
+                         alpha: bool = False) -> None:
+    """Add --settings and the common controller overrides (checked by the settings' specs).
+
+    ``alpha`` adds --alpha A1,A2 (one weighting; `erva table`/`pareto` take lists instead).
+    """
     from erva_ros.core.controllers.settings import NUMERIC_SPECS, SPECS
 
     def option(flag, key, text, **kw):
@@ -78,6 +82,10 @@ def add_settings_options(parser: argparse.ArgumentParser, controller: bool = Tru
            'stage cost of every NMPC: paper (as printed, jerk-like comfort term, '
            'node-sampled power) or continuous (alpha1 a^2 - alpha2 P integrated); '
            'default: cost (and long_cost for preview_long) in the settings file')
+    if alpha:
+        parser.add_argument('--alpha', type=weights, default=None, metavar='A1,A2',
+                            help='cost weights alpha1,alpha2 (paper: 1,0 / 0,1 / 1,0.01; '
+                                 'default: the settings file)')
     option('--solver', 'solver', 'NMPC solver: sqp (real-time) or ipopt (converged reference)')
     option('--horizon', 'horizon', 'NMPC horizon N in samples (paper: 10)', metavar='N')
     option('--max-iter', 'max_iter', 'real-time SQP iterations per sample', metavar='K')
@@ -116,13 +124,19 @@ def add_road_options(parser: argparse.ArgumentParser, seed: bool = True) -> None
 
 
 def load_settings(args, **extra):
-    """Return validated ControllerSettings from --settings and the override options."""
+    """Return validated ControllerSettings from --settings and the override options.
+
+    ``extra`` (keyword overrides) wins over the options, e.g. an offline time budget.
+    """
     from erva_ros.core.controllers.settings import load_controller_settings
     overrides = {'controller': getattr(args, 'controller', None), 'cost': args.cost,
                  'long_cost': args.cost, 'codegen': args.codegen,
                  'solver': args.solver, 'horizon': args.horizon, 'max_iter': args.max_iter,
                  'u_min': args.u_min, 'u_max': args.u_max,
                  'command_delay_s': args.command_delay}
+    alpha = getattr(args, 'alpha', None)
+    if alpha is not None:
+        overrides.update(alpha1=alpha[0], alpha2=alpha[1])
     overrides.update(extra)
     return load_controller_settings(args.settings, overrides)
 

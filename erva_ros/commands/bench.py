@@ -5,7 +5,7 @@ import platform
 import numpy as np
 
 from erva_ros.commands._closed_loop_options import (add_settings_options, load_settings,
-                                                    seed_int, seed_list, weights)
+                                                    seed_int, seed_list)
 from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
                                        positive_int, print_json, realtime_priority)
 from erva_ros.core.errors import CLIError
@@ -36,9 +36,7 @@ with the converged IPOPT reference, and reports:
 
 def add_arguments(parser):
     add_params_option(parser)
-    add_settings_options(parser)
-    parser.add_argument('--alpha', type=weights, default=None, metavar='A1,A2',
-                        help='cost weights (default: the settings file, 1,0)')
+    add_settings_options(parser, alpha=True)
     parser.add_argument('--steps', type=positive_int, default=2000,
                         help='closed-loop samples (default 2000)')
     parser.add_argument('--seed', type=seed_int, default=0, help='paper-road seed (default 0)')
@@ -118,8 +116,7 @@ def _main(args) -> int:
     from erva_ros.core.params import load_erva_params
 
     params = load_erva_params(args.params)
-    extra = {} if args.alpha is None else {'alpha1': args.alpha[0], 'alpha2': args.alpha[1]}
-    settings = load_settings(args, **extra)
+    settings = load_settings(args)
     name = args.controller or settings.controller
     if name in ('passive', 'skyhook'):
         raise CLIError(f'--controller {name} has no solver to benchmark; use no_preview, '

@@ -1,9 +1,9 @@
 """``erva delay-study``: what a command delay costs, and what modelling it recovers."""
 
-from erva_ros.commands._closed_loop_options import (add_settings_options, load_settings,
-                                                    weights)
+from erva_ros.commands._closed_loop_options import add_settings_options, load_settings
 from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
                                        positive_int, print_json, Progress)
+from erva_ros.commands._jobs import run_jobs
 from erva_ros.core.errors import CLIError
 
 COMMAND = 'delay-study'
@@ -36,9 +36,7 @@ VARIANTS = ('no_delay', 'delayed', 'predicted', 'modelled')
 
 def add_arguments(parser):
     add_params_option(parser)
-    add_settings_options(parser)
-    parser.add_argument('--alpha', type=weights, default=None, metavar='A1,A2',
-                        help='cost weights (default: the settings file)')
+    add_settings_options(parser, alpha=True)
     parser.add_argument('--seeds', type=positive_int, default=8,
                         help='number of paper-road seeds 0..n-1 (default 8)')
     parser.add_argument('--duration', type=positive_float, default=10.0, metavar='S',
@@ -81,27 +79,15 @@ def main(args) -> int:
     from erva_ros.core.params import load_erva_params
 
     params = load_erva_params(args.params)
-    extra = {} if args.alpha is None else {'alpha1': args.alpha[0], 'alpha2': args.alpha[1]}
     # Offline study: no real-time budget, so results do not depend on machine load.
-    settings = load_settings(args, time_budget_s=10.0, **extra)
+    settings = load_settings(args, time_budget_s=10.0)
     if settings.controller == 'passive':
         raise CLIError('--controller passive does not react to a delay; choose another')
     if not args.delay < settings.ts:
         raise CLIError(f'--delay {args.delay:g} must be below ts = {settings.ts:g} s')
     jobs = [(params, settings, seed, args.duration, args.delay) for seed in range(args.seeds)]
     progress = Progress('erva delay-study: seeds', enabled=True)
-    per_seed = {}
-    if args.jobs > 1 and len(jobs) > 1:
-        import multiprocessing
-        with multiprocessing.get_context('fork').Pool(min(args.jobs, len(jobs))) as pool:
-            for i, (seed, r) in enumerate(pool.imap(run_seed, jobs), 1):
-                per_seed[seed] = r
-                progress(i, len(jobs))
-    else:
-        for i, job in enumerate(jobs, 1):
-            seed, r = run_seed(job)
-            per_seed[seed] = r
-            progress(i, len(jobs))
+    per_seed = dict(run_jobs(run_seed, jobs, args.jobs, progress=progress))
     keys = ('acc_rms_continuous', 'acc_rms', 'power_w')
     summary = {}
     for v in VARIANTS:

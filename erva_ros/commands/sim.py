@@ -5,7 +5,7 @@ import os
 
 from erva_ros.commands._closed_loop_options import (add_road_options, add_settings_options,
                                                     load_settings, make_road_from_args,
-                                                    preview_model_from_args, weights)
+                                                    preview_model_from_args)
 from erva_ros.commands._common import (add_json_option, add_out_option, add_params_option,
                                        ensure_out_dir, print_json)
 from erva_ros.core.errors import CLIError
@@ -34,10 +34,7 @@ Example: erva sim --controller preview --alpha 0,1 --seed 3 --out out/sim"""
 
 def add_arguments(parser):
     add_params_option(parser)
-    add_settings_options(parser)
-    parser.add_argument('--alpha', type=weights, default=None, metavar='A1,A2',
-                        help='cost weights alpha1,alpha2 (paper: 1,0 / 0,1 / 1,0.01; '
-                             'default: the settings file)')
+    add_settings_options(parser, alpha=True)
     parser.add_argument('--model', choices=('erva', 'benchmark'), default='erva',
                         help='plant and prediction model (default erva)')
     parser.add_argument('--actuation-delay', type=float, default=0.0, metavar='S',
@@ -55,8 +52,7 @@ def main(args) -> int:
 
     out = ensure_out_dir(args.out)
     params = load_erva_params(args.params)
-    extra = {} if args.alpha is None else {'alpha1': args.alpha[0], 'alpha2': args.alpha[1]}
-    settings = load_settings(args, **extra)
+    settings = load_settings(args)
     controller = make_controller(settings.controller, params, settings, kind=args.model)
     road = make_road_from_args(args, args.duration, args.seed)
     preview = preview_model_from_args(args, args.seed, settings.ts)
