@@ -5,11 +5,14 @@
   passive command and an ERROR diagnostic; it recovers when states return.
 * plant_sim_node: bad commands and road heights are rejected the same way; when the
   commands stop it applies the last plan, then passive c_e0, and says so on /diagnostics.
-* road_preview_node (lock-step): /clock ticks off the Ts grid or going back are rejected.
+* road_preview_node (lock-step): /clock ticks off the Ts grid or going back are rejected;
+  SIGUSR1 writes its stacks without stopping it; stopped, it leaves the graph at once.
 """
 
 import math
+import os
 import re
+import signal
 
 from geometry_msgs.msg import PointStamped
 import numpy as np
@@ -242,12 +245,23 @@ def test_road_node_in_lockstep_answers_each_clock_tick_and_rejects_bad_ones(tmp_
         values = h.wait_for_diag('road_preview_node',
                                  lambda v: int(v.get('rejected_clock', 0)) >= 3)
         h.spin_until(lambda: len(heights) >= 3, 60.0)
+        # SIGUSR1 writes every thread's stack to the log; the node goes on answering.
+        os.kill(proc.pid, signal.SIGUSR1)
+        h.spin_for(0.2)
+        pub_clock.publish(msgs.clock_msg(4 * TS_NS))
+        h.spin_until(lambda: len(heights) >= 4, 60.0)
         rc = stop_node(proc)
+        # Its participant was torn down before the process ended (os._exit): it leaves
+        # the graph at once, not when its 20 s lease runs out.
+        left = h.spin_until(lambda: 'road_preview_node' not in h.node.get_node_names(), 10.0)
     finally:
         h.close()
         if proc.poll() is None:
             stop_node(proc)
-    assert rc == 0
+    assert rc == 0 and left
     # Off the grid (Ts/2), repeated (0) and going back (2·Ts after 3·Ts): rejected.
-    assert [s for s, _ in heights] == [0, TS_NS, 3 * TS_NS]
+    assert [s for s, _ in heights] == [0, TS_NS, 3 * TS_NS, 4 * TS_NS]
     assert int(values['rejected_clock']) == 3
+    with open(proc.log_path, encoding='utf-8') as fh:
+        log = fh.read()
+    assert 'Current thread' in log and 'in run_node' in log, log

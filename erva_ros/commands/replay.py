@@ -50,7 +50,8 @@ def add_arguments(parser):
     parser.add_argument('--delay', type=float, default=0.0, metavar='S',
                         help='wait S seconds before the first message (discovery)')
     parser.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='S',
-                        help='wait up to S seconds until every topic has a subscriber')
+                        help='wait up to S seconds until every topic (and /clock with --clock) '
+                             'has a subscriber')
     parser.add_argument('--foxglove', nargs='?', const=FOXGLOVE_DEFAULT, default=None,
                         metavar='[HOST:]PORT',
                         help='also serve the messages to Foxglove on this address (default '

@@ -50,6 +50,7 @@ or is not writable, disk full) is reported as one log line and an ERROR status o
 own process, the recorder cannot stall or stop the control loop.
 """
 
+import faulthandler
 import functools
 import json
 import os
@@ -340,6 +341,7 @@ def main(args=None) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    faulthandler.register(signal.SIGUSR1)    # stacks on demand, as every node (ros/runtime)
     node = None
     rc = 0
     try:

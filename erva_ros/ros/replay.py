@@ -67,7 +67,9 @@ class Player:
         self.clock_pub = None
         if self.clock_hz > 0:
             from rosgraph_msgs.msg import Clock
-            self.clock_pub = node.create_publisher(Clock, contract.CLOCK, ros_qos.control_qos())
+            # As deep as the data's history: a stalled subscriber gets every tick repaired.
+            self.clock_pub = node.create_publisher(
+                Clock, contract.CLOCK, ros_qos.publisher_qos(history_s, 1.0 / self.clock_hz))
         self.published: Dict[str, int] = {name: 0 for name in self.topics}
         self.clock_ticks = 0
         self.clock_ticks_this_pass = 0
@@ -83,7 +85,7 @@ class Player:
     def wait_for_subscribers(self, timeout_s: float) -> bool:
         """Wait until every publisher has a matched subscription (or ``timeout_s``)."""
         end = time.monotonic() + timeout_s
-        pubs = list(self.publishers.values())
+        pubs = self._all_publishers()
         while time.monotonic() < end:
             if all(p.get_subscription_count() > 0 for p in pubs):
                 return True
@@ -145,7 +147,11 @@ class Player:
         """Wait until subscribers acknowledged everything (reliable QoS); return success."""
         from rclpy.duration import Duration
         return all(p.wait_for_all_acked(Duration(seconds=timeout_s))
-                   for p in self.publishers.values())
+                   for p in self._all_publishers())
+
+    def _all_publishers(self) -> list:
+        """Return the topics' publishers and /clock's (ticks count as much as messages)."""
+        return list(self.publishers.values()) + ([self.clock_pub] if self.clock_pub else [])
 
     def _stats(self, passes: int, started: float, stopped: bool) -> Dict:
         return {'bag': self.bag.path, 'rate': self.rate, 'passes': passes,

@@ -11,15 +11,24 @@ them with it.  Instead the signal stops the spin loop, then the node publishes a
 status (its final counts: ``published:<topic>``) and waits, bounded by
 ``SHUTDOWN_ACK_S``, until every subscriber has acknowledged everything its
 :class:`~erva_ros.ros.diagnostics.CountedPublisher` s and its status wrote
-(``Publisher.wait_for_all_acked``).  A second signal skips the wait.  Whatever hangs on
-the way out, the process is gone ``SHUTDOWN_ACK_S + SHUTDOWN_GRACE_S`` after the first
-signal: the kernel then ends it with SIGALRM (no Python needed).  Seen once: after `erva
-run` was SIGKILLed, a road_preview_node kept one core at SCHED_FIFO 20 busy (95 %, the RT
-throttling cap) for over an hour, never exiting -- a middleware thread spinning after its
-peer's death, as in eProsima/Fast-DDS#2398.
+(``Publisher.wait_for_all_acked``).  A second signal skips the wait.  Then the node,
+the context and the DDS participant are torn down (peers see it leave at once) and the
+process ends with ``os._exit``: the interpreter's own exit would only join middleware
+threads, 0.4-0.9 s of timed sleeps measured.  A phase slower than ``SLOW_STOP_S`` says so
+on stderr.  Whatever hangs on the way out, the process is gone ``SHUTDOWN_ACK_S +
+SHUTDOWN_GRACE_S`` (9 s) after the first signal, before a supervisor's SIGKILL (10 s,
+:func:`erva_ros.session.processes.stop_processes`): the kernel ends it with SIGALRM, after
+every thread's stack is written to stderr (faulthandler; also on SIGUSR1, without
+stopping).  Seen: once in CI, a road_preview_node still running 10 s after SIGINT
+(SIGKILLed; where it hung is what these stacks are for); once, after `erva run` was
+SIGKILLed, a road_preview_node kept one core at SCHED_FIFO 20 busy (95 %, the RT
+throttling cap) for over an hour -- a middleware thread spinning after its peer's death,
+as in eProsima/Fast-DDS#2398.
 """
 
+import faulthandler
 import gc
+import os
 import signal
 import sys
 import time
@@ -31,16 +40,22 @@ from erva_ros.core.params import ParamError
 #: Exit status of a node stopped by a bad parameter or option.
 EXIT_BAD_PARAMETER = 2
 #: How long (s) a stopping node waits for its subscribers to acknowledge what it published.
-SHUTDOWN_ACK_S = 5.0
+SHUTDOWN_ACK_S = 4.0
 #: After the acknowledgement wait, how long (s) tearing the node down may take at most.
-SHUTDOWN_GRACE_S = 10.0
+SHUTDOWN_GRACE_S = 5.0
+#: A stop phase longer than this (s) is reported on stderr.
+SLOW_STOP_S = 1.0
 #: The spin loop wakes at least this often to see a stop request (s).
 SPIN_TIMEOUT_S = 0.1
 
 
 def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]] = None
              ) -> int:
-    """Create the node with ``factory`` and spin it until shutdown; return the exit status."""
+    """Create the node with ``factory`` and spin it until shutdown.
+
+    Returns the exit status of a start-up failure (:data:`EXIT_BAD_PARAMETER`); a node
+    that ran ends the process itself (exit status 0) once torn down.
+    """
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
@@ -54,6 +69,11 @@ def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]]
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, note)
+    # Where a node hangs, from C as well: every thread's stack on stderr (its log under
+    # `erva run`) when the last resort fires, and on SIGUSR1 (a supervisor's last word
+    # before SIGKILL, or `kill -USR1 <pid>` by hand) without stopping the node.
+    faulthandler.register(signal.SIGALRM, chain=True)
+    faulthandler.register(signal.SIGUSR1)
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as exc:  # malformed --ros-args: rcl reports it, keep it to one line
@@ -76,17 +96,35 @@ def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]]
         executor.add_node(node)
         while not signalled and rclpy.ok():
             executor.spin_once(timeout_sec=SPIN_TIMEOUT_S)
-        finish_publishing(node, signalled)
+        stop_t0 = time.monotonic()
+        acked = finish_publishing(node, signalled)
+        if not acked or time.monotonic() - stop_t0 > SLOW_STOP_S:
+            _stop_note(name, f'final samples {"" if acked else "not all "}acknowledged '
+                             f'after {time.monotonic() - stop_t0:.2f} s')
     except ParamError as exc:
         print(f'{name}: error: {exc}', file=sys.stderr, flush=True)
         return EXIT_BAD_PARAMETER
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        t0 = time.monotonic()
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+        rclpy.try_shutdown()                     # (also finishes rcl's logging)
+        # The participant leaves here, its peers told at once, not in the interpreter's exit.
+        rclpy.get_default_context().destroy()
+        if time.monotonic() - t0 > SLOW_STOP_S:
+            _stop_note(name, f'tearing down took {time.monotonic() - t0:.2f} s')
+    # Nothing is left to do, but the interpreter's exit would still join the middleware's
+    # threads (0.4-0.9 s measured, timed sleeps in static destructors): end here.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
+
+
+def _stop_note(name: str, what: str) -> None:
+    """Say on stderr (the node's log under `erva run`) that stopping was slow, and where."""
+    print(f'{name}: slow stop: {what}', file=sys.stderr, flush=True)
 
 
 def finish_publishing(node, signalled: List[int], limit_s: float = SHUTDOWN_ACK_S) -> bool:

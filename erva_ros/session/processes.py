@@ -11,7 +11,7 @@ test do with processes:
 * :class:`ChildProcess` -- one started process in its own process group, asked by the
   kernel to die with its parent, its output in a log file, captured, or discarded;
 * :func:`stop_processes` -- SIGINT, then SIGTERM, then SIGKILL after a grace period
-  each, every process reaped.
+  each (SIGUSR1 just before SIGKILL: a hung node writes its stacks), every process reaped.
 """
 
 import ctypes
@@ -25,6 +25,8 @@ from typing import Dict, Iterable, List, Mapping, Optional, Sequence
 
 #: Grace period (s) between SIGINT, SIGTERM and SIGKILL when stopping a process.
 STOP_GRACE_S = 5.0
+#: How long (s) a hung process gets to write its stacks (SIGUSR1) before SIGKILL.
+DUMP_WAIT_S = 0.5
 _SIGINT = signal.SIGINT     # (ChildProcess.signal hides the module in the class body)
 
 
@@ -186,6 +188,12 @@ def stop_processes(procs: Iterable[ChildProcess], grace_s: float = STOP_GRACE_S,
         alive = [p for p in procs if p.poll() is None]
         if not alive:
             break
+        if sig == signal.SIGKILL and first != signal.SIGKILL:
+            # A node that is still here is hung: ask for its threads' stacks in its log
+            # first (erva_ros.ros.runtime registers SIGUSR1 for that).
+            for p in alive:
+                p.signal(signal.SIGUSR1)
+            time.sleep(DUMP_WAIT_S)
         for p in alive:
             if sig is not None:
                 p.stopped_by_us = True
