@@ -7,6 +7,7 @@ nodes, so it runs at their priority (SCHED_FIFO 20, where the kernel permits it,
 node under test does): a busy machine then delays it no more than the loop itself.
 """
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -62,6 +63,17 @@ def stop_node(proc, sig=signal.SIGINT, timeout=60.0):
         return None
     finally:
         proc.log_file.close()
+
+
+@contextlib.contextmanager
+def cleaned_up(proc, harness):
+    """Close ``harness`` and stop the node ``proc`` however the block ends."""
+    try:
+        yield
+    finally:
+        harness.close()
+        if proc.poll() is None:
+            stop_node(proc)
 
 
 class Harness:

@@ -54,8 +54,9 @@ def _drain(bus, codec, kinds=(Kind.COMMAND,)):
         out.append((kind, status, payload))
 
 
-def _bridge(codec, spec, **cfg):
-    core = BridgeCore(codec, HW, BridgeConfig(c_e_safe=C_E0, **cfg), lambda: open_bus(spec))
+def _bridge(codec, spec, clock=time.monotonic, **cfg):
+    core = BridgeCore(codec, HW, BridgeConfig(c_e_safe=C_E0, **cfg), lambda: open_bus(spec),
+                      clock=clock)
     assert core.open(now=-10.0)          # tests with explicit times start at 0
     return core
 
@@ -420,7 +421,10 @@ def test_a_full_transmit_queue_drops_the_frame_but_keeps_the_bus(codec, channel)
 
 def test_ecu_status_heartbeat_and_silence(codec, channel):
     ecu_bus = _bus(channel)
-    bridge = _bridge(codec, channel, sensor_timeout_s=0.06)
+    # The bridge's clock is the test's: a stall of this process between two lines must
+    # not count as the ECU's silence.
+    now = [0.0]
+    bridge = _bridge(codec, channel, clock=lambda: now[0], sensor_timeout_s=0.06)
     try:
         assert bridge.diagnostics()[2].level == ERROR             # nothing heard yet
         tx = codec.sender(Kind.STATUS)
@@ -430,7 +434,10 @@ def test_ecu_status_heartbeat_and_silence(codec, channel):
         d = bridge.diagnostics()[2]
         assert d.level == WARN and 'SAFE_TIMEOUT' in d.message
         assert d.values['ecu_cmd_timeouts_mod256'] == '4'
-        time.sleep(0.08)
+        now[0] = 0.05                                             # not yet silent
+        bridge.tick()
+        assert bridge.diagnostics()[2].level == WARN
+        now[0] = 0.08
         bridge.tick()
         d = bridge.diagnostics()[2]
         assert d.level == ERROR and 'ECU silent' in d.message

@@ -7,6 +7,7 @@
   commands stop it applies the last plan, then passive c_e0, and says so on /diagnostics.
 * road_preview_node (lock-step): /clock ticks off the Ts grid or going back are rejected;
   SIGUSR1 writes its stacks without stopping it; stopped, it leaves the graph at once.
+* plant_sim_node (lock-step): a first /clock tick nobody heard is sent again.
 """
 
 import math
@@ -24,7 +25,7 @@ from erva_ros.ros import qos as ros_qos
 from erva_ros.ros import msgs
 from erva_ros.ros.diagnostics import ERROR, OK, WARN
 
-from live_harness import Harness, start_node, stop_node, TS_NS
+from live_harness import cleaned_up, Harness, start_node, stop_node, TS_NS
 
 C_E0 = 10000.0
 STEPS_AT_END = 79   # plant_sim_node's step counter after 80 road heights (k = 0..79)
@@ -46,7 +47,7 @@ def test_nmpc_rejects_bad_inputs_times_out_to_passive_and_recovers(tmp_path):
     proc = start_node('nmpc_node', ns, str(tmp_path / 'nmpc.log'),
                       'controller:=preview', 'duration_s:=100.0')
     h = Harness(ns)
-    try:
+    with cleaned_up(proc, h):
         h.wait_matched([h.pub_state, h.pub_preview], [h.sub_cmd])
         good, bad_states, bad_previews = [], [], []
 
@@ -98,10 +99,6 @@ def test_nmpc_rejects_bad_inputs_times_out_to_passive_and_recovers(tmp_path):
             and int(v.get('rejected_preview', 0)) >= len(bad_previews)
             and int(v.get('state_timeouts', 0)) >= 2))
         rc = stop_node(proc)
-    finally:
-        h.close()
-        if proc.poll() is None:
-            stop_node(proc)
     assert rc == 0, 'nmpc_node did not stop cleanly on SIGINT'
 
     cmd_stamps = [c[0] for c in h.commands]
@@ -160,7 +157,7 @@ def test_plant_rejects_bad_inputs_then_holds_the_plan_then_goes_passive(tmp_path
             h.pub_cmd.publish(msgs.damping_msg(stamp, plan, TS_NS))
 
     h.on_state = controller
-    try:
+    with cleaned_up(proc, h):
         h.wait_matched([h.pub_height, h.pub_cmd], [h.sub_state, h.sub_gen])
         sent_bad_cmds = []
 
@@ -191,10 +188,6 @@ def test_plant_rejects_bad_inputs_then_holds_the_plan_then_goes_passive(tmp_path
             and int(v.get('rejected_damping_cmd', 0)) >= len(sent_bad_cmds)
             and int(v.get('steps', 0)) >= STEPS_AT_END))
         rc = stop_node(proc)
-    finally:
-        h.close()
-        if proc.poll() is None:
-            stop_node(proc)
     assert rc == 0
 
     states = np.array([x for _, x in h.states])
@@ -237,7 +230,7 @@ def test_road_node_in_lockstep_answers_each_clock_tick_and_rejects_bad_ones(tmp_
         lambda m: heights.append((msgs.time_to_ns(m.header.stamp), m.point.z)),
         ros_qos.control_qos())
     pub_clock = h.node.create_publisher(Clock, topics.CLOCK, ros_qos.control_qos())
-    try:
+    with cleaned_up(proc, h):
         h.wait_matched([pub_clock], [sub])
         for ns_ in (0, TS_NS // 2, 0, TS_NS, 3 * TS_NS, 2 * TS_NS):
             pub_clock.publish(msgs.clock_msg(ns_))
@@ -254,10 +247,6 @@ def test_road_node_in_lockstep_answers_each_clock_tick_and_rejects_bad_ones(tmp_
         # Its participant was torn down before the process ended (os._exit): it leaves
         # the graph at once, not when its 20 s lease runs out.
         left = h.spin_until(lambda: 'road_preview_node' not in h.node.get_node_names(), 10.0)
-    finally:
-        h.close()
-        if proc.poll() is None:
-            stop_node(proc)
     assert rc == 0 and left
     # Off the grid (Ts/2), repeated (0) and going back (2·Ts after 3·Ts): rejected.
     assert [s for s, _ in heights] == [0, TS_NS, 3 * TS_NS, 4 * TS_NS]
@@ -265,3 +254,27 @@ def test_road_node_in_lockstep_answers_each_clock_tick_and_rejects_bad_ones(tmp_
     with open(proc.log_path, encoding='utf-8') as fh:
         log = fh.read()
     assert 'Current thread' in log and 'in run_node' in log, log
+
+
+def test_plant_in_lockstep_sends_its_first_tick_again_when_nobody_heard_it(tmp_path):
+    ns = '/erva_t_tick'
+    proc = start_node('plant_sim_node', ns, str(tmp_path / 'plant.log'), 'mode:=lockstep',
+                      'duration_s:=0.1', 'wait_for_subscribers:=1', 'start_delay_s:=0.0',
+                      'lockstep_timeout_s:=1.0')
+    h = Harness(ns)
+    ticks = []
+    with cleaned_up(proc, h):
+        h.wait_matched([h.pub_height, h.pub_cmd], [h.sub_state])
+        # Tick 0 went out to no /clock reader (volatile: gone for good) ...
+        h.wait_for_diag('plant_sim_node', lambda v: int(v.get('clock', 0)) >= 1)
+        # ... a road node that subscribes now still gets it, as do later ones.
+        h.node.create_subscription(Clock, topics.CLOCK,
+                                   lambda m: ticks.append(msgs.time_to_ns(m.clock)),
+                                   ros_qos.control_qos())
+        h.spin_until(lambda: len(ticks) >= 1, 60.0)
+        values = h.wait_for_diag('plant_sim_node',
+                                 lambda v: int(v.get('lockstep_timeouts', 0)) >= 1)
+        rc = stop_node(proc)
+    assert rc == 0
+    assert ticks and set(ticks) == {0}, ticks         # t = 0 again, never a later sample
+    assert int(values['steps']) == 0

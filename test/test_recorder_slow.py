@@ -30,7 +30,7 @@ def test_counts_in_the_bag_equal_counts_published_over_a_minute(tmp_path):
         # 50 Hz, /diagnostics from three nodes at 1 Hz), from a separate process.
         pub = subprocess.run([sys.executable, '-m', 'erva_ros.ros.traffic', 'contract',
                               '--duration', str(DURATION_S), '--rate', '50',
-                              '--ack-timeout', '60'],
+                              '--ack-timeout', '60', '--wait', '120'],
                              env=ros_env(), cwd=REPO, capture_output=True, text=True,
                              timeout=DURATION_S + 600)
         assert pub.returncode == 0, pub.stderr

@@ -118,11 +118,12 @@ class FoxgloveNode(Node):
                 self._pending.append(topic)
             else:
                 self._subscribe(topic, type_name)
-        self._status_pub = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS,
-                                                 ros_qos.control_qos())
+        # (``pub_diag``: what run_node waits on, acknowledged, when the node stops.)
+        self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS,
+                                              ros_qos.diagnostics_qos())
         self.status = diag.StatusReporter(
             f'{self.get_fully_qualified_name()}{fg.STATUS_SUFFIX}', 'foxglove',
-            self._status_pub.publish, lambda: self.get_clock().now().nanoseconds,
+            self.pub_diag.publish, lambda: self.get_clock().now().nanoseconds,
             self._values)
         self.status.set(diag.OK, f'serving {self.server.url}')
         self.create_timer(p['diagnostics_period_s'], self._on_timer)

@@ -83,6 +83,7 @@ class PlantSimNode(Node):
         self.started = False
         self._ready_since = None
         self._wait_since = 0.0
+        self._tick_since = 0.0
         self._last_height = time.monotonic()
         self.count = {'states': 0, 'clock': 0, 'late_commands': 0, 'road_gaps': 0,
                       'lockstep_timeouts': 0}
@@ -224,6 +225,7 @@ class PlantSimNode(Node):
         nxt = 0 if self.t_ns is None else self.t_ns + self.ts_ns
         self.pub_clock.publish(clock_msg(nxt))
         self.count['clock'] += 1
+        self._tick_since = time.monotonic()
 
     def _on_lockstep_timer(self) -> None:
         if not self.started:
@@ -231,6 +233,14 @@ class PlantSimNode(Node):
                 self.started = True
                 self.status.set(diag.OK, 'running')
                 self._tick_clock()
+            return
+        if self.k is None and time.monotonic() - self._tick_since > self.cfg['lockstep_timeout_s']:
+            # /clock is volatile: a first tick out before the road node's reader matched
+            # is gone for good, and the loop would wait forever.  Once more, counted.
+            self.count['lockstep_timeouts'] += 1
+            self.get_logger().warning(f'no road height for t = 0 within '
+                                      f'{self.cfg["lockstep_timeout_s"]:g} s; /clock again')
+            self._tick_clock()
             return
         waiting = self.k is not None and not self.finished and self.u_k is None
         if waiting and time.monotonic() - self._wait_since > self.cfg['lockstep_timeout_s']:

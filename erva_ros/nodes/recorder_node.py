@@ -313,14 +313,22 @@ class RecorderNode(Node):
         self._status_pub.publish(diag.array_msg(self.get_clock().now().nanoseconds, [status]))
 
     # -- shutdown --------------------------------------------------------------------------
-    def drain(self, executor, quiet_s: float = 0.1, limit_s: float = 2.0) -> None:
-        """Take messages already delivered to this process before the file is closed."""
+    def drain(self, executor, quiet_spins: int = 3, limit_s: float = 5.0) -> None:
+        """Take messages already delivered to this process before the file is closed.
+
+        Timers first stop (a status or a flush now would only come between the messages).
+        The drain ends once ``quiet_spins`` waits of 50 ms in a row took nothing: counted,
+        not timed, so a recorder starved by other work still takes everything queued when
+        it runs again; or after ``limit_s`` (publishers that never stop).
+        """
+        for timer in list(self.timers):
+            timer.cancel()
         end = time.monotonic() + limit_s
-        last, quiet_since = self.received, time.monotonic()
-        while time.monotonic() < end and time.monotonic() - quiet_since < quiet_s:
-            executor.spin_once(timeout_sec=0.02)
-            if self.received != last:
-                last, quiet_since = self.received, time.monotonic()
+        quiet = 0
+        while quiet < quiet_spins and time.monotonic() < end:
+            before = self.received
+            executor.spin_once(timeout_sec=0.05)
+            quiet = quiet + 1 if self.received == before else 0
 
     def finish(self) -> int:
         """Close the bag (summary, indexes, metadata.yaml); return the exit code."""

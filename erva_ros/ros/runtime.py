@@ -61,10 +61,12 @@ def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]]
     from rclpy.signals import SignalHandlerOptions
 
     signalled: List[int] = []
+    first_signal: List[float] = []
 
     def note(signum, frame):
         if not signalled:
             signal.alarm(int(SHUTDOWN_ACK_S + SHUTDOWN_GRACE_S))   # the last resort
+            first_signal.append(time.monotonic())
         signalled.append(signum)
 
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -97,7 +99,10 @@ def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]]
         while not signalled and rclpy.ok():
             executor.spin_once(timeout_sec=SPIN_TIMEOUT_S)
         stop_t0 = time.monotonic()
-        acked = finish_publishing(node, signalled)
+        # The wait counts from the signal (a long callback may have delayed this point),
+        # so it ends before a supervisor's SIGTERM; a little is always left for it.
+        since = stop_t0 - first_signal[0] if first_signal else 0.0
+        acked = finish_publishing(node, signalled, max(0.5, SHUTDOWN_ACK_S - since))
         if not acked or time.monotonic() - stop_t0 > SLOW_STOP_S:
             _stop_note(name, f'final samples {"" if acked else "not all "}acknowledged '
                              f'after {time.monotonic() - stop_t0:.2f} s')

@@ -34,11 +34,12 @@ from erva_ros.core.metrics import percentiles_ms
 from erva_ros.session.hil_processes import hil_process_specs
 from erva_ros.session.processes import ChildProcess, stop_processes
 from erva_ros.session.report import jsonable
+from erva_ros.session.run_config import STARTUP_TIMEOUT_S
 
 
 def run_live_bench(params_file: str, hil_file: Optional[str], duration_s: float,
                    law: str = 'skyhook', seed: int = 0, namespace: str = topics.NAMESPACE,
-                   log=lambda s: None, startup_timeout_s: float = 30.0,
+                   log=lambda s: None, startup_timeout_s: float = STARTUP_TIMEOUT_S,
                    realtime_priority: int = 0) -> Dict:
     """Run the HIL loop for ``duration_s`` and return the measured figures (see module doc)."""
     from erva_ros.core.params import load_erva_params

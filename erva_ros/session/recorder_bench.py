@@ -29,6 +29,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 from erva_ros.core.bag import BagError
 from erva_ros.core.metrics import percentiles_ms
 from erva_ros.session.processes import ChildProcess, child_env, module_argv
+from erva_ros.session.run_config import STARTUP_TIMEOUT_S
 
 
 def _spawn(args: Sequence[str]) -> ChildProcess:
@@ -67,11 +68,15 @@ def start_recorder(bag_dir: str, topics: Optional[List[str]] = None) -> ChildPro
     extra = [arg for p in RECORDER_PARAMS for arg in ('-p', p)]
     proc = _spawn(['erva_ros.nodes.recorder_node',
                    *recorder_ros_args(bag_dir, {'scenario': 'bench'}, topics=topics), *extra])
-    end = time.monotonic() + 20
-    while time.monotonic() < end and not os.path.exists(bag_dir):
+    end = time.monotonic() + STARTUP_TIMEOUT_S
+    while not os.path.exists(bag_dir):
         if proc.poll() is not None:
             proc.wait(1.0)
             raise BagError(f'recorder_node exited: {proc.errors().strip()[-300:]}')
+        if time.monotonic() > end:
+            proc.stop()
+            raise BagError(f'recorder_node did not start recording within '
+                           f'{STARTUP_TIMEOUT_S:g} s')
         time.sleep(0.05)
     return proc
 

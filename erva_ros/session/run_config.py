@@ -70,6 +70,11 @@ def validate_live(values: Dict[str, Any], source: str = '') -> Dict[str, Any]:
                      source, LIVE_DEFAULTS)
 
 
+#: How long (s) a session's processes may take to start and connect: a cold start builds
+#: and compiles CasADi functions, which a busy 2-core machine stretches to tens of seconds.
+STARTUP_TIMEOUT_S = 90.0
+
+
 @dataclass
 class RunConfig:
     """What `erva run` runs; ``None`` means "as in the config files"."""
@@ -87,7 +92,7 @@ class RunConfig:
     live_file: Optional[str] = None        # live parameters (config/live.yaml)
     record_dir: Optional[str] = None       # parent of the session bag; None: no recording
     namespace: str = topics.NAMESPACE
-    startup_timeout_s: float = 90.0
+    startup_timeout_s: float = STARTUP_TIMEOUT_S
     live_overrides: Dict[str, Any] = field(default_factory=dict)
     settings_overrides: Dict[str, Any] = field(default_factory=dict)
     session_dir: Optional[str] = None      # where the params file and node logs go
