@@ -35,8 +35,8 @@ class SampleWatch:
     """Count the loop's samples on /erva/sprung_accel in this process (rclpy, own context).
 
     For tests that act *during* a run: waiting for samples, not for a time, puts the
-    action inside the run on any machine.  Not /erva/state: a reader there could open
-    erva run's start gate before erva run's own monitor listens.
+    action inside the run on any machine.  Not /erva/state, the lock-step time master's
+    topic: a reader there is what the start gate must not be fooled by (its own test).
     """
 
     def __init__(self):

@@ -82,3 +82,28 @@ def test_realtime_a_future_stamped_foreign_state_is_rejected_and_reported():
     # The summary's figures are the loop's own: one state per sample (its pace is a
     # benchmark figure: erva bench --live).
     assert s['metrics']['samples'] == 200
+
+
+def test_lockstep_a_reader_already_there_cannot_stand_in_for_the_monitor(erva, tmp_path):
+    # A `ros2 topic echo /erva/state` before the run: it counts as one of the plant's
+    # readers, and with no settling time the plant used to start before the monitor's
+    # last subscription was matched -- its first states never reached the monitor.
+    import rclpy
+    from sensor_msgs.msg import JointState
+
+    live = tmp_path / 'live.yaml'
+    live.write_text("/**:\n  ros__parameters:\n    start_delay_s: 0.0\n")
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        echo = rclpy.create_node('foreign_echo', context=context)
+        echo.create_subscription(JointState, '/erva/state', lambda msg: None,
+                                 ros_qos.control_qos())
+        run = erva('run', '--mode', 'lockstep', '--duration', '1', '--no-record', '--json',
+                   '--live', str(live), timeout=400)
+    finally:
+        rclpy.try_shutdown(context=context)
+    assert run.returncode == 0, run.stdout + run.stderr
+    s = json.loads(run.stdout)
+    assert not any(s['messages']['dropped'].values()), s['messages']
+    assert s['messages']['received']['state'] == 51, s['messages']

@@ -25,6 +25,8 @@ damping_cmd    trajectory_msgs/JointTrajectory   joint [c_e]: points[0] = comman
 """
 
 NAMESPACE = '/erva'
+#: The node name of `erva run`'s monitor (the time master waits for its readers).
+MONITOR_NODE = 'erva_run_monitor'
 
 STATE = 'state'
 SPRUNG_ACCEL = 'sprung_accel'

@@ -43,14 +43,16 @@ from erva_ros.ros.msgs import (accel_msg, clock_msg, generator_msg, parse_dampin
 from erva_ros.ros.parameters import (declare_erva_params, declare_live, loop_priority,
                                      stamp_window)
 from erva_ros.ros.runtime import run_node
+from erva_ros.ros.time_master import readers_ready
 from erva_ros.core.loop.timing import DurationStats, PeriodStats
 from erva_ros.core.loop.validation import MessageRejected, Rejections
 from erva_ros.core.plant import PlantSimulator
 
 LIVE_PARAMETERS = ('mode', 'model', 'ts', 'duration_s', 'command_timeout_s',
-                   'lockstep_timeout_s', 'wait_for_subscribers', 'start_delay_s',
-                   'diagnostics_period_s', 'reject_log_period_s', 'max_stamp_lead_s',
-                   'max_stamp_age_s', 'publisher_history_s', 'realtime_priority')
+                   'lockstep_timeout_s', 'wait_for_subscribers', 'wait_for_reader',
+                   'start_delay_s', 'diagnostics_period_s', 'reject_log_period_s',
+                   'max_stamp_lead_s', 'max_stamp_age_s', 'publisher_history_s',
+                   'realtime_priority')
 
 
 class PlantSimNode(Node):
@@ -252,7 +254,7 @@ class PlantSimNode(Node):
 
     def _graph_ready(self) -> bool:
         """Return True once the loop's topics are matched and have settled (lock-step start)."""
-        ready = (self.pub_state.get_subscription_count() >= self.cfg['wait_for_subscribers']
+        ready = (readers_ready(self, (self.pub_state,), self.cfg)
                  and self.sub_height.get_publisher_count() >= 1
                  and self.sub_cmd.get_publisher_count() >= 1)
         now = time.monotonic()

@@ -12,7 +12,8 @@ The height is published first: the plant's step is on the path to the state,
 while the controller needs the preview only once that state arrives.
 
 Modes: ``realtime`` -- a wall-clock timer at 1/Ts, started once both topics have
-``wait_for_subscribers`` subscribers plus ``start_delay_s``; it is the time base of
+``wait_for_subscribers`` subscribers (one of them ``wait_for_reader``'s, see
+:mod:`erva_ros.ros.time_master`) plus ``start_delay_s``; it is the time base of
 the live run.  ``lockstep`` -- one sample per ``/clock`` message from the plant.
 """
 
@@ -31,14 +32,16 @@ from erva_ros.ros import diagnostics as diag
 from erva_ros.ros.msgs import preview_msg, road_height_msg, s_to_ns, time_to_ns
 from erva_ros.ros.parameters import declare_live, loop_priority
 from erva_ros.ros.runtime import run_node
+from erva_ros.ros.time_master import readers_ready
 from erva_ros.core.loop.scenario import build_preview_model, build_road
 from erva_ros.core.loop.validation import Rejections
 
 LIVE_PARAMETERS = ('mode', 'ts', 'duration_s', 'road', 'road_file', 'seed', 'road_class',
                    'speed_mps', 'bump_height_m', 'bump_length_m', 'bump_start_s',
                    'preview_steps', 'preview_noise', 'preview_snr_db', 'preview_delay_s',
-                   'wait_for_subscribers', 'start_delay_s', 'diagnostics_period_s',
-                   'reject_log_period_s', 'publisher_history_s', 'realtime_priority')
+                   'wait_for_subscribers', 'wait_for_reader', 'start_delay_s',
+                   'diagnostics_period_s', 'reject_log_period_s', 'publisher_history_s',
+                   'realtime_priority')
 
 
 class RoadPreviewNode(Node):
@@ -116,9 +119,7 @@ class RoadPreviewNode(Node):
 
     # -- realtime ----------------------------------------------------------------------
     def _on_start_timer(self) -> None:
-        need = self.cfg['wait_for_subscribers']
-        ready = (self.pub_height.get_subscription_count() >= need
-                 and self.pub_preview.get_subscription_count() >= need)
+        ready = readers_ready(self, (self.pub_height, self.pub_preview), self.cfg)
         now = time.monotonic()
         if not ready:
             self._ready_since = None

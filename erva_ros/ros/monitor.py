@@ -187,7 +187,7 @@ class Monitor(Observations, Node):
     the observer costs the loop as little CPU as possible while it runs.
     """
 
-    def __init__(self, namespace: str = topics.NAMESPACE, name: str = 'erva_run_monitor',
+    def __init__(self, namespace: str = topics.NAMESPACE, name: str = topics.MONITOR_NODE,
                  context=None, gate: Sequence[str] = (topics.ROAD_HEIGHT, topics.ROAD_PREVIEW),
                  hil: bool = False, window_ns: Optional[Tuple[int, int]] = None):
         Node.__init__(self, name, namespace=namespace, context=context,

@@ -62,6 +62,8 @@ LIVE_SPECS: Dict[str, Any] = {
                                      'this many periods without a state'),
     'wait_for_subscribers': Integer(0, 100, '-',
                                     'time master: subscribers each of its topics needs first'),
+    'wait_for_reader': Text('time master: one subscriber of each of its topics must be the '
+                            'node of this name (\'\': any)'),
     'start_delay_s': Number(0.0, 600.0, 's',
                             'time master: settling time before the first sample'),
     'diagnostics_period_s': Number(0.05, 3600.0, 's', 'period of the /diagnostics status'),

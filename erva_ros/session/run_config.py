@@ -159,6 +159,8 @@ def live_values(cfg: RunConfig, settings, recording: bool) -> Dict[str, Any]:
     # The time master starts when each of its topics has the other loop node, this
     # process's monitor and (when recording / serving) the recorder / Foxglove server.
     live['wait_for_subscribers'] = 2 + (1 if recording else 0) + (1 if cfg.foxglove else 0)
+    # ... and one of them is the monitor itself, not any reader that happens to be there.
+    live['wait_for_reader'] = topics.MONITOR_NODE
     build_road(live)   # a bad road option fails here, not in a node
     return live
 

@@ -1,6 +1,7 @@
 """When an `erva run` session may start: every writer matched every reader it will have.
 
-The time master starts sample 0 once its topics have ``wait_for_subscribers`` readers;
+The time master starts sample 0 once its topics have ``wait_for_subscribers`` readers,
+one of them the monitor's (``wait_for_reader``, :mod:`erva_ros.ros.time_master`);
 before the monitor opens that last subscription (:meth:`Monitor.connect`), every
 other loop writer must have matched all its subscribers -- the loop's own nodes, the
 monitor, the recorder and the Foxglove server -- and the recorder every writer it
