@@ -76,13 +76,15 @@ def test_policy_gives_each_loop_topic_exactly_its_writers():
 def test_policy_allows_every_endpoint_of_a_live_session(tmp_path):
     import rclpy
     policy = load_policy()
-    proc = start_run('--duration', 3, '--record', tmp_path, '--json')
+    # The probe exists before the session's nodes: it learns of them while they start,
+    # not in the few seconds the run lasts after it connected.
     context = rclpy.Context()
     rclpy.init(context=context)
+    node = rclpy.create_node('policy_probe', context=context)
+    proc = start_run('--duration', 3, '--record', tmp_path, '--json')
     seen = {}
     try:
         wait_connected(proc)
-        node = rclpy.create_node('policy_probe', context=context)
         names = ('plant_sim_node', 'road_preview_node', 'nmpc_node', 'recorder',
                  'erva_run_monitor')
         end = time.monotonic() + 20
