@@ -43,7 +43,7 @@ from erva_ros.ros.msgs import (accel_msg, clock_msg, generator_msg, parse_dampin
 from erva_ros.ros.parameters import (declare_erva_params, declare_live, loop_priority,
                                      stamp_window)
 from erva_ros.ros.runtime import run_node
-from erva_ros.ros.time_master import readers_ready
+from erva_ros.ros.time_master import readers_ready, Settling
 from erva_ros.core.loop.timing import DurationStats, PeriodStats
 from erva_ros.core.loop.validation import MessageRejected, Rejections
 from erva_ros.core.plant import PlantSimulator
@@ -83,7 +83,7 @@ class PlantSimNode(Node):
         self.sample = None       # plant outputs at t_k with u_k
         self.finished = False
         self.started = False
-        self._ready_since = None
+        self._settling = Settling(cfg['start_delay_s'])
         self._wait_since = 0.0
         self._tick_since = 0.0
         self._last_height = time.monotonic()
@@ -257,13 +257,7 @@ class PlantSimNode(Node):
         ready = (readers_ready(self, (self.pub_state,), self.cfg)
                  and self.sub_height.get_publisher_count() >= 1
                  and self.sub_cmd.get_publisher_count() >= 1)
-        now = time.monotonic()
-        if not ready:
-            self._ready_since = None
-            return False
-        if self._ready_since is None:
-            self._ready_since = now
-        return now - self._ready_since >= self.cfg['start_delay_s']
+        return self._settling.held(ready, time.monotonic())
 
     # -- diagnostics -------------------------------------------------------------------
     def _on_diag_timer(self) -> None:

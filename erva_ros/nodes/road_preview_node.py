@@ -32,7 +32,7 @@ from erva_ros.ros import diagnostics as diag
 from erva_ros.ros.msgs import preview_msg, road_height_msg, s_to_ns, time_to_ns
 from erva_ros.ros.parameters import declare_live, loop_priority
 from erva_ros.ros.runtime import run_node
-from erva_ros.ros.time_master import readers_ready
+from erva_ros.ros.time_master import readers_ready, Settling
 from erva_ros.core.loop.scenario import build_preview_model, build_road
 from erva_ros.core.loop.validation import Rejections
 
@@ -63,7 +63,7 @@ class RoadPreviewNode(Node):
         self.start_ns = None
         self.finished = False
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self._ready_since = None
+        self._settling = Settling(cfg['start_delay_s'])
         self._sample_timer = None
         self._start_timer = None
         self.rejections = Rejections(self.get_logger().warning, time.monotonic,
@@ -120,13 +120,7 @@ class RoadPreviewNode(Node):
     # -- realtime ----------------------------------------------------------------------
     def _on_start_timer(self) -> None:
         ready = readers_ready(self, (self.pub_height, self.pub_preview), self.cfg)
-        now = time.monotonic()
-        if not ready:
-            self._ready_since = None
-            return
-        if self._ready_since is None:
-            self._ready_since = now
-        if now - self._ready_since < self.cfg['start_delay_s']:
+        if not self._settling.held(ready, time.monotonic()):
             return
         self._start_timer.cancel()
         # rcl timers fire at creation + m·period without drift; the grid is anchored at the

@@ -60,14 +60,12 @@ def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]]
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    signalled: List[int] = []
-    first_signal: List[float] = []
+    signalled: List[float] = []      # when each stop signal came (monotonic s)
 
     def note(signum, frame):
         if not signalled:
             signal.alarm(int(SHUTDOWN_ACK_S + SHUTDOWN_GRACE_S))   # the last resort
-            first_signal.append(time.monotonic())
-        signalled.append(signum)
+        signalled.append(time.monotonic())
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, note)
@@ -101,7 +99,7 @@ def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]]
         stop_t0 = time.monotonic()
         # The wait counts from the signal (a long callback may have delayed this point),
         # so it ends before a supervisor's SIGTERM; a little is always left for it.
-        since = stop_t0 - first_signal[0] if first_signal else 0.0
+        since = stop_t0 - signalled[0] if signalled else 0.0
         acked = finish_publishing(node, signalled, max(0.5, SHUTDOWN_ACK_S - since))
         if not acked or time.monotonic() - stop_t0 > SLOW_STOP_S:
             _stop_note(name, f'final samples {"" if acked else "not all "}acknowledged '
@@ -132,7 +130,7 @@ def _stop_note(name: str, what: str) -> None:
     print(f'{name}: slow stop: {what}', file=sys.stderr, flush=True)
 
 
-def finish_publishing(node, signalled: List[int], limit_s: float = SHUTDOWN_ACK_S) -> bool:
+def finish_publishing(node, signalled: List[float], limit_s: float = SHUTDOWN_ACK_S) -> bool:
     """Publish ``node``'s final status, then wait until its samples are acknowledged.
 
     Returns True if every subscriber acknowledged everything within ``limit_s`` (or a

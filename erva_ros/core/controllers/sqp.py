@@ -447,8 +447,8 @@ def build_rti(ocp, max_iter: int, tol: float = 1e-4, codegen: str = 'off',
     ``max_iter`` iterations.
     """
     nb, nz = len(ocp.blocks), ocp.nz
-    ns = nz + 3
     starts, step = compile_for(codegen, _sqp_parts(ocp, n_alt, hessian), 'the NMPC solver')
+    ns = starts.size1_out(0)                    # state = [z; f; done; iterations]
     x0, a_prev, p = ca.MX.sym('x0', ocp.nx), ca.MX.sym('a_prev'), ca.MX.sym('p', ocp.n_p)
     u_guess, u_alt = ca.MX.sym('u_guess', nb), ca.MX.sym('u_alt', nb, n_alt)
     st = starts(x0, a_prev, u_guess, u_alt, p)
