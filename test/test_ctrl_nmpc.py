@@ -95,9 +95,10 @@ def test_warm_start_reduces_iterations():
     assert np.mean(warm.iterations) < 0.8 * np.mean(cold.iterations)
 
 
-def test_real_time_sqp_never_increases_the_objective():
+@pytest.mark.parametrize('hessian', ['exact', 'gauss_newton'])
+def test_real_time_sqp_never_increases_the_objective(hessian):
     ocp = make_controller('preview', P, S).ocp
-    rti = build_rti(ocp, 2)
+    rti = build_rti(ocp, 2, hessian=hessian)
     value = plan_value_function(ocp)
     road = make_road('paper', 2.0, seed=3)
     rng = np.random.default_rng(0)
@@ -193,6 +194,34 @@ def test_compiled_function_matches_and_is_cached(tmp_path, monkeypatch):
     mtime = libs[0].stat().st_mtime_ns
     compile_functions([fn])                    # second use loads the cached library
     assert libs[0].stat().st_mtime_ns == mtime
+
+
+def test_native_flags_give_the_portable_results_bit_for_bit(tmp_path, monkeypatch):
+    # This CPU's instruction set is used where the compiler takes it, with no fused
+    # multiply-adds: the solver's arithmetic is that of the portable library.
+    import shutil
+    import casadi as ca
+    from erva_ros.core import codegen
+    cc = shutil.which('cc') or shutil.which('gcc')
+    if cc is None:
+        pytest.skip('no C compiler')
+    if codegen.codegen_flags(cc) == codegen.CODEGEN_FLAGS:
+        pytest.skip('the C compiler does not take NATIVE_FLAGS')
+    x, u, w = ca.SX.sym('x', 6), ca.SX.sym('u'), ca.SX.sym('w')
+    lag = MODEL.sprung_accel(x, u, w) ** 2 + ca.dot(ca.DM.ones(6), MODEL.ode(x, u, w))
+    fn = ca.Function('lagrangian_hessian', [x, u, w], [ca.hessian(lag, ca.vertcat(x, u))[0]])
+    rng = np.random.default_rng(5)
+    points = [(rng.normal(0, 0.02, 6), rng.uniform(0, 2e4), rng.normal(0, 0.01))
+              for _ in range(20)]
+    out = {}
+    for name, native in (('native', True), ('portable', False)):
+        monkeypatch.setenv('ERVA_CACHE_DIR', str(tmp_path / name))
+        if not native:
+            monkeypatch.setattr(codegen, 'codegen_flags', lambda _cc: codegen.CODEGEN_FLAGS)
+        compiled, = codegen.compile_functions([fn])
+        out[name] = [np.asarray(compiled(*pt)) for pt in points]
+    for a, b in zip(out['native'], out['portable']):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_codegen_auto_follows_the_c_compiler(monkeypatch):

@@ -9,7 +9,7 @@ from erva_ros.core.controllers import ControllerSettings, make_controller
 from erva_ros.core.controllers.nmpc import (build_ocp, OCPSpec, stable_rollout_substep,
                                             U_SCALE)
 from erva_ros.core.controllers.sqp import (convexify, plan_value_function, projection_function,
-                                           qp_model_function, start_function)
+                                           qp_model_function, start_function, step_function)
 from erva_ros.core.model import get_model
 from erva_ros.core.params import paper_params
 from erva_ros.core.plant import PlantSimulator
@@ -56,6 +56,7 @@ def test_condensing_is_the_exact_reduced_problem(cost, blocks, terminal, delayed
     # gives: the Newton step of the defects, dz/du and the exact reduced Hessian.
     ocp = _ocp(cost, blocks, terminal, delayed)
     exact = qp_model_function(ocp, 'exact', convex=False)
+    expand = step_function(ocp)
     w = make_road('paper', 2.0, seed=1).preview(0.5, ocp.horizon, S.ts)
     rng = np.random.default_rng(3)
     for alpha in [(1.0, 0.0), (0.0, 1.0), (1.0, 0.01)]:
@@ -63,7 +64,10 @@ def test_condensing_is_the_exact_reduced_problem(cost, blocks, terminal, delayed
         u = rng.uniform(0, 2, len(blocks))
         z = np.asarray(ocp.rollout(X0, 0.1, u, ocp.road_params(p))).ravel()
         h_ref, g_ref, dz0_ref, dz_du_ref = _reference(ocp, z, p)
-        h, g, _, dz0, dz_du, _ = (np.asarray(v) for v in exact(z, p))
+        h, g, _, dz0, stages, _ = (np.asarray(v) for v in exact(z, p))
+        # the step for du = e_j is dz0 plus dz/du's column j
+        dz_du = np.column_stack([np.asarray(expand(stages, dz0, e)).ravel() - dz0.ravel()
+                                 for e in np.eye(len(blocks))])
         scale = np.max(np.abs(h_ref))
         np.testing.assert_allclose(h, h_ref, atol=1e-10 * scale)
         np.testing.assert_allclose(g.ravel(), g_ref, atol=1e-10 * np.max(np.abs(g_ref)))
@@ -102,16 +106,18 @@ def test_projection_puts_a_plan_on_the_collocation_equations(delayed):
     ('continuous', (1,) * 10, False), ('paper', (1,) * 10, True),
     ('continuous', (1,) * 6 + (4,) * 4, False)])
 def test_a_start_needs_no_rollout(cost, blocks, delayed):
-    # The SQP's starts: Newton from each interval's start state held.  Two steps reach
-    # the collocation equations as closely as from the RK4 rollout (the guess the
-    # solver used before), for a bang-bang plan far from the held state's motion, also
-    # over preview_long's 80 ms intervals.
+    # The SQP's starts: from each interval's start state held, its Newton and chord
+    # steps reach the collocation equations as closely as from the RK4 rollout (the
+    # guess the solver used before), for a bang-bang plan far from the held state's
+    # motion, also over preview_long's 80 ms intervals.
     ocp = _ocp(cost, blocks, delayed=delayed)
     w = make_road('paper', 2.0, seed=2).preview(0.3, ocp.horizon, S.ts)
     p = ocp.params(w, (1.0, 0.01), 0.006, 3000.0)
     u = np.random.default_rng(1).choice([0.0, 2.0], len(blocks))
-    z, f = (np.asarray(v).ravel() for v in start_function(ocp)(X0, 0.2, u, p))
-    assert np.max(np.abs(np.asarray(ocp.nlp(z, p)[1]))) < 1e-10
+    z, f, infeas = (np.asarray(v).ravel() for v in start_function(ocp)(X0, 0.2, u, p))
+    g = np.asarray(ocp.nlp(z, p)[1]).ravel()
+    assert np.max(np.abs(g)) < 1e-10
+    assert infeas[0] == pytest.approx(np.sum(np.abs(g)), rel=1e-12, abs=1e-300)
     rolled = np.asarray(projection_function(ocp)(
         np.asarray(ocp.rollout(X0, 0.2, u, ocp.road_params(p))).ravel(), p)).ravel()
     np.testing.assert_allclose(z, rolled, rtol=0, atol=1e-10)

@@ -91,8 +91,8 @@ def add_settings_options(parser: argparse.ArgumentParser, controller: bool = Tru
     option('--max-iter', 'max_iter', 'real-time SQP iterations per sample', metavar='K')
     option('--codegen', 'codegen',
            'compile the real-time solver\'s model functions to C: on, off, or auto = on '
-           'when cc/gcc is on PATH (first use of a configuration compiles for ~5 s, then '
-           'cached in ~/.cache/erva_ros; default: settings file, auto)')
+           'when cc/gcc is on PATH (first use of a configuration compiles for ~25 s, '
+           'then cached in ~/.cache/erva_ros; default: settings file, auto)')
     option('--u-min', 'u_min', 'lower bound of the damping command', metavar='NS_PER_M')
     option('--u-max', 'u_max', 'upper bound of the damping command', metavar='NS_PER_M')
     option('--command-delay', 'command_delay_s',

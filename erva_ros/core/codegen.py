@@ -2,10 +2,11 @@
 
 ``codegen`` settings: ``auto`` compiles when a C compiler is on PATH, ``on`` insists
 (one-line error without one), ``off`` keeps CasADi's virtual machine.  A generated
-Function is compiled once per machine and cached by the hash of its source and flags,
-so a changed model, parameter set or horizon gets its own library.
+Function is compiled once per machine and cached by the hash of its source, flags and
+CPU, so a changed model, parameter set or horizon gets its own library.
 """
 
+import functools
 import hashlib
 import os
 import shutil
@@ -18,8 +19,12 @@ import numpy as np
 
 from erva_ros.core.params import ParamError
 
-#: C compiler flags of ``codegen`` (-O2 measured no faster than -O1, and compiles slower).
+#: C compiler flags of ``codegen`` (-O2 measured no faster than -O1, and compiles 6x slower).
 CODEGEN_FLAGS = ('-O1', '-shared', '-fPIC')
+#: Added when the compiler accepts them: this CPU's instruction set made the NMPC solve
+#: 5-8 % faster (docs/nmpc.md); without contraction to fused multiply-adds the results
+#: are bit for bit those of CODEGEN_FLAGS.  A library is then keyed to the CPU as well.
+NATIVE_FLAGS = ('-march=native', '-ffp-contract=off')
 
 
 def codegen_cache_dir() -> str:
@@ -31,6 +36,31 @@ def codegen_cache_dir() -> str:
 def c_compiler():
     """Return the C compiler codegen uses ($CC, cc or gcc), or None."""
     return os.environ.get('CC') or shutil.which('cc') or shutil.which('gcc')
+
+
+@functools.lru_cache(maxsize=None)
+def codegen_flags(cc: str):
+    """Return the flags ``cc`` compiles with: CODEGEN_FLAGS + NATIVE_FLAGS if it takes them."""
+    with tempfile.TemporaryDirectory() as tmp:
+        src = os.path.join(tmp, 'probe.c')
+        with open(src, 'w', encoding='utf-8') as fh:
+            fh.write('double f(double x) { return x * x + 1.0; }\n')
+        probe = subprocess.run([cc, *CODEGEN_FLAGS, *NATIVE_FLAGS, '-o',
+                                os.path.join(tmp, 'probe.so'), src],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return CODEGEN_FLAGS + (NATIVE_FLAGS if probe.returncode == 0 else ())
+
+
+@functools.lru_cache(maxsize=None)
+def _cpu_id() -> str:
+    """Return what identifies this CPU's instruction set (model and feature flags)."""
+    try:
+        with open('/proc/cpuinfo', encoding='utf-8') as fh:
+            lines = [ln for ln in fh if ln.startswith(('model name', 'flags', 'Features'))]
+        return ''.join(sorted(set(lines)))
+    except OSError:
+        import platform
+        return platform.machine() + platform.processor()
 
 
 def use_codegen(setting: str) -> bool:
@@ -46,18 +76,20 @@ def compile_functions(fns):
     (the functions in parallel, seconds), later processes load the cached objects.
     """
     cache = codegen_cache_dir()
+    cc = c_compiler()
+    flags = codegen_flags(cc) if cc is not None else CODEGEN_FLAGS
+    salt = ' '.join(flags) + (_cpu_id() if len(flags) > len(CODEGEN_FLAGS) else '')
     jobs, libs = [], []
     for fn in fns:
         cg = ca.CodeGenerator(f'{fn.name()}.c', {'with_header': False})
         cg.add(fn)
         source = cg.dump()
-        key = hashlib.sha1((source + ' '.join(CODEGEN_FLAGS)).encode()).hexdigest()[:16]
+        key = hashlib.sha1((source + salt).encode()).hexdigest()[:16]
         lib = os.path.join(cache, f'{fn.name()}_{key}.so')
         libs.append(lib)
         if not os.path.isfile(lib):
             jobs.append((fn.name(), source, lib))
     if jobs:
-        cc = c_compiler()
         if cc is None:
             raise ParamError("parameter 'codegen' = 'on' needs a C compiler (cc or gcc) "
                              "on PATH; set codegen: off")
@@ -69,7 +101,7 @@ def compile_functions(fns):
                 with open(src, 'w', encoding='utf-8') as fh:
                     fh.write(source)
                 procs.append((name, lib, out, subprocess.Popen(
-                    [cc, *CODEGEN_FLAGS, '-o', out, src, '-lm'],
+                    [cc, *flags, '-o', out, src, '-lm'],
                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)))
             for name, lib, out, proc in procs:
                 _, err = proc.communicate()
@@ -161,5 +193,6 @@ class BufferedCall:
         return out
 
 
-__all__ = ['CODEGEN_FLAGS', 'codegen_cache_dir', 'c_compiler', 'use_codegen',
+__all__ = ['CODEGEN_FLAGS', 'NATIVE_FLAGS', 'codegen_flags', 'codegen_cache_dir', 'c_compiler',
+           'use_codegen',
            'compile_functions', 'compile_for', 'BufferedCall']

@@ -4,35 +4,40 @@ The OCP (:mod:`erva_ros.core.controllers.nmpc`) is a collocation NLP in z = (sta
 collocation states).  It is non-convex (bilinear u·v_gen, near bang-bang optima).
 Each iteration, at the current point z:
 
-1. *Condensing* (one compiled SX function).  A forward sweep over the intervals gives
-   the sensitivities Z_i = dy_i/du of every interval's variables y_i on the linearised
-   equalities, and the Newton correction ζ_i of their defects (one sparse LU of each
-   interval's 18 x 18 collocation Jacobian, no pivoting needed: its pivots are those of
-   the L-stable Radau matrix); a backward sweep the multipliers.  The reduced Hessian
-   Σ_i Z_iᵀ H_i Z_i and gradient follow, with H_i either ``exact`` (the interval
-   Lagrangian: cost plus multipliers times defects and transition) or
-   ``gauss_newton``: the comfort residuals' Gauss-Newton term plus the *exact* Hessian
-   of the economic term −α2·u·v_gen² (a Gauss-Newton model alone misfits it), the
-   dynamics' curvature left out.
+1. *Condensing* (one compiled SX function).  A forward sweep over the intervals
+   eliminates each interval's collocation states on the linearised equalities (one
+   sparse LU of its 18 x 18 collocation Jacobian, no pivoting needed: its pivots are
+   those of the L-stable Radau matrix): they follow the interval's start state and
+   input, so the interval reduces to (x_i, v_i), with the transition matrix A_i and
+   the Newton correction ζ_i of its defects; a backward sweep the multipliers.  The
+   reduced Hessian Σ_i S_iᵀ (T_iᵀ H_i T_i) S_i and gradient follow (S_i = d(x_i, v_i)/du),
+   with H_i either ``exact`` (the interval Lagrangian: cost plus multipliers times
+   defects and transition) or ``gauss_newton``: the comfort residuals' Gauss-Newton
+   term plus the *exact* Hessian of the economic term −α2·u·v_gen² (a Gauss-Newton
+   model alone misfits it), the dynamics' curvature left out.  dz/du is never formed:
+   the step is expanded from the A_i and K_i after the QP (O(N), :func:`step_function`).
 2. *Convexification*: the N x N reduced Hessian's eigenvalues are mirrored, |λ|, and
    floored (Jacobi, compiled), so the QP is convex and its step a descent direction
    where F is concave.
-3. *Box QP* (qrqp, N variables, diagonally scaled) for du; the full step Δz = ζ + Z·du.
+3. *Box QP* (qrqp, N variables, diagonally scaled) for du; the full step
+   Δz = ζ + (dz/du)·du.
 4. *Globalisation*: the candidate z + t·Δz is put back on the collocation equations
-   (two Newton steps per interval from that linear prediction: a simulation with the
-   NLP's own integrator), and accepted by Armijo's rule on the ℓ1 merit
-   f + ρ·‖g‖₁ of the very NLP that IPOPT solves, over t = 1, ½, ¼, ⅛; a step is
-   evaluated only if the longer one failed (short-circuit conditionals).  Candidates
-   judged by an RK4 rollout instead (the solver this one replaces) are a different
-   model: for bang-bang plans its quadrature of the cost was off by up to 50 %, and
-   its gradient disagreed with the NLP's, so steps were rejected or misjudged.
+   (per interval, from that linear prediction, a Newton step and two chord steps with
+   its factorisation: a simulation with the NLP's own integrator), and accepted by
+   Armijo's rule on the ℓ1 merit f + ρ·‖g‖₁ of the very NLP that IPOPT solves, over
+   t = 1, ½, ¼, ⅛; a step is evaluated only if the longer one failed (short-circuit
+   conditionals).  Candidates judged by an RK4 rollout instead (the solver this one
+   replaces) are a different model: for bang-bang plans its quadrature of the cost was
+   off by up to 50 %, and its gradient disagreed with the NLP's, so steps were
+   rejected or misjudged.
 5. *Stop* when an iteration is predicted to gain less than ``tol``·|f(start)| or no
    step decreases the merit, else after ``max_iter`` iterations.  Counts, never the
    wall clock, end a solve: offline results do not depend on the machine's load.
 
 Starts: the warm start and the alternatives, each put on the collocation equations
-(Newton from each interval's start state held: :func:`start_function`); the best by its
-cost in the NLP is iterated.
+(from each interval's start state held: :func:`start_function`); the best by its cost in
+the NLP is iterated.  f and ‖g‖₁ of the current point travel with it, from where it was
+evaluated (a start or the line search), so an iteration never evaluates the NLP twice.
 
 The whole solver is one CasADi Function with conditionals (no Python per iteration).
 With ``codegen`` its two pieces are compiled to C as wholes, the starts and one
@@ -59,8 +64,11 @@ ARMIJO = 1e-4
 JACOBI_SWEEPS = 5
 #: Eigenvalue floor of the convexified Hessian, relative to its largest |eigenvalue|.
 EIG_FLOOR = 1e-6
-#: Newton steps per interval when a candidate is put back on the collocation equations.
-NEWTON_STEPS = 2
+#: (Newton, chord) steps per interval that put a plan on the collocation equations: a
+#: chord step reuses the Newton step's factorisation (~1/4 of a Newton step's arithmetic).
+#: From the SQP's linear prediction, measured on seed 0's problems: defects ≤ 1e-8, the
+#: cost within 2e-9 of more Newton steps' (one Newton step alone: defects up to 1e-2).
+SOLVE_STEPS = (1, 2)
 #: ℓ1 merit: ρ = RHO_FACTOR·max|multiplier| + RHO_MIN.
 RHO_FACTOR, RHO_MIN = 2.0, 1e-6
 
@@ -112,43 +120,61 @@ def _lu_solve(lu, b, transpose: bool = False):
     return ca.horzcat(*cols)
 
 
+def _symmetric(m):
+    """Return the symmetric matrix of m's upper triangle (SX: the lower one is never computed)."""
+    return ca.triu(m) + ca.triu(m, False).T
+
+
 def convexify(h, sweeps: int = JACOBI_SWEEPS):
     """Return V·max(|Λ|, floor)·Vᵀ for symmetric h = V·Λ·Vᵀ (SX, straight-line code).
 
     The eigenvalues are mirrored: along a direction of negative curvature the model
     keeps its magnitude (a modified Cholesky, tried first, inflated the curvature of
     near-singular directions 10-60x and made the SQP creep).  Cyclic Jacobi rotations
-    with the smaller angle (|θ| ≤ π/4) converge quadratically; ``sweeps`` fixed.
+    with the smaller angle (|θ| ≤ π/4) converge quadratically; ``sweeps`` fixed.  Only
+    h's upper triangle is read, and each rotation updates one triangle: a symmetric
+    matrix stays symmetric, so the other half would be the same arithmetic again.
     """
     n = h.size1()
-    a = [[0.5 * (h[i, j] + h[j, i]) for j in range(n)] for i in range(n)]
+    a = [[h[min(i, j), max(i, j)] for j in range(n)] for i in range(n)]
     v = [[ca.SX(float(i == j)) for j in range(n)] for i in range(n)]
     for _ in range(sweeps):
         for p in range(n - 1):
             for q in range(p + 1, n):
+                apq = a[p][q]
                 dlt = a[q][q] - a[p][p]
                 sign = 2 * (dlt >= 0) - 1
-                t = 2 * a[p][q] * sign / (ca.fabs(dlt) + ca.sqrt(dlt ** 2 + 4 * a[p][q] ** 2)
-                                          + 1e-300)
+                t = 2 * apq * sign / (ca.fabs(dlt) + ca.sqrt(dlt ** 2 + 4 * apq ** 2) + 1e-300)
                 c = 1 / ca.sqrt(1 + t ** 2)
                 s = t * c
+                # Jᵀ·A·J with J the rotation in (p, q): the angle zeroes a_pq.
                 for k in range(n):
-                    a[k][p], a[k][q] = c * a[k][p] - s * a[k][q], s * a[k][p] + c * a[k][q]
+                    if k not in (p, q):
+                        akp, akq = a[k][p], a[k][q]
+                        a[k][p] = a[p][k] = c * akp - s * akq
+                        a[k][q] = a[q][k] = s * akp + c * akq
                     v[k][p], v[k][q] = c * v[k][p] - s * v[k][q], s * v[k][p] + c * v[k][q]
-                for k in range(n):
-                    a[p][k], a[q][k] = c * a[p][k] - s * a[q][k], s * a[p][k] + c * a[q][k]
+                a[p][p], a[q][q] = a[p][p] - t * apq, a[q][q] + t * apq
+                a[p][q] = a[q][p] = ca.SX(0.0)
     lam = ca.vertcat(*[a[i][i] for i in range(n)])
     floor = EIG_FLOOR * ca.fmax(ca.mmax(ca.fabs(lam)), 1e-12)
     vm = ca.vertcat(*[ca.horzcat(*row) for row in v])
-    return ca.mtimes([vm, ca.diag(ca.fmax(ca.fabs(lam), floor)), vm.T])
+    return _symmetric(ca.mtimes([vm, ca.diag(ca.fmax(ca.fabs(lam), floor)), vm.T]))
 
 
 def qp_model_function(ocp, hessian: str = 'exact', convex: bool = True) -> ca.Function:
     """Return the condensed QP of the OCP at a point z (module doc, steps 1-2).
 
-    (z, p) -> (H (convexified), g, g_lin, dz0, dz_du, [∇fᵀ dz0, ρ]): the QP
-    min ½ duᵀ H du + gᵀ du; the full step Δz = dz0 + dz_du·du; g_lin = dz_duᵀ∇f
-    (the gradient without the curvature correction); ρ the ℓ1 merit's weight.
+    (z, p) -> (H (convexified), g, g_lin, dz0, stages, [∇fᵀ dz0, ρ]): the QP
+    min ½ duᵀ H du + gᵀ du; the full step Δz = dz0 + (dz/du)·du, expanded from
+    ``stages`` by :func:`step_function`; g_lin = (dz/du)ᵀ∇f (the gradient without the
+    curvature correction); ρ the ℓ1 merit's weight.
+
+    Each interval's collocation states are eliminated first: on the linearised
+    equalities they follow its start state and input, k_i = K_i·(x_i, v_i) + κ_i, so
+    the interval reduces to (x_i, v_i), with the Hessian Tᵢᵀ·H_i·Tᵢ (T_i = [I; K_i])
+    and the transition x_{i+1} = A_i·(x_i, v_i) + c_i.  Only these small matrices meet
+    the N inputs; dz/du is never formed.
     """
     if hessian not in HESSIANS:
         raise ValueError(f'hessian {hessian!r} unknown; choose one of {", ".join(HESSIANS)}')
@@ -159,13 +185,15 @@ def qp_model_function(ocp, hessian: str = 'exact', convex: bool = True) -> ca.Fu
     y = ca.vertcat(xt, v, k)
     g, phi, cost, res, weight, econ = ocp.interval(xt, v, k, wv, h, al)
     inline = {'never_inline': True}    # one compiled copy, called per interval
-    jac = ca.Function('interval_jac', [xt, v, k, wv, h, al],
-                      [g, phi, cost, ca.jacobian(g, y), ca.jacobian(phi, y),
-                       ca.gradient(cost, y), ca.jacobian(res, y), weight], inline)
     if hessian == 'exact':
         curv = ca.hessian(cost + ca.dot(mu, g) - ca.dot(nu, phi), y)[0]
+        gn = []                   # no residual Jacobian: a called Function computes all
     else:
         curv = ca.hessian(econ, y)[0]
+        gn = [ca.jacobian(res, y), weight]
+    jac = ca.Function('interval_jac', [xt, v, k, wv, h, al],
+                      [g, phi, ca.jacobian(g, y), ca.jacobian(phi, y), ca.gradient(cost, y)]
+                      + gn, inline)
     hess = ca.Function('interval_hess', [xt, v, k, wv, h, al, mu, nu], [curv], inline)
     g_pre, phi_pre = ocp.prefix(xt, v, k, wv, h)
     jac_pre = ca.Function('prefix_jac', [xt, v, k, wv, h],
@@ -180,7 +208,6 @@ def qp_model_function(ocp, hessian: str = 'exact', convex: bool = True) -> ca.Fu
     p = ca.SX.sym('p', ocp.n_p)
     alpha = p[ocp.horizon + 1:ocp.horizon + 3]
     road, w_end, road_pre, h_pre, v_pre = ocp.road(p)
-    dz_du = ca.SX.zeros(nz, nb)          # rows filled stage by stage
     dz0 = ca.SX.zeros(nz)
     sens = ca.SX.zeros(nxa, nb)          # d x_i / du on the linearised equalities
     corr = ca.SX.zeros(nxa)              # Newton correction of x_i (closes the defects)
@@ -192,37 +219,33 @@ def qp_model_function(ocp, hessian: str = 'exact', convex: bool = True) -> ca.Fu
         dz0[nxa:nxa + nk] = dk
         x_next = z[nxa + nk:ocp.offset + nxa]
         corr = ca.mtimes(phk, dk) + php - x_next
-    sweep = []
+    sweep, stages = [], []
     for i, m in enumerate(ocp.blocks):
         o = ocp.offset + i * ocp.stage
         xi, vi = z[o:o + nxa], z[o + nxa]
         ki = z[o + ocp.stage - nk:o + ocp.stage]
         args = (xi, vi, ki, road[:, i], m * ocp.ts, alpha)
-        gi, phii, _, jg, jphi, grad, jres, wres = jac(*args)
+        gi, phii, jg, jphi, grad, *gn_terms = jac(*args)
         gx, gv, gk = jg[:, :nxa], jg[:, nxa], jg[:, nxa + 1:]
+        lu = _lu(gk)          # collocation states: one sparse LU per interval
+        kk = -_lu_solve(lu, ca.horzcat(gx, gv, gi + ca.mtimes(gx, corr)))
+        t_i = ca.vertcat(ca.DM.eye(nxa + 1), kk[:, :nxa + 1])     # y_i = T_i·(x_i, v_i)
+        a_i = ca.mtimes(jphi, t_i)                                 # x_{i+1} = A_i·(x_i, v_i)
         unit = ca.DM.zeros(1, nb)
         unit[i] = 1.0
-        lu = _lu(gk)          # collocation states: one sparse LU per interval
-        rhs = ca.horzcat(ca.mtimes(gx, sens) + ca.mtimes(gv, unit), gi + ca.mtimes(gx, corr))
-        sol = -_lu_solve(lu, rhs)
-        zi = ca.vertcat(sens, unit, sol[:, :nb])
-        zeta = ca.vertcat(corr, 0, sol[:, nb])
+        s_i = ca.vertcat(sens, unit)                               # d(x_i, v_i)/du
+        zeta = ca.vertcat(corr, 0, kk[:, nxa + 1])
         x_next = z[o + ocp.stage:o + ocp.stage + nxa]
-        sens = ca.mtimes(jphi, zi)
+        sens = ca.mtimes(a_i, s_i)
         corr = ca.mtimes(jphi, zeta) + phii - x_next
-        # Rows of z: the stage's own variables, then (paper cost) x_a(k) = next x_a.
-        dz_du[o:o + nxa, :] = zi[:nxa, :]
+        stages.append(ca.vertcat(kk[:, :nxa + 1], a_i))
         dz0[o:o + nxa] = zeta[:nxa]
-        dz_du[o + nxa, :] = unit
-        dz_du[o + ocp.stage - nk:o + ocp.stage, :] = sol[:, :nb]
-        dz0[o + ocp.stage - nk:o + ocp.stage] = sol[:, nb]
+        dz0[o + ocp.stage - nk:o + ocp.stage] = zeta[nxa + 1:]
         if ocp.with_acc:
             # the NLP's x_a(k) variable moves to the stage's new node acceleration
-            dz_du[o + nxa + 1, :] = sens[nxa - 1, :]
             dz0[o + nxa + 1] = corr[nxa - 1] + x_next[nxa - 1] - z[o + nxa + 1]
-        sweep.append((args, zi, zeta, grad, gx, jphi, lu, jres, wres))
+        sweep.append((args, s_i, t_i, zeta, grad, gx, jphi, lu, gn_terms))
     o_end = nz - nxa
-    dz_du[o_end:, :] = sens
     dz0[o_end:] = corr
     _, t_grad, t_hess = terminal(z[o_end:], w_end, alpha)
     hr = ca.mtimes([sens.T, t_hess, sens])
@@ -230,68 +253,103 @@ def qp_model_function(ocp, hessian: str = 'exact', convex: bool = True) -> ca.Fu
     g_lin = ca.mtimes(sens.T, t_grad)
     df0 = ca.dot(t_grad, corr)
     nu_next = -t_grad                    # multiplier of x_{i+1} = phi_i
-    for args, zi, zeta, grad, gx, jphi, lu, jres, wres in reversed(sweep):
+    for args, s_i, t_i, zeta, grad, gx, jphi, lu, gn_terms in reversed(sweep):
         jphi_x, jphi_k = jphi[:, :nxa], jphi[:, nxa + 1:]
         rhs = grad[nxa + 1:] - ca.mtimes(jphi_k.T, nu_next)
         mu_i = -_lu_solve(lu, rhs, transpose=True)          # collocation multipliers
         h_i = hess(*args, mu_i, nu_next)
+        h_red = ca.mtimes([t_i.T, h_i, t_i])                # the interval on (x_i, v_i)
+        g_red = ca.mtimes(t_i.T, grad + ca.mtimes(h_i, zeta))
         if hessian == 'gauss_newton':
-            jz = ca.mtimes(jres, zi)
-            hr += 2 * ca.mtimes([jz.T, ca.diag(wres), jz])
-            gr += 2 * ca.mtimes(jz.T, wres * ca.mtimes(jres, zeta))
-        hr += ca.mtimes([zi.T, h_i, zi])
-        gr += ca.mtimes(zi.T, grad + ca.mtimes(h_i, zeta))
-        g_lin += ca.mtimes(zi.T, grad)
+            jres, wres = gn_terms
+            jt = ca.mtimes(jres, t_i)
+            h_red += 2 * ca.mtimes([jt.T, ca.diag(wres), jt])
+            g_red += 2 * ca.mtimes(jt.T, wres * ca.mtimes(jres, zeta))
+        h_red = _symmetric(h_red)
+        hr += ca.mtimes([s_i.T, h_red, s_i])
+        gr += ca.mtimes(s_i.T, g_red)
+        g_lin += ca.mtimes(s_i.T, ca.mtimes(t_i.T, grad))
         df0 += ca.dot(grad, zeta)
         lam_max = ca.fmax(lam_max, ca.fmax(ca.mmax(ca.fabs(mu_i)), ca.mmax(ca.fabs(nu_next))))
         nu_next = -(grad[:nxa] + ca.mtimes(gx.T, mu_i) - ca.mtimes(jphi_x.T, nu_next))
     rho = RHO_FACTOR * lam_max + RHO_MIN
     merit = ca.vertcat(df0, rho)
+    hr = _symmetric(hr)
     return ca.Function('qp_model', [z, p],
-                       [convexify(hr) if convex else hr, gr, g_lin, dz0, dz_du, merit],
-                       ['z', 'p'], ['h', 'g', 'g_lin', 'dz0', 'dz_du', 'merit'])
+                       [convexify(hr) if convex else hr, gr, g_lin, dz0, ca.horzcat(*stages),
+                        merit],
+                       ['z', 'p'], ['h', 'g', 'g_lin', 'dz0', 'stages', 'merit'])
 
 
-def _project(ocp, p, x, inputs, guess, newton_steps: int = NEWTON_STEPS):
+def step_function(ocp) -> ca.Function:
+    """Return (stages, dz0, du) -> Δz = dz0 + (dz/du)·du, from :func:`qp_model_function`.
+
+    A forward sweep through the intervals' K_i and A_i: O(N), where the product with a
+    dense dz/du would be O(N²).
+    """
+    nxa, nk, nb, nz = ocp.nxa, ocp.nk, len(ocp.blocks), ocp.nz
+    stages = ca.SX.sym('stages', nk + nxa, (nxa + 1) * nb)
+    dz0, du = ca.SX.sym('dz0', nz), ca.SX.sym('du', nb)
+    dz = ca.SX.zeros(nz)
+    dx = ca.SX.zeros(nxa)               # x_0 (and the delay's prefix) is not decided
+    for i in range(nb):
+        o = ocp.offset + i * ocp.stage
+        m_i = stages[:, i * (nxa + 1):(i + 1) * (nxa + 1)]
+        d = ca.mtimes(m_i, ca.vertcat(dx, du[i]))
+        dz[o:o + nxa] = dx
+        dz[o + nxa] = du[i]
+        dz[o + ocp.stage - nk:o + ocp.stage] = d[:nk]
+        dx = d[nk:]
+        if ocp.with_acc:
+            dz[o + nxa + 1] = dx[nxa - 1]
+    dz[nz - nxa:] = dx
+    return ca.Function('expand_step', [stages, dz0, du], [dz0 + dz],
+                       ['stages', 'dz0', 'du'], ['dz'])
+
+
+def _project(ocp, p, x, inputs, guess, steps=SOLVE_STEPS):
     """Return the decision vector of ``inputs`` on the collocation equations, from x(t_k).
 
-    Interval by interval: ``newton_steps`` Newton steps on the interval's collocation
-    equations from ``guess(i, x_i)`` (i = -1: the delay's prefix), then its end state
-    starts the next interval.  A simulation with the NLP's own integrator, so a
-    candidate's cost is the NLP's.  ``x`` is the scaled start state (with x_a(k-1)
-    for the paper cost), ``inputs`` the scaled inputs of the intervals.
+    Interval by interval: from ``guess(i, x_i)`` (i = -1: the delay's prefix), the
+    ``steps`` = (Newton, chord) steps on the interval's collocation equations, then its
+    end state starts the next interval.  A simulation with the NLP's own integrator,
+    so a candidate's cost is the NLP's.  ``x`` is the scaled start state (with
+    x_a(k-1) for the paper cost), ``inputs`` the scaled inputs of the intervals.
     """
     nxa, nk = ocp.nxa, ocp.nk
+    newton, chords = steps
     xt, v, k = ca.SX.sym('xt', nxa), ca.SX.sym('v'), ca.SX.sym('k', nk)
     wv, h, al = ca.SX.sym('wv', ocp.degree + 1), ca.SX.sym('h'), ca.SX.sym('alpha', 2)
     g, phi = ocp.prefix(xt, v, k, wv, h)      # the same defects as every interval
-    step = ca.Function('newton_step', [xt, v, k, wv, h],
-                       [k - _lu_solve(_lu(ca.jacobian(g, k)), g)], {'never_inline': True})
+    defects = ca.Function('defects', [xt, v, k, wv, h], [g])
+    k_on = k
+    for n in range(newton):
+        lu = _lu(ca.jacobian(g, k) if n == 0 else ca.substitute(ca.jacobian(g, k), k, k_on))
+        k_on = k_on - _lu_solve(lu, defects(xt, v, k_on, wv, h))
+    for _ in range(chords):                   # the last Newton step's Jacobian kept
+        k_on = k_on - _lu_solve(lu, defects(xt, v, k_on, wv, h))
+    solve = ca.Function('collocation_solve', [xt, v, k, wv, h], [k_on], {'never_inline': True})
     end = ca.Function('interval_end', [xt, v, k, wv, h], [ocp.interval(xt, v, k, wv, h, al)[1]])
     end_pre = ca.Function('prefix_end', [xt, v, k, wv, h], [phi])
     road, _, road_pre, h_pre, v_pre = ocp.road(p)
     out = [x]
     if ocp.delayed:
-        kp = guess(-1, x)
-        for _ in range(newton_steps):
-            kp = step(x, v_pre, kp, road_pre, h_pre)
+        kp = solve(x, v_pre, guess(-1, x), road_pre, h_pre)
         x = end_pre(x, v_pre, kp, road_pre, h_pre)
         out += [kp, x]
     for i, m in enumerate(ocp.blocks):
-        ki = guess(i, x)
-        for _ in range(newton_steps):
-            ki = step(x, inputs[i], ki, road[:, i], m * ocp.ts)
+        ki = solve(x, inputs[i], guess(i, x), road[:, i], m * ocp.ts)
         x_next = end(x, inputs[i], ki, road[:, i], m * ocp.ts)
         out += [inputs[i]] + ([x_next[nxa - 1]] if ocp.with_acc else []) + [ki, x_next]
         x = x_next
     return ca.vertcat(*out)
 
 
-def projection_function(ocp, newton_steps: int = NEWTON_STEPS) -> ca.Function:
+def projection_function(ocp, steps=SOLVE_STEPS) -> ca.Function:
     """Return (z, p) -> z on the collocation equations, for z's inputs (compiled SX).
 
-    The Newton steps start from z's collocation states (a good guess: the SQP's
-    linear prediction); see :func:`_project`.
+    The steps start from z's collocation states (a good guess: the SQP's linear
+    prediction); see :func:`_project`.
     """
     nxa, nk, nz = ocp.nxa, ocp.nk, ocp.nz
     z = ca.SX.sym('z', nz)
@@ -303,17 +361,17 @@ def projection_function(ocp, newton_steps: int = NEWTON_STEPS) -> ca.Function:
             return z[nxa:nxa + nk]
         return z[stage[i] + ocp.stage - nk:stage[i] + ocp.stage]
 
-    z_on = _project(ocp, p, z[:nxa], [z[o + nxa] for o in stage], guess, newton_steps)
+    z_on = _project(ocp, p, z[:nxa], [z[o + nxa] for o in stage], guess, steps)
     return ca.Function('projection', [z, p], [z_on], ['z', 'p'], ['z_on'])
 
 
-def start_function(ocp, newton_steps: int = NEWTON_STEPS) -> ca.Function:
-    """Return (x0, a_prev, u, p) -> (z, f): the plan u (scaled) on the collocation equations.
+def start_function(ocp, steps=SOLVE_STEPS) -> ca.Function:
+    """Return (x0, a_prev, u, p) -> (z, f, ‖g‖₁): the plan u (scaled) on the collocation equations.
 
-    The Newton steps of each interval start from its start state held (no rollout
-    needed: the collocation equations are linear but for the generator kinematics,
-    so two Newton steps reach them to rounding, ~1e-14, measured on the paper road).
-    f is the plan's cost in the NLP: what starts are compared by.
+    Each interval's solve starts from its start state held (no rollout needed: the
+    collocation equations are linear but for the generator kinematics, so the
+    ``steps`` reach them to rounding, ~1e-14, measured on the paper road).  f is the
+    plan's cost in the NLP, what starts are compared by; ‖g‖₁ its defects.
     """
     x0, a_prev = ca.SX.sym('x0', ocp.nx), ca.SX.sym('a_prev')
     u, p = ca.SX.sym('u', len(ocp.blocks)), ca.SX.sym('p', ocp.n_p)
@@ -323,14 +381,15 @@ def start_function(ocp, newton_steps: int = NEWTON_STEPS) -> ca.Function:
     def guess(_i, xi):
         return ca.repmat(xi[:ocp.nx], ocp.degree, 1)
 
-    z = _project(ocp, p, x, [u[i] for i in range(len(ocp.blocks))], guess, newton_steps)
-    return ca.Function('plan_start', [x0, a_prev, u, p], [z, ocp.nlp(z, p)[0]],
-                       ['x0', 'a_prev', 'u', 'p'], ['z', 'f'])
+    z = _project(ocp, p, x, [u[i] for i in range(len(ocp.blocks))], guess, steps)
+    f, g = ocp.nlp(z, p)
+    return ca.Function('plan_start', [x0, a_prev, u, p], [z, f, ca.norm_1(g)],
+                       ['x0', 'a_prev', 'u', 'p'], ['z', 'f', 'infeas'])
 
 
 @lru_cache(maxsize=32)
 def plan_value_function(ocp, codegen: str = 'off') -> ca.Function:
-    """Return (x0, a_prev, u, p) -> (z, f): a plan (scaled inputs) in the NLP, its cost.
+    """Return (x0, a_prev, u, p) -> (z, f, ‖g‖₁): a plan (scaled inputs) in the NLP, its cost.
 
     The real-time SQP's start evaluation (:func:`start_function`), compiled as
     ``codegen`` says: what its starts and IPOPT's solutions are compared by.
@@ -341,7 +400,7 @@ def plan_value_function(ocp, codegen: str = 'off') -> ca.Function:
 def _sqp_parts(ocp, n_alt: int, hessian: str):
     """Return (starts, step): the SQP's two pieces, each compiled whole with ``codegen``.
 
-    ``starts`` (x0, a_prev, u_guess, u_alt, p) -> state = [z; f; done; iterations]: the
+    ``starts`` (x0, a_prev, u_guess, u_alt, p) -> state = [z; f; ‖g‖₁; done; iterations]: the
     best start (module doc).  ``step`` (done, p, f_ref, tol, state) -> state: one
     iteration (QP model, box QP, line search, stop test), or the state unchanged once
     ``done``.  Each is generated as one C function; the solver only calls ``step``
@@ -349,9 +408,9 @@ def _sqp_parts(ocp, n_alt: int, hessian: str):
     virtual machine, and the compiled pieces do not depend on ``max_iter`` or ``tol``.
     """
     nb, nz = len(ocp.blocks), ocp.nz
-    qp_model, project, plan_start, nlp = (qp_model_function(ocp, hessian),
-                                          projection_function(ocp), start_function(ocp),
-                                          ocp.nlp)
+    qp_model, expand, project, plan_start, nlp = (
+        qp_model_function(ocp, hessian), step_function(ocp), projection_function(ocp),
+        start_function(ocp), ocp.nlp)
     qp = ca.conic('rti_qp', 'qrqp', {'h': ca.Sparsity.dense(nb, nb), 'a': ca.Sparsity(0, nb)},
                   {'print_iter': False, 'print_header': False, 'print_info': False,
                    'error_on_fail': False})
@@ -361,31 +420,33 @@ def _sqp_parts(ocp, n_alt: int, hessian: str):
 
     def merit(zz, rho):
         f, g = nlp(zz, p)
-        return f, f + rho * ca.norm_1(g)
+        infeas = ca.norm_1(g)
+        return f, infeas, f + rho * infeas
 
     # -- line search: step t is evaluated only if every longer step failed -----------
     z, dz, phi0, slope, rho = (ca.MX.sym('z', nz), ca.MX.sym('dz', nz), ca.MX.sym('phi0'),
                                ca.MX.sym('slope'), ca.MX.sym('rho'))
     ls_in = [p, z, dz, phi0, slope, rho]
-    fail = ca.Function('ls_fail', ls_in, [ca.vertcat(z, phi0, 0)])
+    fail = ca.Function('ls_fail', ls_in, [ca.vertcat(z, phi0, 0, 0)])
     tail = fail
     for n, t in reversed(list(enumerate(LINE_SEARCH_STEPS))):
         zc = z + t * dz
         # The QP's step keeps the inputs in the box; clip against rounding.
         zc[u_idx] = ca.fmin(ca.fmax(zc[u_idx], lo), hi)
         zc = project(zc, p)        # from the linear prediction back onto the equalities
-        fc, phic = merit(zc, rho)
+        fc, infeas_c, phic = merit(zc, rho)
         ok = phic <= phi0 + ARMIJO * t * slope      # False for NaN: never a failed step
-        out = ca.if_else(ok, ca.vertcat(zc, fc, 1), tail(*ls_in), True)
+        out = ca.if_else(ok, ca.vertcat(zc, fc, infeas_c, 1), tail(*ls_in), True)
         tail = ca.Function(f'line_search_{n}', ls_in, [out])
     line_search = tail
 
-    # -- one iteration: state = [z; f; done; iterations] -------------------------------
-    ns = nz + 3
+    # -- one iteration: state = [z; f; ‖g‖₁; done; iterations] ---------------------------
+    # (f and ‖g‖₁ of z carried from where z was evaluated: the start or the line search)
+    ns = nz + 4
     state = ca.MX.sym('state', ns)
     f_ref, tol = ca.MX.sym('f_ref'), ca.MX.sym('tol')
     z = state[:nz]
-    h_red, g_red, g_lin, dz0, dz_du, mdata = qp_model(z, p)
+    h_red, g_red, g_lin, dz0, stages, mdata = qp_model(z, p)
     u = z[u_idx]
     # Diagonal scaling: the paper cost's Hessian spans 1e6 and qrqp then returned steps
     # outside the box; scaled, its condition number drops to ~1e3.
@@ -393,19 +454,18 @@ def _sqp_parts(ocp, n_alt: int, hessian: str):
     ds = qp(h=h_red * ca.mtimes(scale, scale.T), g=g_red * scale, lbx=(lo - u) / scale,
             ubx=(hi - u) / scale)['x']
     du = ca.fmin(ca.fmax(scale * ds, lo - u), hi - u)
-    dz = dz0 + ca.mtimes(dz_du, du)
+    dz = expand(stages, dz0, du)
     df0, rho = mdata[0], mdata[1]
-    f_cur, g_cur = nlp(z, p)
-    infeas = ca.norm_1(g_cur)
+    f_cur, infeas = state[nz], state[nz + 1]
     # Directional derivative of the ℓ1 merit along a step that solves the linearised
     # equalities: ∇fᵀΔz − ρ‖g‖₁ (< 0 unless converged).
     slope = ca.fmin(df0 + ca.dot(g_lin, du) - rho * infeas, 0)
     res = line_search(p, z, dz, f_cur + rho * infeas, slope, rho)
-    accepted = res[nz + 1]
+    accepted = res[nz + 2]
     # Converged when the QP predicts less than tol·|f| to gain (f of the start).
     gain = -(ca.dot(g_red, du) + 0.5 * ca.dot(du, ca.mtimes(h_red, du)))
     done = ca.logic_or(accepted == 0, gain <= tol * ca.fabs(f_ref))
-    new = ca.vertcat(ca.if_else(accepted, res[:nz + 1], ca.vertcat(z, f_cur)), done,
+    new = ca.vertcat(ca.if_else(accepted, res[:nz + 2], ca.vertcat(z, f_cur, infeas)), done,
                      state[ns - 1] + accepted)
     iterate = ca.Function('sqp_iteration', [p, f_ref, tol, state], [new])
     keep = ca.Function('sqp_done', [p, f_ref, tol, state], [state])
@@ -424,14 +484,15 @@ def _sqp_parts(ocp, n_alt: int, hessian: str):
     # Start from the best, by its value in the very NLP solved, of the warm start and
     # the alternatives (columns of u_alt): the OCP is non-convex and a shifted plan can
     # sit in a poor basin.
-    z, fz = plan_start(x0, a_prev, ca.fmin(ca.fmax(u_guess, lo), hi), p)
+    z, fz, gz = plan_start(x0, a_prev, ca.fmin(ca.fmax(u_guess, lo), hi), p)
     for j in range(n_alt):
-        za, fa = plan_start(x0, a_prev, ca.fmin(ca.fmax(u_alt[:, j], lo), hi), p)
+        za, fa, ga = plan_start(x0, a_prev, ca.fmin(ca.fmax(u_alt[:, j], lo), hi), p)
         use_alt = fa < fz
         z = ca.if_else(use_alt, za, z)
+        gz = ca.if_else(use_alt, ga, gz)
         fz = ca.fmin(fa, fz)
     starts = ca.Function('sqp_starts', [x0, a_prev, u_guess, u_alt, p],
-                         [ca.vertcat(z, fz, 0, 0)],
+                         [ca.vertcat(z, fz, gz, 0, 0)],
                          ['x0', 'a_prev', 'u_guess', 'u_alt', 'p'], ['state'])
     return starts, step
 
@@ -448,7 +509,7 @@ def build_rti(ocp, max_iter: int, tol: float = 1e-4, codegen: str = 'off',
     """
     nb, nz = len(ocp.blocks), ocp.nz
     starts, step = compile_for(codegen, _sqp_parts(ocp, n_alt, hessian), 'the NMPC solver')
-    ns = starts.size1_out(0)                    # state = [z; f; done; iterations]
+    ns = starts.size1_out(0)                    # state = [z; f; ‖g‖₁; done; iterations]
     x0, a_prev, p = ca.MX.sym('x0', ocp.nx), ca.MX.sym('a_prev'), ca.MX.sym('p', ocp.n_p)
     u_guess, u_alt = ca.MX.sym('u_guess', nb), ca.MX.sym('u_alt', nb, n_alt)
     st = starts(x0, a_prev, u_guess, u_alt, p)
@@ -465,4 +526,5 @@ def build_rti(ocp, max_iter: int, tol: float = 1e-4, codegen: str = 'off',
     return rti
 
 
-__all__ = ['build_rti', 'qp_model_function', 'convexify', 'HESSIANS', 'LINE_SEARCH_STEPS']
+__all__ = ['build_rti', 'qp_model_function', 'step_function', 'convexify', 'HESSIANS',
+           'LINE_SEARCH_STEPS']
