@@ -278,3 +278,31 @@ def test_plant_in_lockstep_sends_its_first_tick_again_when_nobody_heard_it(tmp_p
     assert rc == 0
     assert ticks and set(ticks) == {0}, ticks         # t = 0 again, never a later sample
     assert int(values['steps']) == 0
+
+
+def test_plant_in_lockstep_steps_on_without_a_command_and_counts_it(tmp_path):
+    # No controller in a lock-step loop: each sample waits lockstep_timeout_s for its
+    # command, then the plant steps on (passive damping), counted, and ticks the next one.
+    ns = '/erva_t_nocmd'
+    proc = start_node('plant_sim_node', ns, str(tmp_path / 'plant.log'), 'mode:=lockstep',
+                      'use_sim_time:=true', 'duration_s:=0.06', 'wait_for_subscribers:=1',
+                      'start_delay_s:=0.0', 'lockstep_timeout_s:=0.3')
+    h = Harness(ns)
+    ticks = []
+
+    def answer(m):                        # the road node's part: a height per tick
+        stamp = msgs.time_to_ns(m.clock)
+        ticks.append(stamp)
+        h.pub_height.publish(msgs.road_height_msg(stamp, 0.0, 0.0))
+
+    h.node.create_subscription(Clock, topics.CLOCK, answer, ros_qos.control_qos())
+    with cleaned_up(proc, h):
+        h.spin_until(lambda: len(h.states) >= 3, 60.0)
+        values = h.wait_for_diag('plant_sim_node',
+                                 lambda v: int(v.get('lockstep_timeouts', 0)) >= 3)
+        rc = stop_node(proc)
+    assert rc == 0
+    assert [t for t, _ in h.states[:3]] == [0, TS_NS, 2 * TS_NS], h.states
+    # (tick 0 may come twice: a first tick nobody heard is sent again, as tested above)
+    assert list(dict.fromkeys(ticks))[:3] == [0, TS_NS, 2 * TS_NS], ticks
+    assert int(values['u_from_command']) == 0

@@ -78,7 +78,7 @@ def compile_functions(fns):
     cache = codegen_cache_dir()
     cc = c_compiler()
     flags = codegen_flags(cc) if cc is not None else CODEGEN_FLAGS
-    salt = ' '.join(flags) + (_cpu_id() if len(flags) > len(CODEGEN_FLAGS) else '')
+    salt = ' '.join(flags) + (_cpu_id() if flags != CODEGEN_FLAGS else '')
     jobs, libs = [], []
     for fn in fns:
         cg = ca.CodeGenerator(f'{fn.name()}.c', {'with_header': False})

@@ -84,8 +84,7 @@ class PlantSimNode(Node):
         self.finished = False
         self.started = False
         self._settling = Settling(cfg['start_delay_s'])
-        self._wait_since = 0.0
-        self._tick_since = 0.0
+        self._asked_since = 0.0   # when the loop was last asked to answer (/clock, state)
         self._last_height = time.monotonic()
         self.count = {'states': 0, 'clock': 0, 'late_commands': 0, 'road_gaps': 0,
                       'lockstep_timeouts': 0}
@@ -198,7 +197,7 @@ class PlantSimNode(Node):
         self.pub_state.publish(state_msg(self.t_ns, self.plant.x, self.kind))
         self._state_pub_ns = time.time_ns()
         self.count['states'] += 1
-        self._wait_since = time.monotonic()
+        self._asked_since = time.monotonic()
 
     # -- commands ----------------------------------------------------------------------
     def _on_command(self, msg: JointTrajectory) -> None:
@@ -227,7 +226,7 @@ class PlantSimNode(Node):
         nxt = 0 if self.t_ns is None else self.t_ns + self.ts_ns
         self.pub_clock.publish(clock_msg(nxt))
         self.count['clock'] += 1
-        self._tick_since = time.monotonic()
+        self._asked_since = time.monotonic()
 
     def _on_lockstep_timer(self) -> None:
         if not self.started:
@@ -236,21 +235,22 @@ class PlantSimNode(Node):
                 self.status.set(diag.OK, 'running')
                 self._tick_clock()
             return
-        if self.k is None and time.monotonic() - self._tick_since > self.cfg['lockstep_timeout_s']:
+        timeout = self.cfg['lockstep_timeout_s']
+        if time.monotonic() - self._asked_since <= timeout:
+            return
+        if self.k is None:
             # /clock is volatile: a first tick out before the road node's reader matched
             # is gone for good, and the loop would wait forever.  Once more, counted.
-            self.count['lockstep_timeouts'] += 1
-            self.get_logger().warning(f'no road height for t = 0 within '
-                                      f'{self.cfg["lockstep_timeout_s"]:g} s; /clock again')
-            self._tick_clock()
-            return
-        waiting = self.k is not None and not self.finished and self.u_k is None
-        if waiting and time.monotonic() - self._wait_since > self.cfg['lockstep_timeout_s']:
-            self.count['lockstep_timeouts'] += 1
+            self.get_logger().warning(f'no road height for t = 0 within {timeout:g} s; '
+                                      '/clock again')
+        elif not self.finished and self.u_k is None:
             self.get_logger().warning(f'no command for t = {self.t_ns * 1e-9:.3f} s within '
-                                      f'{self.cfg["lockstep_timeout_s"]:g} s; stepping on')
+                                      f'{timeout:g} s; stepping on')
             self._decide()
-            self._tick_clock()
+        else:
+            return
+        self.count['lockstep_timeouts'] += 1
+        self._tick_clock()
 
     def _graph_ready(self) -> bool:
         """Return True once the loop's topics are matched and have settled (lock-step start)."""
