@@ -1,7 +1,9 @@
 """Helpers of the tests that run `erva run` as a user does (a process, its stderr, its bag)."""
 
+import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -70,6 +72,30 @@ class SampleWatch:
         self.executor.shutdown()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
+
+
+def run_with_node_stopped(node, tmp_path, duration, stop_after_s, stop_for_s, *args):
+    """Run erva run (recording, JSON); SIGSTOP ``node`` ``stop_after_s`` into the run.
+
+    "Into the run" counts the loop's samples (SampleWatch), not the test's wall time, so
+    a busy machine cannot move the stop out of the run.  Return (exit code, summary, stderr).
+    """
+    watch = SampleWatch()
+    proc = start_run('--duration', duration, '--record', tmp_path, '--json', *args)
+    try:
+        pids = wait_connected(proc)
+        watch.wait(int(round(stop_after_s / 0.02)))
+        os.kill(pids[node], signal.SIGSTOP)
+        try:
+            time.sleep(stop_for_s)
+        finally:
+            os.kill(pids[node], signal.SIGCONT)
+        out, err = proc.communicate(timeout=240)
+    finally:
+        watch.close()
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    return proc.returncode, json.loads(out), err
 
 
 def bag_counts(bag_dir, decode=False):

@@ -19,7 +19,7 @@ from erva_ros.ros.parameters import (declare_controller_settings, declare_erva_p
                                      declare_live, LIVE_DEFAULTS, LIVE_SPECS)
 from erva_ros.session.report import format_summary, jsonable
 from erva_ros.core.loop.scenario import build_road, load_road_file
-from erva_ros.core.loop.timing import next_grid_delay_ns, PeriodStats
+from erva_ros.core.loop.timing import next_grid_delay_ns, PeriodStats, SampleGrid
 from erva_ros.core.loop.validation import MessageRejected, Rejections
 from erva_ros.core.params import ParamError, PAPER_VALUES
 
@@ -117,6 +117,17 @@ def test_grid_delay_and_period_jitter():
         p.mark(t)
     s = p.jitter.summary()
     assert s['samples'] == 3 and s['max'] == pytest.approx(2.0)
+
+
+def test_sample_grid_skips_what_a_late_timer_missed_but_never_the_last_sample():
+    g = SampleGrid(20, 6)                    # t_k = 1000 + 20 k, k = 0..5
+    taken = [(now, g.due(now)) for now in (1000, 1019, 1021, 1085, 1090, 1200, 1300)]
+    assert taken == [(1000, 0), (1019, None), (1021, 1), (1085, 4), (1090, None),
+                     (1200, 5), (1300, None)]
+    assert g.skipped == 2 and g.done      # samples 2 and 3; 5 taken late, at 1200
+    assert all(g.stamp_ns(k) <= now for now, k in taken if k is not None)
+    late = SampleGrid(20, 3)
+    assert (late.due(0), late.due(500), late.skipped, late.done) == (0, 2, 1, True)
 
 
 # -- parameters ------------------------------------------------------------------------------

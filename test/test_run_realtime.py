@@ -10,7 +10,7 @@ import time
 import pytest
 
 from conftest import fifo_permitted
-from run_helpers import bag_counts, SampleWatch, start_run as _start
+from run_helpers import bag_counts, run_with_node_stopped, SampleWatch, start_run as _start
 from run_helpers import wait_connected as _wait_connected
 
 
@@ -70,7 +70,11 @@ def test_erva_run_realtime_records_and_summarises(tmp_path, erva):
     assert re.fullmatch(r'\d{8}T\d{6}Z_paper', os.path.basename(bag))
     counts = bag_counts(bag, decode=True)
     published = s['messages']['published']
-    assert published['state'] == published['road/preview'] == 101
+    # A road timer that fell behind by whole periods skips samples (counted; the plant
+    # steps across the gap); the last one is never skipped, so the plant always ends.
+    skipped = s['road']['samples_skipped']
+    assert published['state'] == published['road/preview'] + skipped == 101
+    assert (plant['road_gaps'] > 0) == (skipped > 0) and plant['road_gaps'] <= skipped
     assert published['sprung_accel'] == published['generator'] == 100
     for topic, n in published.items():
         assert counts[f'/erva/{topic}'] == n, (topic, counts)
@@ -121,6 +125,24 @@ def test_killed_nmpc_plant_holds_plan_then_passive_and_run_fails(tmp_path):
     # The node logs are kept for a failed run; this one failed on purpose.
     assert os.path.isfile(os.path.join(s['session_dir'], 'nmpc_node.log'))
     shutil.rmtree(s['session_dir'])
+
+
+def test_a_road_timer_behind_skips_samples_counts_them_and_the_run_still_ends(tmp_path):
+    # The road node (the real-time time master) stopped for 15 periods mid-run: it then
+    # publishes the newest passed sample, counts the ones it missed, and the plant steps
+    # across the gap; nothing is lost and the run ends (its last sample is never skipped).
+    code, s, err = run_with_node_stopped('road_preview_node', tmp_path, 4, 0.6, 0.3)
+    assert code == 0, err
+    assert s['ok'] and not s['errors'], s['errors']
+    skipped, plant = s['road']['samples_skipped'], s['plant']
+    published = s['messages']['published']
+    assert skipped >= 1 and 1 <= plant['road_gaps'] <= skipped, (s['road'], plant)
+    assert published['road/preview'] + skipped == published['state'] == 201
+    assert s['road']['samples_published'] == published['road/preview']
+    assert plant['steps'] == 200 and s['metrics']['samples'] == 200
+    counts = bag_counts(s['bag'], decode=True)
+    for topic, n in published.items():
+        assert counts[f'/erva/{topic}'] == n, (topic, counts)
 
 
 @pytest.mark.parametrize('sig, code', [(signal.SIGINT, 130), (signal.SIGTERM, 143),

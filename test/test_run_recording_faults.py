@@ -7,42 +7,13 @@ Checked by counts: every message each node published is in the bag (read with th
 mcap reader, not ours), and `erva run` says so.
 """
 
-import json
-import os
 import re
-import signal
-import time
 
 import pytest
 
-from run_helpers import bag_counts as _bag_counts, SampleWatch, start_run as _start
-from run_helpers import wait_connected as _wait_connected
+from run_helpers import bag_counts as _bag_counts, run_with_node_stopped
 
 pytestmark = pytest.mark.ros
-
-
-def _stalled_run(tmp_path, duration, stop_after_s, stop_for_s, *args):
-    """Run erva run; SIGSTOP the recorder ``stop_after_s`` into the run for ``stop_for_s``.
-
-    "Into the run" counts the loop's samples (SampleWatch), not the test's wall time, so
-    a busy machine cannot move the stall out of the run.
-    """
-    watch = SampleWatch()
-    proc = _start('--duration', duration, '--record', tmp_path, '--json', *args)
-    try:
-        pids = _wait_connected(proc)
-        watch.wait(int(round(stop_after_s / 0.02)))
-        os.kill(pids['recorder_node'], signal.SIGSTOP)
-        try:
-            time.sleep(stop_for_s)
-        finally:
-            os.kill(pids['recorder_node'], signal.SIGCONT)
-        out, err = proc.communicate(timeout=240)
-    finally:
-        watch.close()
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-    return proc.returncode, json.loads(out), err
 
 
 @pytest.mark.parametrize('duration, stop_after_s, where', [
@@ -51,7 +22,8 @@ def _stalled_run(tmp_path, duration, stop_after_s, stop_for_s, *args):
 ])
 def test_a_recorder_stopped_for_three_seconds_loses_nothing(
         tmp_path, duration, stop_after_s, where):
-    code, s, err = _stalled_run(tmp_path, duration, stop_after_s, 3.0)
+    code, s, err = run_with_node_stopped('recorder_node', tmp_path, duration,
+                                         stop_after_s, 3.0)
     assert code == 0 and s['ok'], (where, s['errors'], err[-2000:])
     rec = s['recording']
     assert rec['lost'] == 0 and rec['lost_in_transport'] == 0, rec
@@ -73,7 +45,7 @@ def test_a_stall_longer_than_the_writers_history_is_reported_as_a_loss(tmp_path)
     live.write_text('/**:\n  ros__parameters:\n    publisher_history_s: 1.0\n')
     bags = tmp_path / 'bags'
     bags.mkdir()
-    code, s, _ = _stalled_run(bags, 6, 0.5, 5.0, '--live', live)
+    code, s, _ = run_with_node_stopped('recorder_node', bags, 6, 0.5, 5.0, '--live', live)
     assert code == 1 and not s['ok']
     rec = s['recording']
     assert rec['lost'] > 0

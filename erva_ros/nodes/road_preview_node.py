@@ -34,6 +34,7 @@ from erva_ros.ros.parameters import declare_live, loop_priority
 from erva_ros.ros.runtime import run_node
 from erva_ros.ros.time_master import readers_ready, Settling
 from erva_ros.core.loop.scenario import build_preview_model, build_road
+from erva_ros.core.loop.timing import SampleGrid
 from erva_ros.core.loop.validation import Rejections
 
 LIVE_PARAMETERS = ('mode', 'ts', 'duration_s', 'road', 'road_file', 'seed', 'road_class',
@@ -59,8 +60,7 @@ class RoadPreviewNode(Node):
         self.n_samples = int(round(cfg['duration_s'] / self.ts)) + 1
         self.last_k = -1
         self.published = 0
-        self.skipped = 0
-        self.start_ns = None
+        self.grid = SampleGrid(self.ts_ns, self.n_samples)    # realtime mode's samples
         self.finished = False
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._settling = Settling(cfg['start_delay_s'])
@@ -130,24 +130,15 @@ class RoadPreviewNode(Node):
 
     def _on_sample_timer(self) -> None:
         now = self.get_clock().now().nanoseconds
-        if self.start_ns is None:
-            # This firing's scheduled instant (the next one minus a period): later firings
-            # are never before their own scheduled instant, so they never land in the
-            # previous period however late this one was.
-            self.start_ns = now + self._sample_timer.time_until_next_call() - self.ts_ns
-        # The newest grid instant that has passed: t_k <= now always, so a sample is
-        # stamped with when it was taken, never later (rounding a late firing up made
-        # stamps up to Ts ahead of the clock and latencies negative).
-        k = (now - self.start_ns) // self.ts_ns
-        if k <= self.last_k:
+        if self.grid.start_ns is None:
+            # The grid starts at this firing's scheduled instant (the next one minus a
+            # period): later firings are never before their own scheduled instant.
+            now -= self.ts_ns - self._sample_timer.time_until_next_call()
+        k = self.grid.due(now)
+        if k is None:
             return
-        if k > self.last_k + 1:
-            self.skipped += k - self.last_k - 1   # the timer fell behind by whole periods
-        if k >= self.n_samples:
-            self._finish()
-            return
-        self._publish_sample(k, self.start_ns + k * self.ts_ns)
-        if k == self.n_samples - 1:
+        self._publish_sample(k, self.grid.stamp_ns(k))
+        if self.grid.done:
             self._finish()
 
     # -- lock-step ---------------------------------------------------------------------
@@ -171,7 +162,7 @@ class RoadPreviewNode(Node):
     def _diag_values(self):
         return {'mode': self.cfg['mode'], 'road': self.road.name, 'seed': self.cfg['seed'],
                 'samples_published': self.published, 'samples_total': self.n_samples,
-                'samples_skipped': self.skipped,
+                'samples_skipped': self.grid.skipped,
                 'preview_points': self.cfg['preview_steps'] + 1,
                 'preview_error': 'perfect' if self.error_model.is_perfect else
                 f'snr={self.error_model.snr_db} dB delay={self.error_model.delay_s:g} s',

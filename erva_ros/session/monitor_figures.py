@@ -3,7 +3,7 @@
 ``obs`` is an :class:`~erva_ros.session.monitor.Observations` (decoded): its per-sample
 tables (states, accelerations, power, commands) and each node's newest diagnostics.
 :func:`summary` puts the blocks together: ``metrics``, ``commands``, ``nmpc``,
-``scheduling``, ``plant`` (and ``hil``), ``events`` and ``messages``.
+``scheduling``, ``plant``, ``road`` (and ``hil``), ``events`` and ``messages``.
 """
 
 from typing import Any, Dict, Optional
@@ -112,6 +112,12 @@ def plant(obs) -> Dict[str, Any]:
     return out
 
 
+def road(obs) -> Dict[str, Any]:
+    """Return the road node's samples: published, and skipped by a real-time timer behind."""
+    values = obs.diag_values('road_preview_node')
+    return {k: value_int(values.get(k)) for k in ('samples_published', 'samples_skipped')}
+
+
 def rejected(obs, plant_block: Dict[str, Any]) -> Dict[str, Optional[int]]:
     """Return the input messages each node rejected, by topic, and those out of order."""
     nm = obs.diag_values('nmpc_node')
@@ -153,7 +159,7 @@ def summary(obs, ts: float, n_steps: int, realtime: bool) -> Dict[str, Any]:
     out: Dict[str, Any] = {'metrics': metrics(obs, ts, n_steps),
                            'commands': commands(obs, ts, realtime),
                            'nmpc': nmpc(obs), 'scheduling': scheduling(obs),
-                           'plant': plant(obs)}
+                           'plant': plant(obs), 'road': road(obs)}
     if obs.hil:
         out['hil'] = hil_summary.hil_block(
             obs.diag_values, obs.states, obs.truth, stats, obs.diag_events,
@@ -163,5 +169,5 @@ def summary(obs, ts: float, n_steps: int, realtime: bool) -> Dict[str, Any]:
     return out
 
 
-__all__ = ['MAX_EVENTS', 'stats', 'metrics', 'commands', 'nmpc', 'scheduling', 'plant',
+__all__ = ['MAX_EVENTS', 'stats', 'metrics', 'commands', 'nmpc', 'scheduling', 'plant', 'road',
            'rejected', 'events', 'messages', 'summary']

@@ -96,6 +96,11 @@ def format_summary(s: Dict[str, Any]) -> str:
         lines.append(f'  plant     u from command {pl.get("u_from_command")}, from plan '
                      f'{pl.get("u_from_plan")}, passive {pl.get("u_from_passive")}; '
                      f'late commands {pl.get("late_commands")}')
+    skipped = (s.get('road') or {}).get('samples_skipped')
+    if skipped:     # the real-time road timer fell behind: the plant stepped across the gap
+        gaps = pl.get('road_gaps')
+        lines.append(f'  road      {skipped} samples skipped (timer behind), {gaps} '
+                     f'gap{"" if gaps == 1 else "s"} bridged by the plant')
     lines.append(f'  messages  dropped {msg["dropped_total"]}, rejected {msg["rejected_total"]}')
     if s.get('scheduling'):     # what realtime_priority got each node (live/realtime.py)
         kinds = sorted(set(s['scheduling'].values()))

@@ -99,4 +99,41 @@ class PeriodStats:
         self._last = None
 
 
-__all__ = ['next_grid_delay_ns', 'DurationStats', 'PeriodStats']
+class SampleGrid:
+    """The samples t_k = start + k·Ts, k = 0..n−1, of a real-time time master's timer.
+
+    A firing takes the newest instant of the grid that has passed, so a sample is stamped
+    with when it was taken, never later; a timer that fell behind by whole periods skips
+    samples (counted in ``skipped``).  The last sample is never skipped: the run ends
+    with it (the plant steps to t_{n−1} only on its height), so a firing past the end
+    takes it, late.
+    """
+
+    def __init__(self, period_ns: int, n_samples: int):
+        self.period_ns, self.n_samples = int(period_ns), int(n_samples)
+        self.start_ns: Optional[int] = None
+        self.last_k = -1
+        self.skipped = 0
+
+    def due(self, now_ns: int) -> Optional[int]:
+        """Return the sample to publish at ``now_ns`` (None: none due); the first call starts."""
+        if self.start_ns is None:
+            self.start_ns = int(now_ns)
+        k = min((now_ns - self.start_ns) // self.period_ns, self.n_samples - 1)
+        if k <= self.last_k:
+            return None
+        self.skipped += k - self.last_k - 1
+        self.last_k = k
+        return k
+
+    def stamp_ns(self, k: int) -> int:
+        """Return t_k (ns)."""
+        return self.start_ns + k * self.period_ns
+
+    @property
+    def done(self) -> bool:
+        """Return True once the last sample was taken."""
+        return self.last_k >= self.n_samples - 1
+
+
+__all__ = ['next_grid_delay_ns', 'DurationStats', 'PeriodStats', 'SampleGrid']
