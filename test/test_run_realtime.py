@@ -140,6 +140,10 @@ def test_a_road_timer_behind_skips_samples_counts_them_and_the_run_still_ends(tm
     assert published['road/preview'] + skipped == published['state'] == 201
     assert s['road']['samples_published'] == published['road/preview']
     assert plant['steps'] == 200 and s['metrics']['samples'] == 200
+    # Every sample solved or counted missed (the stall's safe commands are stamped on
+    # samples whose states the plant bridged later: missed, not solved).
+    nm = s['nmpc']
+    assert nm['solve_ms']['samples'] + nm['missed_samples'] == 201, nm
     counts = bag_counts(s['bag'], decode=True)
     for topic, n in published.items():
         assert counts[f'/erva/{topic}'] == n, (topic, counts)
