@@ -268,7 +268,11 @@ def test_summary_json_has_no_nan_and_text_names_the_errors():
         'messages': {'dropped_total': 0, 'rejected_total': 0},
         'errors': ['nmpc_node died (exit status -9) while running'], 'wall_time_s': 1.0}
     text = format_summary(summary)
-    assert 'ERROR     nmpc_node died' in text
+    assert 'ERROR     nmpc_node died' in text and 'skipped' not in text
+    summary.update(road={'samples_published': 200, 'samples_skipped': 1},
+                   plant={'road_gaps': 1})
+    assert ('road      1 sample skipped (timer behind), 1 gap bridged by the plant'
+            in format_summary(summary))
 
 
 def test_duration_stats_are_exact_then_binned_for_a_long_session():

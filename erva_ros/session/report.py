@@ -99,7 +99,8 @@ def format_summary(s: Dict[str, Any]) -> str:
     skipped = (s.get('road') or {}).get('samples_skipped')
     if skipped:     # the real-time road timer fell behind: the plant stepped across the gap
         gaps = pl.get('road_gaps')
-        lines.append(f'  road      {skipped} samples skipped (timer behind), {gaps} '
+        lines.append(f'  road      {skipped} sample{"" if skipped == 1 else "s"} skipped '
+                     f'(timer behind), {gaps} '
                      f'gap{"" if gaps == 1 else "s"} bridged by the plant')
     lines.append(f'  messages  dropped {msg["dropped_total"]}, rejected {msg["rejected_total"]}')
     if s.get('scheduling'):     # what realtime_priority got each node (live/realtime.py)
