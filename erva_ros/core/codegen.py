@@ -194,5 +194,4 @@ class BufferedCall:
 
 
 __all__ = ['CODEGEN_FLAGS', 'NATIVE_FLAGS', 'codegen_flags', 'codegen_cache_dir', 'c_compiler',
-           'use_codegen',
-           'compile_functions', 'compile_for', 'BufferedCall']
+           'use_codegen', 'compile_functions', 'compile_for', 'BufferedCall']

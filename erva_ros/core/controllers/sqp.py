@@ -322,9 +322,9 @@ def _project(ocp, p, x, inputs, guess, steps=SOLVE_STEPS):
     wv, h, al = ca.SX.sym('wv', ocp.degree + 1), ca.SX.sym('h'), ca.SX.sym('alpha', 2)
     g, phi = ocp.prefix(xt, v, k, wv, h)      # the same defects as every interval
     defects = ca.Function('defects', [xt, v, k, wv, h], [g])
-    k_on = k
+    jac, k_on = ca.jacobian(g, k), k
     for n in range(newton):
-        lu = _lu(ca.jacobian(g, k) if n == 0 else ca.substitute(ca.jacobian(g, k), k, k_on))
+        lu = _lu(jac if n == 0 else ca.substitute(jac, k, k_on))
         k_on = k_on - _lu_solve(lu, defects(xt, v, k_on, wv, h))
     for _ in range(chords):                   # the last Newton step's Jacobian kept
         k_on = k_on - _lu_solve(lu, defects(xt, v, k_on, wv, h))
@@ -484,15 +484,12 @@ def _sqp_parts(ocp, n_alt: int, hessian: str):
     # Start from the best, by its value in the very NLP solved, of the warm start and
     # the alternatives (columns of u_alt): the OCP is non-convex and a shifted plan can
     # sit in a poor basin.
-    z, fz, gz = plan_start(x0, a_prev, ca.fmin(ca.fmax(u_guess, lo), hi), p)
+    best = ca.vertcat(*plan_start(x0, a_prev, ca.fmin(ca.fmax(u_guess, lo), hi), p))
     for j in range(n_alt):
-        za, fa, ga = plan_start(x0, a_prev, ca.fmin(ca.fmax(u_alt[:, j], lo), hi), p)
-        use_alt = fa < fz
-        z = ca.if_else(use_alt, za, z)
-        gz = ca.if_else(use_alt, ga, gz)
-        fz = ca.fmin(fa, fz)
+        alt = ca.vertcat(*plan_start(x0, a_prev, ca.fmin(ca.fmax(u_alt[:, j], lo), hi), p))
+        best = ca.if_else(alt[nz] < best[nz], alt, best)      # [z; f; ‖g‖₁] together
     starts = ca.Function('sqp_starts', [x0, a_prev, u_guess, u_alt, p],
-                         [ca.vertcat(z, fz, gz, 0, 0)],
+                         [ca.vertcat(best, 0, 0)],
                          ['x0', 'a_prev', 'u_guess', 'u_alt', 'p'], ['state'])
     return starts, step
 
