@@ -75,6 +75,31 @@ def test_condensing_is_the_exact_reduced_problem(cost, blocks, terminal, delayed
         np.testing.assert_allclose(dz_du, dz_du_ref, atol=1e-10)
 
 
+@pytest.mark.parametrize('cost,blocks,delayed', [
+    ('continuous', (1,) * 10, False), ('paper', (1,) * 4 + (3,) * 2, True)])
+def test_stage_slices_tile_the_decision_vector(cost, blocks, delayed):
+    # The one map of z's layout (the condensing, the step expansion and the projection
+    # index z through it): after the delay prefix, each interval's x_i, v_i, x_a(k) and
+    # K_i in turn, x_{i+1} the next interval's x, the last one ending z.
+    ocp = _ocp(cost, blocks, delayed=delayed)
+    owner = np.full(ocp.nz, -1)
+    owner[:ocp.offset] = len(blocks)                 # the delay's prefix
+    for i in range(len(blocks)):
+        at = ocp.stage_slices(i)
+        parts = [at.x, slice(at.v, at.v + 1), at.k]
+        parts += [] if at.acc is None else [slice(at.acc, at.acc + 1)]
+        for part in parts:
+            assert np.all(owner[part] == -1)
+            owner[part] = i
+        nxt = ocp.stage_slices(i + 1).x if i + 1 < len(blocks) else slice(ocp.nz - ocp.nxa,
+                                                                          ocp.nz)
+        assert (at.x_next.start, at.x_next.stop) == (nxt.start, nxt.stop)
+    assert (at.acc is not None) == (cost == 'paper')
+    assert np.all(owner[:-ocp.nxa] >= 0) and np.all(owner[-ocp.nxa:] == -1)
+    np.testing.assert_array_equal(ocp.u_index, [ocp.stage_slices(i).v
+                                                for i in range(len(blocks))])
+
+
 def test_convexify_keeps_a_convex_hessian_and_mirrors_negative_curvature():
     hs = ca.SX.sym('h', 10, 10)
     fn = ca.Function('cvx', [hs], [convexify(hs)])

@@ -68,7 +68,7 @@ Variables are scaled (u by 10 kNs/m, positions by 1 cm, velocities by 0.1 m/s).
 from dataclasses import dataclass
 from functools import lru_cache
 import math
-from typing import Optional, Tuple
+from typing import NamedTuple, Optional, Tuple
 
 import casadi as ca
 import numpy as np
@@ -201,6 +201,16 @@ def _collocation(degree: int):
     return tuple(np.asarray(m) for m in ca.collocation_coeff(taus)) + (taus,)
 
 
+class StageSlices(NamedTuple):
+    """Where one interval's variables sit in z (in the order build_ocp appends them)."""
+
+    x: slice                   # x_i, the scaled stage state (with x_a(k−1), paper cost)
+    v: int                     # v_i, the scaled input
+    acc: Optional[int]         # x_a(k), the node acceleration (paper cost only)
+    k: slice                   # K_i, the collocation states
+    x_next: slice              # x_{i+1}, the next stage state
+
+
 @dataclass(eq=False)   # hashed by identity: one OCP per configuration (lru_cache)
 class OCP:
     """The collocation NLP of one configuration, its layout and its solvers (shareable).
@@ -274,10 +284,17 @@ class OCP:
         """Return the upper input bound, scaled."""
         return self.u_max / U_SCALE
 
+    def stage_slices(self, i: int) -> StageSlices:
+        """Return where interval ``i``'s variables sit in z (the one map of the layout)."""
+        o, nxa = self.offset + i * self.stage, self.nxa
+        return StageSlices(slice(o, o + nxa), o + nxa, o + nxa + 1 if self.with_acc else None,
+                           slice(o + self.stage - self.nk, o + self.stage),
+                           slice(o + self.stage, o + self.stage + nxa))
+
     @property
     def u_index(self) -> np.ndarray:
         """Return the positions of the scaled inputs in z."""
-        return self.offset + np.arange(len(self.blocks)) * self.stage + self.nxa
+        return np.array([self.stage_slices(i).v for i in range(len(self.blocks))])
 
     def params(self, w, alpha, delay_s: float = 0.0, u_acting: float = 0.0) -> np.ndarray:
         """Return p for preview ``w`` (H + 1 heights), weights, and the delay if modelled."""

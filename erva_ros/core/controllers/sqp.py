@@ -221,9 +221,8 @@ def qp_model_function(ocp, hessian: str = 'exact', convex: bool = True) -> ca.Fu
         corr = ca.mtimes(phk, dk) + php - x_next
     sweep, stages = [], []
     for i, m in enumerate(ocp.blocks):
-        o = ocp.offset + i * ocp.stage
-        xi, vi = z[o:o + nxa], z[o + nxa]
-        ki = z[o + ocp.stage - nk:o + ocp.stage]
+        at = ocp.stage_slices(i)
+        xi, vi, ki = z[at.x], z[at.v], z[at.k]
         args = (xi, vi, ki, road[:, i], m * ocp.ts, alpha)
         gi, phii, jg, jphi, grad, *gn_terms = jac(*args)
         gx, gv, gk = jg[:, :nxa], jg[:, nxa], jg[:, nxa + 1:]
@@ -235,15 +234,15 @@ def qp_model_function(ocp, hessian: str = 'exact', convex: bool = True) -> ca.Fu
         unit[i] = 1.0
         s_i = ca.vertcat(sens, unit)                               # d(x_i, v_i)/du
         zeta = ca.vertcat(corr, 0, kk[:, nxa + 1])
-        x_next = z[o + ocp.stage:o + ocp.stage + nxa]
+        x_next = z[at.x_next]
         sens = ca.mtimes(a_i, s_i)
         corr = ca.mtimes(jphi, zeta) + phii - x_next
         stages.append(ca.vertcat(kk[:, :nxa + 1], a_i))
-        dz0[o:o + nxa] = zeta[:nxa]
-        dz0[o + ocp.stage - nk:o + ocp.stage] = zeta[nxa + 1:]
+        dz0[at.x] = zeta[:nxa]
+        dz0[at.k] = zeta[nxa + 1:]
         if ocp.with_acc:
             # the NLP's x_a(k) variable moves to the stage's new node acceleration
-            dz0[o + nxa + 1] = corr[nxa - 1] + x_next[nxa - 1] - z[o + nxa + 1]
+            dz0[at.acc] = corr[nxa - 1] + x_next[nxa - 1] - z[at.acc]
         sweep.append((args, s_i, t_i, zeta, grad, gx, jphi, lu, gn_terms))
     o_end = nz - nxa
     dz0[o_end:] = corr
@@ -293,15 +292,15 @@ def step_function(ocp) -> ca.Function:
     dz = ca.SX.zeros(nz)
     dx = ca.SX.zeros(nxa)               # x_0 (and the delay's prefix) is not decided
     for i in range(nb):
-        o = ocp.offset + i * ocp.stage
+        at = ocp.stage_slices(i)
         m_i = stages[:, i * (nxa + 1):(i + 1) * (nxa + 1)]
         d = ca.mtimes(m_i, ca.vertcat(dx, du[i]))
-        dz[o:o + nxa] = dx
-        dz[o + nxa] = du[i]
-        dz[o + ocp.stage - nk:o + ocp.stage] = d[:nk]
+        dz[at.x] = dx
+        dz[at.v] = du[i]
+        dz[at.k] = d[:nk]
         dx = d[nk:]
         if ocp.with_acc:
-            dz[o + nxa + 1] = dx[nxa - 1]
+            dz[at.acc] = dx[nxa - 1]
     dz[nz - nxa:] = dx
     return ca.Function('expand_step', [stages, dz0, du], [dz0 + dz],
                        ['stages', 'dz0', 'du'], ['dz'])
@@ -354,14 +353,12 @@ def projection_function(ocp, steps=SOLVE_STEPS) -> ca.Function:
     nxa, nk, nz = ocp.nxa, ocp.nk, ocp.nz
     z = ca.SX.sym('z', nz)
     p = ca.SX.sym('p', ocp.n_p)
-    stage = [ocp.offset + i * ocp.stage for i in range(len(ocp.blocks))]
+    at = [ocp.stage_slices(i) for i in range(len(ocp.blocks))]
 
     def guess(i, _x):
-        if i < 0:
-            return z[nxa:nxa + nk]
-        return z[stage[i] + ocp.stage - nk:stage[i] + ocp.stage]
+        return z[nxa:nxa + nk] if i < 0 else z[at[i].k]
 
-    z_on = _project(ocp, p, z[:nxa], [z[o + nxa] for o in stage], guess, steps)
+    z_on = _project(ocp, p, z[:nxa], [z[a.v] for a in at], guess, steps)
     return ca.Function('projection', [z, p], [z_on], ['z', 'p'], ['z_on'])
 
 
