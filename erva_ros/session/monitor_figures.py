@@ -70,7 +70,10 @@ def commands(obs, ts: float, realtime: bool) -> Dict[str, Any]:
     one more subscriber, receives them.  Sample-to-command runs from the sample time t_k.
     """
     cmds = obs.commands
-    scheduled = [c for c in cmds if c[0] in obs.states]   # not the safe commands
+    # Commands for samples the plant published a state of: not the safe commands of an
+    # outage, except those stamped on a sample whose state the plant sent later (a
+    # stalled road or plant bridged): such a sample is also among nmpc's missed_samples.
+    scheduled = [c for c in cmds if c[0] in obs.states]
     out: Dict[str, Any] = {'received': len(cmds), 'for_samples': len(scheduled)}
     if not (realtime and len(scheduled) > 1):
         return out
