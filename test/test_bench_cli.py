@@ -25,6 +25,13 @@ def test_bench_other_controller_without_reference(erva):
     assert proc.returncode == 0, proc.stderr
     res = json.loads(proc.stdout)
     assert res['controller'] == 'preview_long' and res['suboptimality_pct'] is None
+    assert res['max_iter'] == 8                     # its own cap, long_max_iter
+    # --max-iter caps every real-time SQP, preview_long's too
+    proc = erva('bench', '--steps', 30, '--controller', 'preview_long', '--alpha', '0,1',
+                '--no-reference', '--json', '--max-iter', 2)
+    assert proc.returncode == 0, proc.stderr
+    res = json.loads(proc.stdout)
+    assert res['max_iter'] == 2 and res['iterations_mean'] <= 2
 
 
 def test_bench_errors_are_one_line(erva):

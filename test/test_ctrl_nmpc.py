@@ -95,6 +95,17 @@ def test_warm_start_reduces_iterations():
     assert np.mean(warm.iterations) < 0.8 * np.mean(cold.iterations)
 
 
+def test_preview_long_has_its_own_iteration_cap():
+    # preview_long stops at long_max_iter, the paper's NMPC at max_iter; both caps are
+    # reached on this road (the SQP needs ~5 iterations a sample on average).
+    road = make_road('paper', 0.4, seed=0)
+    s = S.with_(alpha1=0.0, alpha2=1.0, max_iter=3, long_max_iter=2)
+    for name, cap in (('preview_long', 2), ('preview', 3)):
+        assert s.iteration_cap(name) == cap
+        run = simulate_closed_loop(P, make_controller(name, P, s), road, 0.4)
+        assert np.max(run.iterations) == cap, name
+
+
 @pytest.mark.parametrize('hessian', ['exact', 'gauss_newton'])
 def test_real_time_sqp_never_increases_the_objective(hessian):
     ocp = make_controller('preview', P, S).ocp

@@ -88,7 +88,8 @@ def add_settings_options(parser: argparse.ArgumentParser, controller: bool = Tru
                                  'default: the settings file)')
     option('--solver', 'solver', 'NMPC solver: sqp (real-time) or ipopt (converged reference)')
     option('--horizon', 'horizon', 'NMPC horizon N in samples (paper: 10)', metavar='N')
-    option('--max-iter', 'max_iter', 'real-time SQP iterations per sample', metavar='K')
+    option('--max-iter', 'max_iter', 'real-time SQP iterations per sample (sets max_iter, '
+           'and long_max_iter for preview_long)', metavar='K')
     option('--codegen', 'codegen',
            'compile the real-time solver\'s model functions to C: on, off, or auto = on '
            'when cc/gcc is on PATH (first use of a configuration compiles for ~25 s, '
@@ -132,6 +133,7 @@ def load_settings(args, **extra):
     overrides = {'controller': getattr(args, 'controller', None), 'cost': args.cost,
                  'long_cost': args.cost, 'codegen': args.codegen,
                  'solver': args.solver, 'horizon': args.horizon, 'max_iter': args.max_iter,
+                 'long_max_iter': args.max_iter,
                  'u_min': args.u_min, 'u_max': args.u_max,
                  'command_delay_s': args.command_delay}
     alpha = getattr(args, 'alpha', None)

@@ -179,7 +179,7 @@ def bench_seed(args, params, settings, seed: int) -> dict:
         'suboptimality_pct': None, 'step_gap_pct': None,
         'realtime_factor': m['realtime_factor'],
         'weights': [settings.alpha1, settings.alpha2], 'cost': cost_kind,
-        'max_iter': settings.max_iter, 'iterations_mean': m['iterations_mean'],
+        'max_iter': settings.iteration_cap(name), 'iterations_mean': m['iterations_mean'],
         'time_budget_ms': settings.time_budget_s * 1e3,
         'closed_loop_cost': cost, 'fallbacks': m['fallbacks'],
         'acc_2norm': m['acc_2norm'], 'acc_rms_continuous': m['acc_rms_continuous'],

@@ -32,6 +32,8 @@ def _run_config(args):
     overrides = {k: getattr(args, k, None)
                  for k in ('cost', 'solver', 'horizon', 'max_iter', 'u_min', 'u_max')}
     overrides = {k: v for k, v in overrides.items() if v is not None}
+    if 'max_iter' in overrides:          # --max-iter: preview_long's cap as well
+        overrides['long_max_iter'] = overrides['max_iter']
     if getattr(args, 'command_delay', None) is not None:
         overrides['command_delay_s'] = args.command_delay
     alpha = getattr(args, 'alpha', None)

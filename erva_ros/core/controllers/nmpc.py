@@ -581,7 +581,7 @@ class NMPCController(Controller):
             self._ipopt = build_ipopt(self.ocp, s.ipopt_max_iter)
         else:
             # Called through fixed buffers (erva_ros/core/codegen.py): no DM conversions.
-            self._rti = BufferedCall(build_rti(self.ocp, s.max_iter, s.sqp_tol,
+            self._rti = BufferedCall(build_rti(self.ocp, s.iteration_cap(self.name), s.sqp_tol,
                                                s.codegen, N_ALTERNATIVES, s.hessian))
 
     def compensate_delay(self, model, delay_s: float) -> None:

@@ -56,6 +56,8 @@ NUMERIC_SPECS: Dict[str, Number] = {
     'collocation_degree': Integer(1, 6, '-', 'Radau collocation points per interval (model)'),
     'long_steps': Integer(0, 200, 'steps', 'preview_long: coarse intervals after the first N'),
     'long_step_s': Number(1e-3, 1.0, 's', 'preview_long: length of a coarse interval'),
+    'long_max_iter': Integer(1, 50, 'iterations', 'preview_long: real-time SQP: most '
+                             'iterations per sample (its iterations cost ~3x preview\'s)'),
     'terminal_weight': Number(0.0, 1e6, '-', 'preview_long: weight of the terminal energy cost'),
 }
 #: Settings that must be whole numbers.
@@ -108,6 +110,7 @@ class ControllerSettings:
     road_prediction: str = 'hold'
     long_steps: int = 10
     long_step_s: float = 0.06
+    long_max_iter: int = 8
     terminal_weight: float = 0.0
     long_cost: str = 'continuous'
     codegen: str = 'auto'
@@ -116,6 +119,10 @@ class ControllerSettings:
     def weights(self) -> Tuple[float, float]:
         """Return (alpha1, alpha2)."""
         return (self.alpha1, self.alpha2)
+
+    def iteration_cap(self, controller: str) -> int:
+        """Return the real-time SQP's most iterations per sample for ``controller``."""
+        return self.long_max_iter if controller == 'preview_long' else self.max_iter
 
     def with_(self, **kw: Any) -> 'ControllerSettings':
         """Return a validated copy with some values replaced."""
