@@ -204,9 +204,9 @@ def _collocation(degree: int):
 class StageSlices(NamedTuple):
     """Where one interval's variables sit in z (in the order build_ocp appends them)."""
 
-    x: slice                   # x_i, the scaled stage state (with x_a(k−1), paper cost)
+    x: slice                   # x_i, the scaled stage state (with x_a(k−1): paper, bound)
     v: int                     # v_i, the scaled input
-    acc: Optional[int]         # x_a(k), the node acceleration (paper cost only)
+    acc: Optional[int]         # x_a(k), the node acceleration (paper and bound costs)
     k: slice                   # K_i, the collocation states
     x_next: slice              # x_{i+1}, the next stage state
 

@@ -57,7 +57,7 @@ NUMERIC_SPECS: Dict[str, Number] = {
     'long_steps': Integer(0, 200, 'steps', 'preview_long: coarse intervals after the first N'),
     'long_step_s': Number(1e-3, 1.0, 's', 'preview_long: length of a coarse interval'),
     'long_max_iter': Integer(1, 50, 'iterations', 'preview_long: real-time SQP: most '
-                             'iterations per sample (its iterations cost ~3x preview\'s)'),
+                             'iterations per sample (an iteration costs 3-4x preview\'s)'),
     'terminal_weight': Number(0.0, 1e6, '-', 'preview_long: weight of the terminal energy cost'),
 }
 #: Settings that must be whole numbers.
