@@ -4,10 +4,12 @@ import ast
 import importlib.util
 import os
 import re
+import subprocess
+import sys
 
 import pytest
 
-from conftest import REPO
+from conftest import REPO, ros_env
 
 LAUNCH = os.path.join(REPO, 'launch', 'erva.launch.py')
 
@@ -53,6 +55,26 @@ def test_bad_input_is_one_line_and_no_node_starts(erva, tmp_path, args, message)
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and re.search(message, lines[0]), proc.stderr
     assert 'started' not in proc.stderr
+
+
+@pytest.mark.parametrize('domain', ['240', 'seven'])
+def test_a_bad_ros_domain_is_one_line_and_nothing_is_recorded(erva, tmp_path, domain):
+    # Fast DDS would report it as a port error deep in start-up; erva says what it is
+    # before a node or a bag exists.  A node started by hand says the same.
+    bags = tmp_path / 'bags'
+    proc = erva('run', '--duration', 0.2, '--record', bags, env={'ROS_DOMAIN_ID': domain})
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert lines == [f"erva run: error: ROS_DOMAIN_ID='{domain}' is not a ROS domain: an "
+                     "integer 0..232 (Fast DDS maps it to UDP ports; 0..101 stay clear of "
+                     "Linux's ephemeral ports)"], proc.stderr
+    assert not bags.exists() or not any(bags.iterdir())
+    node = subprocess.run([sys.executable, '-m', 'erva_ros.nodes.plant_sim_node'],
+                          capture_output=True, text=True, timeout=60,
+                          env=ros_env({'ROS_DOMAIN_ID': domain}))
+    assert node.returncode == 2
+    assert node.stderr.strip().splitlines()[-1].startswith(
+        f"plant_sim_node: error: ROS_DOMAIN_ID='{domain}' is not a ROS domain"), node.stderr
 
 
 def test_option_values_are_checked_by_argparse(erva):

@@ -7,13 +7,33 @@ to stop -- and runs one SingleThreadedExecutor (one process per node elsewhere; 
 process's observer nodes share it).
 """
 
-from typing import List, Optional
+import os
+from typing import List, Mapping, Optional
+
+from erva_ros.core.errors import CLIError
+
+#: Fast DDS maps domain d to UDP ports 7400 + 250·d + offsets: 232 is the largest that fits.
+DOMAIN_ID_MAX = 232
+
+
+def check_domain_id(environ: Optional[Mapping[str, str]] = None) -> None:
+    """Raise CLIError unless $ROS_DOMAIN_ID is unset, empty or an integer 0..232.
+
+    rcl and Fast DDS report a bad one as a port error deep in start-up; this says what
+    is wrong before any node or recording starts.
+    """
+    text = (os.environ if environ is None else environ).get('ROS_DOMAIN_ID', '').strip()
+    if text and not (text.isdigit() and int(text) <= DOMAIN_ID_MAX):
+        raise CLIError(f'ROS_DOMAIN_ID={text!r} is not a ROS domain: an integer 0..'
+                       f'{DOMAIN_ID_MAX} (Fast DDS maps it to UDP ports; 0..101 stay clear '
+                       'of Linux\'s ephemeral ports)')
 
 
 class RosContext:
     """An initialised rclpy context without signal handlers, and its executor."""
 
     def __init__(self):
+        check_domain_id()
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions

@@ -34,8 +34,10 @@ import sys
 import time
 from typing import Callable, List, Optional
 
-from erva_ros.ros.realtime import set_fifo_priority
+from erva_ros.core.errors import CLIError
 from erva_ros.core.params import ParamError
+from erva_ros.ros.context import check_domain_id
+from erva_ros.ros.realtime import set_fifo_priority
 
 #: Exit status of a node stopped by a bad parameter or option.
 EXIT_BAD_PARAMETER = 2
@@ -74,6 +76,11 @@ def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]]
     # before SIGKILL, or `kill -USR1 <pid>` by hand) without stopping the node.
     faulthandler.register(signal.SIGALRM, chain=True)
     faulthandler.register(signal.SIGUSR1)
+    try:
+        check_domain_id()
+    except CLIError as exc:
+        print(f'{name}: error: {exc}', file=sys.stderr)
+        return EXIT_BAD_PARAMETER
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as exc:  # malformed --ros-args: rcl reports it, keep it to one line
