@@ -34,7 +34,6 @@ import sys
 import time
 from typing import Callable, List, Optional
 
-from erva_ros.core.errors import CLIError
 from erva_ros.core.params import ParamError
 from erva_ros.ros.context import check_domain_id
 from erva_ros.ros.realtime import set_fifo_priority
@@ -78,12 +77,8 @@ def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]]
     faulthandler.register(signal.SIGUSR1)
     try:
         check_domain_id()
-    except CLIError as exc:
-        print(f'{name}: error: {exc}', file=sys.stderr)
-        return EXIT_BAD_PARAMETER
-    try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    except Exception as exc:  # malformed --ros-args: rcl reports it, keep it to one line
+    except Exception as exc:  # bad domain, malformed --ros-args: one line
         print(f'{name}: error: {str(exc).splitlines()[0]}', file=sys.stderr)
         return EXIT_BAD_PARAMETER
     node = None

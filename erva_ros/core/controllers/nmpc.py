@@ -66,7 +66,7 @@ Variables are scaled (u by 10 kNs/m, positions by 1 cm, velocities by 0.1 m/s).
 """
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 import math
 from typing import NamedTuple, Optional, Tuple
 
@@ -291,9 +291,9 @@ class OCP:
                            slice(o + self.stage - self.nk, o + self.stage),
                            slice(o + self.stage, o + self.stage + nxa))
 
-    @property
+    @cached_property
     def u_index(self) -> np.ndarray:
-        """Return the positions of the scaled inputs in z."""
+        """Return the positions of the scaled inputs in z (computed once: per-solve use)."""
         return np.array([self.stage_slices(i).v for i in range(len(self.blocks))])
 
     def params(self, w, alpha, delay_s: float = 0.0, u_acting: float = 0.0) -> np.ndarray:
