@@ -273,6 +273,8 @@ def test_summary_json_has_no_nan_and_text_names_the_errors():
                    plant={'road_gaps': 1})
     assert ('road      1 sample skipped (timer behind), 1 gap bridged by the plant'
             in format_summary(summary))
+    summary['plant'] = {}             # HIL: the ECU's plant figures have no road gaps
+    assert 'road      1 sample skipped (timer behind)\n' in format_summary(summary)
 
 
 def test_duration_stats_are_exact_then_binned_for_a_long_session():

@@ -98,10 +98,11 @@ def format_summary(s: Dict[str, Any]) -> str:
                      f'late commands {pl.get("late_commands")}')
     skipped = (s.get('road') or {}).get('samples_skipped')
     if skipped:     # the real-time road timer fell behind: the plant stepped across the gap
-        gaps = pl.get('road_gaps')
+        gaps = pl.get('road_gaps')      # HIL: no plant node, the ECU counts no gaps
+        bridged = '' if gaps is None else \
+            f', {gaps} gap{"" if gaps == 1 else "s"} bridged by the plant'
         lines.append(f'  road      {skipped} sample{"" if skipped == 1 else "s"} skipped '
-                     f'(timer behind), {gaps} '
-                     f'gap{"" if gaps == 1 else "s"} bridged by the plant')
+                     f'(timer behind){bridged}')
     lines.append(f'  messages  dropped {msg["dropped_total"]}, rejected {msg["rejected_total"]}')
     if s.get('scheduling'):     # what realtime_priority got each node (live/realtime.py)
         kinds = sorted(set(s['scheduling'].values()))
