@@ -8,8 +8,9 @@ from erva_ros.core.closed_loop import simulate_closed_loop
 from erva_ros.core.controllers import ControllerSettings, make_controller
 from erva_ros.core.controllers.nmpc import (build_ocp, OCPSpec, stable_rollout_substep,
                                             U_SCALE)
-from erva_ros.core.controllers.sqp import (convexify, plan_value_function, projection_function,
-                                           qp_model_function, start_function, step_function)
+from erva_ros.core.controllers.sqp import (convexify, JACOBI_SWEEPS, plan_value_function,
+                                           projection_function, qp_model_function,
+                                           start_function, step_function)
 from erva_ros.core.model import get_model
 from erva_ros.core.params import paper_params
 from erva_ros.core.plant import PlantSimulator
@@ -111,6 +112,25 @@ def test_convexify_keeps_a_convex_hessian_and_mirrors_negative_curvature():
                                rtol=1e-6)
     spd = q @ np.diag(np.abs(lam) + 0.1) @ q.T       # convex already: kept (5 sweeps)
     np.testing.assert_allclose(np.asarray(fn(spd)), spd, atol=1e-6 * np.max(np.abs(spd)))
+
+
+def test_convexify_at_preview_longs_size_is_convex_and_close_to_abs_h():
+    # preview_long's 20 x 20 reduced Hessian, one compiled sweep called JACOBI_SWEEPS
+    # times: positive definite whatever the sweeps (V is a product of rotations) and,
+    # on a spread indefinite spectrum like the recorded problems', close to |H|.
+    n = 20
+    rng = np.random.default_rng(3)
+    q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    lam = rng.choice([-1.0, 1.0], n, p=[0.3, 0.7]) * 10.0 ** rng.uniform(-6, 0, n)
+    h = q @ np.diag(lam) @ q.T
+    exact = q @ np.diag(np.maximum(np.abs(lam), 1e-6 * np.max(np.abs(lam)))) @ q.T
+    hs = ca.SX.sym('h', n, n)
+    for sweeps, close in ((JACOBI_SWEEPS, True), (1, False)):      # 1e-5 / 0.17 here
+        out = np.asarray(ca.Function('cvx', [hs], [convexify(hs, sweeps)])(h))
+        np.testing.assert_array_equal(out, out.T)
+        assert np.min(np.linalg.eigvalsh(out)) > 0.0
+        err = np.linalg.norm(out - exact) / np.linalg.norm(exact)
+        assert (err < 1e-4) == close, (sweeps, err)
 
 
 @pytest.mark.parametrize('delayed', [False, True])
