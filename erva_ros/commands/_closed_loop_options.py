@@ -129,16 +129,17 @@ def load_settings(args, **extra):
 
     ``extra`` (keyword overrides) wins over the options, e.g. an offline time budget.
     """
-    from erva_ros.core.controllers.settings import load_controller_settings
+    from erva_ros.core.controllers.settings import (load_controller_settings,
+                                                    with_linked_iteration_cap)
     overrides = {'controller': getattr(args, 'controller', None), 'cost': args.cost,
                  'long_cost': args.cost, 'codegen': args.codegen,
                  'solver': args.solver, 'horizon': args.horizon, 'max_iter': args.max_iter,
-                 'long_max_iter': args.max_iter,
                  'u_min': args.u_min, 'u_max': args.u_max,
                  'command_delay_s': args.command_delay}
     alpha = getattr(args, 'alpha', None)
     if alpha is not None:
         overrides.update(alpha1=alpha[0], alpha2=alpha[1])
+    overrides = with_linked_iteration_cap(overrides)
     overrides.update(extra)
     return load_controller_settings(args.settings, overrides)
 

@@ -28,12 +28,11 @@ DEFAULT_DURATION_S = 60.0
 
 
 def _run_config(args):
+    from erva_ros.core.controllers.settings import with_linked_iteration_cap
     from erva_ros.session.run_config import RunConfig
     overrides = {k: getattr(args, k, None)
                  for k in ('cost', 'solver', 'horizon', 'max_iter', 'u_min', 'u_max')}
-    overrides = {k: v for k, v in overrides.items() if v is not None}
-    if 'max_iter' in overrides:          # --max-iter: preview_long's cap as well
-        overrides['long_max_iter'] = overrides['max_iter']
+    overrides = with_linked_iteration_cap({k: v for k, v in overrides.items() if v is not None})
     if getattr(args, 'command_delay', None) is not None:
         overrides['command_delay_s'] = args.command_delay
     alpha = getattr(args, 'alpha', None)

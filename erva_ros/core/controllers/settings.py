@@ -185,6 +185,15 @@ def default_settings_file() -> str:
     return shipped_config('nmpc.yaml', 'pass a settings file')
 
 
+def with_linked_iteration_cap(overrides: Dict[str, Any]) -> Dict[str, Any]:
+    """Return ``overrides`` where a given ``max_iter`` also sets ``long_max_iter``.
+
+    One rule for every command line: ``--max-iter`` caps each NMPC, preview_long too.
+    """
+    k = overrides.get('max_iter')
+    return overrides if k is None else dict(overrides, long_max_iter=k)
+
+
 def load_controller_settings(path: Optional[str] = None,
                              overrides: Optional[Mapping[str, Any]] = None
                              ) -> ControllerSettings:
@@ -206,4 +215,5 @@ __all__ = ['CONTROLLER_NAMES', 'COST_KINDS', 'SOLVER_KINDS', 'ROAD_PREDICTIONS',
            'NUMERIC_SPECS', 'INTEGER_KEYS', 'CHOICE_SPECS', 'SPECS', 'DEFAULTS',
            'ControllerSettings',
            'describe', 'validate_settings', 'load_controller_settings',
+           'with_linked_iteration_cap',
            'default_settings_file']
