@@ -80,9 +80,30 @@ class HostPair:
                                    stderr=null, timeout=30)
                 _ip('addr', 'add', f'{self.addr[side]}/30', 'dev', dev, netns=ns)
                 _ip('link', 'set', dev, 'up', netns=ns)
+            self._wait_running()
         except BaseException:
             self.close()
             raise
+
+    def _wait_running(self, timeout: float = 30.0) -> None:
+        """Return once both veth ends are running (carrier), as a cabled host's NIC is.
+
+        The kernel reports the carrier a moment after ``link set up``.  A Fast DDS
+        process started before that finds no running interface, and its host id falls
+        back to one value on both sides: each side would then take the other for itself
+        and use shared memory instead of the link: nothing connects (a CI failure,
+        reproduced by bringing the link up 4 s after the loop started).
+        """
+        end = time.monotonic() + timeout
+        while True:
+            states = {side: _ip('netns', 'exec', self.ns[side], 'cat',
+                                f'/sys/class/net/{self.veth[side]}/operstate').stdout.strip()
+                      for side in 'ab'}
+            if all(state == 'up' for state in states.values()):
+                return
+            if time.monotonic() > end:
+                raise RuntimeError(f'veth pair not running after {timeout:.0f} s: {states}')
+            time.sleep(0.02)
 
     def __enter__(self) -> 'HostPair':
         return self

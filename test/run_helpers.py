@@ -34,17 +34,21 @@ def wait_connected(proc, timeout=120.0):
 
 
 class SampleWatch:
-    """Count the loop's samples on /erva/sprung_accel in this process (rclpy, own context).
+    """Count the loop's samples in this process (rclpy, own context).
 
     For tests that act *during* a run: waiting for samples, not for a time, puts the
-    action inside the run on any machine.  Not /erva/state, the lock-step time master's
-    topic: a reader there is what the start gate must not be fooled by (its own test).
+    action inside the run on any machine.  By default it counts /erva/sprung_accel, which
+    the start does not wait for: a real-time run lasts long enough for it to match.  A
+    lock-step run may end within a second: ``state_reader=True`` counts /erva/state
+    instead, as a reader the run waits for (``erva run --extra-readers 1``), so no sample
+    goes by before it is matched.
     """
 
-    def __init__(self):
+    def __init__(self, state_reader=False):
         import rclpy
         from geometry_msgs.msg import AccelStamped
         from rclpy.executors import SingleThreadedExecutor
+        from sensor_msgs.msg import JointState
 
         from erva_ros.core import topics
         from erva_ros.ros import qos as ros_qos
@@ -52,7 +56,9 @@ class SampleWatch:
         rclpy.init(context=self.context)
         self.node = rclpy.create_node('sample_watch', context=self.context)
         self.samples = 0
-        self.node.create_subscription(AccelStamped, f'{topics.NAMESPACE}/{topics.SPRUNG_ACCEL}',
+        msg_type, topic = ((JointState, topics.STATE) if state_reader
+                           else (AccelStamped, topics.SPRUNG_ACCEL))
+        self.node.create_subscription(msg_type, f'{topics.NAMESPACE}/{topic}',
                                       self._on_sample, ros_qos.control_qos())
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
@@ -60,12 +66,29 @@ class SampleWatch:
     def _on_sample(self, _msg):
         self.samples += 1
 
-    def wait(self, n, timeout=120.0):
-        """Spin until ``n`` samples came (generous ``timeout``); fail if they did not."""
+    def wait(self, n, timeout=120.0, proc=None):
+        """Spin until ``n`` samples came (generous ``timeout``); fail if they did not.
+
+        With ``proc`` (the `erva run` process, stderr piped) the wait ends as soon as it
+        exits, and a failure shows what it printed.
+        """
+        self.spin_until(lambda: self.samples >= n, lambda: f'the loop ran {self.samples} of '
+                        f'{n} samples', timeout, proc)
+
+    def spin_until(self, done, what, timeout=120.0, proc=None):
+        """Spin until ``done()``; else fail with ``what()`` (and ``proc``'s output, see wait)."""
         end = time.monotonic() + timeout
-        while self.samples < n and time.monotonic() < end:
+        while not done() and time.monotonic() < end and (proc is None or proc.poll() is None):
             self.executor.spin_once(timeout_sec=0.05)
-        assert self.samples >= n, f'the loop ran {self.samples} of {n} samples'
+        if done():
+            return
+        if proc is not None:
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait()
+            raise AssertionError(f'{what()}; erva run exited {proc.returncode}:\n'
+                                 f'{proc.stderr.read()}')
+        raise AssertionError(what())
 
     def close(self):
         import rclpy
@@ -84,7 +107,7 @@ def run_with_node_stopped(node, tmp_path, duration, stop_after_s, stop_for_s, *a
     proc = start_run('--duration', duration, '--record', tmp_path, '--json', *args)
     try:
         pids = wait_connected(proc)
-        watch.wait(int(round(stop_after_s / 0.02)))
+        watch.wait(int(round(stop_after_s / 0.02)), proc=proc)
         os.kill(pids[node], signal.SIGSTOP)
         try:
             time.sleep(stop_for_s)

@@ -41,6 +41,25 @@ def test_unmatched_names_what_the_start_waits_for():
         'recorder: /diagnostics matched 0 of 4 publishers']
 
 
+def test_extra_readers_count_on_the_time_masters_topics_only():
+    # erva run --extra-readers N: the user's readers add to what the time master's
+    # writers must match, so one of them cannot stand in for a loop reader.
+    from erva_ros.session.start_gate import StartGate
+
+    class Monitor:
+        watched = [topics.STATE, topics.DAMPING_CMD, topics.ROAD_HEIGHT, topics.DIAGNOSTICS]
+        gate = (topics.STATE,)
+
+    nodes = ('plant_sim_node', 'road_preview_node', 'nmpc_node')
+    plain = StartGate(Monitor(), '/erva', nodes, False, False, False).expected
+    for realtime, grown in ((False, {'/erva/state'}),
+                            (True, {'/erva/road/height', '/erva/road/preview'})):
+        extra = StartGate(Monitor(), '/erva', nodes, False, False, False,
+                          [topics.time_master_topics(realtime)] * 2).expected
+        assert {t for t in plain if extra[t] != plain[t]} == grown
+        assert all(extra[t] == plain[t] + 2 for t in grown)
+
+
 def test_published_counts_sum_the_nodes_and_the_recorder_catches_up():
     statuses = {'plant_sim_node': {'published:/erva/state': '101', 'steps': '100'},
                 'ecu_bridge_node: command': {'published:/erva/ecu/measurements': '100'},

@@ -1,4 +1,3 @@
-from erva_ros.ros import qos as ros_qos
 """A message from outside the loop cannot stop or steer it (`erva run`).
 
 One valid ``/erva/state`` stamped an hour ahead, published by another process on the
@@ -16,6 +15,7 @@ import time
 import pytest
 
 from conftest import REPO, ros_env
+from erva_ros.ros import qos as ros_qos
 from run_helpers import SampleWatch
 
 pytestmark = pytest.mark.ros
@@ -23,18 +23,26 @@ pytestmark = pytest.mark.ros
 HOUR_NS = 3600 * 10**9
 
 
-def _inject_state(stamp_ns_of, after_samples=10):
-    """Publish one valid JointState on /erva/state once the loop has run ``after_samples``."""
+def _inject_state(proc, lockstep, stamp_ns_of, after_samples=10):
+    """Publish one valid JointState on /erva/state once the loop has run ``after_samples``.
+
+    In lock-step the watch is one of the state's readers the run waits for (it may
+    otherwise end before the watch is matched); either way the foreign writer waits for
+    the loop's readers of it (nmpc, monitor) before it publishes.
+    """
     from rclpy.duration import Duration
     from sensor_msgs.msg import JointState
 
     from erva_ros.ros.msgs import state_msg
 
-    watch = SampleWatch()
+    watch = SampleWatch(state_reader=lockstep)
     try:
         pub = watch.node.create_publisher(JointState, '/erva/state', ros_qos.control_qos())
-        watch.wait(after_samples)
-        assert pub.get_subscription_count() >= 2        # nmpc, monitor
+        watch.wait(after_samples, proc=proc)
+        readers = 2 + (1 if lockstep else 0)           # nmpc, monitor (and the watch)
+        watch.spin_until(lambda: pub.get_subscription_count() >= readers,
+                         lambda: f'{pub.get_subscription_count()} of {readers} readers of '
+                         f'the foreign state', proc=proc)
         pub.publish(state_msg(stamp_ns_of(), [1e-3, 0.0, 0.0, 0.0, 0.0, 0.0], 'erva'))
         assert pub.wait_for_all_acked(Duration(seconds=30))
     finally:
@@ -42,12 +50,13 @@ def _inject_state(stamp_ns_of, after_samples=10):
 
 
 def _run_with_foreign_state(mode, duration, stamp_ns_of):
+    lockstep = mode == 'lockstep'
     proc = subprocess.Popen(
         [sys.executable, '-m', 'erva_ros.cli', 'run', '--mode', mode, '--duration',
-         str(duration), '--no-record', '--json'], stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE, text=True, env=ros_env(), cwd=REPO)
+         str(duration), '--no-record', '--json', *(['--extra-readers', '1'] if lockstep else [])],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ros_env(), cwd=REPO)
     try:
-        _inject_state(stamp_ns_of)
+        _inject_state(proc, lockstep, stamp_ns_of)
         out, err = proc.communicate(timeout=300)
     finally:
         if proc.poll() is None:

@@ -97,7 +97,7 @@ def test_killed_nmpc_plant_holds_plan_then_passive_and_run_fails(tmp_path):
     proc = _start('--duration', 3, '--no-record', '--json')
     try:
         pids = _wait_connected(proc)
-        watch.wait(30)                   # killed well into the run, on any machine
+        watch.wait(30, proc=proc)        # killed well into the run, on any machine
         os.kill(pids['nmpc_node'], signal.SIGKILL)
         out, err = proc.communicate(timeout=120)
     finally:
@@ -159,7 +159,7 @@ def test_signals_stop_every_process(sig, code):
         assert set(pids) == {'nmpc_node', 'plant_sim_node', 'road_preview_node'}
         argv = open(f'/proc/{pids["nmpc_node"]}/cmdline').read().split('\0')
         params_file = argv[argv.index('--params-file') + 1]
-        watch.wait(50)                   # a second of samples ran: a summary to print
+        watch.wait(50, proc=proc)        # a second of samples ran: a summary to print
         proc.send_signal(sig)
         out, err = proc.communicate(timeout=60)
         assert proc.returncode == code, err

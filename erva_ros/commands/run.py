@@ -4,6 +4,7 @@ import os
 import shlex
 import sys
 
+from erva_ros.commands._closed_loop_options import non_negative_int
 from erva_ros.commands._common import (add_json_option, add_params_option, live_type,
                                        positive_float, print_json, realtime_priority,
                                        settings_type)
@@ -133,6 +134,12 @@ def add_arguments(parser):
                              'does), e.g. "ip netns exec NS" or "taskset -c 1"; it must exec '
                              'the command (signals stop it) and see the same files; DDS '
                              'settings come from the environment (docs/hil.md)')
+    parser.add_argument('--extra-readers', type=non_negative_int, default=0, metavar='N',
+                        help='start the loop only once N readers of your own (a logger, a '
+                             'plotter, ros2 bag record) are matched on the topics of the '
+                             'time master: road/height and road/preview in real time, state '
+                             'in lock-step; started before the run, they get sample 0 '
+                             '(default 0)')
     add_json_option(parser)
 
 
@@ -156,7 +163,8 @@ def run_config(args, record_dir=None):
                      duration_s=args.duration, params_file=args.params, nmpc_file=args.nmpc,
                      live_file=args.live, record_dir=record_dir, namespace=args.namespace,
                      live_overrides=live, ecu=args.ecu, ecu_prefix=_ecu_prefix(args),
-                     foxglove=getattr(args, 'foxglove', None), settings_overrides=settings)
+                     foxglove=getattr(args, 'foxglove', None), settings_overrides=settings,
+                     extra_readers=getattr(args, 'extra_readers', 0))
 
 
 def _ecu_prefix(args) -> tuple:

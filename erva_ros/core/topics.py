@@ -37,6 +37,16 @@ DAMPING_CMD = 'damping_cmd'
 DIAGNOSTICS = '/diagnostics'
 CLOCK = '/clock'
 
+
+def time_master_topics(realtime: bool) -> tuple:
+    """Return the topics whose readers the time master waits for before sample 0.
+
+    In real time the road starts the loop (its height and preview); in lock-step the
+    plant (its state, which the controller answers).
+    """
+    return (ROAD_HEIGHT, ROAD_PREVIEW) if realtime else (STATE,)
+
+
 STATE_JOINTS = ('z_s', 'z_us', 'z_d')
 GENERATOR_JOINT = 'generator'
 ROAD_JOINT = 'road_height'

@@ -99,6 +99,7 @@ class RunConfig:
     ecu: str = 'none'                      # 'virtual': the HIL loop (simulated ECU, CAN)
     foxglove: Optional[str] = None         # [HOST:]PORT: serve the session to Foxglove
     ecu_prefix: tuple = ()                 # argv prefix of the HIL processes (--ecu-prefix)
+    extra_readers: int = 0                 # the user's own readers the start waits for
 
 
 @dataclass
@@ -157,8 +158,10 @@ def live_values(cfg: RunConfig, settings, recording: bool) -> Dict[str, Any]:
         live['start_delay_s'] = max(live['start_delay_s'], HIL_START_DELAY_S)
     live['preview_steps'] = max(live['preview_steps'], required_preview_steps(settings))
     # The time master starts when each of its topics has the other loop node, this
-    # process's monitor and (when recording / serving) the recorder / Foxglove server.
-    live['wait_for_subscribers'] = 2 + (1 if recording else 0) + (1 if cfg.foxglove else 0)
+    # process's monitor, (when recording / serving) the recorder / Foxglove server and
+    # the user's own readers (--extra-readers).
+    live['wait_for_subscribers'] = (2 + (1 if recording else 0) + (1 if cfg.foxglove else 0)
+                                    + cfg.extra_readers)
     # ... and one of them is the monitor itself, not any reader that happens to be there.
     live['wait_for_reader'] = topics.MONITOR_NODE
     build_road(live)   # a bad road option fails here, not in a node

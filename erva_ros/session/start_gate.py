@@ -20,7 +20,7 @@ class StartGate:
     """What the session waits for before the loop runs (see the module doc)."""
 
     def __init__(self, monitor, namespace: str, node_names: Sequence[str], hil: bool,
-                 recording: bool, foxglove: bool):
+                 recording: bool, foxglove: bool, extra_readers: Sequence[Sequence[str]] = ()):
         self.monitor = monitor
         self.namespace = namespace
         self.node_names = tuple(node_names)
@@ -28,7 +28,9 @@ class StartGate:
         #: What is still missing, for the user (the newest check).
         self.unmatched: List[str] = []
         loop = accounting.hil_loop_subscribers() if hil else dict(accounting.LOOP_SUBSCRIBERS)
-        observers = [monitor.watched]
+        # The user's readers (`--extra-readers`) count on the time master's topics: the
+        # loop's own readers must still all be matched, not stood in for by one of them.
+        observers = [monitor.watched, *extra_readers]
         if foxglove:
             observers.append(record_topics(hil))   # the server serves what is recorded
         self.record_writers: Dict[str, int] = {}

@@ -74,7 +74,8 @@ class Supervisor:
         self.monitor = self.ros.add(Monitor(cfg.namespace, context=self.ros.context, gate=gate,
                                             hil=session.hil, window_ns=session.sim_window_ns))
         self.gate = StartGate(self.monitor, cfg.namespace, self.node_names, session.hil,
-                              recording, bool(cfg.foxglove))
+                              recording, bool(cfg.foxglove),
+                              [topics.time_master_topics(session.realtime)] * cfg.extra_readers)
         self.drain = RecorderDrain()
 
     def start(self) -> None:
