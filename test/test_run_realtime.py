@@ -180,3 +180,44 @@ def test_signals_stop_every_process(sig, code):
         watch.close()
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
+
+
+def test_an_extra_reader_that_comes_late_still_gets_sample_0():
+    # --extra-readers 1: the road (the real-time time master) waits for one reader of the
+    # user's on road/height and road/preview.  The reader is created only once erva run
+    # says what it waits for (after 10 s): without the wait the run would be over.
+    import rclpy
+    from geometry_msgs.msg import PointStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from trajectory_msgs.msg import JointTrajectory
+
+    from erva_ros.ros import qos as ros_qos
+    proc = _start('--duration', 1, '--no-record', '--json', '--extra-readers', 1)
+    context = rclpy.Context()
+    try:
+        for line in proc.stderr:
+            assert 'connected in' not in line, line
+            if 'still connecting' in line:
+                break
+        assert 'road/height has 2 of 3 subscribers' in line, line
+        rclpy.init(context=context)
+        node = rclpy.create_node('extra_reader', context=context)
+        distances = []
+        node.create_subscription(PointStamped, '/erva/road/height',
+                                 lambda m: distances.append(m.point.x), ros_qos.control_qos())
+        node.create_subscription(JointTrajectory, '/erva/road/preview', lambda m: None,
+                                 ros_qos.control_qos())
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        end = time.monotonic() + 240
+        while proc.poll() is None and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        rclpy.try_shutdown(context=context)
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    s = json.loads(out)
+    assert proc.returncode == 0 and s['ok'], (s['errors'], err[-1500:])
+    assert distances and distances[0] == 0.0, distances[:3]      # sample 0, first
+    assert s['messages']['published']['road/height'] == 51
