@@ -99,7 +99,8 @@ class HostPair:
             states = {side: _ip('netns', 'exec', self.ns[side], 'cat',
                                 f'/sys/class/net/{self.veth[side]}/operstate').stdout.strip()
                       for side in 'ab'}
-            if all(state == 'up' for state in states.values()):
+            # The kernel's IFF_RUNNING, which Fast DDS reads, is operstate up or unknown.
+            if all(state in ('up', 'unknown') for state in states.values()):
                 return
             if time.monotonic() > end:
                 raise RuntimeError(f'veth pair not running after {timeout:.0f} s: {states}')
