@@ -60,6 +60,22 @@ def test_extra_readers_count_on_the_time_masters_topics_only():
         assert all(extra[t] == plain[t] + 2 for t in grown)
 
 
+def test_rejected_inputs_that_cost_samples_fail_the_run():
+    ok = {'missed_samples': 3, 'superseded_states': 3, 'safe_commands': 0}
+    # A foreign state rejected, the loop untouched: fine.  A busy controller's skipped
+    # samples are load, not rejection.
+    assert accounting.rejections_cost({'rejected_total': 1}, ok) is None
+    # Every state refused after a wrong first stamp: passive for want of a state (a CI
+    # run of the split loop said ok with 200 states refused and 319 passive commands).
+    refused = {'missed_samples': 0, 'superseded_states': 0, 'safe_commands': 319}
+    assert accounting.rejections_cost({'rejected_total': 400}, refused) == (
+        '319 samples went without a command of their own while 400 input messages were '
+        'rejected')
+    assert accounting.rejections_cost({'rejected_total': 0}, refused) is None
+    assert accounting.rejections_cost({'rejected_total': 2}, {
+        'missed_samples': 5, 'superseded_states': 1}).startswith('4 samples')
+
+
 def test_published_counts_sum_the_nodes_and_the_recorder_catches_up():
     statuses = {'plant_sim_node': {'published:/erva/state': '101', 'steps': '100'},
                 'ecu_bridge_node: command': {'published:/erva/ecu/measurements': '100'},

@@ -26,6 +26,8 @@ the same t_k; the status then also reports the loop's chain from t_k
 (``sample_to_measurements_ms``, ``sample_to_state_ms``).  The ECU sends at t_k as the
 road node publishes w(t_k), which the prediction needs: a cycle whose road sample is not
 there yet waits for it up to Ts/4 (``road_waits``; ``road_extrapolated`` if in vain).
+Before the first road sample there is no grid: such a cycle waits the same, and is not
+published if in vain (``before_road``).
 ``/diagnostics`` reports counters, the mean normalised innovation squared (≈ 3 when
 the noise model fits) and the latency this node adds (``ecu/measurements`` received →
 state published, p50/p99/max in ms) with, inside it, its own processing (compute_ms).
@@ -125,7 +127,7 @@ class StateEstimatorNode(Node):
         self.u_now = self.params.c_e0       # damping applied at the last stamp (Ns/m)
         self.count = dict.fromkeys(('updates', 'incomplete', 'gaps', 'restarts',
                                     'late_or_repeated', 'rejected', 'no_road',
-                                    'road_waits', 'road_extrapolated'), 0)
+                                    'road_waits', 'road_extrapolated', 'before_road'), 0)
         self.nis_sum = 0.0
         self.latency = LatencyStats()       # ecu/measurements received -> state published
         self.compute = LatencyStats()       # time spent in that callback
@@ -191,6 +193,12 @@ class StateEstimatorNode(Node):
             self.count['rejected'] += 1
             return
         stamp, y = parsed
+        if self.on_road_grid and self.grid_ns is None and not self._first_road():
+            # No grid yet: a state stamped off it would make the NMPC take the wrong
+            # grid and refuse every later state (seen with the loop split across hosts,
+            # where the ECU's first frames beat the first road height). Not published.
+            self.count['before_road'] += 1
+            return
         stamp = self._stamp(stamp)
         if self.last_ns is not None and stamp <= self.last_ns:
             self.count['late_or_repeated'] += 1
@@ -248,6 +256,16 @@ class StateEstimatorNode(Node):
             return max(stamp - (stamp - self.grid_ns) % self.ts_ns, self.grid_ns)
         return stamp - ((stamp - self.grid_ns + self.ts_ns // 4) % self.ts_ns
                         - self.ts_ns // 4)
+
+    def _first_road(self) -> bool:
+        """Wait (lock released) up to ROAD_WAIT_PERIODS for the first road sample.
+
+        The ECU starts on the first road height it receives and sends at once, so its
+        first cycle may come just before the road's sample reaches this node.
+        """
+        self.count['road_waits'] += 1
+        return self.road_arrived.wait_for(lambda: self.grid_ns is not None,
+                                          ROAD_WAIT_PERIODS * self.ts)
 
     def _road_at(self, stamp_ns: int) -> bool:
         """Return True once the road sample of ``stamp_ns`` (or a later one) arrived."""

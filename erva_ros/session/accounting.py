@@ -18,7 +18,7 @@ file holds -- read back from disk, not the recorder's word for it -- and, for
 ``/diagnostics``, that every node's status sequence numbers are there without a gap.
 """
 
-from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
+from typing import Any, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 from erva_ros.core import topics
 
@@ -95,6 +95,22 @@ def unmatched(statuses: Mapping[str, Mapping[str, str]], nodes: Sequence[str],
             if int(value) < need:
                 missing.append(f'{name}: {topic} has {value} of {need} subscribers')
     return missing
+
+
+def rejections_cost(messages: Mapping[str, Any], nmpc: Mapping[str, Any]) -> Optional[str]:
+    """Return why rejected inputs cost the loop samples of control (None if they did not).
+
+    Samples whose state never became the controller's: those it missed (a busy
+    controller's superseded states are load, not rejection) and those it gave the passive
+    command for want of a state -- every state refused, as after a wrong first stamp.
+    """
+    rejected = messages['rejected_total']
+    unseen = ((nmpc.get('missed_samples') or 0) - (nmpc.get('superseded_states') or 0)
+              + (nmpc.get('safe_commands') or 0))
+    if rejected and unseen > 0:
+        return (f'{unseen} samples went without a command of their own while {rejected} '
+                f'input messages were rejected')
+    return None
 
 
 def recorder_unmatched(recorder: Mapping[str, str], record: Mapping[str, int]) -> List[str]:

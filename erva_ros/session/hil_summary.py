@@ -105,7 +105,7 @@ def hil_block(values: Values, estimates: Dict[int, np.ndarray],
     bridge['timeout_age_ms_max'] = value_float(cmd.get('timeout_age_ms_max'))
     estimator: Dict[str, Any] = {k: value_int(est.get(k)) for k in (
         'updates', 'incomplete', 'gaps', 'restarts', 'late_or_repeated', 'rejected',
-        'no_road', 'road_waits', 'road_extrapolated')}
+        'no_road', 'road_waits', 'road_extrapolated', 'before_road')}
     estimator['nis_mean'] = value_float(est.get('nis_mean'))
     estimator['error'] = estimation_error(estimates, truth)
     return {'bridge': bridge, 'ecu': ecu_out, 'estimator': estimator,

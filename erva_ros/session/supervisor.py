@@ -16,7 +16,7 @@ import time
 from typing import Any, Dict, List, Optional
 
 from erva_ros.core import topics
-from erva_ros.session import hil_summary
+from erva_ros.session import accounting, hil_summary
 from erva_ros.session.recording import (check_recording, PROCESS as RECORDER,
                                         RECORDER_PRIORITY_BELOW, RECORDER_STATUS, RecorderDrain,
                                         start_recorder)
@@ -290,14 +290,9 @@ class Supervisor:
 
     def _check_rejections(self, summary: Dict[str, Any]) -> None:
         """Fail the run if rejected inputs cost the loop a sample of control."""
-        rejected = summary['messages']['rejected_total']
-        nm = summary['nmpc']
-        # Samples whose state never became the controller's (a busy controller's
-        # superseded states are load, not rejection).
-        unseen = (nm.get('missed_samples') or 0) - (nm.get('superseded_states') or 0)
-        if rejected and unseen > 0:
-            self.errors.append(f'{unseen} samples went without a command of their own while '
-                               f'{rejected} input messages were rejected')
+        error = accounting.rejections_cost(summary['messages'], summary['nmpc'])
+        if error:
+            self.errors.append(error)
 
     def _check_recording(self) -> Dict[str, Any]:
         """Compare the bag file with what every node published; add an error per loss."""
