@@ -422,6 +422,7 @@ def test_on_the_road_grid_no_state_goes_out_before_the_first_road_sample(tmp_pat
             send()
         assert count('before_road') >= 3, log.read_text()[-800:]
         assert not driver.est and count('updates') == 0
+        assert driver.last('state_estimator_node')[3].startswith('no road height yet')
         driver.start_road()
         end = time.monotonic() + 60.0
         while len(driver.est) < 3 and time.monotonic() < end:

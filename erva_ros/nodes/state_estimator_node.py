@@ -335,6 +335,8 @@ class StateEstimatorNode(Node):
             values[f'std_{name}'] = float(s)
         if values['no_road'] and level == diag.OK:
             level, text = diag.WARN, 'no road height received: assuming w = 0'
+        if values['before_road'] and not values['updates']:
+            level, text = diag.WARN, 'no road height yet: measurements off its grid not used'
         values.update(diag.publisher_values(self.counted_publishers))
         values['status_seq'] = next(self._status_seq)
         self.pub_diag.publish(diag.array_msg(self.get_clock().now().nanoseconds, [
