@@ -193,7 +193,8 @@ class StateEstimatorNode(Node):
             self.count['rejected'] += 1
             return
         stamp, y = parsed
-        if self.on_road_grid and self.grid_ns is None and not self._first_road():
+        if (self.on_road_grid and self.grid_ns is None
+                and not self._wait_for_road(lambda: self.grid_ns is not None)):
             # No grid yet: a state stamped off it would make the NMPC take the wrong
             # grid and refuse every later state (seen with the loop split across hosts,
             # where the ECU's first frames beat the first road height). Not published.
@@ -204,12 +205,7 @@ class StateEstimatorNode(Node):
             self.count['late_or_repeated'] += 1
             return
         if self.grid_ns is not None and not self._road_at(stamp):
-            # The ECU samples and sends at t_k, as the road node publishes w(t_k): the
-            # measurement may come first.  The prediction needs w(t_k): wait for it
-            # (the lock is released meanwhile), at most ROAD_WAIT_PERIODS.
-            self.count['road_waits'] += 1
-            self.road_arrived.wait_for(lambda: self._road_at(stamp),
-                                       ROAD_WAIT_PERIODS * self.ts)
+            self._wait_for_road(lambda: self._road_at(stamp))
         if any(math.isnan(v) for v in y):   # a CAN frame of the cycle was lost
             self.count['incomplete'] += 1
         u_now, u_mean, accel, deflection, speed = y
@@ -257,15 +253,15 @@ class StateEstimatorNode(Node):
         return stamp - ((stamp - self.grid_ns + self.ts_ns // 4) % self.ts_ns
                         - self.ts_ns // 4)
 
-    def _first_road(self) -> bool:
-        """Wait (lock released) up to ROAD_WAIT_PERIODS for the first road sample.
+    def _wait_for_road(self, arrived) -> bool:
+        """Wait (lock released) up to ROAD_WAIT_PERIODS until ``arrived()``; counted.
 
-        The ECU starts on the first road height it receives and sends at once, so its
-        first cycle may come just before the road's sample reaches this node.
+        The ECU samples and sends at t_k as the road node publishes w(t_k) (it starts on
+        the first road height it receives): its measurement may come first, and the
+        prediction needs w(t_k) -- and the first cycle the grid of the first sample.
         """
         self.count['road_waits'] += 1
-        return self.road_arrived.wait_for(lambda: self.grid_ns is not None,
-                                          ROAD_WAIT_PERIODS * self.ts)
+        return self.road_arrived.wait_for(arrived, ROAD_WAIT_PERIODS * self.ts)
 
     def _road_at(self, stamp_ns: int) -> bool:
         """Return True once the road sample of ``stamp_ns`` (or a later one) arrived."""
