@@ -5,9 +5,8 @@ import pytest
 
 from erva_ros.core.closed_loop import simulate_closed_loop
 from erva_ros.core.controllers import ControllerSettings, make_controller
-from erva_ros.core.controllers.nmpc import (build_ocp, build_rti, OCPSpec,
-                                            stable_rollout_substep, U_SCALE)
-from erva_ros.core.controllers.sqp import plan_value_function
+from erva_ros.core.controllers.ocp import build_ocp, OCPSpec, stable_rollout_substep, U_SCALE
+from erva_ros.core.controllers.sqp import build_rti, plan_value_function
 from erva_ros.core.model import get_model
 from erva_ros.core.params import paper_params
 from erva_ros.core.plant import PlantSimulator
@@ -38,7 +37,7 @@ def _collocation_solution(ocp, x0, u, w, p):
 @pytest.mark.parametrize('plan,degree,tol', [('bang_bang', 3, 0.03), ('u_max', 3, 0.01),
                                              ('u_min', 3, 0.01), ('bang_bang', 5, 0.003)])
 def test_prediction_matches_the_plant_over_the_whole_box(plan, degree, tol):
-    # NOTES.md: an optimizer harvests integration error.  The NMPC's Radau model must
+    # An optimizer harvests integration error if it can.  The NMPC's Radau model must
     # predict states and harvested energy like the plant (0.5 ms RK4) everywhere in
     # the box, including bang-bang switching between its corners.
     n = 10

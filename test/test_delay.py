@@ -27,7 +27,7 @@ def test_the_controller_plans_from_the_state_when_its_command_acts():
             return super()._compute(x, preview, t)
 
     ctrl = Recording(10, TS, 0.0, 20000.0, P.c_e0)
-    ctrl.compensate_delay(get_model(P), D)
+    ctrl.predict_delay(get_model(P), D)
     road = make_road('paper', 1.0, seed=1)
     plant = PlantSimulator(P, ts=TS, x0=np.array([0.01, -0.1, 0.002, 0.2, 0.003, -0.3]))
     acting = P.c_e0

@@ -6,11 +6,10 @@ import pytest
 
 from erva_ros.core.closed_loop import simulate_closed_loop
 from erva_ros.core.controllers import ControllerSettings, make_controller
-from erva_ros.core.controllers.nmpc import (build_ocp, OCPSpec, stable_rollout_substep,
-                                            U_SCALE)
-from erva_ros.core.controllers.sqp import (convexify, JACOBI_SWEEPS, plan_value_function,
-                                           projection_function, qp_model_function,
-                                           start_function, step_function)
+from erva_ros.core.controllers.linalg import convexify, JACOBI_SWEEPS
+from erva_ros.core.controllers.ocp import build_ocp, OCPSpec, stable_rollout_substep, U_SCALE
+from erva_ros.core.controllers.sqp import (plan_value_function, projection_function,
+                                           qp_model_function, start_function, step_function)
 from erva_ros.core.model import get_model
 from erva_ros.core.params import paper_params
 from erva_ros.core.plant import PlantSimulator
@@ -209,16 +208,16 @@ def test_the_delayed_ocp_predicts_the_delayed_plant():
 
 def test_the_delay_is_set_per_solve_without_rebuilding():
     c = make_controller('preview', P, S.with_(cost='continuous', command_delay_s=0.008))
-    rti = c._rti
+    solver = c._solver
     assert c.ocp.delayed and c.delay is None        # modelled, not predicted outside
     road = make_road('paper', 0.4, seed=0)
     first = simulate_closed_loop(P, c, road, 0.4, actuation_delay_s=0.008)
     c.command_delay_s = 0.004
     second = simulate_closed_loop(P, c, road, 0.4, actuation_delay_s=0.004)
-    assert c._rti is rti and not np.allclose(first.u, second.u)
+    assert c._solver is solver and not np.allclose(first.u, second.u)
     assert set(first.status) == set(second.status) == {'ok'}
     with pytest.raises(ValueError, match='command delay'):
-        c.compensate_delay(MODEL, S.ts)
+        c.command_delay_s = S.ts
 
 
 def test_real_time_sqp_reaches_ipopt_on_a_hard_sample():
@@ -237,7 +236,7 @@ def test_real_time_sqp_reaches_ipopt_on_a_hard_sample():
 def test_passive_tail_is_the_cost_beyond_the_horizon_under_c_e0():
     # Lyapunov quadratic forms = the integrals of a free response of the plant with the
     # passive damping (the model is nearly linear for millimetre deviations).
-    from erva_ros.core.controllers.nmpc import passive_tail
+    from erva_ros.core.controllers.ocp import passive_tail
     q_acc, q_pow = (np.array(m) for m in passive_tail(MODEL, P.c_e0))
     x0 = np.array([2e-3, -1e-2, 5e-4, 3e-2, 1e-3, -2e-2])
     plant = PlantSimulator(P, 'erva', 0.02, x0=x0)

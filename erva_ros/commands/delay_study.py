@@ -52,7 +52,6 @@ def run_seed(job):
     """Run the four variants on one seed; return {variant: metrics}."""
     from erva_ros.core.closed_loop import simulate_closed_loop
     from erva_ros.core.controllers import make_controller
-    from erva_ros.core.controllers.base import Controller
     from erva_ros.core.model import get_model
     from erva_ros.core.roads import make_road
 
@@ -63,7 +62,7 @@ def run_seed(job):
         s = settings.with_(command_delay_s=delay if variant == 'modelled' else 0.0)
         ctrl = make_controller(s.controller, params, s)
         if variant == 'predicted':
-            Controller.compensate_delay(ctrl, get_model(params), delay)
+            ctrl.predict_delay(get_model(params), delay)
         run = simulate_closed_loop(params, ctrl, road, duration, s.ts,
                                    actuation_delay_s=0.0 if variant == 'no_delay' else delay)
         m = run.metrics

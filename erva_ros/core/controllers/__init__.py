@@ -33,18 +33,19 @@ def make_controller(name: Optional[str], params: ERVAParams,
                          f'{", ".join(CONTROLLER_NAMES)}')
     common = dict(horizon=settings.horizon, ts=settings.ts, u_min=settings.u_min,
                   u_max=settings.u_max, c_e0=params.c_e0)
+    # The command delay (settings.command_delay_s) is applied here, once per law.
     if name == 'passive':
         from erva_ros.core.controllers.passive import PassiveController
         return PassiveController(**common)   # constant: nothing to compensate
-    if name == 'skyhook':
-        from erva_ros.core.controllers.skyhook import SkyhookController
-        ctrl = SkyhookController(**common)
-    else:
+    if name != 'skyhook':
         from erva_ros.core.controllers.nmpc import NMPCController
-        ctrl = NMPCController(params, settings.with_(controller=name), kind=kind)
-    if settings.command_delay_s > 0:
+        # models the delay in its OCP
+        return NMPCController(params, settings.with_(controller=name), kind=kind)
+    from erva_ros.core.controllers.skyhook import SkyhookController
+    ctrl = SkyhookController(**common)
+    if settings.command_delay_s > 0:         # predicted outside the law
         from erva_ros.core.model import get_model
-        ctrl.compensate_delay(get_model(params, kind), settings.command_delay_s)
+        ctrl.predict_delay(get_model(params, kind), settings.command_delay_s)
     return ctrl
 
 

@@ -64,12 +64,13 @@ class Controller(ABC):
         self.c_e0 = float(min(max(c_e0, self.u_min), self.u_max))
         self.time_budget_s = float(time_budget_s)
         self._counters: Dict[str, int] = {}
-        #: Command-delay compensation (erva_ros/core/controllers/delay.py), or None.
+        #: The command delay predicted outside the law (erva_ros/core/controllers/delay.py),
+        #: or None.
         self.delay = None
         self.reset()
 
-    def compensate_delay(self, model, delay_s: float) -> None:
-        """Plan for t_k + ``delay_s`` from now on: the command acts that much late."""
+    def predict_delay(self, model, delay_s: float) -> None:
+        """Plan from x(t_k + ``delay_s``) predicted with ``model``: the command acts that late."""
         from erva_ros.core.controllers.delay import DelayCompensation
         self.delay = DelayCompensation(model, self.ts, delay_s)
 

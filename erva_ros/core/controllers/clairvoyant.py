@@ -10,7 +10,7 @@ How it is found (the problem is non-convex: bilinear u·v_gen, bang-bang optima 
 many local optima -- converged plans from different starts differ by several per cent):
 
 1. **Starts** on the collocation model of the NMPC (Radau IIA degree 3, one interval
-   per Ts, :func:`erva_ros.core.controllers.nmpc.build_ocp` with cost 'bound'): the
+   per Ts, :func:`erva_ros.core.controllers.ocp.build_ocp` with cost 'bound'): the
    constant plans u_min, c_e0, u_max and every plan handed in (the causal
    controllers' closed-loop commands, the bounds of other weightings), each converged
    by IPOPT (exact Hessian) and evaluated in the plant.
@@ -46,8 +46,8 @@ import numpy as np
 
 from erva_ros.core.codegen import BufferedCall, compile_for
 from erva_ros.core.controllers.base import Controller
-from erva_ros.core.controllers.nmpc import (build_ipopt, build_ocp, OCPSpec,
-                                            stable_rollout_substep, U_SCALE)
+from erva_ros.core.controllers.ocp import build_ocp, OCPSpec, stable_rollout_substep, U_SCALE
+from erva_ros.core.controllers.reference import build_ipopt
 from erva_ros.core.metrics import comfort_power, evaluation_objective
 from erva_ros.core.model import get_model, PLANT_SUBSTEP_S, QuarterCarModel
 from erva_ros.core.params import ERVAParams

@@ -1,11 +1,16 @@
-"""Command-delay compensation: plan for the instant the command will act.
+"""The command delay d: the command computed at t_k acts from t_k + d on.
 
 The paper's NMPC (§III.A) plans u_k for [t_k, t_k + Ts) from x(t_k).  On a vehicle, and in
 `erva run --ecu virtual`, the command reaches the generator a delay d after the sample
 t_k (sensors → CAN → bridge → estimator → solve → CAN → ECU: ≈ 8 ms of the 20 ms period),
 and the previous command acts until then.  Planned for t_k, the first move is then
-applied too late throughout.  With a known d (setting ``command_delay_s``) the
-controller instead
+applied too late throughout.  A known d (setting ``command_delay_s``, checked by
+:func:`check_delay`) is applied once, by :func:`erva_ros.core.controllers.make_controller`:
+
+* the NMPC models it in its OCP (erva_ros/core/controllers/ocp.py: a prefix interval
+  [t_k, t_k + d] with the acting command), d a parameter of every solve;
+* every other law is handed the state and the preview predicted d ahead
+  (:class:`DelayCompensation`, :meth:`Controller.predict_delay`), which:
 
 1. predicts x(t_k + d) from x(t_k) with the shared model (paper eq. (11), RK4 in steps
    of at most 0.5 ms, the plant's), the command now acting held, and the road linear
@@ -28,14 +33,24 @@ from erva_ros.core.codegen import BufferedCall
 from erva_ros.core.model import PLANT_SUBSTEP_S, QuarterCarModel
 
 
+def check_delay(delay_s: float, ts: float, positive: bool = False) -> float:
+    """Return ``delay_s`` as a float if it lies in [0, ts) (``positive``: (0, ts)), else raise.
+
+    ValueError names the range: a command must act before the next sample's does.
+    """
+    low_ok = delay_s > 0.0 if positive else delay_s >= 0.0
+    if not (low_ok and delay_s < ts):
+        raise ValueError(f'command delay must be in {"(" if positive else "["}0, Ts = {ts:g} s), '
+                         f'got {delay_s:g} s')
+    return float(delay_s)
+
+
 class DelayCompensation:
     """Predict the state and the road preview ``delay_s`` ahead (see module doc)."""
 
     def __init__(self, model: QuarterCarModel, ts: float, delay_s: float):
-        if not 0.0 < delay_s < ts:
-            raise ValueError(f'command delay must be in (0, Ts = {ts:g} s), got {delay_s:g} s')
         self.ts = float(ts)
-        self.delay_s = float(delay_s)
+        self.delay_s = check_delay(delay_s, ts, positive=True)
         substeps = max(1, math.ceil(self.delay_s / PLANT_SUBSTEP_S - 1e-9))
         self._step = BufferedCall(model.rk4_step(self.delay_s, substeps))
 
@@ -48,4 +63,4 @@ class DelayCompensation:
         return self._step(x, u_acting, preview[0], shifted[0])[0], shifted
 
 
-__all__ = ['DelayCompensation']
+__all__ = ['DelayCompensation', 'check_delay']

@@ -5,10 +5,10 @@ The file's ``nmpc_node: ros__parameters:`` section (merged over ``/**``, as
 single source of the allowed values: :func:`load_controller_settings` validates with
 them and the ROS 2 ``nmpc_node`` builds its ParameterDescriptors from them.
 
-Input box (not stated in the paper, see NOTES.md): u = c_e ∈ [0, 20] kNs/m by
+Input box (not stated in the paper): u = c_e ∈ [0, 20] kNs/m by
 default.  0 is the open circuit (duty cycle 0, R → ∞); 20 kNs/m = 2·c_e0 puts the
 paper's passive damping in the middle of the box.  The NMPC's prediction model is
-stable over the whole box: it is Radau IIA collocation (L-stable), see nmpc.py.
+stable over the whole box: it is Radau IIA collocation (L-stable), see ocp.py.
 """
 
 from dataclasses import asdict, dataclass, fields, replace
@@ -19,11 +19,11 @@ from erva_ros.core.specs import Choice, Integer, Number
 
 #: Controllers understood by make_controller (and `erva sim --controller`).
 CONTROLLER_NAMES = ('passive', 'skyhook', 'no_preview', 'preview', 'preview_long')
-#: Stage-cost variants of the NMPC (see erva_ros.core.controllers.nmpc).
+#: Stage-cost variants of the NMPC (see erva_ros.core.controllers.ocp).
 COST_KINDS = ('paper', 'continuous')
 #: NMPC solvers: 'sqp' = real-time SQP (one CasADi Function), 'ipopt' = converged reference.
 SOLVER_KINDS = ('sqp', 'ipopt')
-#: Terminal costs of the continuous NMPC cost (erva_ros/core/controllers/nmpc.py passive_tail).
+#: Terminal costs of the continuous NMPC cost (erva_ros/core/controllers/ocp.py passive_tail).
 TERMINAL_COSTS = ('passive', 'none')
 #: Reduced Hessians of the real-time SQP (erva_ros/core/controllers/sqp.py).
 HESSIANS = ('exact', 'gauss_newton')

@@ -1,6 +1,6 @@
 r"""The NMPC's real-time solver: an SQP on the collocation NLP, condensed onto the N inputs.
 
-The OCP (:mod:`erva_ros.core.controllers.nmpc`) is a collocation NLP in z = (states, inputs,
+The OCP (:mod:`erva_ros.core.controllers.ocp`) is a collocation NLP in z = (states, inputs,
 collocation states).  It is non-convex (bilinear u·v_gen, near bang-bang optima).
 Each iteration, at the current point z:
 
@@ -53,19 +53,13 @@ import casadi as ca
 import numpy as np
 
 from erva_ros.core.codegen import compile_for
+from erva_ros.core.controllers.linalg import convexify, lu_factor, lu_solve, symmetric
+from erva_ros.core.controllers.settings import HESSIANS
 
-#: Reduced Hessians the real-time SQP can use (see the module doc).
-HESSIANS = ('exact', 'gauss_newton')
 #: Backtracking steps of the line search (a step is tried only if the longer one failed).
 LINE_SEARCH_STEPS = (1.0, 0.5, 0.25, 0.125)
 #: Armijo constant: accept a step that gains this share of the predicted merit decrease.
 ARMIJO = 1e-4
-#: Sweeps of the Jacobi eigen-decomposition of the reduced Hessian: on the recorded
-#: problems |H| to ≤ 5e-13 at 10 x 10 (preview), median 4e-7 at 20 x 20 (preview_long).
-#: Fewer at 20 x 20 cost comfort: 3 sweeps, a solve ~5 % faster, J +3.3 ± 1.1 % (docs/nmpc.md).
-JACOBI_SWEEPS = 5
-#: Eigenvalue floor of the convexified Hessian, relative to its largest |eigenvalue|.
-EIG_FLOOR = 1e-6
 #: (Newton, chord) steps per interval that put a plan on the collocation equations: a
 #: chord step reuses the Newton step's factorisation (~1/4 of a Newton step's arithmetic).
 #: From the SQP's linear prediction, measured on seed 0's problems: defects ≤ 1e-8, the
@@ -73,117 +67,6 @@ EIG_FLOOR = 1e-6
 SOLVE_STEPS = (1, 2)
 #: ℓ1 merit: ρ = RHO_FACTOR·max|multiplier| + RHO_MIN.
 RHO_FACTOR, RHO_MIN = 2.0, 1e-6
-
-
-def _elements(a):
-    """Return a dense SX matrix as nested lists of scalars (zeros as the constant 0)."""
-    a = ca.densify(a)
-    return [[a[i, j] for j in range(a.size2())] for i in range(a.size1())]
-
-
-def _lu(a):
-    """Factor a square SX matrix A = L·U without pivoting (L unit lower); skip zeros."""
-    m = _elements(a)
-    n = len(m)
-    for j in range(n):
-        for i in range(j + 1, n):
-            if m[i][j].is_zero():
-                continue
-            m[i][j] = m[i][j] / m[j][j]
-            for k in range(j + 1, n):
-                if not m[j][k].is_zero():
-                    m[i][k] = m[i][k] - m[i][j] * m[j][k]
-    return m
-
-
-def _lu_solve(lu, b, transpose: bool = False):
-    """Solve A·x = b (or Aᵀ·x = b) for the columns of the SX matrix b, from :func:`_lu`."""
-    n = len(lu)
-    cols = []
-    for c in range(b.size2()):
-        x = [b[i, c] for i in range(n)]
-        if not transpose:      # L y = b, then U x = y
-            order = [(range(n), lambda i, k: lu[i][k], False),
-                     (range(n - 1, -1, -1), lambda i, k: lu[i][k], True)]
-        else:                  # Uᵀ y = b, then Lᵀ x = y
-            order = [(range(n), lambda i, k: lu[k][i], True),
-                     (range(n - 1, -1, -1), lambda i, k: lu[k][i], False)]
-        for rows, entry, divide in order:
-            done = []
-            for i in rows:
-                for k in done:
-                    e = entry(i, k)
-                    if not e.is_zero():
-                        x[i] = x[i] - e * x[k]
-                if divide:
-                    x[i] = x[i] / lu[i][i]
-                done.append(i)
-        cols.append(ca.vertcat(*x))
-    return ca.horzcat(*cols)
-
-
-def _symmetric(m):
-    """Return the symmetric matrix of m's upper triangle (SX: the lower one is never computed)."""
-    return ca.triu(m) + ca.triu(m, False).T
-
-
-@lru_cache(maxsize=None)
-def _jacobi_sweep(n: int) -> ca.Function:
-    """Return one cyclic Jacobi sweep (a, V) -> (a', V'), a the upper triangle by columns.
-
-    One compiled copy called ``sweeps`` times (never inlined), the same arithmetic:
-    unrolled, preview_long's 5 sweeps were 1.6 MB of its 5.8 MB iteration library.
-    """
-    tri, vs = ca.SX.sym('a', n * (n + 1) // 2), ca.SX.sym('v', n, n)
-    upper = [(i, j) for j in range(n) for i in range(j + 1)]    # column-major triangle
-    a = [[None] * n for _ in range(n)]
-    for e, (i, j) in enumerate(upper):
-        a[i][j] = a[j][i] = tri[e]
-    v = [[vs[i, j] for j in range(n)] for i in range(n)]
-    for p in range(n - 1):
-        for q in range(p + 1, n):
-            apq = a[p][q]
-            dlt = a[q][q] - a[p][p]
-            sign = 2 * (dlt >= 0) - 1
-            t = 2 * apq * sign / (ca.fabs(dlt) + ca.sqrt(dlt ** 2 + 4 * apq ** 2) + 1e-300)
-            c = 1 / ca.sqrt(1 + t ** 2)
-            s = t * c
-            # Jᵀ·A·J with J the rotation in (p, q): the angle zeroes a_pq.
-            for k in range(n):
-                if k not in (p, q):
-                    akp, akq = a[k][p], a[k][q]
-                    a[k][p] = a[p][k] = c * akp - s * akq
-                    a[k][q] = a[q][k] = s * akp + c * akq
-                v[k][p], v[k][q] = c * v[k][p] - s * v[k][q], s * v[k][p] + c * v[k][q]
-            a[p][p], a[q][q] = a[p][p] - t * apq, a[q][q] + t * apq
-            a[p][q] = a[q][p] = ca.SX(0.0)
-    return ca.Function(f'jacobi_sweep_{n}', [tri, vs],
-                       [ca.vertcat(*[a[i][j] for i, j in upper]),
-                        ca.vertcat(*[ca.horzcat(*row) for row in v])],
-                       {'never_inline': True})
-
-
-def convexify(h, sweeps: int = JACOBI_SWEEPS):
-    """Return V·max(|Λ|, floor)·Vᵀ for symmetric h = V·Λ·Vᵀ (SX).
-
-    The eigenvalues are mirrored: along a direction of negative curvature the model
-    keeps its magnitude (a modified Cholesky, tried first, inflated the curvature of
-    near-singular directions 10-60x and made the SQP creep).  Cyclic Jacobi rotations
-    with the smaller angle (|θ| ≤ π/4) converge quadratically; ``sweeps`` fixed, one
-    compiled sweep called that many times.  V is a product of rotations, so the result
-    is positive definite whatever the sweeps; fewer only leave it further from |h|.  Only
-    h's upper triangle is read, and each rotation updates one triangle: a symmetric
-    matrix stays symmetric, so the other half would be the same arithmetic again.
-    """
-    n = h.size1()
-    sweep = _jacobi_sweep(n)
-    tri = ca.vertcat(*[h[i, j] for j in range(n) for i in range(j + 1)])
-    vm = ca.SX.eye(n)
-    for _ in range(sweeps):
-        tri, vm = sweep(tri, vm)
-    lam = ca.vertcat(*[tri[j * (j + 1) // 2 + j] for j in range(n)])
-    floor = EIG_FLOOR * ca.fmax(ca.mmax(ca.fabs(lam)), 1e-12)
-    return _symmetric(ca.mtimes([vm, ca.diag(ca.fmax(ca.fabs(lam), floor)), vm.T]))
 
 
 def qp_model_function(ocp, hessian: str = 'exact', convex: bool = True) -> ca.Function:
@@ -239,7 +122,7 @@ def qp_model_function(ocp, hessian: str = 'exact', convex: bool = True) -> ca.Fu
     if ocp.delayed:
         # The prefix depends on nothing decided: only its defects are corrected.
         gp, php, gk, phk = jac_pre(z[:nxa], v_pre, z[nxa:nxa + nk], road_pre, h_pre)
-        dk = -_lu_solve(_lu(gk), gp)
+        dk = -lu_solve(lu_factor(gk), gp)
         dz0[nxa:nxa + nk] = dk
         x_next = z[nxa + nk:ocp.offset + nxa]
         corr = ca.mtimes(phk, dk) + php - x_next
@@ -250,8 +133,8 @@ def qp_model_function(ocp, hessian: str = 'exact', convex: bool = True) -> ca.Fu
         args = (xi, vi, ki, road[:, i], m * ocp.ts, alpha)
         gi, phii, jg, jphi, grad, *gn_terms = jac(*args)
         gx, gv, gk = jg[:, :nxa], jg[:, nxa], jg[:, nxa + 1:]
-        lu = _lu(gk)          # collocation states: one sparse LU per interval
-        kk = -_lu_solve(lu, ca.horzcat(gx, gv, gi + ca.mtimes(gx, corr)))
+        lu = lu_factor(gk)          # collocation states: one sparse LU per interval
+        kk = -lu_solve(lu, ca.horzcat(gx, gv, gi + ca.mtimes(gx, corr)))
         t_i = ca.vertcat(ca.DM.eye(nxa + 1), kk[:, :nxa + 1])     # y_i = T_i·(x_i, v_i)
         a_i = ca.mtimes(jphi, t_i)                                 # x_{i+1} = A_i·(x_i, v_i)
         unit = ca.DM.zeros(1, nb)
@@ -279,7 +162,7 @@ def qp_model_function(ocp, hessian: str = 'exact', convex: bool = True) -> ca.Fu
     for args, s_i, t_i, zeta, grad, gx, jphi, lu, gn_terms in reversed(sweep):
         jphi_x, jphi_k = jphi[:, :nxa], jphi[:, nxa + 1:]
         rhs = grad[nxa + 1:] - ca.mtimes(jphi_k.T, nu_next)
-        mu_i = -_lu_solve(lu, rhs, transpose=True)          # collocation multipliers
+        mu_i = -lu_solve(lu, rhs, transpose=True)          # collocation multipliers
         h_i = hess(*args, mu_i, nu_next)
         h_red = ca.mtimes([t_i.T, h_i, t_i])                # the interval on (x_i, v_i)
         g_red = ca.mtimes(t_i.T, grad + ca.mtimes(h_i, zeta))
@@ -288,7 +171,7 @@ def qp_model_function(ocp, hessian: str = 'exact', convex: bool = True) -> ca.Fu
             jt = ca.mtimes(jres, t_i)
             h_red += 2 * ca.mtimes([jt.T, ca.diag(wres), jt])
             g_red += 2 * ca.mtimes(jt.T, wres * ca.mtimes(jres, zeta))
-        h_red = _symmetric(h_red)
+        h_red = symmetric(h_red)
         hr += ca.mtimes([s_i.T, h_red, s_i])
         gr += ca.mtimes(s_i.T, g_red)
         g_lin += ca.mtimes(s_i.T, ca.mtimes(t_i.T, grad))
@@ -297,7 +180,7 @@ def qp_model_function(ocp, hessian: str = 'exact', convex: bool = True) -> ca.Fu
         nu_next = -(grad[:nxa] + ca.mtimes(gx.T, mu_i) - ca.mtimes(jphi_x.T, nu_next))
     rho = RHO_FACTOR * lam_max + RHO_MIN
     merit = ca.vertcat(df0, rho)
-    hr = _symmetric(hr)
+    hr = symmetric(hr)
     return ca.Function('qp_model', [z, p],
                        [convexify(hr) if convex else hr, gr, g_lin, dz0, ca.horzcat(*stages),
                         merit],
@@ -347,10 +230,10 @@ def _project(ocp, p, x, inputs, guess, steps=SOLVE_STEPS):
     defects = ca.Function('defects', [xt, v, k, wv, h], [g])
     jac, k_on = ca.jacobian(g, k), k
     for n in range(newton):
-        lu = _lu(jac if n == 0 else ca.substitute(jac, k, k_on))
-        k_on = k_on - _lu_solve(lu, defects(xt, v, k_on, wv, h))
+        lu = lu_factor(jac if n == 0 else ca.substitute(jac, k, k_on))
+        k_on = k_on - lu_solve(lu, defects(xt, v, k_on, wv, h))
     for _ in range(chords):                   # the last Newton step's Jacobian kept
-        k_on = k_on - _lu_solve(lu, defects(xt, v, k_on, wv, h))
+        k_on = k_on - lu_solve(lu, defects(xt, v, k_on, wv, h))
     solve = ca.Function('collocation_solve', [xt, v, k, wv, h], [k_on], {'never_inline': True})
     end = ca.Function('interval_end', [xt, v, k, wv, h], [ocp.interval(xt, v, k, wv, h, al)[1]])
     end_pre = ca.Function('prefix_end', [xt, v, k, wv, h], [phi])
@@ -544,5 +427,5 @@ def build_rti(ocp, max_iter: int, tol: float = 1e-4, codegen: str = 'off',
     return rti
 
 
-__all__ = ['build_rti', 'qp_model_function', 'step_function', 'convexify', 'HESSIANS',
-           'LINE_SEARCH_STEPS']
+__all__ = ['LINE_SEARCH_STEPS', 'build_rti', 'plan_value_function',
+           'projection_function', 'qp_model_function', 'start_function', 'step_function']
