@@ -15,29 +15,18 @@ Importing this file needs no ROS (only erva_ros's core): the launch imports are 
 
 import os
 
-from erva_ros.core.config import shipped_defaults
+from erva_ros.core.node_params import launch_arguments, LOOP_NODES
 from erva_ros.core.params import read_ros_params
 from erva_ros.core.topics import NAMESPACE
 
 #: Executables started (console scripts of setup.py), in start order.
-NODES = ('nmpc_node', 'plant_sim_node', 'road_preview_node')
+NODES = LOOP_NODES
 #: Parameter files of the package's config/ directory.
 CONFIG_FILES = ('erva_paper.yaml', 'nmpc.yaml', 'live.yaml')
-#: Launch arguments: (name, default, ROS parameter type, description).
-#: Defaults of the launch arguments: the shipped config/live.yaml and config/nmpc.yaml.
-_DEFAULTS = {**shipped_defaults('nmpc.yaml', 'nmpc_node'), **shipped_defaults('live.yaml')}
-ARGUMENTS = tuple((name, default if name == 'namespace' else str(_DEFAULTS[name]), kind, doc)
-                  for name, default, kind, doc in (
-    ('namespace', NAMESPACE, str, 'namespace of the nodes and topics'),
-    ('mode', None, str, 'realtime (wall clock) or lockstep (plant publishes /clock)'),
-    ('model', None, str, 'plant and controller model: erva or benchmark'),
-    ('controller', None, str, 'passive, skyhook, no_preview, preview, preview_long'),
-    ('alpha1', None, float, 'comfort weight alpha1 (paper eq. (12))'),
-    ('alpha2', None, float, 'energy weight alpha2 (paper eq. (12))'),
-    ('road', None, str, 'road profile: paper, iso8608, bump, sine'),
-    ('seed', None, int, 'road noise and preview error seed'),
-    ('duration_s', None, float, 'scenario length (s)'),
-))
+#: Launch arguments: (name, default, python type, description), from the nodes' schemas
+#: (erva_ros/core/node_params.py; defaults: the shipped config files).
+ARGUMENTS = (('namespace', NAMESPACE, str, 'namespace of the nodes and topics'),
+             *launch_arguments())
 
 
 def node_section(path: str, node: str) -> dict:

@@ -14,7 +14,6 @@ import subprocess
 import sys
 import time
 
-import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import AccelStamped, PointStamped
@@ -23,10 +22,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
-from erva_ros.core import topics
+from erva_ros.core import contract, topics
+from erva_ros.core.reports import report_from_status
 from erva_ros.ros import qos as ros_qos
-from erva_ros.ros.diagnostics import parse_status
-from erva_ros.ros.msgs import time_to_ns
 
 from conftest import REPO, ros_env
 
@@ -98,37 +96,40 @@ class Harness:
         self.states = []       # (stamp_ns, x)
         self.generator = []    # (stamp_ns, displacement, velocity, effort)
         self.accel = []        # (stamp_ns, accel)
-        self.diag = []         # (rx_ns, node, level, message, values)
+        self.diag = []         # (rx_ns, node, level, message, report)
         self.on_state = None
-        self.sub_cmd = n.create_subscription(JointTrajectory, topics.DAMPING_CMD, self._cmd, qos)
-        self.sub_state = n.create_subscription(JointState, topics.STATE, self._state, qos)
-        self.sub_gen = n.create_subscription(JointState, topics.GENERATOR, self._gen, qos)
-        n.create_subscription(AccelStamped, topics.SPRUNG_ACCEL, self._accel, qos)
-        n.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._diag, qos)
 
-    def _cmd(self, msg):
-        self.commands.append((time_to_ns(msg.header.stamp), time.time_ns(),
-                              np.array([p.positions[0] for p in msg.points])))
+        def sub(msg_type, topic, callback):
+            return n.create_subscription(msg_type, topic, callback, qos, raw=True)
+        self.sub_cmd = sub(JointTrajectory, topics.DAMPING_CMD, self._cmd)
+        self.sub_state = sub(JointState, topics.STATE, self._state)
+        self.sub_gen = sub(JointState, topics.GENERATOR, self._gen)
+        sub(AccelStamped, topics.SPRUNG_ACCEL, self._accel)
+        sub(DiagnosticArray, topics.DIAGNOSTICS, self._diag)
 
-    def _state(self, msg):
-        x = np.empty(2 * len(msg.position))
-        x[0::2], x[1::2] = msg.position, msg.velocity
-        self.states.append((time_to_ns(msg.header.stamp), x))
+    def _cmd(self, data):
+        cmd = contract.decode_command(data)
+        self.commands.append((cmd.stamp_ns, time.time_ns(), cmd.plan))
+
+    def _state(self, data):
+        row = contract.decode_state(data)
+        self.states.append((row.stamp_ns, row.x))
         if self.on_state is not None:
-            self.on_state(self.states[-1][0], x)
+            self.on_state(row.stamp_ns, row.x)
 
-    def _gen(self, msg):
-        self.generator.append((time_to_ns(msg.header.stamp), msg.position[0],
-                               msg.velocity[0], msg.effort[0]))
+    def _gen(self, data):
+        g = contract.decode_generator(data)
+        self.generator.append((g.stamp_ns, g.position, g.velocity, g.effort))
 
-    def _accel(self, msg):
-        self.accel.append((time_to_ns(msg.header.stamp), msg.accel.linear.z))
+    def _accel(self, data):
+        a = contract.decode_accel(data)
+        self.accel.append((a.stamp_ns, a.sprung_accel))
 
-    def _diag(self, msg):
-        for status in msg.status:
-            name, level, text, values = parse_status(status)
-            if name.startswith(self.ns + '/'):
-                self.diag.append((time.time_ns(), name.rsplit('/', 1)[-1], level, text, values))
+    def _diag(self, data):
+        for status in contract.decode_diagnostics(data)[1]:
+            if status.name.startswith(self.ns + '/'):
+                self.diag.append((time.time_ns(), status.name.rsplit('/', 1)[-1],
+                                  status.level, status.message, report_from_status(status)))
 
     def spin_until(self, condition, timeout):
         """Spin until ``condition()`` holds; return whether it did within ``timeout`` s."""
@@ -153,26 +154,28 @@ class Harness:
         """Spin until both ends of each publisher and subscription are matched.
 
         This side is asked directly; the node under test's writers report the readers
-        they matched on /diagnostics (``subscribers:<topic>``): a message it published
-        before its writer matched ours would never reach the harness.  (A reliable writer
-        of the harness repairs what a reader got before it matched.)
+        they matched in their report (``subscribers``): a message it published before its
+        writer matched ours would never reach the harness.  (A reliable writer of the
+        harness repairs what a reader got before it matched.)
         """
         def node_sees_us():
             if not self.diag:
                 return False
-            values = self.diag[-1][4]
-            return all(int(values.get(f'subscribers:{s.topic_name}', 1)) >= 1 for s in subs)
+            report = self.diag[-1][4]
+            return all(report.subscribers.get(s.topic_name, 1) >= 1 for s in subs)
         ok = self.spin_until(lambda: all(p.get_subscription_count() >= 1 for p in pubs)
                              and all(s.get_publisher_count() >= 1 for s in subs)
                              and node_sees_us(), timeout)
         assert ok, 'the node under test did not come up'
 
     def wait_for_diag(self, node, condition, timeout=120.0):
-        """Spin until the newest diagnostics values of ``node`` satisfy ``condition``.
+        """Spin until the newest report of ``node`` satisfies ``condition``.
 
-        Returns those values (the caller asserts on them: a timeout leaves the last seen).
+        Returns that report (the caller asserts on it: a timeout leaves the last seen).
+        ``condition`` is only asked once the node has reported.
         """
-        self.spin_until(lambda: condition(self.last_diag(node)), timeout)
+        self.spin_until(lambda: self.last_diag(node) is not None
+                        and condition(self.last_diag(node)), timeout)
         return self.last_diag(node)
 
     def spin_for(self, seconds):
@@ -182,11 +185,11 @@ class Harness:
             self.executor.spin_once(timeout_sec=0.005)
 
     def last_diag(self, node):
-        """Return the values of the newest diagnostics of ``node``."""
+        """Return the newest report of ``node`` (None before its first)."""
         for entry in reversed(self.diag):
             if entry[1] == node:
                 return entry[4]
-        return {}
+        return None
 
     def close(self):
         self.executor.shutdown()

@@ -409,7 +409,7 @@ def test_a_full_transmit_queue_drops_the_frame_but_keeps_the_bus(codec, channel)
         assert bridge.submit([12500.0], now=0.02) == 'not_sent'
         c = bridge.counts
         assert (c['send_errors'], c['bus_losses']) == (1, 0) and bridge.bus_up
-        assert 'frame dropped' in bridge.diagnostics(now=0.02)[1].values['error']
+        assert 'frame dropped' in bridge.diagnostics(now=0.02)[1].error
         assert ecu_bus.recv(0.1) is not None                 # the ECU reads again
         assert bridge.submit([13000.0], now=0.04) == 'sent'
         frames, _ = _drain(ecu_bus, codec)
@@ -433,7 +433,7 @@ def test_ecu_status_heartbeat_and_silence(codec, channel):
         assert bridge.receive(0.5).kind is Kind.STATUS
         d = bridge.diagnostics()[2]
         assert d.level == WARN and 'SAFE_TIMEOUT' in d.message
-        assert d.values['ecu_cmd_timeouts_mod256'] == '4'
+        assert d.ecu_cmd_timeouts_mod256 == 4
         now[0] = 0.05                                             # not yet silent
         bridge.tick()
         assert bridge.diagnostics()[2].level == WARN
@@ -677,9 +677,9 @@ def test_bridge_refuses_commands_that_arrive_stale_and_records_its_timeouts(code
             bridge.tick(now=t)
         assert bridge.command_state == 'timeout'
         assert bridge.timeouts_worst == {'plan_frames': 2, 'command_age_s': 0.065}
-        values = bridge.diagnostics(now=0.065)[0].values
-        assert (values['commands_stale'], values['timeout_plan_frames_max'],
-                values['timeout_age_ms_max']) == ('2', '2', '65.00')
+        cmd = bridge.diagnostics(now=0.065)[0]
+        assert (cmd.commands_stale, cmd.timeout_plan_frames_max,
+                cmd.timeout_age_ms_max) == (2, 2, 65.0)
         frames, _ = _drain(ecu_bus, codec)
         assert [round(p.c_e) for _, _, p in frames] == [12000, 12000, 12000, C_E0]
     finally:

@@ -65,7 +65,8 @@ class Driver:
         self.state_sub = RealtimeSubscription(self.node, JointState, topics.STATE, deep,
                                               self._on_state)
         self.node.create_subscription(JointState, hil_topics.TRUE_STATE, self._on_truth, deep)
-        self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diag, deep)
+        self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diag, deep,
+                                      raw=True)
         # The road on a 50 Hz grid of sample instants, as road_preview_node publishes it.
         self.t0_ns = time.time_ns()
         self._stop = threading.Event()
@@ -94,7 +95,7 @@ class Driver:
         self._road_thread.start()
 
     def _road_loop(self):
-        from erva_ros.ros.msgs import road_height_msg
+        from ros_msgs import road_height_msg
         last = -1
         while not self._stop.is_set():
             k = (time.time_ns() - self.t0_ns) // 20_000_000       # the newest instant passed
@@ -105,7 +106,7 @@ class Driver:
             self._stop.wait(0.02 - (time.time_ns() - self.t0_ns) % 20_000_000 * 1e-9)
 
     def _on_state(self, msg, info=None):
-        from erva_ros.ros.msgs import damping_msg, parse_state
+        from ros_msgs import damping_msg, parse_state
         stamp, x = parse_state(msg, 'erva')
         self.est[stamp] = x
         if self.answer:
@@ -114,24 +115,24 @@ class Driver:
             self.answers += 1
 
     def _on_ecu(self, topic, msg):
-        from erva_ros.ros.msgs import time_to_ns
+        from ros_msgs import time_to_ns
         self.ecu[topic][time_to_ns(msg.header.stamp)] = msg
 
     def _on_measurements(self, msg):
-        from erva_ros.ros.msgs import time_to_ns
+        from ros_msgs import time_to_ns
         self.measurements.setdefault(time_to_ns(msg.header.stamp), []).append(
             (list(msg.name), list(msg.position)))
 
     def _on_truth(self, msg):
-        from erva_ros.ros.msgs import parse_state
+        from ros_msgs import parse_state
         stamp, x = parse_state(msg, 'erva')
         self.truth[stamp] = x
 
-    def _on_diag(self, arr):
-        from erva_ros.ros.diagnostics import parse_status
-        for st in arr.status:
-            name, level, message, values = parse_status(st)
-            self.diag_log.append((time.monotonic(), name, level, message, values))
+    def _on_diag(self, data):
+        # The key/values as published (the reports' wire form, erva_ros/core/reports.py).
+        from erva_ros.core.contract import decode_diagnostics
+        for st in decode_diagnostics(data)[1]:
+            self.diag_log.append((time.monotonic(), st.name, st.level, st.message, st.values))
 
     def spin(self, seconds, until=lambda: False):
         end = time.monotonic() + seconds
@@ -304,7 +305,7 @@ def test_hil_loop_estimates_the_state_and_goes_safe_when_the_nmpc_stops(tmp_path
 def test_estimator_takes_one_message_per_cycle_and_rejects_bad_ones(tmp_path):
     from erva_ros.core.hil import topics as hil_topics
     from erva_ros.session.hil_processes import hil_process_specs
-    from erva_ros.ros.msgs import ns_to_time
+    from ros_msgs import ns_to_time
     from sensor_msgs.msg import JointState
 
     specs = [s for s in hil_process_specs(PARAMS, env=ros_env())
@@ -396,7 +397,7 @@ def test_on_the_road_grid_no_state_goes_out_before_the_first_road_sample(tmp_pat
     # counted (before_road) and not published; once the road runs, states are on its grid.
     from erva_ros.core.hil import topics as hil_topics
     from erva_ros.session.hil_processes import hil_process_specs
-    from erva_ros.ros.msgs import ns_to_time
+    from ros_msgs import ns_to_time
     from sensor_msgs.msg import JointState
 
     specs = [s for s in hil_process_specs(PARAMS, env=ros_env(), stamp_on_road_grid=True)
@@ -436,8 +437,8 @@ def test_on_the_road_grid_no_state_goes_out_before_the_first_road_sample(tmp_pat
 
 
 def test_measurements_are_parsed_and_checked():
+    from erva_ros.core.contract import decode_measurements, MessageRejected
     from erva_ros.core.hil.topics import MEASUREMENT_NAMES
-    from erva_ros.nodes.state_estimator_node import parse_measurements
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import JointState
 
@@ -445,6 +446,13 @@ def test_measurements_are_parsed_and_checked():
         msg = JointState(name=list(names), position=values)
         msg.header.stamp.sec, msg.header.stamp.nanosec = 12, 340_000_000
         return serialize_message(msg)
+
+    def parse_measurements(data):
+        try:
+            m = decode_measurements(data)
+        except MessageRejected:
+            return None
+        return m.stamp_ns, (m.c_e, m.c_e_mean, m.sprung_accel, m.deflection, m.speed)
 
     def parse(values, names=MEASUREMENT_NAMES):
         got = parse_measurements(message(values, names))

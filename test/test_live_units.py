@@ -9,14 +9,17 @@ import rclpy
 import yaml
 
 from erva_ros.core import topics
-from erva_ros.ros import msgs
+import ros_msgs as msgs
 from erva_ros.core.loop.command_hold import CommandHold
-from erva_ros.ros.diagnostics import ERROR, parse_status, StatusReporter
+from erva_ros.core.contract import decode_diagnostics
+from erva_ros.core.levels import ERROR
+from erva_ros.core.loop.status import StatusReporter
+from erva_ros.core.node_params import LIVE, NodeSchema
+from erva_ros.core.reports import NodeReport, report_from_status
 from erva_ros.core.config import shipped_defaults
 from erva_ros.session.run_config import (prepare_session, read_live_file, RunConfig,
                                          validate_live)
-from erva_ros.ros.parameters import (declare_controller_settings, declare_erva_params,
-                                     declare_live, LIVE_DEFAULTS, LIVE_SPECS)
+from erva_ros.ros.parameters import declare_node_parameters, declare_schema
 from erva_ros.session.report import format_summary, jsonable
 from erva_ros.core.loop.scenario import build_road, load_road_file
 from erva_ros.core.loop.timing import next_grid_delay_ns, PeriodStats, SampleGrid
@@ -146,12 +149,13 @@ def _node(ctx, *ros_args):
 
 def test_parameters_get_descriptors_with_ranges(ros_context):
     node = _node(ros_context, '-p', 'alpha2:=1', '-p', 'seed:=7')
-    params = declare_erva_params(node)
-    settings = declare_controller_settings(node)
-    live = declare_live(node, ['seed', 'mode', 'preview_noise'])
-    assert params.M_s == PAPER_VALUES['M_s']
-    assert settings.alpha2 == 1.0                     # a whole number for a double
-    assert live == {'seed': 7, 'mode': 'realtime', 'preview_noise': False}
+    values = declare_node_parameters(node, 'nmpc_node')
+    assert values['M_s'] == PAPER_VALUES['M_s']
+    assert values['alpha2'] == 1.0 and isinstance(values['alpha2'], float)   # 1 for a double
+    assert node.get_parameter('alpha2').value == 1.0
+    live = declare_schema(node, NodeSchema('x', ((LIVE, ('seed', 'preview_noise')),)))
+    assert live == {'seed': 7, 'preview_noise': False}
+    assert values['mode'] == 'realtime'
     desc = node.describe_parameter('M_s')
     assert desc.read_only and desc.floating_point_range[0].to_value == 5000.0
     assert node.describe_parameter('seed').integer_range[0].from_value == 0
@@ -168,17 +172,17 @@ def test_parameters_get_descriptors_with_ranges(ros_context):
 def test_a_bad_parameter_is_one_line(ros_context, arg, match):
     node = _node(ros_context, '-p', arg)
     with pytest.raises(ParamError, match=match) as info:
-        declare_erva_params(node)
-        declare_controller_settings(node)
-        declare_live(node, ['mode', 'seed'])
+        declare_node_parameters(node, 'nmpc_node')
+        declare_schema(node, NodeSchema('x', ((LIVE, ('seed',)),)))
     assert '\n' not in str(info.value)
     node.destroy_node()
 
 
 def test_live_tables_cover_the_defaults_and_live_yaml():
-    assert set(LIVE_DEFAULTS) == set(LIVE_SPECS)
-    for key, value in LIVE_DEFAULTS.items():
-        assert LIVE_SPECS[key].check(key, value) == value, key
+    specs, defaults = LIVE.specs(), LIVE.defaults()
+    assert set(defaults) == set(specs)
+    for key, value in defaults.items():
+        assert specs[key].check(key, value) == value, key
     values = read_live_file(os.path.join(REPO, 'config', 'live.yaml'))
     assert validate_live(values) == validate_live({})     # the file states the defaults
 
@@ -202,11 +206,12 @@ def test_session_params_file_is_what_rclpy_gives_each_node(tmp_path, ros_context
     doc = yaml.safe_load(open(session.params_file))
     assert doc['/**']['ros__parameters']['use_sim_time'] is True
     node = _node(ros_context, '-r', '__ns:=/erva', '--params-file', session.params_file)
-    settings = declare_controller_settings(node)
-    live = declare_live(node, ['mode', 'duration_s', 'state_timeout_periods'])
-    assert settings.controller == 'no_preview' and settings.alpha2 == 0.5
-    assert live == {'mode': 'lockstep', 'duration_s': 1.0, 'state_timeout_periods': 3}
-    assert declare_erva_params(node).c_e0 == PAPER_VALUES['c_e0']
+    values = declare_node_parameters(node, 'nmpc_node')
+    assert values['controller'] == 'no_preview' and values['alpha2'] == 0.5
+    assert (values['mode'], values['duration_s'], values['state_timeout_periods']) == (
+        'lockstep', 1.0, 3)
+    assert values['c_e0'] == PAPER_VALUES['c_e0']
+    assert values['session_id'] == session.session_id and len(session.session_id) == 16
     node.destroy_node()
     road = doc['/**/road_preview_node']['ros__parameters']
     assert road['seed'] == 3 and road['preview_noise'] is True
@@ -243,13 +248,15 @@ def test_road_file_is_read_and_bad_rows_are_one_line(tmp_path):
 # -- diagnostics and report -------------------------------------------------------------------
 def test_status_reporter_publishes_on_change_and_when_due():
     sent = []
-    rep = StatusReporter('/erva/nmpc_node', 'hw', sent.append, lambda: 0, lambda: {'n': 1.5})
+    report = NodeReport(node='/erva/nmpc_node', hardware_id='hw', session='s')
+    rep = StatusReporter(report, sent.append, lambda: 0)
     rep.set(ERROR, 'no state')
     rep.set(ERROR, 'no state')             # unchanged: no second message
     assert len(sent) == 1
-    name, level, text, values = parse_status(sent[0].status[0])
-    assert (name, level, text, values) == ('/erva/nmpc_node', ERROR, 'no state',
-                                           {'n': '1.5', 'status_seq': '1'})
+    got = report_from_status(decode_diagnostics(sent[0])[1][0])
+    assert (got.node, got.level, got.message, got.hardware_id, got.session,
+            got.status_seq, got.final) == ('/erva/nmpc_node', ERROR, 'no state', 'hw', 's',
+                                           1, False)
     rep.after_sample()
     rep.on_timer(busy_window_s=10.0)       # busy: only marked due
     assert len(sent) == 1

@@ -1,8 +1,8 @@
 """The session monitor's figures from synthetic inputs: its store fed directly, no DDS.
 
-Messages are built with the contract's builders and serialized by rclpy, as they
-arrive at the monitor's raw subscriptions; statuses are DiagnosticArrays as the nodes
-publish them.  Every expected figure is computed here from the inputs.
+Messages are built with rclpy's message classes and serialized by rclpy, as they
+arrive at the monitor's raw subscriptions; statuses are the nodes' typed reports in
+DiagnosticArrays.  Every expected figure is computed here from the inputs.
 """
 
 import math
@@ -11,10 +11,14 @@ import numpy as np
 import pytest
 from rclpy.serialization import serialize_message
 
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
 from erva_ros.core import topics
-from erva_ros.ros import diagnostics as diag, msgs
+from erva_ros.core.levels import OK, WARN
+from erva_ros.core.reports import NMPCReport, PlantReport, RoadReport, Timing
+import ros_msgs as msgs
 from erva_ros.session import monitor_figures
-from erva_ros.session.monitor import Observations
+from erva_ros.session.observations import Observations
 
 TS = 0.02
 TS_NS = 20_000_000
@@ -51,25 +55,28 @@ def _feed_loop(obs, skip_state=None):
                 serialize_message(msgs.generator_msg(_stamp(k), 0.0, 0.01 * k, U[k])))
 
 
-def _status(obs, node, level, text, values, rx_ns):
-    obs.add_diagnostics(diag.array_msg(rx_ns, [diag.status_msg(f'/erva/{node}', level, text,
-                                                               values)]), rx_ns)
+def _status(obs, report, rx_ns, namespace='/erva'):
+    """Feed ``report`` (its node a name in ``namespace``) as rclpy serializes the array."""
+    report.node = f'{namespace}/{report.node}'
+    arr = DiagnosticArray(status=[DiagnosticStatus(
+        level=bytes([report.level]), name=report.node, message=report.message,
+        hardware_id=report.hardware_id,
+        values=[KeyValue(key=k, value=v) for k, v in report.values().items()])])
+    obs.add_diagnostics(serialize_message(arr), rx_ns)
 
 
 def _final_statuses(obs, states=N + 1, harvested=0.5):
     rx = _stamp(N) + 10_000_000
-    _status(obs, 'plant_sim_node', diag.OK, 'finished', {
-        'states': states, 'steps': N, 'harvested_j': harvested, 'u_from_command': N,
-        'rejected_road_height': 2, 'out_of_order_commands': 1,
-        'cmd_jitter_ms_p50': 0.1, 'cmd_jitter_ms_p99': 0.4, 'cmd_jitter_ms_max': 0.5,
-        'cmd_jitter_ms_samples': N - 1, 'loop_latency_ms_p50': 3.0,
-        'loop_latency_ms_p99': 3.5, 'loop_latency_ms_max': 4.0,
-        'loop_latency_ms_samples': N}, rx)
-    _status(obs, 'nmpc_node', diag.OK, 'finished', {
-        'controller': 'preview', 'commands': N, 'safe_commands': 0, 'solves': N,
-        'rejected_state': 3, 'solve_ms_p50': 1.5, 'solve_ms_samples': N}, rx)
-    _status(obs, 'road_preview_node', diag.OK, 'finished',
-            {'samples_published': N + 1, 'finished': True}, rx)
+    _status(obs, PlantReport(
+        node='plant_sim_node', message='finished', states=states, steps=N,
+        harvested_j=harvested, u_from_command=N, rejected_road_height=2,
+        out_of_order_commands=1, cmd_jitter_ms=Timing(0.1, 0.4, 0.5, N - 1),
+        loop_latency_ms=Timing(3.0, 3.5, 4.0, N), final=True), rx)
+    _status(obs, NMPCReport(node='nmpc_node', message='finished', controller='preview',
+                            commands=N, solves=N, rejected_state=3,
+                            solve_ms=Timing(1.5, math.nan, math.nan, N), final=True), rx)
+    _status(obs, RoadReport(node='road_preview_node', message='finished',
+                            samples_published=N + 1, finished=True, final=True), rx)
 
 
 def _observations():
@@ -78,7 +85,8 @@ def _observations():
 
 def test_summary_figures_are_those_of_the_inputs():
     obs = _observations()
-    _status(obs, 'plant_sim_node', diag.WARN, 'no command yet', {}, T0 - 1)
+    _status(obs, PlantReport(node='plant_sim_node', level=WARN, message='no command yet'),
+            T0 - 1)
     _feed_loop(obs)
     _final_statuses(obs)
     s = obs.summary(TS, N, realtime=True)
@@ -103,14 +111,14 @@ def test_summary_figures_are_those_of_the_inputs():
 
     assert s['nmpc']['controller'] == 'preview' and s['nmpc']['commands'] == N
     assert s['nmpc']['solve_ms']['p50'] == 1.5 and math.isnan(s['nmpc']['solve_ms']['p99'])
-    assert s['nmpc']['late'] is None            # not reported: None, not 0
+    assert s['nmpc']['late'] == 0
     assert s['plant']['u_from_command'] == N and s['plant']['steps'] == N
 
     msg = s['messages']
     assert msg['published'][topics.STATE] == N + 1
     assert msg['received'][topics.STATE] == N + 1 and msg['dropped_total'] == 0
-    assert msg['rejected'] == {'state': 3, 'road/preview': None, 'road/height': 2,
-                               'damping_cmd': None, '/clock': None, 'out_of_order': 1}
+    assert msg['rejected'] == {'state': 3, 'road/preview': 0, 'road/height': 2,
+                               'damping_cmd': 0, '/clock': 0, 'out_of_order': 1}
     assert msg['rejected_total'] == 6
     # The plant's status changed once (WARN -> OK); the others reported once each.
     assert [(e['node'], e['level']) for e in s['events']] == [
@@ -167,6 +175,32 @@ def test_trajectory_is_by_sample_and_cut_at_n_steps():
 def test_events_are_capped():
     obs = _observations()
     for i in range(monitor_figures.MAX_EVENTS + 5):
-        _status(obs, 'nmpc_node', diag.WARN if i % 2 else diag.OK, f'flap {i}', {}, T0 + i)
-    assert len(obs.diag_events) == monitor_figures.MAX_EVENTS + 5
+        _status(obs, NMPCReport(node='nmpc_node', level=WARN if i % 2 else OK,
+                                message=f'flap {i}'), T0 + i)
+    assert len(obs.events) == monitor_figures.MAX_EVENTS + 5
     assert len(monitor_figures.events(obs)) == monitor_figures.MAX_EVENTS
+
+
+def test_only_the_sessions_own_reports_count():
+    """Another namespace, another session id, or no id: counted foreign, figures untouched."""
+    obs = Observations(window_ns=(T0, T0 + 10 * N * TS_NS), session='a1')
+    _feed_loop(obs)
+    _final_statuses(obs)            # reports without the session's id
+    assert obs.reports == {} and obs.foreign_statuses == 3
+    for ns, session, commands in (('/other', 'a1', 7), ('/erva', 'b2', 8),
+                                  ('/erva/sub', 'a1', 9), ('/erva', 'a1', N)):
+        _status(obs, NMPCReport(node='nmpc_node', session=session, commands=commands,
+                                final=True), T0, namespace=ns)
+    assert list(obs.reports) == ['nmpc_node'] and obs.foreign_statuses == 6
+    assert obs.report('nmpc_node').commands == N
+    assert obs.summary(TS, N, realtime=True)['messages']['foreign_statuses'] == 6
+
+
+def test_a_node_without_its_final_report_published_an_unknown_number():
+    obs = _observations()
+    _feed_loop(obs)
+    _final_statuses(obs)
+    assert obs.published(final_only=True)[topics.STATE] == N + 1
+    _status(obs, PlantReport(node='plant_sim_node', states=N - 3, steps=N - 3), T0)
+    assert obs.published()[topics.STATE] == N - 3       # its newest count, for the drain
+    assert obs.published(final_only=True)[topics.STATE] is None

@@ -22,8 +22,8 @@ from rosgraph_msgs.msg import Clock
 
 from erva_ros.core import topics
 from erva_ros.ros import qos as ros_qos
-from erva_ros.ros import msgs
-from erva_ros.ros.diagnostics import ERROR, OK, WARN
+import ros_msgs as msgs
+from erva_ros.core.levels import ERROR, OK, WARN
 
 from live_harness import cleaned_up, Harness, start_node, stop_node, TS_NS
 
@@ -95,9 +95,9 @@ def test_nmpc_rejects_bad_inputs_times_out_to_passive_and_recovers(tmp_path):
         # Stopped once it reports every rejection and the outage after the last state
         # (so its counters cover the whole run), however long a busy machine takes.
         values = h.wait_for_diag('nmpc_node', lambda v: (
-            int(v.get('rejected_state', 0)) >= len(bad_states)
-            and int(v.get('rejected_preview', 0)) >= len(bad_previews)
-            and int(v.get('state_timeouts', 0)) >= 2))
+            v.rejected_state >= len(bad_states)
+            and v.rejected_preview >= len(bad_previews)
+            and v.state_timeouts >= 2))
         rc = stop_node(proc)
     assert rc == 0, 'nmpc_node did not stop cleanly on SIGINT'
 
@@ -110,14 +110,14 @@ def test_nmpc_rejects_bad_inputs_times_out_to_passive_and_recovers(tmp_path):
     # like the bad ones (the stamp window itself: test_sample_schedule).  No bad state is
     # ever answered.
     missing = set(good) - set(cmd_stamps)
-    stale = int(values['rejected_state']) - len(bad_states)
+    stale = values.rejected_state - len(bad_states)
     assert len(bad_states) == 25 and stale >= 0, values
-    assert len(missing) <= int(values['superseded_states']) + stale, (len(missing), values)
+    assert len(missing) <= values.superseded_states + stale, (len(missing), values)
     assert not set(bad_states) & set(cmd_stamps)
-    assert int(values['rejected_preview']) >= len(bad_previews)
+    assert values.rejected_preview >= len(bad_previews)
     # The solver never saw a bad value: its own NaN guard never fired.
-    assert int(values['controller_nan_rejections']) == 0
-    assert int(values['controller_steps']) == int(values['solves'])
+    assert values.controller_nan_rejections == 0
+    assert values.controller_steps == values.solves
     # Rejections logged at a limited rate (at most one line per topic and second; the
     # exact pattern is in test_live_units): each topic's first at once, not 50 lines.
     log = open(tmp_path / 'nmpc.log').read()
@@ -184,16 +184,16 @@ def test_plant_rejects_bad_inputs_then_holds_the_plan_then_goes_passive(tmp_path
         h.run_ticks(start, 0, 80, tick)
         # Stopped once it reports every rejection and its last step (k = 79).
         values = h.wait_for_diag('plant_sim_node', lambda v: (
-            int(v.get('rejected_road_height', 0)) >= 15
-            and int(v.get('rejected_damping_cmd', 0)) >= len(sent_bad_cmds)
-            and int(v.get('steps', 0)) >= STEPS_AT_END))
+            v.rejected_road_height >= 15
+            and v.rejected_damping_cmd >= len(sent_bad_cmds)
+            and v.steps >= STEPS_AT_END))
         rc = stop_node(proc)
     assert rc == 0
 
     states = np.array([x for _, x in h.states])
     assert np.all(np.isfinite(states)) and np.max(np.abs(states)) < 0.05
-    assert int(values['rejected_road_height']) == 15
-    assert int(values['rejected_damping_cmd']) == len(sent_bad_cmds)
+    assert values.rejected_road_height == 15
+    assert values.rejected_damping_cmd == len(sent_bad_cmds)
 
     # Applied damping u_k = effort / v_gen of the generator output at t_k.
     u = {s: e / v for s, _, v, e in h.generator if abs(v) > 1e-9}
@@ -216,7 +216,7 @@ def test_plant_rejects_bad_inputs_then_holds_the_plan_then_goes_passive(tmp_path
     assert any(lvl == OK for lvl, _ in events[err + 1:])
     # 9 plan steps for the outage (checked sample by sample above); a command delayed by
     # machine load elsewhere in the run may add plan steps, never remove them.
-    assert int(values['u_from_plan']) >= 9
+    assert values.u_from_plan >= 9
 
 
 def test_road_node_in_lockstep_answers_each_clock_tick_and_rejects_bad_ones(tmp_path):
@@ -236,7 +236,7 @@ def test_road_node_in_lockstep_answers_each_clock_tick_and_rejects_bad_ones(tmp_
             pub_clock.publish(msgs.clock_msg(ns_))
             h.spin_for(0.05)
         values = h.wait_for_diag('road_preview_node',
-                                 lambda v: int(v.get('rejected_clock', 0)) >= 3)
+                                 lambda v: v.rejected_clock >= 3)
         h.spin_until(lambda: len(heights) >= 3, 60.0)
         # SIGUSR1 writes every thread's stack to the log; the node goes on answering.
         os.kill(proc.pid, signal.SIGUSR1)
@@ -250,7 +250,7 @@ def test_road_node_in_lockstep_answers_each_clock_tick_and_rejects_bad_ones(tmp_
     assert rc == 0 and left
     # Off the grid (Ts/2), repeated (0) and going back (2·Ts after 3·Ts): rejected.
     assert [s for s, _ in heights] == [0, TS_NS, 3 * TS_NS, 4 * TS_NS]
-    assert int(values['rejected_clock']) == 3
+    assert values.rejected_clock == 3
     with open(proc.log_path, encoding='utf-8') as fh:
         log = fh.read()
     assert 'Current thread' in log and 'in run_node' in log, log
@@ -266,18 +266,18 @@ def test_plant_in_lockstep_sends_its_first_tick_again_when_nobody_heard_it(tmp_p
     with cleaned_up(proc, h):
         h.wait_matched([h.pub_height, h.pub_cmd], [h.sub_state])
         # Tick 0 went out to no /clock reader (volatile: gone for good) ...
-        h.wait_for_diag('plant_sim_node', lambda v: int(v.get('clock', 0)) >= 1)
+        h.wait_for_diag('plant_sim_node', lambda v: v.clock >= 1)
         # ... a road node that subscribes now still gets it, as do later ones.
         h.node.create_subscription(Clock, topics.CLOCK,
                                    lambda m: ticks.append(msgs.time_to_ns(m.clock)),
                                    ros_qos.control_qos())
         h.spin_until(lambda: len(ticks) >= 1, 60.0)
         values = h.wait_for_diag('plant_sim_node',
-                                 lambda v: int(v.get('lockstep_timeouts', 0)) >= 1)
+                                 lambda v: v.lockstep_timeouts >= 1)
         rc = stop_node(proc)
     assert rc == 0
     assert ticks and set(ticks) == {0}, ticks         # t = 0 again, never a later sample
-    assert int(values['steps']) == 0
+    assert values.steps == 0
 
 
 def test_plant_in_lockstep_steps_on_without_a_command_and_counts_it(tmp_path):
@@ -299,10 +299,10 @@ def test_plant_in_lockstep_steps_on_without_a_command_and_counts_it(tmp_path):
     with cleaned_up(proc, h):
         h.spin_until(lambda: len(h.states) >= 3, 60.0)
         values = h.wait_for_diag('plant_sim_node',
-                                 lambda v: int(v.get('lockstep_timeouts', 0)) >= 3)
+                                 lambda v: v.lockstep_timeouts >= 3)
         rc = stop_node(proc)
     assert rc == 0
     assert [t for t, _ in h.states[:3]] == [0, TS_NS, 2 * TS_NS], h.states
     # (tick 0 may come twice: a first tick nobody heard is sent again, as tested above)
     assert list(dict.fromkeys(ticks))[:3] == [0, TS_NS, 2 * TS_NS], ticks
-    assert int(values['u_from_command']) == 0
+    assert values.u_from_command == 0

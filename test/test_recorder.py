@@ -18,7 +18,7 @@ from rosbags.typesys import get_typestore, Stores
 
 from erva_ros.core import topics as contract
 
-from erva_ros.ros.bag_messages import decoded
+from ros_msgs import decoded
 from erva_ros.core.bag.reader import open_bag
 from erva_ros.core.bag.schemas import type_description_hash
 from erva_ros.core.bag.session import recorder_ros_args
@@ -100,7 +100,7 @@ def test_records_the_contract_and_sigint_finishes_the_file(tmp_path):
         times = {}
         for conn, log_time, raw in reader.messages():
             msg = STORE.deserialize_cdr(raw, conn.msgtype)
-            if conn.topic == '/diagnostics' and msg.status[0].name.startswith('recorder'):
+            if conn.topic == '/diagnostics' and msg.status[0].name.endswith(': bag recorder'):
                 own_status += 1
             times.setdefault(conn.topic, []).append(log_time)
     for topic, n in published.items():

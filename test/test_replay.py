@@ -15,7 +15,8 @@ from rclpy.serialization import deserialize_message
 
 from erva_ros.core.bag.reader import open_bag
 from erva_ros.core.bag.session import recorder_ros_args
-from erva_ros.ros.bag_messages import decoded, message_class
+from erva_ros.ros.bag_messages import message_class
+from ros_msgs import decoded
 from recorder_helpers import DiagnosticsWatcher, wait_recorded
 
 pytestmark = pytest.mark.ros

@@ -109,7 +109,8 @@ def test_timing_deadlines_and_fallbacks_from_message_times(erva, tmp_path):
     assert t['publish']['jitter_ms']['max'] == pytest.approx(20.0)
     assert t['late_commands'] == 2           # the two periods over 1.5 Ts
     assert r['deadline_misses']['total'] == 2 and r['fallbacks']['total'] == 4
-    assert r['solve_ms'] == {'/erva/nmpc_node/solve_ms_p99': 4.5}
+    assert r['solve_ms'] == {'/erva/nmpc_node/solve_ms_p99': 4.5,
+                             '/erva/nmpc_node/solve_ms_samples': 0.0}
     assert r['comfort']['acc_rms'] == pytest.approx(2.0)
     assert r['power']['harvested_j'] == 8.0 and r['power']['power_w'] == pytest.approx(4.0)
     assert r['diagnostics_errors'] == ['/erva/plant_sim_node: no command']

@@ -85,16 +85,6 @@ def test_option_values_are_checked_by_argparse(erva):
         assert 'Traceback' not in proc.stderr
 
 
-def test_option_choices_match_the_code():
-    from erva_ros.commands import run
-    from erva_ros.core.controllers.settings import CONTROLLER_NAMES
-    from erva_ros.ros.parameters import LIVE_SPECS, MODES
-    from erva_ros.core.model import MODEL_KINDS
-    assert run.CONTROLLERS == CONTROLLER_NAMES
-    assert run.ROADS == LIVE_SPECS['road'].options
-    assert run.MODES == MODES and run.MODELS == MODEL_KINDS
-
-
 def test_launch_file_parses_and_references_what_exists():
     source = open(LAUNCH, encoding='utf-8').read()
     compile(source, LAUNCH, 'exec')
@@ -111,10 +101,10 @@ def test_launch_file_parses_and_references_what_exists():
     for cfg in mod.CONFIG_FILES:
         assert os.path.isfile(os.path.join(REPO, 'config', cfg)), cfg
     # Every launch argument is a parameter some node declares.
-    from erva_ros.core.controllers.settings import DEFAULTS
-    from erva_ros.ros.parameters import LIVE_DEFAULTS
+    from erva_ros.core.node_params import SCHEMAS
+    declared = {name for node in mod.NODES for name in SCHEMAS[node].specs()}
     for name, default, kind, _ in mod.ARGUMENTS:
-        assert name == 'namespace' or name in LIVE_DEFAULTS or name in DEFAULTS, name
+        assert name == 'namespace' or name in declared, name
         kind(default)
     section = mod.node_section(os.path.join(REPO, 'config', 'nmpc.yaml'), 'nmpc_node')
     assert section.get('controller') == 'preview' and 'horizon' in section

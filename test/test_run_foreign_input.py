@@ -33,7 +33,7 @@ def _inject_state(proc, lockstep, stamp_ns_of, after_samples=10):
     from rclpy.duration import Duration
     from sensor_msgs.msg import JointState
 
-    from erva_ros.ros.msgs import state_msg
+    from ros_msgs import state_msg
 
     watch = SampleWatch(state_reader=lockstep)
     try:

@@ -10,15 +10,14 @@ import rclpy
 import yaml
 
 from erva_ros.core.config import shipped_defaults
-from erva_ros.core.controllers.settings import ControllerSettings, SPECS as SETTINGS_SPECS
+from erva_ros.core.controllers.settings import ControllerSettings
 from erva_ros.core.hil import settings as hs
 from erva_ros.core.hil.ecu_sim import SensorNoise
 from erva_ros.core.model import get_model
 from erva_ros.core.params import ERVA_SPECS, ERVAParams, ParamError, Spec
+from erva_ros.core import node_params as np_
 from erva_ros.core.specs import check_all, Choice, Flag, Integer, Number, Text
-from erva_ros.ros.parameters import (declare_all, declare_controller_settings,
-                                     declare_erva_params, declare_live, descriptor,
-                                     LIVE_DEFAULTS, LIVE_SPECS)
+from erva_ros.ros.parameters import declare_node_parameters, descriptor
 
 from conftest import REPO
 
@@ -105,12 +104,14 @@ def _yaml(name):
 
 #: (spec table, config file, section) of every table a node declares from.
 TABLES = {
-    'live': (LIVE_SPECS, 'live.yaml', '/**'),
+    'live': (np_.LIVE.specs(), 'live.yaml', '/**'),
     'physical': (ERVA_SPECS, 'erva_paper.yaml', '/**'),
-    'controller': (SETTINGS_SPECS, 'nmpc.yaml', '/**/nmpc_node'),
+    'controller': (np_.CONTROLLER.specs(), 'nmpc.yaml', '/**/nmpc_node'),
     'bridge': (hs.BRIDGE_SPECS, 'hil.yaml', '/**/ecu_bridge_node'),
     'estimator': (hs.ESTIMATOR_SPECS, 'hil.yaml', '/**/state_estimator_node'),
     'ecu_sim': (hs.ECU_SIM_SPECS, 'hil.yaml', '/**/ecu_sim'),
+    'recorder': (np_.RECORDER_SPECS, 'session.yaml', '/**/recorder'),
+    'foxglove': (np_.FOXGLOVE_SPECS, 'session.yaml', '/**/foxglove_server'),
 }
 
 
@@ -124,8 +125,16 @@ def test_every_parameter_has_its_default_in_config_and_it_is_valid(table):
         assert specs[key].check(key, value) == value, (table, key)
 
 
+def test_ts_is_set_in_one_config_file_only():
+    files = [f for f in os.listdir(os.path.join(REPO, 'config')) if f.endswith('.yaml')]
+    with_ts = [f for f in files if any('ts' in sec.get('ros__parameters', {})
+                                       for sec in _yaml(f).values())]
+    assert with_ts == ['live.yaml']
+    assert ControllerSettings().ts == _yaml('live.yaml')['/**']['ros__parameters']['ts']
+
+
 def test_the_tables_defaults_are_the_config_files():
-    assert LIVE_DEFAULTS == _yaml('live.yaml')['/**']['ros__parameters']
+    assert np_.LIVE.defaults() == _yaml('live.yaml')['/**']['ros__parameters']
     hil = _yaml('hil.yaml')
     assert hs.ESTIMATOR_DEFAULTS == hil['/**/state_estimator_node']['ros__parameters']
     assert hs.ECU_SIM_DEFAULTS == hil['/**/ecu_sim']['ros__parameters']
@@ -138,7 +147,7 @@ def test_the_tables_defaults_are_the_config_files():
 def test_the_dataclass_defaults_equal_the_shipped_files():
     # The offline tools' dataclasses keep literal defaults; they must say what config/ says.
     nmpc = _yaml('nmpc.yaml')['/**/nmpc_node']['ros__parameters']
-    assert ControllerSettings().as_dict() == nmpc
+    assert {k: v for k, v in ControllerSettings().as_dict().items() if k != 'ts'} == nmpc
     assert ERVAParams().as_dict() == _yaml('erva_paper.yaml')['/**']['ros__parameters']
     sim = _yaml('hil.yaml')['/**/ecu_sim']['ros__parameters']
     assert SensorNoise() == SensorNoise(sim['noise_sprung_accel'], sim['noise_deflection'],
@@ -188,14 +197,12 @@ def test_nodes_declare_the_config_defaults_with_their_descriptors(ros_context):
     rclpy.init(args=['x'], context=ros_context)
     node = Node('specs_test_node', context=ros_context)
     try:
-        assert declare_erva_params(node) == ERVAParams()
+        values = declare_node_parameters(node, 'nmpc_node')
+        assert {k: values[k] for k in ERVA_SPECS} == ERVAParams().as_dict()
         nmpc = _yaml('nmpc.yaml')['/**/nmpc_node']['ros__parameters']
-        assert declare_controller_settings(node).as_dict() == nmpc
-        assert declare_live(node, [k for k in LIVE_SPECS if k != 'ts']) == {
-            k: v for k, v in LIVE_DEFAULTS.items() if k != 'ts'}
-        est = declare_all(node, hs.ESTIMATOR_SPECS, hs.ESTIMATOR_DEFAULTS,
-                          ['max_gap_periods', 'q_accel_s'])
-        assert est['max_gap_periods'] == 50 and type(est['max_gap_periods']) is int
+        assert {k: values[k] for k in nmpc} == nmpc
+        live = np_.LIVE.defaults()
+        assert all(values[k] == live[k] for k in values if k in live)
         desc = node.describe_parameter('horizon')
         assert desc.read_only and desc.additional_constraints == '[1, 200] steps'
         assert (desc.integer_range[0].from_value, desc.integer_range[0].to_value) == (1, 200)
@@ -206,6 +213,55 @@ def test_nodes_declare_the_config_defaults_with_their_descriptors(ros_context):
     finally:
         node.destroy_node()
     assert descriptor('x', Text('free')).description == 'free'
+
+
+@pytest.mark.parametrize('node', sorted(np_.SCHEMAS))
+def test_each_node_declares_its_schema_with_the_shipped_defaults(ros_context, node):
+    from rclpy.node import Node
+    rclpy.init(args=['x'], context=ros_context)
+    n = Node(node, context=ros_context)
+    try:
+        values = declare_node_parameters(n, node)
+        schema = np_.SCHEMAS[node]
+        assert values == schema.defaults()
+        builtin = {'use_sim_time', 'start_type_description_service'}
+        assert set(values) == set(n.list_parameters([], 0).names) - builtin
+        for name, spec, _ in schema.items():
+            assert n.describe_parameter(name) == descriptor(name, spec), (node, name)
+    finally:
+        n.destroy_node()
+
+
+def test_launch_arguments_session_file_and_cli_come_from_the_schemas(tmp_path):
+    spec_files = {name: np_.spec_of(name) for name in np_.LAUNCH_ARGUMENTS}
+    import importlib.util
+    spec = importlib.util.spec_from_file_location(
+        'erva_launch', os.path.join(REPO, 'launch', 'erva.launch.py'))
+    launch = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(launch)
+    args = {name: (default, kind) for name, default, kind, _ in launch.ARGUMENTS}
+    assert set(args) == {'namespace', *np_.LAUNCH_ARGUMENTS}
+    defaults = {**np_.LIVE.defaults(), **np_.CONTROLLER.defaults()}
+    for name, s in spec_files.items():
+        assert args[name] == (str(defaults[name]), getattr(s, 'python_type', str)), name
+    # The session file: each value where the nodes that declare it find it.
+    doc = np_.session_sections({'seed': 3, 'ts': 0.01, 'alpha1': 2.0, 'M_s': 400.0,
+                                'state_timeout_periods': 4})
+    assert doc['/**']['ros__parameters'] == {'ts': 0.01, 'M_s': 400.0}
+    assert doc['/**/road_preview_node']['ros__parameters'] == {'seed': 3}
+    assert doc['/**/nmpc_node']['ros__parameters'] == {
+        'alpha1': 2.0, 'state_timeout_periods': 4}
+    # The CLI: erva run's options take their choices and checks from the same specs.
+    from erva_ros.commands import run as run_cmd
+    parser = argparse.ArgumentParser()
+    run_cmd.add_arguments(parser)
+    actions = {a.dest: a for a in parser._actions}
+    assert tuple(actions['controller'].choices) == np_.spec_of('controller').options
+    assert tuple(actions['road'].choices) == np_.spec_of('road').options
+    assert tuple(actions['mode'].choices) == np_.MODES
+    assert tuple(actions['model'].choices) == np_.spec_of('model').options
+    with pytest.raises(SystemExit):
+        parser.parse_args(['--seed', '-1'])
 
 
 # -- the model owns its outputs ---------------------------------------------------------------

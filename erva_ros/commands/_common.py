@@ -48,12 +48,12 @@ def positive_int(text: str) -> int:
 def live_type(key: str):
     """Return an argparse type checked by the spec of live parameter ``key``.
 
-    The spec (``erva_ros.ros.parameters.LIVE_SPECS``) is imported when the option is
+    The spec (:data:`erva_ros.core.node_params.LIVE`) is imported when the option is
     given, so ``--help`` stays light.
     """
     def parse(text: str):
-        from erva_ros.ros.parameters import LIVE_SPECS
-        return LIVE_SPECS[key].parse(text)
+        from erva_ros.core.node_params import LIVE
+        return LIVE.specs()[key].parse(text)
     return parse
 
 

@@ -105,7 +105,7 @@ def _session_road(path, ts):
     agree to the bit (checked against every received sample).
     """
     from erva_ros.core.hil.road_buffer import KnownRoad
-    from erva_ros.ros.parameters import LIVE_DEFAULTS, LIVE_SPECS
+    from erva_ros.core.node_params import LIVE
     from erva_ros.core.loop.scenario import build_road
     from erva_ros.core.params import ParamError, read_ros_params
     from erva_ros.core.specs import check_all
@@ -114,8 +114,9 @@ def _session_road(path, ts):
                        '`erva run`)')
     try:
         values = read_ros_params(path, 'road_preview_node', required=False)
-        cfg = check_all(LIVE_SPECS, {k: v for k, v in values.items() if k in LIVE_SPECS},
-                        path, LIVE_DEFAULTS)
+        specs = LIVE.specs()
+        cfg = check_all(specs, {k: v for k, v in values.items() if k in specs}, path,
+                        LIVE.defaults())
         if abs(float(cfg['ts']) - ts) > 1e-12:
             raise CLIError(f'{path}: ts = {cfg["ts"]} s differs from --ts {ts:g} s')
         road = build_road(cfg)
@@ -233,18 +234,18 @@ def _print(args, result) -> None:
         print(f'  bus: {result["bus_error"]}')
 
 
-def _publisher_history_s(path) -> float:
-    """Return the session's publisher_history_s (its params file), else the default."""
-    from erva_ros.ros.parameters import LIVE_DEFAULTS, LIVE_SPECS
+def _session_value(path, key: str):
+    """Return live parameter ``key`` of the session's params file, else its default."""
+    from erva_ros.core.node_params import LIVE
     from erva_ros.core.params import ParamError, read_ros_params
-    value = LIVE_DEFAULTS['publisher_history_s']
+    value = LIVE.defaults()[key]
     if path:
         try:
-            value = read_ros_params(path, 'ecu_sim').get('publisher_history_s', value)
-            value = LIVE_SPECS['publisher_history_s'].check('publisher_history_s', value, path)
+            value = read_ros_params(path, 'ecu_sim').get(key, value)
+            value = LIVE.specs()[key].check(key, value, path)
         except ParamError as exc:
             raise CLIError(str(exc)) from None
-    return float(value)
+    return value
 
 
 def main(args) -> int:
@@ -264,7 +265,9 @@ def main(args) -> int:
             ros = EcuSimRos(args.namespace, args.model,
                             hardware_of(load_bridge_section(args.hil_config)),
                             known_road=known, ts=args.ts,
-                            publisher_history_s=_publisher_history_s(args.params))
+                            publisher_history_s=_session_value(args.params,
+                                                               'publisher_history_s'),
+                            session_id=_session_value(args.params, 'session_id'))
         core = _build_core(args, _road_function(args) if ros is None or args.road not in
                            GRID_ROADS else ros.road_height)
         _realtime(args, ros)

@@ -57,13 +57,19 @@ def main(args) -> int:
           f'{s.get("controller") or "-"}, seed {s.get("seed") or "-"}, '
           f'{report["duration_s"]:.3f} s at Ts = '
           f'{report["ts_s"] * 1e3:.1f} ms' if report['ts_s'] else f'session {bag.path}')
-    if not bag.complete:
-        print('warning: the bag was not closed properly; figures cover what is readable')
+    for w in report['warnings']:
+        print(f'warning: {w}')
     c, p = report['comfort'], report['power']
-    print(f'comfort:  acc 2-norm {c["acc_2norm"]:.4f} m/s², RMS {c["acc_rms"]:.4f} m/s² '
-          f'({report["samples"]["sprung_accel"]} samples)')
-    print(f'power:    {p["power_w"]:.4f} W average, {p["harvested_j"]:.4f} J harvested '
-          f'[{p["source"]}]; mean of P samples {p["power_mean_samples_w"]:.4f} W')
+    if not report['samples']['sprung_accel']:
+        print('comfort:  no samples (the bag has no sprung_accel messages)')
+    else:
+        print(f'comfort:  acc 2-norm {c["acc_2norm"]:.4f} m/s², RMS {c["acc_rms"]:.4f} m/s² '
+              f'({report["samples"]["sprung_accel"]} samples)')
+    if report['samples']['generator'] or p['source'] != 'none':
+        print(f'power:    {p["power_w"]:.4f} W average, {p["harvested_j"]:.4f} J harvested '
+              f'[{p["source"]}]; mean of P samples {p["power_mean_samples_w"]:.4f} W')
+    else:
+        print('power:    no samples (neither generator messages nor the plant\'s energy)')
     t = report['timing']
     if t['clock'] == 'offline':
         print('timing:   offline session (simulated, no transport): not measured')

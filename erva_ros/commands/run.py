@@ -43,43 +43,41 @@ Exit status: 0 ok; 1 a node died, did not stop cleanly, or no command arrived;
 2 bad option or parameter; 130/143 interrupted by SIGINT/SIGTERM (the nodes are
 stopped and the summary printed first)."""
 
-# Kept literal so `erva --help` needs no numpy/casadi; test_run_cli checks they match.
-CONTROLLERS = ('passive', 'skyhook', 'no_preview', 'preview', 'preview_long')
-ROADS = ('paper', 'iso8608', 'bump', 'sine')
-MODES = ('realtime', 'lockstep')
-MODELS = ('erva', 'benchmark')
-#: Kept literal, as above; test_foxglove checks it against live/foxglove_server.py.
+#: Kept literal so `erva --help` needs no Foxglove SDK; test_foxglove checks it against
+#: erva_ros/ros/foxglove_server.py.
 FOXGLOVE_DEFAULT = '127.0.0.1:8765'
 
 
 # Checked by the parameters' own specs (the session file checks the same).
-_weight = settings_type('alpha1')
-_seed = live_type('seed')
 _snr = live_type('preview_snr_db')
 _delay = live_type('preview_delay_s')
 _command_delay = settings_type('command_delay_s')
 
 
+def _option(parser, flag: str, name: str, help: str, **kw) -> None:
+    """Add ``flag`` for parameter ``name``: choices, type and range from its spec."""
+    from erva_ros.core.node_params import argparse_kwargs
+    opts = argparse_kwargs(name, help)
+    parser.add_argument(flag, default=None, **{**opts, **kw})
+
+
 def add_scenario_arguments(parser, duration_default: str = 'config/live.yaml: 4 s') -> None:
     """Add the scenario options shared by `erva run` and `erva bench --live`."""
-    parser.add_argument('--controller', choices=CONTROLLERS, default=None,
-                        help='control law (default: config/nmpc.yaml, preview)')
-    parser.add_argument('--alpha1', type=_weight, default=None, metavar='A1',
-                        help='comfort weight alpha1 (paper eq. (12); default nmpc.yaml: 1)')
-    parser.add_argument('--alpha2', type=_weight, default=None, metavar='A2',
-                        help='energy weight alpha2 (paper eq. (12); default nmpc.yaml: 0)')
-    parser.add_argument('--road', choices=ROADS, default=None,
-                        help='road profile (default: config/live.yaml, paper)')
+    _option(parser, '--controller', 'controller',
+            'control law (default: config/nmpc.yaml, preview)')
+    _option(parser, '--alpha1', 'alpha1', 'comfort weight alpha1 (paper eq. (12); default '
+            'config/nmpc.yaml: 1)', metavar='A1')
+    _option(parser, '--alpha2', 'alpha2', 'energy weight alpha2 (paper eq. (12); default '
+            'config/nmpc.yaml: 0)', metavar='A2')
+    _option(parser, '--road', 'road', 'road profile (default: config/live.yaml, paper)')
     parser.add_argument('--road-file', metavar='CSV', default=None,
                         help='a recorded road: CSV rows "time_s, height_m" (overrides --road)')
-    parser.add_argument('--seed', type=_seed, default=None,
-                        help='road noise and preview error seed (default: live.yaml, 0)')
-    parser.add_argument('--mode', choices=MODES, default=None,
-                        help='realtime: wall clock at 1/Ts; lockstep: simulated time, '
-                             'deterministic (default: live.yaml, realtime)')
-    parser.add_argument('--model', choices=MODELS, default=None,
-                        help='plant and controller model: erva (nonlinear, eq. (11)) or '
-                             'benchmark (linear, eq. (15)) (default: erva)')
+    _option(parser, '--seed', 'seed', 'road noise and preview error seed (default: '
+            'config/live.yaml, 0)')
+    _option(parser, '--mode', 'mode', 'realtime: wall clock at 1/Ts; lockstep: simulated '
+            'time, deterministic (default: config/live.yaml, realtime)')
+    _option(parser, '--model', 'model', 'plant and controller model: erva (nonlinear, eq. '
+            '(11)) or benchmark (linear, eq. (15)) (default: erva)')
     parser.add_argument('--duration', type=positive_float, default=None, metavar='S',
                         help=f'scenario length in seconds (default: {duration_default})')
     parser.add_argument('--preview-snr', type=_snr, default=None, metavar='DB',
@@ -134,6 +132,14 @@ def add_arguments(parser):
                              'does), e.g. "ip netns exec NS" or "taskset -c 1"; it must exec '
                              'the command (signals stop it) and see the same files; DDS '
                              'settings come from the environment (docs/hil.md)')
+    parser.add_argument('--strict', action='store_true',
+                        help='fail the run (exit 1) when it was not real time: deadline '
+                             'misses, state timeouts, skipped road samples or command pauses '
+                             'over the thresholds of config/session.yaml (erva_run); without '
+                             'it they are WARN lines')
+    parser.add_argument('--force', action='store_true',
+                        help='start even if another session runs on this ROS_DOMAIN_ID and '
+                             'namespace (refused by default: the two loops would merge)')
     parser.add_argument('--extra-readers', type=non_negative_int, default=0, metavar='N',
                         help='start the loop only once N readers of your own (a logger, a '
                              'plotter, ros2 bag record) are matched on the topics of the '
@@ -164,7 +170,9 @@ def run_config(args, record_dir=None):
                      live_file=args.live, record_dir=record_dir, namespace=args.namespace,
                      live_overrides=live, ecu=args.ecu, ecu_prefix=_ecu_prefix(args),
                      foxglove=getattr(args, 'foxglove', None), settings_overrides=settings,
-                     extra_readers=getattr(args, 'extra_readers', 0))
+                     extra_readers=getattr(args, 'extra_readers', 0),
+                     force=getattr(args, 'force', False),
+                     strict=getattr(args, 'strict', False))
 
 
 def _ecu_prefix(args) -> tuple:

@@ -7,7 +7,8 @@ Each spec knows its allowed values and its meaning, and nothing else (defaults l
 * :class:`Integer` -- a whole number in ``[lo, hi]`` (a YAML ``4.0`` is accepted as 4);
 * :class:`Choice` -- one string of a fixed tuple;
 * :class:`Flag` -- true or false;
-* :class:`Text` -- any string.
+* :class:`Text` -- any string;
+* :class:`Texts` -- a list of strings.
 
 ``check(key, value, source)`` returns the value converted to its type or raises a
 one-line :class:`ParamError` naming the key, the value and what is allowed;
@@ -195,6 +196,30 @@ class Text:
         return {'help': help or self.doc}
 
 
+@dataclass(frozen=True)
+class Texts:
+    """A list of strings."""
+
+    doc: str
+
+    kind = 'list of strings'
+
+    def describe(self) -> str:
+        """Return the allowed values as text."""
+        return 'a list of strings'
+
+    def allowed(self) -> str:
+        """Return what is allowed and what it means."""
+        return self.doc
+
+    def check(self, key: str, value: Any, source: str = '') -> list:
+        """Return ``value`` as a list if it is a list of strings, else a one-line ParamError."""
+        if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+            raise ParamError(f'{_where(source)}parameter {key!r} must be a list of strings '
+                             f'({self.doc}), got {value!r}')
+        return list(value)
+
+
 def check_all(specs: Dict[str, Any], values: Dict[str, Any], source: str = '',
               defaults: Dict[str, Any] = None) -> Dict[str, Any]:
     """Return ``values`` (over ``defaults``) checked by ``specs``; unknown keys: ParamError."""
@@ -207,4 +232,4 @@ def check_all(specs: Dict[str, Any], values: Dict[str, Any], source: str = '',
     return {key: specs[key].check(key, value, source) for key, value in out.items()}
 
 
-__all__ = ['ParamError', 'Number', 'Integer', 'Choice', 'Flag', 'Text', 'check_all']
+__all__ = ['ParamError', 'Number', 'Integer', 'Choice', 'Flag', 'Text', 'Texts', 'check_all']

@@ -63,3 +63,16 @@ TOPIC_TYPES = {
     DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray',
     CLOCK: 'rosgraph_msgs/msg/Clock',
 }
+
+
+def type_of(name: str, namespace: str = NAMESPACE):
+    """Return the ROS type name of a contract topic (relative or absolute name), or None."""
+    from erva_ros.core.hil.topics import TOPIC_TYPES as HIL_TYPES
+    full = name if name.startswith('/') else f'{NAMESPACE}/{name}'
+    if not name.startswith('/') or full in TOPIC_TYPES or full in HIL_TYPES:
+        return TOPIC_TYPES.get(full) or HIL_TYPES.get(full)
+    # An absolute name in another namespace: the contract's type of the same relative name.
+    prefix = namespace.rstrip('/') + '/'
+    if name.startswith(prefix):
+        return type_of(name[len(prefix):])
+    return None

@@ -5,13 +5,62 @@ generated message classes or rclpy's (de)serialiser lives here, in the ros ring.
 """
 
 import importlib
-from typing import Dict, Iterable, Iterator, Optional, Tuple
+from typing import Optional
 
 from erva_ros.core.bag import BagError
-from erva_ros.core.bag.reader import Bag, BagMessage
 from erva_ros.core.bag.schemas import split_type
 from erva_ros.core.bag.writer import BagWriter
-from erva_ros.ros.cdr import encoded_size
+
+
+# Sizes of the CDR primitive types (rosidl_parser BasicType names), bytes.
+_PRIMITIVE_SIZE = {'boolean': 1, 'octet': 1, 'char': 1, 'int8': 1, 'uint8': 1, 'int16': 2,
+                   'uint16': 2, 'int32': 4, 'uint32': 4, 'int64': 8, 'uint64': 8, 'float': 4,
+                   'double': 8, 'long double': 16, 'wchar': 2}
+
+
+def encoded_size(msg) -> int:
+    """Return the plain-CDR size of any ROS message object's fields (without the header).
+
+    Generic, from the message's rosidl type description: what
+    :func:`erva_ros.ros.bag_messages.serialize` trims rclpy's output to.
+    """
+    return _fields_end(msg, 0)
+
+
+def _fields_end(msg, pos: int) -> int:
+    """Return the offset after the fields of message ``msg`` encoded from ``pos``."""
+    for name, field_type in zip(msg.get_fields_and_field_types(), msg.SLOT_TYPES):
+        pos = _value_end(getattr(msg, name), field_type, pos)
+    return pos
+
+
+def _value_end(value, typ, pos: int) -> int:
+    """Return the offset after ``value`` of rosidl type ``typ`` encoded at ``pos``."""
+    from rosidl_parser import definition as d
+    if isinstance(typ, d.BasicType):
+        size = _PRIMITIVE_SIZE[typ.typename]
+        return _aligned(pos, size) + size
+    if isinstance(typ, d.AbstractString):
+        return _aligned(pos, 4) + 4 + len(value.encode('utf-8')) + 1
+    if isinstance(typ, d.NamespacedType):
+        return _fields_end(value, pos)
+    if isinstance(typ, d.AbstractNestedType):
+        if not isinstance(typ, d.Array):
+            pos = _aligned(pos, 4) + 4  # the element count
+        inner = typ.value_type
+        if isinstance(inner, d.BasicType):
+            n = len(value)
+            size = _PRIMITIVE_SIZE[inner.typename]
+            return _aligned(pos, size) + n * size if n else pos
+        for item in value:
+            pos = _value_end(item, inner, pos)
+        return pos
+    raise TypeError(f'cannot size CDR of {typ!r}')  # wstrings: not used here
+
+
+def _aligned(pos: int, size: int) -> int:
+    """Return ``pos`` rounded up to a multiple of ``size`` (CDR aligns each primitive)."""
+    return pos + (-pos % size)
 
 
 def message_class(type_name: str):
@@ -30,7 +79,7 @@ def serialize(msg) -> bytes:
     the encoding by a few bytes of junk; strict readers (rosbags) reject that, and
     what travels over DDS ends where the encoding ends.  The exact length is the
     4-byte encapsulation header plus the classic-CDR size of the fields
-    (:func:`erva_ros.ros.cdr.encoded_size`).
+    (:func:`encoded_size`).
     """
     from rclpy.serialization import serialize_message
     data = serialize_message(msg)
@@ -47,20 +96,4 @@ def write_message(writer: BagWriter, topic: str, msg, log_time_ns: int,
     writer.write(topic, serialize(msg), log_time_ns, publish_time_ns)
 
 
-def decoded(bag: Bag, topics: Optional[Iterable[str]] = None
-            ) -> Iterator[Tuple[BagMessage, object]]:
-    """Yield (message, deserialised ROS message) in log-time order (rclpy, CDR)."""
-    from rclpy.serialization import deserialize_message
-    classes: Dict[str, object] = {}
-    for m in bag.messages(topics):
-        cls = classes.get(m.type)
-        if cls is None:
-            cls = classes[m.type] = message_class(m.type)
-        try:
-            yield m, deserialize_message(m.data, cls)
-        except Exception:  # noqa: BLE001 -- rclpy raises RMWError on bad CDR
-            raise BagError(f'{bag.mcap_path}: a {m.type} message on {m.topic} at '
-                           f'{m.log_time_ns} ns does not decode') from None
-
-
-__all__ = ['message_class', 'serialize', 'write_message', 'decoded']
+__all__ = ['encoded_size', 'message_class', 'serialize', 'write_message']

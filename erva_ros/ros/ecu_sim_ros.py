@@ -24,7 +24,10 @@ changes (``mode_changes``: ``cycle:MODE:c_e``).
 import time
 from typing import Callable, Optional, Tuple
 
-from erva_ros.core import topics
+from erva_ros.core import contract, topics
+from erva_ros.core.levels import ERROR, OK, WARN
+from erva_ros.core.reports import EcuSimReport, report_status, Timing
+from erva_ros.core.wire import NS
 from erva_ros.ros import qos as ros_qos
 from erva_ros.core.hil import topics as hil_topics
 from erva_ros.core.hil.ecu_sim import EcuSample, EcuSimCore
@@ -38,14 +41,14 @@ class EcuSimRos:
 
     def __init__(self, namespace: str, kind: str, hardware: GeneratorHardware,
                  diagnostics_period_s: float = 0.5, known_road: Optional[KnownRoad] = None,
-                 ts: float = 0.02, publisher_history_s: float = 10.0):
+                 ts: float = 0.02, publisher_history_s: float = 10.0, session_id: str = ''):
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import AccelStamped, PointStamped
         from sensor_msgs.msg import JointState
-        from erva_ros.ros import diagnostics as diag
+        from erva_ros.ros.loop_node import CountedPublisher
 
         self.kind = kind
         self.hw = hardware
@@ -62,9 +65,10 @@ class EcuSimRos:
         self.lag_can = LatencyStats()        # sample instant -> sensor frames sent
         self.lag_applied = LatencyStats()    # sample instant -> first command applied
         self.start_lag_s: Optional[float] = None
-        self.node.create_subscription(PointStamped, topics.ROAD_HEIGHT, self._on_road, qos)
+        self.node.create_subscription(PointStamped, topics.ROAD_HEIGHT, self._on_road, qos,
+                                      raw=True)
         # Counted (erva run checks the bag against them), with the loop's history depth.
-        counted = diag.CountedPublisher
+        counted = CountedPublisher
         pub_qos = ros_qos.publisher_qos(publisher_history_s, ts)
         self.pub_accel = counted(self.node.create_publisher(AccelStamped, topics.SPRUNG_ACCEL,
                                                             pub_qos))
@@ -72,28 +76,29 @@ class EcuSimRos:
                                                           pub_qos))
         self.pub_state = counted(self.node.create_publisher(JointState, hil_topics.TRUE_STATE,
                                                             pub_qos))
-        self._status_seq = 0
         self.pub_diag = self.node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
                                                    ros_qos.diagnostics_qos())
         self.diag_period = diagnostics_period_s
         self._last_diag = 0.0
         self.name = self.node.get_fully_qualified_name()
+        self.report = EcuSimReport(node=self.name, hardware_id='ecu_sim', session=session_id)
         self.first_road_ns: Optional[int] = None
         self._grid: Optional[Tuple[int, int]] = None    # (t0, Ts) in ns
         self.published = 0
 
-    def _on_road(self, msg) -> None:
-        from erva_ros.ros.msgs import NS, time_to_ns
-        w = float(msg.point.z)
-        if abs(w) <= 1.0:
-            stamp = time_to_ns(msg.header.stamp)
-            if self.first_road_ns is None:
-                self.first_road_ns = stamp
-                if self.known_road is not None:
-                    self.known_road.anchor(stamp, msg.point.x)
+    def _on_road(self, data: bytes) -> None:
+        try:
+            road = contract.decode_road_height(data, strict=True)
+        except contract.MessageRejected:
+            return      # an absurd or malformed height: the ECU ignores it
+        stamp, w = road.stamp_ns, road.height_m
+        if self.first_road_ns is None:
+            self.first_road_ns = stamp
             if self.known_road is not None:
-                self.known_road.check(stamp, w)
-            self.road.add(stamp / NS, w)
+                self.known_road.anchor(stamp, road.distance_m)
+        if self.known_road is not None:
+            self.known_road.check(stamp, w)
+        self.road.add(stamp / NS, w)
 
     def road_height(self, t: float) -> float:
         """Return w(t) (m) at epoch time t: the known road, else the received samples."""
@@ -116,7 +121,6 @@ class EcuSimRos:
         of t_k in the NMPC, as with plant_sim_node.  Call after :meth:`wait_for_road`;
         then wait with :meth:`spin_for` (and :meth:`wait_road_sample`).
         """
-        from erva_ros.ros.msgs import NS
         ts_ns = int(round(ts * NS))
         now = time.time_ns()
         t0 = now - (now - self.first_road_ns) % ts_ns
@@ -146,15 +150,14 @@ class EcuSimRos:
 
     def publish(self, core: EcuSimCore, s: EcuSample) -> None:
         """Publish the ground truth of one ECU cycle (stamp = ECU sample time)."""
-        from erva_ros.ros.msgs import accel_msg, generator_msg, NS, state_msg
         if self._grid is None:
             stamp = int(round((core.t0 + s.t) * NS))
         else:   # exactly on the grid (epoch seconds as a float are 0.2 us coarse)
             t0, ts_ns = self._grid
             stamp = t0 + int(round(s.t * NS / ts_ns)) * ts_ns
-        self.pub_accel.publish(accel_msg(stamp, s.sprung_accel))
-        self.pub_gen.publish(generator_msg(stamp, s.gen_position, s.v_gen, s.c_e))
-        self.pub_state.publish(state_msg(stamp, s.x, self.kind))
+        self.pub_accel.publish(contract.encode_accel(stamp, s.sprung_accel))
+        self.pub_gen.publish(contract.encode_generator(stamp, s.gen_position, s.v_gen, s.c_e))
+        self.pub_state.publish(contract.encode_state(stamp, s.x, self.kind))
         self.published += 1
         t_k = core.t0 + s.t
         if s.sent_at is not None:
@@ -185,31 +188,35 @@ class EcuSimRos:
                 break
 
     def _diag(self, core: EcuSimCore, s, finished: bool) -> None:
-        from erva_ros.ros import diagnostics as diag
-        values = dict(core.summary())
-        values['finished'] = finished
-        values['ecu_mode'] = core.mode.name
-        values['harvested_j'] = core.plant.harvested_j
-        values['acc_rms_continuous'] = core.plant.acc_rms_continuous()
-        values['samples_published'] = self.published
-        values['scheduling'] = self.scheduling
-        values['mode_changes'] = core.mode_changes()
-        values.update(diag.publisher_values([self.pub_accel, self.pub_gen, self.pub_state]))
-        self._status_seq += 1
-        values['status_seq'] = self._status_seq
+        r = self.report
+        counts = core.summary()
+        for key, n in counts.items():
+            if not key.startswith('rx_'):
+                setattr(r, key, n)
+        r.rx = {k[3:]: n for k, n in counts.items() if k.startswith('rx_')}
+        r.finished = r.final = finished
+        r.ecu_mode = core.mode.name
+        r.harvested_j = core.plant.harvested_j
+        r.acc_rms_continuous = core.plant.acc_rms_continuous()
+        r.samples_published = self.published
+        r.scheduling = self.scheduling
+        r.mode_changes = core.mode_changes()
+        pubs = (self.pub_accel, self.pub_gen, self.pub_state)
+        r.published = {p.topic: p.count for p in pubs}
+        r.subscribers = {p.topic: p.get_subscription_count() for p in pubs}
+        r.status_seq += 1
         if self.start_lag_s is not None:
-            values['start_lag_ms'] = round(self.start_lag_s * 1e3, 3)
-        values.update(diag.flatten('sample_to_can_ms', self.lag_can.summary()))
-        values.update(diag.flatten('sample_to_applied_ms', self.lag_applied.summary()))
+            r.start_lag_ms = round(self.start_lag_s * 1e3, 3)
+        r.sample_to_can_ms = Timing.of(self.lag_can.summary())
+        r.sample_to_applied_ms = Timing.of(self.lag_applied.summary())
         if self.known_road is not None:
-            values['road_checked'] = self.known_road.checked
-            values['road_mismatches'] = self.known_road.mismatches
-        level = diag.ERROR if core.bus is None else (
-            diag.OK if core.mode.name == 'CONTROLLED' else diag.WARN)
-        text = core.bus_error or f'ECU {core.mode.name}'
-        self.pub_diag.publish(diag.array_msg(self.node.get_clock().now().nanoseconds,
-                                             [diag.status_msg(self.name, level, text, values,
-                                                              'ecu_sim')]))
+            r.road_checked = self.known_road.checked
+            r.road_mismatches = self.known_road.mismatches
+        r.level = ERROR if core.bus is None else (
+            OK if core.mode.name == 'CONTROLLED' else WARN)
+        r.message = core.bus_error or f'ECU {core.mode.name}'
+        self.pub_diag.publish(contract.encode_diagnostics(
+            self.node.get_clock().now().nanoseconds, [report_status(r)]))
 
     def shutdown(self) -> None:
         import rclpy

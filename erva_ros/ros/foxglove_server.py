@@ -34,8 +34,6 @@ DEFAULT_ADDRESS = f'{DEFAULT_HOST}:{DEFAULT_PORT}'
 DEFAULT_BACKLOG = 1024
 #: Channel of the session description, relative to the namespace.
 SESSION_TOPIC = 'session'
-#: The end of the server node's status name on /diagnostics ('<node>: foxglove server').
-STATUS_SUFFIX = ': foxglove server'
 #: The SDK's WebSocket subprotocol (0.30.3 accepts only this one).
 SUBPROTOCOL = 'foxglove.sdk.v1'
 #: Logger of the SDK's "outbox for client ... full" line (Rust log target, via pyo3-log).
@@ -300,4 +298,4 @@ def _install_overflow_counter() -> _Overflows:
 
 __all__ = ['FoxgloveServer', 'ReplaySink', 'parse_address', 'check_bindable', 'is_loopback', 'url',
            'sdk_missing', 'DEFAULT_ADDRESS', 'DEFAULT_HOST', 'DEFAULT_PORT', 'DEFAULT_BACKLOG',
-           'SESSION_TOPIC', 'STATUS_SUFFIX', 'SUBPROTOCOL']
+           'SESSION_TOPIC', 'SUBPROTOCOL']

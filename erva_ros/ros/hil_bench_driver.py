@@ -11,11 +11,13 @@ from typing import Dict, List
 
 import numpy as np
 
-from erva_ros.core import topics
+from erva_ros.core import contract, topics
 from erva_ros.core.metrics import percentiles_ms
+from erva_ros.core.reports import NodeReport, report_from_status
+from erva_ros.core.wire import header_stamp_ns
 from erva_ros.ros import qos as ros_qos
 
-#: Latency keys of the nodes' diagnostics (prefix of _p50/_p99/_max/_samples).
+#: Latencies of the nodes' reports: (status name suffix, Timing field).
 NODE_LATENCIES = {
     'bridge_ros_to_can': ('ecu_bridge_node: command', 'ros_to_can_ms'),
     'bridge_ros_to_can_processing': ('ecu_bridge_node: command', 'ros_to_can_proc_ms'),
@@ -45,12 +47,14 @@ class HilBenchDriver:
         qos = ros_qos.control_qos()
         self.pub_road = self.node.create_publisher(PointStamped, topics.ROAD_HEIGHT, qos)
         self.pub_cmd = self.node.create_publisher(JointTrajectory, topics.DAMPING_CMD, qos)
-        self.node.create_subscription(JointState, topics.STATE, self._on_state, qos)
-        self.node.create_subscription(JointState, hil_topics.TRUE_STATE, self._on_truth, qos)
-        self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diag, qos)
+        self.node.create_subscription(JointState, topics.STATE, self._on_state, qos, raw=True)
+        self.node.create_subscription(JointState, hil_topics.TRUE_STATE, self._on_truth, qos,
+                                      raw=True)
+        self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diag, qos,
+                                      raw=True)
         # The estimator's input: one message per ECU cycle, after the cycle's frames.
         self.node.create_subscription(JointState, hil_topics.ECU_MEASUREMENTS, self._on_ecu,
-                                      qos)
+                                      qos, raw=True)
         self.t0 = time.time()
         self.ready = None
         self.node.create_timer(0.02, self._on_road_timer)
@@ -60,7 +64,7 @@ class HilBenchDriver:
         self.ecu_src: Dict[int, int] = {}       # stamp -> ecu/measurements source time
         self.state_src: Dict[int, int] = {}     # stamp -> source time of the state (ns)
         self.sensor_path: List[float] = []
-        self.diag: Dict[str, Dict[str, str]] = {}
+        self.reports: Dict[str, NodeReport] = {}
 
     def _graph_ready(self) -> bool:
         # The ECU starts its run at the first road sample: hold the road back until the
@@ -75,50 +79,46 @@ class HilBenchDriver:
                 and n.count_publishers(f'{ns}/ecu_sim/state') >= 1)
 
     def _on_road_timer(self):
-        from erva_ros.ros.msgs import road_height_msg
         if self.ready is None:
             if not self._graph_ready():
                 return
             self.ready = time.monotonic()
             self.t0 = time.time()
         t = time.time()
-        self.pub_road.publish(road_height_msg(int(t * 1e9), 0.0, self.road.height(t - self.t0)))
+        self.pub_road.publish(contract.encode_road_height(int(t * 1e9), 0.0,
+                                                          self.road.height(t - self.t0)))
 
-    def _on_ecu(self, msg, info):
-        from erva_ros.ros.msgs import time_to_ns
-        st = time_to_ns(msg.header.stamp)
+    def _on_ecu(self, data, info):
+        st = header_stamp_ns(data)
         self.ecu_src[st] = max(self.ecu_src.get(st, 0), info['source_timestamp'])
 
-    def _on_state(self, msg, info):
-        from erva_ros.ros.msgs import damping_msg, parse_state
+    def _on_state(self, data, info):
         now = time.time_ns()
-        stamp, x = parse_state(msg, 'erva' if len(msg.name) == 3 else 'benchmark')
+        row = contract.decode_state(data)
+        stamp, x = row.stamp_ns, row.x
         if self.law == 'skyhook':
             u = 20000.0 if x[1] * (x[1] - x[3]) > 0 else 0.0
         else:
             u = self.params.c_e0
-        self.pub_cmd.publish(damping_msg(stamp, [u] * 10, 20_000_000))
+        self.pub_cmd.publish(contract.encode_command(stamp, [u] * 10, 20_000_000))
         self.states += 1
         self.est[stamp] = x
         if self.states > self.WARMUP:
             self.sensor_path.append((now - stamp) * 1e-9)
             self.state_src[stamp] = info['source_timestamp']
 
-    def _on_truth(self, msg):
-        from erva_ros.ros.msgs import parse_state
-        stamp, x = parse_state(msg, 'erva' if len(msg.name) == 3 else 'benchmark')
-        self.truth[stamp] = x
+    def _on_truth(self, data):
+        row = contract.decode_state(data)
+        self.truth[row.stamp_ns] = row.x
 
-    def _on_diag(self, arr):
-        from erva_ros.ros.diagnostics import parse_status
-        for st in arr.status:
-            name, level, message, values = parse_status(st)
-            self.diag[name] = dict(values, _level=str(level), _message=message)
+    def _on_diag(self, data):
+        for status in contract.decode_diagnostics(data)[1]:
+            self.reports[status.name] = report_from_status(status)
 
     def _node_stats(self, status_suffix: str, key: str) -> Dict:
-        for name, values in self.diag.items():
-            if name.endswith(status_suffix) and f'{key}_p99' in values:
-                return {k: float(values[f'{key}_{k}']) for k in ('p50', 'p99', 'max', 'samples')}
+        for name, report in self.reports.items():
+            if name.endswith(status_suffix) and hasattr(report, key):
+                return getattr(report, key).as_dict()
         return {'p50': float('nan'), 'p99': float('nan'), 'max': float('nan'), 'samples': 0}
 
     def results(self) -> Dict:
@@ -146,12 +146,12 @@ class HilBenchDriver:
                 out['state_rms'] = dict(zip(names, np.sqrt((tr ** 2).mean(0)).tolist()))
                 out['matched'] = len(errs)
         counters = {}
-        for name, values in self.diag.items():
+        for name, report in self.reports.items():
             for k in ('bad_crc', 'skipped', 'repeated', 'wrong_length', 'command_timeouts',
                       'incomplete_cycles', 'incomplete', 'overruns', 'nis_mean',
                       'commands_received', 'frames_sent', 'safe_frames_sent'):
-                if k in values:
-                    counters[f'{name.rsplit("/", 1)[-1]}.{k}'] = values[k]
+                if hasattr(report, k):
+                    counters[f'{name.rsplit("/", 1)[-1]}.{k}'] = getattr(report, k)
         out['counters'] = counters
         return out
 

@@ -26,9 +26,8 @@ import struct
 from typing import Callable, Optional
 
 from erva_ros.core.config import shipped_defaults
+from erva_ros.core.node_params import MAX_PRIORITY
 
-#: Highest priority a node may ask for (99 is left to the kernel's own threads).
-MAX_PRIORITY = 98
 #: Default of the ``realtime_priority`` parameter, as config/live.yaml ships it (20: below
 #: the threaded IRQ handlers of a PREEMPT_RT kernel (50), so network and timer interrupts
 #: still preempt the loop).

@@ -38,7 +38,7 @@ class Player:
                  sink: Optional[Callable[[str, bytes, int], None]] = None):
         from erva_ros.ros.qos import playback_qos
         from erva_ros.ros.bag_messages import message_class
-        from erva_ros.ros.parameters import LIVE_DEFAULTS
+        from erva_ros.core.node_params import LIVE
 
         if not rate > 0:
             raise BagError(f'rate {rate} must be positive')
@@ -58,7 +58,7 @@ class Player:
         if not self.topics:
             raise BagError(f'{bag.path}: nothing to play')
         self.publishers = {}
-        history_s = LIVE_DEFAULTS['publisher_history_s']
+        history_s = LIVE.defaults()['publisher_history_s']
         for name in self.topics:
             info = bag.topics[name]
             qos = playback_qos(info.offered_qos)
@@ -93,8 +93,8 @@ class Player:
         return False
 
     def _publish_clock(self, bag_ns: int) -> None:
-        from erva_ros.ros.msgs import clock_msg
-        self.clock_pub.publish(clock_msg(bag_ns))
+        from erva_ros.core.contract import encode_clock
+        self.clock_pub.publish(encode_clock(bag_ns))
         self.clock_ticks += 1
 
     def _sleep_until(self, target: float, wall0: float, bag0: int,

@@ -42,7 +42,7 @@ class RealtimeSubscription:
         """Subscribe now; call :meth:`start` to begin taking messages.
 
         ``raw``: the callback gets the serialized CDR bytes instead of a message object
-        (decode what is needed with erva_ros/ros/cdr.py: much cheaper).
+        (decode what is needed with erva_ros/core/contract.py: much cheaper).
 
         ``idle()`` runs once in this thread when the monotonic time reaches
         :attr:`idle_at` (s, time.monotonic; None = not armed) with no message waiting;

@@ -8,22 +8,18 @@ Shutdown (SIGINT/SIGTERM, Ctrl-C) ends the node *cleanly* for the session's reco
 rclpy's own signal handlers would shut the context down at once, so a publisher
 leaving with samples a subscriber (the recorder) has not acknowledged yet would take
 them with it.  Instead the signal stops the spin loop, then the node publishes a last
-status (its final counts: ``published:<topic>``) and waits, bounded by
-``SHUTDOWN_ACK_S``, until every subscriber has acknowledged everything its
-:class:`~erva_ros.ros.diagnostics.CountedPublisher` s and its status wrote
-(``Publisher.wait_for_all_acked``).  A second signal skips the wait.  Then the node,
-the context and the DDS participant are torn down (peers see it leave at once) and the
-process ends with ``os._exit``: the interpreter's own exit would only join middleware
-threads, 0.4-0.9 s of timed sleeps measured.  A phase slower than ``SLOW_STOP_S`` says so
-on stderr.  Whatever hangs on the way out, the process is gone ``SHUTDOWN_ACK_S +
-SHUTDOWN_GRACE_S`` (9 s) after the first signal, before a supervisor's SIGKILL (10 s,
-:func:`erva_ros.session.processes.stop_processes`): the kernel ends it with SIGALRM, after
-every thread's stack is written to stderr (faulthandler; also on SIGUSR1, without
-stopping).  Seen: once in CI, a road_preview_node still running 10 s after SIGINT
-(SIGKILLed; where it hung is what these stacks are for); once, after `erva run` was
-SIGKILLed, a road_preview_node kept one core at SCHED_FIFO 20 busy (95 %, the RT
-throttling cap) for over an hour -- a middleware thread spinning after its peer's death,
-as in eProsima/Fast-DDS#2398.
+status (its final counts, :meth:`~erva_ros.ros.loop_node.LoopNode.stop`) and waits,
+bounded by ``SHUTDOWN_ACK_S``, until every subscriber has acknowledged everything its
+counted publishers and its status wrote (``Publisher.wait_for_all_acked``).  A second
+signal skips the wait.  Then the node, the context and the DDS participant are torn down
+(peers see it leave at once) and the process ends with ``os._exit``: the interpreter's
+own exit would only join middleware threads (0.4-0.9 s of timed sleeps).  A phase slower
+than ``SLOW_STOP_S`` says so on stderr.  Whatever hangs on the way out, the process is
+gone ``SHUTDOWN_ACK_S + SHUTDOWN_GRACE_S`` (9 s) after the first signal, before a
+supervisor's SIGKILL (10 s, :func:`erva_ros.session.processes.stop_processes`): the kernel
+ends it with SIGALRM, after every thread's stack is written to stderr (faulthandler; also
+on SIGUSR1, without stopping), so a hang in a middleware thread (eProsima/Fast-DDS#2398:
+a thread spinning after its peer died) is both ended and located.
 """
 
 import faulthandler
@@ -32,7 +28,7 @@ import os
 import signal
 import sys
 import time
-from typing import Callable, List, Optional
+from typing import List, Optional, Type
 
 from erva_ros.core.params import ParamError
 from erva_ros.ros.context import check_domain_id
@@ -50,17 +46,17 @@ SLOW_STOP_S = 1.0
 SPIN_TIMEOUT_S = 0.1
 
 
-def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]] = None
-             ) -> int:
-    """Create the node with ``factory`` and spin it until shutdown.
+def run_node(node_class: Type, args: Optional[List[str]] = None) -> int:
+    """Create a :class:`~erva_ros.ros.loop_node.LoopNode` ``node_class``; spin it until shutdown.
 
     Returns the exit status of a start-up failure (:data:`EXIT_BAD_PARAMETER`); a node
-    that ran ends the process itself (exit status 0) once torn down.
+    that ran ends the process itself, with the status its :meth:`stop` returns.
     """
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
+    name = node_class.NAME
     signalled: List[float] = []      # when each stop signal came (monotonic s)
 
     def note(signum, frame):
@@ -82,18 +78,19 @@ def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]]
         print(f'{name}: error: {str(exc).splitlines()[0]}', file=sys.stderr)
         return EXIT_BAD_PARAMETER
     node = None
+    code = 0
     try:
-        node = factory()
+        node = node_class()
         # Start-up objects (CasADi functions, messages, modules) never die: move them out
         # of the collector's way so a collection during the loop scans only new objects.
         gc.collect()
         gc.freeze()
         # Last, after the start-up work: a FIFO thread building CasADi functions would
         # starve the other nodes starting on the same cores.
-        priority = getattr(node, 'realtime_priority', 0)
-        node.scheduling = set_fifo_priority(priority, node.get_logger().warning)
-        if priority > 0 and node.scheduling.startswith('SCHED_FIFO'):
+        node.scheduling = set_fifo_priority(node.realtime_priority, node.get_logger().warning)
+        if node.realtime_priority > 0 and node.scheduling.startswith('SCHED_FIFO'):
             node.get_logger().info(f'running at {node.scheduling}')
+        node.started()
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         while not signalled and rclpy.ok():
@@ -102,7 +99,9 @@ def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]]
         # The wait counts from the signal (a long callback may have delayed this point),
         # so it ends before a supervisor's SIGTERM; a little is always left for it.
         since = stop_t0 - signalled[0] if signalled else 0.0
-        acked = finish_publishing(node, signalled, max(0.5, SHUTDOWN_ACK_S - since))
+        before = len(signalled)
+        code = node.stop(lambda: len(signalled) > before, max(0.5, SHUTDOWN_ACK_S - since))
+        acked = getattr(node, 'acked', True)
         if not acked or time.monotonic() - stop_t0 > SLOW_STOP_S:
             _stop_note(name, f'final samples {"" if acked else "not all "}acknowledged '
                              f'after {time.monotonic() - stop_t0:.2f} s')
@@ -124,7 +123,7 @@ def run_node(name: str, factory: Callable[[], object], args: Optional[List[str]]
     # threads (0.4-0.9 s measured, timed sleeps in static destructors): end here.
     sys.stdout.flush()
     sys.stderr.flush()
-    os._exit(0)
+    os._exit(code)
 
 
 def _stop_note(name: str, what: str) -> None:
@@ -132,39 +131,4 @@ def _stop_note(name: str, what: str) -> None:
     print(f'{name}: slow stop: {what}', file=sys.stderr, flush=True)
 
 
-def finish_publishing(node, signalled: List[float], limit_s: float = SHUTDOWN_ACK_S) -> bool:
-    """Publish ``node``'s final status, then wait until its samples are acknowledged.
-
-    Returns True if every subscriber acknowledged everything within ``limit_s`` (or a
-    further signal cut the wait short: False).
-    """
-    from rclpy.duration import Duration
-    # A node with a StatusReporter (``status``), or one that publishes its own status
-    # (``publish_status``) and lists its ``counted_publishers``.
-    status = getattr(node, 'status', None)
-    publish = getattr(node, 'publish_status', None) or getattr(status, 'publish', None)
-    publishers = list(getattr(node, 'counted_publishers', None)
-                      or getattr(status, 'publishers', []))
-    if publish is not None:
-        publish()
-    if getattr(node, 'pub_diag', None) is not None:
-        publishers.append(node.pub_diag)
-    deadline = time.monotonic() + limit_s
-    before = len(signalled)
-    for pub in publishers:
-        raw = getattr(pub, 'publisher', pub)
-        while len(signalled) <= before:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return False
-            # In short slices, so a second Ctrl-C is seen at once.
-            slice_ns = int(min(left, SPIN_TIMEOUT_S) * 1e9)
-            if raw.wait_for_all_acked(Duration(nanoseconds=slice_ns)):
-                break
-        else:
-            return False
-    return True
-
-
-__all__ = ['EXIT_BAD_PARAMETER', 'SHUTDOWN_ACK_S', 'SHUTDOWN_GRACE_S', 'finish_publishing',
-           'run_node']
+__all__ = ['EXIT_BAD_PARAMETER', 'SHUTDOWN_ACK_S', 'SHUTDOWN_GRACE_S', 'run_node']

@@ -36,8 +36,10 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from erva_ros.core import topics as contract
-from erva_ros.ros import diagnostics as diag, msgs, qos as ros_qos
-from erva_ros.ros.parameters import LIVE_DEFAULTS
+from erva_ros.core import contract as wire
+from erva_ros.core.levels import OK
+from erva_ros.core.node_params import LIVE
+from erva_ros.ros import qos as ros_qos
 
 HORIZON = 10
 
@@ -67,7 +69,7 @@ class ContractTraffic(Node):
         from sensor_msgs.msg import JointState
         from trajectory_msgs.msg import JointTrajectory
         self.ts = 1.0 / rate_hz
-        self.ts_ns = msgs.s_to_ns(self.ts)
+        self.ts_ns = wire.s_to_ns(self.ts)
         qos = ros_qos.publisher_qos(history_s, self.ts)
         self.echo = echo
         self.pubs = {
@@ -93,7 +95,7 @@ class ContractTraffic(Node):
         self.k = 0
         if echo:
             self.create_subscription(JointTrajectory, contract.DAMPING_CMD, self._on_cmd,
-                                     ros_qos.control_qos())
+                                     ros_qos.control_qos(), raw=True)
 
     def _publish(self, key: str, msg) -> None:
         pub = self.pubs[key]
@@ -106,31 +108,31 @@ class ContractTraffic(Node):
         w = 1e-3 * math.sin(2 * math.pi * 1.7 * t)
         now = time.time_ns()
         if contract.CLOCK in self.pubs:
-            self._publish(contract.CLOCK, msgs.clock_msg(now))
-        self._publish(contract.ROAD_HEIGHT, msgs.road_height_msg(now, 20.0 * t, w))
-        self._publish(contract.ROAD_PREVIEW, msgs.preview_msg(
+            self._publish(contract.CLOCK, wire.encode_clock(now))
+        self._publish(contract.ROAD_HEIGHT, wire.encode_road_height(now, 20.0 * t, w))
+        self._publish(contract.ROAD_PREVIEW, wire.encode_preview(
             now, [1e-3 * math.sin(2 * math.pi * 1.7 * (t + i * self.ts))
                   for i in range(HORIZON + 1)], self.ts_ns))
-        self._publish(contract.SPRUNG_ACCEL, msgs.accel_msg(now, 3.0 * w))
-        self._publish(contract.GENERATOR, msgs.generator_msg(now, 0.1 * w, 0.02, 1e4))
+        self._publish(contract.SPRUNG_ACCEL, wire.encode_accel(now, 3.0 * w))
+        self._publish(contract.GENERATOR, wire.encode_generator(now, 0.1 * w, 0.02, 1e4))
         # The state goes last, so that in the echo loop the command's round trip does
         # not wait for this node's other publications.
         state_ns = time.time_ns()
-        self._publish(contract.STATE, msgs.state_msg(
+        self._publish(contract.STATE, wire.encode_state(
             state_ns, [w, 0.01, 0.5 * w, 0.02, 0.1 * w, 0.03], 'erva'))
         if not self.echo:
-            self._publish(contract.DAMPING_CMD, msgs.damping_msg(state_ns, [1e4] * HORIZON,
-                                                                 self.ts_ns))
+            self._publish(contract.DAMPING_CMD,
+                          wire.encode_command(state_ns, [1e4] * HORIZON, self.ts_ns))
         per_second = max(1, int(round(1.0 / self.ts)))
         if self.k % per_second == 0:
             for node in ('plant_sim_node', 'road_preview_node', 'nmpc_node'):
-                self._publish(contract.DIAGNOSTICS, diag.array_msg(now, [diag.status_msg(
-                    f'{node}: traffic', diag.OK, 'synthetic', {'k': self.k}, 'erva')]))
+                self._publish(contract.DIAGNOSTICS, wire.encode_diagnostics(now, [wire.Status(
+                    f'{node}: traffic', OK, 'synthetic', 'erva', {'k': str(self.k)})]))
         self.k += 1
 
-    def _on_cmd(self, msg, info) -> None:
+    def _on_cmd(self, data: bytes, info) -> None:
         now = time.time_ns()
-        stamp = msgs.time_to_ns(msg.header.stamp)
+        stamp = wire.decode_command(data).stamp_ns
         self.latency_s.append((now - stamp) * 1e-9)
         self.publish_latency_s.append(((info.get('source_timestamp') or now) - stamp) * 1e-9)
         self.latency_stamps_ns.append(stamp)
@@ -145,12 +147,12 @@ class Echo(Node):
         from trajectory_msgs.msg import JointTrajectory
         qos = ros_qos.control_qos()
         self.pub = self.create_publisher(JointTrajectory, contract.DAMPING_CMD, qos)
-        self.create_subscription(JointState, contract.STATE, self._on_state, qos)
+        self.create_subscription(JointState, contract.STATE, self._on_state, qos, raw=True)
         self.count = 0
 
-    def _on_state(self, msg) -> None:
-        stamp = msgs.time_to_ns(msg.header.stamp)
-        self.pub.publish(msgs.damping_msg(stamp, [1e4] * HORIZON, 20_000_000))
+    def _on_state(self, data: bytes) -> None:
+        stamp = wire.decode_state(data).stamp_ns
+        self.pub.publish(wire.encode_command(stamp, [1e4] * HORIZON, 20_000_000))
         self.count += 1
 
 
@@ -229,7 +231,6 @@ def _flood(args) -> int:
     if not _wait_matched({pub: args.subscribers}, args.wait):
         print(json.dumps({'error': 'subscribers did not match'}), flush=True)
         return 3
-    msg = msgs.state_msg(0, [0.0] * 6, 'erva')
     count = 0
     start = time.monotonic()
     end = start + args.duration
@@ -241,8 +242,7 @@ def _flood(args) -> int:
         if period and now < start + count * period:
             time.sleep(min(start + count * period - now, 0.001))
             continue
-        msg.header.stamp = msgs.ns_to_time(time.time_ns())
-        pub.publish(msg)
+        pub.publish(wire.encode_state(time.time_ns(), [0.0] * 6, 'erva'))
         count += 1
     elapsed = time.monotonic() - start
     acked = _wait_acked([pub], 10.0)
@@ -268,7 +268,7 @@ def main(argv=None) -> int:
     p.add_argument('--wait', type=float, default=20.0, help='seconds to wait for them')
     p.add_argument('--ack-timeout', type=float, default=5.0,
                    help='seconds to wait for acknowledgements at the end (per topic)')
-    p.add_argument('--history', type=float, default=LIVE_DEFAULTS['publisher_history_s'],
+    p.add_argument('--history', type=float, default=LIVE.defaults()['publisher_history_s'],
                    help='seconds of samples each writer keeps for a stalled reader '
                         '(default: the live loop\'s publisher_history_s, 10)')
     sub.add_parser('echo', help='answer states with commands')

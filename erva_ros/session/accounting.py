@@ -5,22 +5,23 @@ reader's gaps only from its own history.  So a session records everything exactl
 
 1. the loop starts only after every loop writer has matched every subscriber it will
    have -- the other loop nodes, the session monitor and the recorder (each node's
-   status reports ``subscribers:<topic>``, the recorder's ``publishers:<topic>``);
+   report has ``subscribers`` per topic, the recorder's ``publishers`` per topic);
 2. the writers keep enough history to repair a stalled recorder
    (``publisher_history_s``; :func:`erva_ros.ros.qos.publisher_qos`);
 3. at the end the nodes stay up until the recorder holds what they published
-   (``published:<topic>`` against the recorder's ``count:<topic>``), and each node,
+   (each report's ``published`` against the recorder's ``count``), and each node,
    when stopped, waits until its subscribers acknowledged its samples
-   (:func:`erva_ros.ros.runtime.finish_publishing`).
+   (:meth:`erva_ros.ros.loop_node.LoopNode.stop`).
 
 :func:`check_bag` then compares, per topic, what the nodes published with what the bag
 file holds -- read back from disk, not the recorder's word for it -- and, for
 ``/diagnostics``, that every node's status sequence numbers are there without a gap.
 """
 
-from typing import Any, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
+from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 from erva_ros.core import topics
+from erva_ros.core.reports import NMPCReport, NodeReport, RecorderReport
 
 #: Subscribers of each loop topic among the loop's own nodes (observers come on top).
 LOOP_SUBSCRIBERS = {
@@ -72,104 +73,111 @@ def expected_subscribers(loop: Mapping[str, int], observers: Iterable[Iterable[s
     return out
 
 
-def unmatched(statuses: Mapping[str, Mapping[str, str]], nodes: Sequence[str],
+def unmatched(reports: Mapping[str, NodeReport], nodes: Sequence[str],
               expected: Mapping[str, int], later: Mapping[str, int]) -> List[str]:
     """Return what is not matched yet (empty once the loop may start).
 
-    ``statuses`` are the newest /diagnostics values by status name; every one of
-    ``nodes`` must have reported, and each ``subscribers:<topic>`` must reach
-    ``expected`` minus ``later`` (subscribers that come only after the check, e.g. the
-    monitor's gate subscription).
+    ``reports`` are the session's newest reports by node name; every one of ``nodes``
+    must have reported, and each writer's ``subscribers`` must reach ``expected`` minus
+    ``later`` (subscribers that come only after the check, e.g. the monitor's gate
+    subscription).
     """
     missing = [f'{n}: no status yet' for n in nodes
-               if not any(name == n or name.startswith(n + ':') for name in statuses)]
-    for name, values in statuses.items():
-        for key, value in values.items():
-            if not key.startswith('subscribers:'):
-                continue
-            topic = key[len('subscribers:'):]
+               if not any(name == n or name.startswith(n + ':') for name in reports)]
+    for name, report in reports.items():
+        for topic, count in report.subscribers.items():
             need = expected.get(topic)
             if need is None:
                 continue
             need -= later.get(topic, 0)
-            if int(value) < need:
-                missing.append(f'{name}: {topic} has {value} of {need} subscribers')
+            if count < need:
+                missing.append(f'{name}: {topic} has {count} of {need} subscribers')
     return missing
 
 
-def rejections_cost(messages: Mapping[str, Any], nmpc: Mapping[str, Any]) -> Optional[str]:
+def rejections_cost(rejected_total: int, nmpc: Optional[NMPCReport]) -> Optional[str]:
     """Return why rejected inputs cost the loop samples of control (None if they did not).
 
     Samples whose state never became the controller's: those it missed (a busy
     controller's superseded states are load, not rejection) and those it gave the passive
     command for want of a state -- every state refused, as after a wrong first stamp.
     """
-    rejected = messages['rejected_total']
-    unseen = ((nmpc.get('missed_samples') or 0) - (nmpc.get('superseded_states') or 0)
-              + (nmpc.get('safe_commands') or 0))
-    if rejected and unseen > 0:
-        return (f'{unseen} samples went without a command of their own while {rejected} '
-                f'input messages were rejected')
+    if nmpc is None:
+        return None
+    unseen = nmpc.missed_samples - nmpc.superseded_states + nmpc.safe_commands
+    if rejected_total and unseen > 0:
+        return (f'{unseen} samples went without a command of their own while '
+                f'{rejected_total} input messages were rejected')
     return None
 
 
-def recorder_unmatched(recorder: Mapping[str, str], record: Mapping[str, int]) -> List[str]:
+def recorder_unmatched(recorder: Optional[RecorderReport], record: Mapping[str, int]
+                       ) -> List[str]:
     """Return the recorded topics whose writers the recorder has not all matched yet.
 
     ``record`` maps each fully qualified recorded topic to its number of writers.
     """
-    out = []
-    for topic, need in record.items():
-        got = recorder.get(f'publishers:{topic}')
-        if got is None or int(got) < need:
-            out.append(f'recorder: {topic} matched {got or 0} of {need} publishers')
+    got = {} if recorder is None else recorder.publishers
+    return [f'recorder: {topic} matched {got.get(topic, 0)} of {need} publishers'
+            for topic, need in record.items() if got.get(topic, 0) < need]
+
+
+def published_counts(reports: Iterable[NodeReport], final_only: bool = False
+                     ) -> Dict[str, Optional[int]]:
+    """Return, per topic, the messages the nodes say they published.
+
+    ``final_only``: a topic of a node whose final report did not come (the node was
+    killed, or is still running) is unknown (None), never a count that may be short.
+    """
+    out: Dict[str, Optional[int]] = {}
+    for r in reports:
+        for topic, n in r.published.items():
+            if final_only and not r.final:
+                out[topic] = None
+            elif out.get(topic, 0) is not None:
+                out[topic] = out.get(topic, 0) + n
     return out
 
 
-def published_counts(statuses: Mapping[str, Mapping[str, str]]) -> Dict[str, int]:
-    """Return, per topic, the messages the nodes say they published (``published:<topic>``)."""
-    out: Dict[str, int] = {}
-    for values in statuses.values():
-        for key, value in values.items():
-            if key.startswith('published:'):
-                topic = key[len('published:'):]
-                out[topic] = out.get(topic, 0) + int(value)
-    return out
-
-
-def recorder_behind(recorder: Mapping[str, str], published: Mapping[str, int]
+def recorder_behind(recorder: Optional[RecorderReport], published: Mapping[str, Optional[int]]
                     ) -> Dict[str, Tuple[int, int]]:
     """Return {topic: (recorded, published)} for topics the recorder has not caught up on."""
-    out = {}
-    for topic, n in published.items():
-        got = int(recorder.get(f'count:{topic}', 0))
-        if got < n:
-            out[topic] = (got, n)
-    return out
+    counts = {} if recorder is None else recorder.count
+    return {topic: (counts.get(topic, 0), n) for topic, n in published.items()
+            if n is not None and counts.get(topic, 0) < n}
 
 
-def check_bag(bag_path: str, published: Mapping[str, int],
-              status_seqs: Mapping[str, int], window_ns: Optional[Tuple[int, int]] = None
-              ) -> Dict:
+def check_bag(bag_path: str, published: Mapping[str, Optional[int]],
+              status_seqs: Mapping[str, int], window_ns: Optional[Tuple[int, int]] = None,
+              session: str = '') -> Dict:
     """Compare the bag file with what was published; return the per-topic accounting.
 
-    ``published`` maps topics to the nodes' final counts; ``status_seqs`` maps each node's
-    status name to the highest ``status_seq`` the session saw from it: the bag must hold
-    every status from its first recorded one up to that.  Messages stamped outside
-    ``window_ns`` (the session's time span) are counted as foreign, not as the loop's.
-    Returns ``{'topics': {topic: {published, recorded, lost, foreign}}, 'lost': total,
-    'diagnostics_missing': {status name: [seq, ...]}}``.
+    ``published`` maps topics to the nodes' final counts (None: unknown, the node's
+    final report is missing); ``status_seqs`` maps each node's status name to the highest
+    ``status_seq`` the session saw from it: the bag must hold every status from its
+    first recorded one up to that.  Messages stamped outside ``window_ns`` (the
+    session's time span) are counted as foreign, not as the loop's; so are statuses of
+    another session (``session``: this one's id).  Returns ``{'topics': {topic:
+    {published, recorded, lost, foreign}}, 'lost': total, 'unknown': [topics],
+    'diagnostics_missing': {status name: [seq, ...]}, 'foreign_statuses': n}``.
     """
     from erva_ros.core.bag.reader import open_bag
-    from erva_ros.ros.cdr import header_stamp_ns, status_seqs as decode_seqs
+    from erva_ros.core.contract import decode_diagnostics
+    from erva_ros.core.reports import report_from_status
+    from erva_ros.core.wire import header_stamp_ns
     bag = open_bag(bag_path)
     recorded = {t: 0 for t in published}
     foreign = {t: 0 for t in published}
     seen: Dict[str, set] = {}
+    foreign_statuses = 0
     for msg in bag.messages():
         if msg.topic == topics.DIAGNOSTICS:
-            for name, seq in decode_seqs(msg.data):
-                seen.setdefault(name, set()).add(seq)
+            for status in decode_diagnostics(msg.data)[1]:
+                report = report_from_status(status)
+                if session and report.session != session:
+                    foreign_statuses += 1
+                elif report.status_seq:
+                    seen.setdefault(status.name, set()).add(report.status_seq)
         if msg.topic not in recorded:
             continue
         stamp = header_stamp_ns(msg.data)
@@ -177,12 +185,16 @@ def check_bag(bag_path: str, published: Mapping[str, int],
             foreign[msg.topic] += 1
         else:
             recorded[msg.topic] += 1
-    out = {'topics': {}, 'lost': 0, 'diagnostics_missing': {}}
+    out = {'topics': {}, 'lost': 0, 'unknown': [], 'diagnostics_missing': {},
+           'foreign_statuses': foreign_statuses}
     for topic, n in published.items():
-        lost = max(0, n - recorded[topic])
+        lost = None if n is None else max(0, n - recorded[topic])
         out['topics'][topic] = {'published': n, 'recorded': recorded[topic], 'lost': lost,
                                 'foreign': foreign[topic]}
-        out['lost'] += lost
+        if lost is None:
+            out['unknown'].append(topic)
+        else:
+            out['lost'] += lost
     for name, last in status_seqs.items():
         got = seen.get(name, set())
         first = min(got) if got else last + 1
@@ -193,5 +205,5 @@ def check_bag(bag_path: str, published: Mapping[str, int],
 
 
 __all__ = ['LOOP_SUBSCRIBERS', 'hil_loop_subscribers', 'qualify', 'expected_subscribers',
-           'unmatched', 'recorder_unmatched', 'published_counts', 'recorder_behind',
-           'check_bag']
+           'unmatched', 'rejections_cost', 'recorder_unmatched', 'published_counts',
+           'recorder_behind', 'check_bag']

@@ -10,42 +10,34 @@ time axis is the header stamp t_k of each message, relative to the first state.
   it (``harvested_j``; exact), else Σ P(t_k)·Ts (a rectangle rule on the samples).
   The samples can overstate the energy badly when the command switches: right after
   a switch to high damping P(t_k) is large, but the generator velocity then decays
-  within milliseconds (fastest eigenvalue −250 to −1300 1/s, NOTES.md), long before
-  the next sample.
+  within milliseconds (the fastest eigenvalue is −250 to −1300 1/s, docs/model.md),
+  long before the next sample.
 * Timing (realtime sessions): the command period and its jitter |Δ − Ts| from the
   damping_cmd publish times (the publisher's clock) and log times (the recorder's);
   the state → command latency as command publish/log time minus the stamp of the
   state it was computed from (damping_cmd.header.stamp = state stamp).  Lock-step
   sessions stamp in sim time: only the wall time per step is reported.  Solve times,
-  deadline misses and fallbacks as the controller reports them on /diagnostics (last
-  value of each counter).  Commands more than 1.5·Ts after their predecessor are
-  counted as late, states that never got a command as unanswered.
+  deadline misses and fallbacks as the controller reports them on /diagnostics (its
+  last typed report).  Commands more than 1.5·Ts after their predecessor are counted as
+  late, states that never got a command as unanswered.
+
+Every message is decoded by the contract's one decoder per family
+(:mod:`erva_ros.core.contract`): a report needs no ROS install.
 """
 
 from dataclasses import dataclass, field
 import math
-import re
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from erva_ros.core import topics as contract
-
+from erva_ros.core import contract as wire, topics as contract
+from erva_ros.core.bag import BagError
 from erva_ros.core.bag.reader import Bag
 from erva_ros.core.levels import ERROR
 from erva_ros.core.metrics import comfort_power, percentiles_ms
-from erva_ros.ros.bag_messages import decoded
-from erva_ros.ros.diagnostics import parse_status
-from erva_ros.ros.msgs import state_joint_names, time_to_ns
-
-#: Diagnostic keys (regular expressions) that carry each figure, as plant_sim_node and
-#: nmpc_node (and offline sessions) name them.
-ENERGY_KEY = re.compile(r'^harvested_j$')
-DEADLINE_KEY = re.compile(r'^deadline_misses$')
-FALLBACK_KEY = re.compile(r'(^|_)fallback_(plan|passive)$')
-SOLVE_KEY = re.compile(r'^solve_ms_')
-REPORTED_TIMING_KEY = re.compile(r'^(latency_ms|cmd_jitter_ms|tick_jitter_ms)_')
-PLANT_HOLD_KEY = re.compile(r'^u_from_')
+from erva_ros.core.reports import (EcuSimReport, NMPCReport, NodeReport, PlantReport,
+                                   report_from_status, Timing)
 
 
 def _topic(name: str, namespace: str) -> str:
@@ -81,7 +73,8 @@ class SessionData:
     preview_stamp_ns: np.ndarray
     previews: List[np.ndarray]   # heights w(t0 + i·Ts)
     preview_dt: List[np.ndarray]  # time_from_start (s)
-    diagnostics: List[Dict] = field(default_factory=list)   # per status message
+    #: Every report on /diagnostics, by log time: (log_ns, report).
+    reports: List[Tuple[int, NodeReport]] = field(default_factory=list)
     model: str = 'erva'      # the state's model kind (its joints): erva or benchmark
 
     @property
@@ -94,7 +87,7 @@ class SessionData:
     def x(self, i: int) -> np.ndarray:
         """Return the i-th recorded state as the model's x = [z_s, ż_s, z_us, ż_us(, z_d, ż_d)]."""
         v = self.state.values[i]
-        n = len(state_joint_names(self.model))
+        n = len(wire.state_joint_names(self.model))
         x = np.empty(2 * n)
         x[0::2], x[1::2] = v[:n], v[3:3 + n]
         return x
@@ -107,11 +100,6 @@ def _series(rows, width) -> Series:
     return Series(np.asarray([r[0] for r in rows], dtype=np.int64),
                   np.asarray([r[1] for r in rows], dtype=np.int64),
                   np.asarray([r[2] for r in rows], dtype=np.int64), arr)
-
-
-def _first(values) -> float:
-    """Return the first of a message's values, NaN if it has none."""
-    return values[0] if len(values) else math.nan
 
 
 def _padded(values, n: int = 3) -> List[float]:
@@ -136,106 +124,71 @@ def guess_namespace(bag: Bag) -> str:
     return found[0] if found else contract.NAMESPACE
 
 
-class _Rows:
-    """The rows of one bag's contract topics, one small decoder per topic."""
-
-    def __init__(self):
-        self.rows: Dict[str, list] = {k: [] for k in (
-            contract.STATE, contract.SPRUNG_ACCEL, contract.GENERATOR, contract.ROAD_HEIGHT,
-            contract.DAMPING_CMD)}
-        self.plans: List[np.ndarray] = []
-        self.previews: List[np.ndarray] = []
-        self.preview_dt: List[np.ndarray] = []
-        self.preview_stamps: List[int] = []
-        self.diagnostics: List[Dict] = []
-        self.state_joints: Optional[tuple] = None
-
-    def _row(self, kind: str, m, msg, values) -> None:
-        self.rows[kind].append((time_to_ns(msg.header.stamp), m.log_time_ns,
-                                m.publish_time_ns, values))
-
-    def state(self, m, msg) -> None:
-        self.state_joints = self.state_joints or tuple(msg.name)
-        self._row(contract.STATE, m, msg, _padded(msg.position) + _padded(msg.velocity))
-
-    def sprung_accel(self, m, msg) -> None:
-        self._row(contract.SPRUNG_ACCEL, m, msg, [msg.accel.linear.z])
-
-    def generator(self, m, msg) -> None:
-        self._row(contract.GENERATOR, m, msg,
-                  [_first(msg.position), _first(msg.velocity), _first(msg.effort)])
-
-    def road_height(self, m, msg) -> None:
-        self._row(contract.ROAD_HEIGHT, m, msg, [msg.point.x, msg.point.z])
-
-    def road_preview(self, m, msg) -> None:
-        self.preview_stamps.append(time_to_ns(msg.header.stamp))
-        self.previews.append(np.array([_first(p.positions) for p in msg.points]))
-        self.preview_dt.append(np.array([time_to_ns(p.time_from_start) * 1e-9
-                                         for p in msg.points]))
-
-    def damping_cmd(self, m, msg) -> None:
-        plan = np.array([_first(p.positions) for p in msg.points])
-        self.plans.append(plan)
-        self._row(contract.DAMPING_CMD, m, msg, [_first(plan)])
-
-    def diagnostics_array(self, m, msg) -> None:
-        for status in msg.status:
-            name, level, text, values = parse_status(status)
-            self.diagnostics.append({'log_ns': m.log_time_ns, 'name': name, 'level': level,
-                                     'message': text, 'values': values})
-
-    def model(self) -> str:
-        """Return the model kind whose state joints were recorded (erva without states)."""
-        bench = state_joint_names('benchmark')
-        return 'benchmark' if self.state_joints == bench else 'erva'
-
-
 def load_session(bag: Bag, namespace: Optional[str] = None) -> SessionData:
     """Decode the contract topics of ``bag`` into arrays (see module doc)."""
     ns = namespace or guess_namespace(bag)
-    rows = _Rows()
-    decoders = {_topic(contract.STATE, ns): rows.state,
-                _topic(contract.SPRUNG_ACCEL, ns): rows.sprung_accel,
-                _topic(contract.GENERATOR, ns): rows.generator,
-                _topic(contract.ROAD_HEIGHT, ns): rows.road_height,
-                _topic(contract.ROAD_PREVIEW, ns): rows.road_preview,
-                _topic(contract.DAMPING_CMD, ns): rows.damping_cmd,
-                contract.DIAGNOSTICS: rows.diagnostics_array}
-    for m, msg in decoded(bag, [t for t in bag.topics if t in decoders]):
-        decoders[m.topic](m, msg)
-    r = rows.rows
-    return SessionData(bag, ns, _series(r[contract.STATE], 6),
-                       _series(r[contract.SPRUNG_ACCEL], 1), _series(r[contract.GENERATOR], 3),
-                       _series(r[contract.ROAD_HEIGHT], 2), _series(r[contract.DAMPING_CMD], 1),
-                       rows.plans, np.asarray(rows.preview_stamps, dtype=np.int64),
-                       rows.previews, rows.preview_dt, rows.diagnostics, rows.model())
+    topic = {name: _topic(name, ns) for name in (
+        contract.STATE, contract.SPRUNG_ACCEL, contract.GENERATOR, contract.ROAD_HEIGHT,
+        contract.ROAD_PREVIEW, contract.DAMPING_CMD)}
+    rows: Dict[str, list] = {name: [] for name in topic}
+    plans, previews, preview_dt, preview_stamps = [], [], [], []
+    reports: List[Tuple[int, NodeReport]] = []
+    joints = None
+    by_topic = {v: k for k, v in topic.items()}
+    wanted = [t for t in bag.topics if t in by_topic or t == contract.DIAGNOSTICS]
+    for m in bag.messages(wanted):
+        try:
+            if m.topic == contract.DIAGNOSTICS:
+                reports += [(m.log_time_ns, report_from_status(st))
+                            for st in wire.decode_diagnostics(m.data)[1]]
+                continue
+            name = by_topic[m.topic]
+            if name == contract.STATE:
+                j = wire.decode_joints(m.data)
+                joints = joints or j.names
+                row = (j.stamp_ns, _padded(j.position) + _padded(j.velocity))
+            elif name == contract.ROAD_PREVIEW:
+                r = wire.decode_preview(m.data)
+                preview_stamps.append(r.stamp_ns)
+                previews.append(r.heights)
+                preview_dt.append(np.array(wire.decode_command_offsets(m.data)))
+                continue
+            elif name == contract.DAMPING_CMD:
+                r = wire.decode_command(m.data)
+                plans.append(r.plan)
+                row = (r.stamp_ns, [r.plan[0]])
+            else:
+                r = wire.DECODERS[name](m.data)
+                row = (r.stamp_ns, {contract.SPRUNG_ACCEL: lambda: [r.sprung_accel],
+                                    contract.GENERATOR: lambda: [r.position, r.velocity,
+                                                                 r.effort],
+                                    contract.ROAD_HEIGHT: lambda: [r.distance_m, r.height_m]
+                                    }[name]())
+        except wire.MessageRejected as exc:
+            raise BagError(f'{bag.mcap_path}: a {m.type} message on {m.topic} at '
+                           f'{m.log_time_ns} ns does not decode ({exc})') from None
+        rows[name].append((row[0], m.log_time_ns, m.publish_time_ns, row[1]))
+    model = 'benchmark' if joints == wire.state_joint_names('benchmark') else 'erva'
+    return SessionData(bag, ns, _series(rows[contract.STATE], 6),
+                       _series(rows[contract.SPRUNG_ACCEL], 1),
+                       _series(rows[contract.GENERATOR], 3),
+                       _series(rows[contract.ROAD_HEIGHT], 2),
+                       _series(rows[contract.DAMPING_CMD], 1),
+                       plans, np.asarray(preview_stamps, dtype=np.int64), previews, preview_dt,
+                       reports, model)
 
 
-def _number(text) -> Optional[float]:
-    try:
-        v = float(text)
-    except (TypeError, ValueError):
-        return None
-    return v if math.isfinite(v) else None
+def last_reports(data: SessionData) -> Dict[str, NodeReport]:
+    """Return the last report of each status name on /diagnostics."""
+    return {r.node: r for _, r in data.reports}
 
 
-def last_diagnostic_values(data: SessionData) -> Dict[str, Dict[str, str]]:
-    """Return, per status name, the last value of each key seen on /diagnostics."""
-    out: Dict[str, Dict[str, str]] = {}
-    for d in data.diagnostics:
-        out.setdefault(d['name'], {}).update(d['values'])
-    return out
+def _numbers(named: Dict[str, float]) -> Dict[str, float]:
+    return {k: float(v) for k, v in named.items() if v is not None and math.isfinite(v)}
 
 
-def _pick(last: Dict[str, Dict[str, str]], pattern) -> Dict[str, float]:
-    found: Dict[str, float] = {}
-    for status, values in last.items():
-        for key, text in values.items():
-            v = _number(text)
-            if v is not None and pattern.search(key):
-                found[f'{status}/{key}'] = v
-    return found
+def _timing(name: str, field_name: str, t: Timing) -> Dict[str, float]:
+    return _numbers({f'{name}/{field_name}_{k}': v for k, v in t.as_dict().items()})
 
 
 def _sample_time(stamps_ns: np.ndarray) -> Optional[float]:
@@ -259,9 +212,11 @@ def compute_report(data: SessionData) -> Dict:
     ts = _sample_time(data.state.stamp_ns) or _sample_time(data.cmd.stamp_ns)
     n = data.accel.n
     duration = n * ts if ts else bag.duration_s
-    last = last_diagnostic_values(data)
+    last = last_reports(data)
+    plants = {k: r for k, r in last.items() if isinstance(r, (PlantReport, EcuSimReport))}
+    controllers = {k: r for k, r in last.items() if isinstance(r, NMPCReport)}
 
-    energy = _pick(last, ENERGY_KEY)
+    energy = _numbers({f'{k}/harvested_j': r.harvested_j for k, r in plants.items()})
     gen = data.generator.values
     power_samples = gen[:, 1] * gen[:, 2] if data.generator.n else np.zeros(0)
     if energy:
@@ -277,6 +232,8 @@ def compute_report(data: SessionData) -> Dict:
     report: Dict = {
         'bag': bag.path,
         'complete': bag.complete,
+        # Not closed properly, cut short, repaired, or holding another session's messages.
+        'warnings': _warnings(bag),
         'session': dict(bag.session),
         'namespace': data.namespace,
         'messages': {t.name: t.count for t in sorted(bag.topics.values(), key=lambda t: t.name)},
@@ -292,19 +249,36 @@ def compute_report(data: SessionData) -> Dict:
                   if power_samples.size else math.nan},
     }
     report['timing'] = timing_report(data, ts)
-    deadline = _pick(last, DEADLINE_KEY)
-    fallbacks = _pick(last, FALLBACK_KEY)
+    deadline = {f'{k}/deadline_misses': float(r.deadline_misses)
+                for k, r in controllers.items()}
+    fallbacks = {f'{k}/controller_fallback_{which}': float(
+        getattr(r, f'controller_fallback_{which}'))
+        for k, r in controllers.items() for which in ('plan', 'passive')}
     report['deadline_misses'] = {'reported': deadline,
                                  'total': int(sum(deadline.values())) if deadline else None,
                                  'late_commands': report['timing']['late_commands']}
     report['fallbacks'] = {'reported': fallbacks,
                            'total': int(sum(fallbacks.values())) if fallbacks else None}
-    report['solve_ms'] = _pick(last, SOLVE_KEY)
-    report['reported_timing_ms'] = _pick(last, REPORTED_TIMING_KEY)
-    report['plant_command_source'] = _pick(last, PLANT_HOLD_KEY)
-    report['diagnostics_errors'] = sorted({f'{d["name"]}: {d["message"]}'
-                                           for d in data.diagnostics if d['level'] >= ERROR})
+    report['solve_ms'] = {}
+    report['reported_timing_ms'] = {}
+    for k, r in controllers.items():
+        report['solve_ms'].update(_timing(k, 'solve_ms', r.solve_ms))
+        for name in ('latency_ms', 'cmd_jitter_ms', 'tick_jitter_ms'):
+            report['reported_timing_ms'].update(_timing(k, name, getattr(r, name)))
+    report['plant_command_source'] = {
+        f'{k}/u_from_{src}': float(getattr(r, f'u_from_{src}'))
+        for k, r in plants.items() if isinstance(r, PlantReport)
+        for src in ('command', 'plan', 'passive')}
+    report['diagnostics_errors'] = sorted({f'{r.node}: {r.message}'
+                                           for _, r in data.reports if r.level >= ERROR})
     return report
+
+
+def _warnings(bag) -> List[str]:
+    from erva_ros.core.bag.session_check import session_warnings
+    out = [] if bag.complete else ['the bag was not closed properly; the figures cover what '
+                                   'is readable']
+    return out + session_warnings(bag)
 
 
 def timing_report(data: SessionData, ts: Optional[float]) -> Dict:
@@ -352,4 +326,4 @@ def write_plots(data: SessionData, out_dir: str, timing: bool = True) -> List[st
 
 
 __all__ = ['SessionData', 'Series', 'load_session', 'compute_report', 'write_plots',
-           'guess_namespace', 'last_diagnostic_values']
+           'guess_namespace', 'last_reports']

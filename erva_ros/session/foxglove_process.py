@@ -46,11 +46,12 @@ def check_address(text: str) -> Tuple[str, int]:
 
 
 def server_argv(host: str, port: int, namespace: str, topics: List[str],
-                session: Dict[str, str], use_sim_time: bool) -> List[str]:
+                session: Dict[str, str], use_sim_time: bool, session_id: str = '') -> List[str]:
     """Return the command line of foxglove_node for one session."""
     import json
     return node_argv(PROCESS_NODE, namespace, parameters={
         'host': json.dumps(host), 'port': int(port), 'topics': json.dumps(list(topics)),
+        'session_id': json.dumps(session_id),
         # A double-quoted YAML scalar, so rcl keeps the JSON a string.
         'session_metadata': json.dumps(json.dumps(session, sort_keys=True)),
         **({'use_sim_time': True} if use_sim_time else {})})
@@ -65,7 +66,7 @@ def start_process(cfg, session, env: Dict[str, str], log: Callable[[str], None],
     """
     host, port = fg.parse_address(cfg.foxglove)
     argv = server_argv(host, port, cfg.namespace, record_topics(session.hil), description,
-                       use_sim_time=not session.realtime)
+                       use_sim_time=not session.realtime, session_id=session.session_id)
     proc = ChildProcess(PROCESS, argv, env, os.path.join(session.directory, f'{PROCESS}.log'))
     deadline = time.monotonic() + START_TIMEOUT_S
     while True:
@@ -85,24 +86,15 @@ def start_process(cfg, session, env: Dict[str, str], log: Callable[[str], None],
         time.sleep(0.05)
 
 
-def summary(diag: Dict[str, Any]) -> Dict[str, Any]:
-    """Return the server's counters for `erva run`'s summary from the monitor's diagnostics.
-
-    ``diag`` maps status names to (level, message, values, rx) as Monitor.diag does.
-    """
-    values = next((entry[2] for name, entry in diag.items() if name.endswith(fg.STATUS_SUFFIX)),
-                  None)
-    if values is None:
+def summary(reports: Dict[str, Any]) -> Dict[str, Any]:
+    """Return the server's counters for `erva run`'s summary from the session's reports."""
+    from erva_ros.core.reports import FoxgloveReport
+    r = next((r for r in reports.values() if isinstance(r, FoxgloveReport)), None)
+    if r is None:
         return {'status': 'no status received'}
-    out: Dict[str, Any] = {'url': values.get('url')}
-    for key in ('received', 'forwarded', 'clients_seen', 'overflow_events'):
-        try:
-            out[key] = int(values.get(key, ''))
-        except ValueError:
-            out[key] = None
-    out['offered'] = {k.split(':', 1)[1]: int(v) for k, v in values.items()
-                      if k.startswith('offered:') and v.isdigit()}
-    return out
+    return {'url': r.url, 'received': r.received, 'forwarded': r.forwarded,
+            'clients_seen': r.clients_seen, 'overflow_events': r.overflow_events,
+            'offered': dict(r.offered)}
 
 
 __all__ = ['PROCESS', 'check_address', 'server_argv', 'start_process',

@@ -115,10 +115,9 @@ def run_core_bench(samples: int = 2000) -> Dict:
     from erva_ros.core.hil.bridge import BridgeConfig, BridgeCore
     from erva_ros.core.hil.codec import Chassis, EcuCodec, Kind
     from erva_ros.core.hil.hardware import GeneratorHardware
-    from erva_ros.core.hil.topics import MEASUREMENT_NAMES
+    from erva_ros.core.contract import (decode_measurements, encode_state,
+                                        MEASUREMENTS_ENCODER as measurements)
     from erva_ros.core.hil.transport import free_udp_ports, open_bus
-    from erva_ros.ros.cdr import decode_joint_state, JointStateEncoder
-    from erva_ros.ros.msgs import state_joint_names
     from erva_ros.core.params import paper_params
 
     codec = EcuCodec()
@@ -130,8 +129,6 @@ def run_core_bench(samples: int = 2000) -> Dict:
     tx = codec.sender(Kind.CHASSIS)
     params = paper_params()
     ekf = ExtendedKalmanFilter(params)
-    measurements = JointStateEncoder(MEASUREMENT_NAMES)
-    state = JointStateEncoder(state_joint_names('erva'))
     send, recv, est = [], [], []
     ecu_prepare, ecu_sample = _ecu_core_bench(samples, codec)
     try:
@@ -149,9 +146,9 @@ def run_core_bench(samples: int = 2000) -> Dict:
             assert frame is not None
             data = measurements.encode(k * 20_000_000, (c_e, c_e, 0.1, 1e-3, 0.5, 40.0))
             t0 = time.perf_counter()
-            _, _, y, _, _ = decode_joint_state(data)
-            x, _ = ekf.cycle((y[2], y[3], y[4]), y[1], y[0], 1e-3, 1.1e-3)
-            state.encode(k * 20_000_000, x[0::2].tolist(), x[1::2].tolist())
+            m = decode_measurements(data)
+            x, _ = ekf.cycle(m.sensors, m.c_e_mean, m.c_e, 1e-3, 1.1e-3)
+            encode_state(k * 20_000_000, x, 'erva')
             est.append(time.perf_counter() - t0)
     finally:
         core.close()

@@ -20,7 +20,8 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 import numpy as np
 
 from erva_ros.core import topics
-from erva_ros.ros.diagnostics import value_float, value_int
+from erva_ros.core.levels import ERROR
+from erva_ros.core.reports import NodeReport
 
 ECU = 'ecu_sim'
 ESTIMATOR = 'state_estimator_node'
@@ -28,12 +29,12 @@ ESTIMATOR = 'state_estimator_node'
 BRIDGE_COMMAND = 'ecu_bridge_node: command'
 BRIDGE_BUS = 'ecu_bridge_node: can bus'
 BRIDGE_ECU = 'ecu_bridge_node: ecu'
-#: Nodes whose counters only come with their periodic status (no final one at the end).
+#: Reports that come only periodically until the node stops (no `finished` one).
 PERIODIC = (BRIDGE_COMMAND, BRIDGE_BUS, BRIDGE_ECU, ESTIMATOR)
 #: ECU cycles left out of the estimation error: the filter starts from rest.
 WARMUP = 25
-#: The loop's latency chain, each stage as time since the sample instant t_k (node, key):
-#: the ECU's sensor frames on CAN, ecu/measurements at the estimator, the state
+#: The loop's latency chain, each stage as time since the sample instant t_k (report,
+#: timing): the ECU's sensor frames on CAN, ecu/measurements at the estimator, the state
 #: published, (the NMPC's command: the monitor's ``sample_to_command_ms``), the command
 #: on CAN, and applied by the ECU.
 CHAIN = {'sensors_on_can': (ECU, 'sample_to_can_ms'),
@@ -45,75 +46,84 @@ CHAIN = {'sensors_on_can': (ECU, 'sample_to_can_ms'),
 DROPS = {'crc': ('bad_crc',), 'counter': ('repeated', 'skipped', 'bad_counter'),
          'length': ('wrong_length',)}
 
-Values = Callable[[str], Dict[str, str]]
+Reports = Callable[[str], Optional[NodeReport]]
 
 
-def published(values: Values) -> Dict[str, Optional[int]]:
-    """Return the loop-side messages published per topic (None: not reported yet)."""
+def _get(report: Optional[NodeReport], name: str):
+    return None if report is None else getattr(report, name)
+
+
+def published(report: Reports, final_only: bool = False) -> Dict[str, Optional[int]]:
+    """Return the loop-side messages published per topic (None: not reported)."""
     from erva_ros.core.hil import topics as hil_topics
-    samples = value_int(values(ECU).get('samples_published'))
-    return {topics.STATE: value_int(values(ESTIMATOR).get('updates')),
-            topics.SPRUNG_ACCEL: samples, topics.GENERATOR: samples,
-            hil_topics.TRUE_STATE: samples}
+
+    def counted(r):
+        return None if r is None or (final_only and not r.final) else r
+    ecu, est = counted(report(ECU)), counted(report(ESTIMATOR))
+    samples = _get(ecu, 'samples_published')
+    return {topics.STATE: _get(est, 'updates'), topics.SPRUNG_ACCEL: samples,
+            topics.GENERATOR: samples, hil_topics.TRUE_STATE: samples}
 
 
-def plant_equivalents(values: Values) -> Dict[str, Optional[int]]:
+def plant_equivalents(report: Reports) -> Dict[str, Optional[int]]:
     """Return the plant figures that have a HIL equivalent; the others are left out.
 
     steps = the ECU's integrated cycles; rejected_damping_cmd = malformed commands the
     bridge refused.  The plant's per-step command / plan / passive counts have none:
     the bridge counts frames, also before the run and after it (module doc).
     """
-    return {'steps': value_int(values(ECU).get('cycles')),
-            'rejected_damping_cmd': value_int(values(BRIDGE_COMMAND).get('commands_rejected'))}
+    return {'steps': _get(report(ECU), 'cycles'),
+            'rejected_damping_cmd': _get(report(BRIDGE_COMMAND), 'commands_rejected')}
 
 
-def hil_block(values: Values, estimates: Dict[int, np.ndarray],
-              truth: Dict[int, np.ndarray], stats: Callable,
-              events: List[Tuple[int, str, int, str]], end_ns: Optional[int]) -> Dict[str, Any]:
+def hil_block(report: Reports, estimates: Dict[int, np.ndarray],
+              truth: Dict[int, np.ndarray], events: List[Tuple[int, str, int, str]],
+              end_ns: Optional[int]) -> Dict[str, Any]:
     """Return the summary's ``hil`` block (see the module doc).
 
-    ``estimates`` and ``truth`` map sample stamps (ns) to states; ``stats(values,
-    prefix)`` reads a p50/p99/max/samples group of diagnostic values; ``events`` are the
+    ``estimates`` and ``truth`` map sample stamps (ns) to states; ``events`` are the
     monitor's status changes (rx_ns, name, level, message) and ``end_ns`` the arrival of
-    the ECU's `finished` status (None: it did not finish).
+    the ECU's `finished` report (None: it did not finish).
     """
-    cmd, bus, link = values(BRIDGE_COMMAND), values(BRIDGE_BUS), values(BRIDGE_ECU)
-    ecu, est = values(ECU), values(ESTIMATOR)
-    bridge = {f'dropped_{k}': _sum(bus, names) for k, names in DROPS.items()}
-    total = value_int(cmd.get('command_timeouts'))
+    from erva_ros.session.monitor_figures import stats
+    cmd, bus, link = report(BRIDGE_COMMAND), report(BRIDGE_BUS), report(BRIDGE_ECU)
+    ecu, est = report(ECU), report(ESTIMATOR)
+    bridge: Dict[str, Any] = {f'dropped_{k}': _sum(bus, names) for k, names in DROPS.items()}
+    total = _get(cmd, 'command_timeouts')
     bridge['command_timeouts'] = total if end_ns is None else _timeouts_before(events, end_ns)
     bridge['command_timeouts_total'] = total
-    bridge.update({k: value_int(cmd.get(k)) for k in (
+    bridge.update({k: _get(cmd, k) for k in (
         'commands_received', 'commands_rejected', 'commands_clamped', 'plan_frames_sent')})
     bridge['bus_errors'] = _sum(bus, ('send_errors', 'bus_losses', 'bus_open_failures'))
-    bridge['reconnects'] = value_int(bus.get('reconnects'))
-    bridge['incomplete_cycles'] = value_int(link.get('incomplete_cycles'))
+    bridge['reconnects'] = _get(bus, 'reconnects')
+    bridge['incomplete_cycles'] = _get(link, 'incomplete_cycles')
     # The ECU checks the command frames the same way (its counters are rx_<name>).
-    ecu_out = {f'dropped_{k}': _sum(ecu, [f'rx_{n}' for n in names])
-               for k, names in DROPS.items()}
-    ecu_out.update({k: value_int(ecu.get(k)) for k in (
+    rx = {} if ecu is None else ecu.rx
+    ecu_out: Dict[str, Any] = {f'dropped_{k}': None if ecu is None else
+                               sum(rx.get(n, 0) for n in names) for k, names in DROPS.items()}
+    ecu_out.update({k: _get(ecu, k) for k in (
         'cycles', 'commands_applied', 'command_timeouts', 'duty_out_of_range', 'overruns',
         'cycles_skipped', 'recomputed', 'mode_changes_unlogged')})
     ecu_out['bus_errors'] = _sum(ecu, ('send_errors', 'bus_losses'))
-    ecu_out['mode'] = ecu.get('ecu_mode')
-    ecu_out['mode_changes'] = ecu.get('mode_changes')
-    ecu_out['road_mismatches'] = value_int(ecu.get('road_mismatches'))
-    ecu_out['start_lag_ms'] = value_float(ecu.get('start_lag_ms'))
-    bridge['commands_stale'] = value_int(cmd.get('commands_stale'))
-    bridge['timeout_plan_frames_max'] = value_int(cmd.get('timeout_plan_frames_max'))
-    bridge['timeout_age_ms_max'] = value_float(cmd.get('timeout_age_ms_max'))
-    estimator: Dict[str, Any] = {k: value_int(est.get(k)) for k in (
+    ecu_out['mode'] = _get(ecu, 'ecu_mode')
+    ecu_out['mode_changes'] = _get(ecu, 'mode_changes')
+    ecu_out['road_mismatches'] = _get(ecu, 'road_mismatches')
+    ecu_out['start_lag_ms'] = _get(ecu, 'start_lag_ms')
+    bridge['commands_stale'] = _get(cmd, 'commands_stale')
+    bridge['timeout_plan_frames_max'] = _get(cmd, 'timeout_plan_frames_max')
+    bridge['timeout_age_ms_max'] = _get(cmd, 'timeout_age_ms_max')
+    estimator: Dict[str, Any] = {k: _get(est, k) for k in (
         'updates', 'incomplete', 'gaps', 'restarts', 'late_or_repeated', 'rejected',
         'no_road', 'road_waits', 'road_extrapolated', 'before_road')}
-    estimator['nis_mean'] = value_float(est.get('nis_mean'))
+    estimator['nis_mean'] = _get(est, 'nis_mean')
     estimator['error'] = estimation_error(estimates, truth)
     return {'bridge': bridge, 'ecu': ecu_out, 'estimator': estimator,
-            'latency_ms': {'bridge_ros_to_can': stats(cmd, 'ros_to_can_ms'),
-                           'bridge_can_to_ros': stats(link, 'can_to_ros_ms'),
-                           'estimator': stats(est, 'latency_ms')},
+            'latency_ms': {'bridge_ros_to_can': stats(_get(cmd, 'ros_to_can_ms')),
+                           'bridge_can_to_ros': stats(_get(link, 'can_to_ros_ms')),
+                           'estimator': stats(_get(est, 'latency_ms'))},
             # Each stage's point in time after the sample instant t_k (CHAIN).
-            'chain_ms': {stage: stats(values(node), key) for stage, (node, key) in CHAIN.items()}}
+            'chain_ms': {stage: stats(_get(report(name), timing))
+                         for stage, (name, timing) in CHAIN.items()}}
 
 
 def estimation_error(estimates: Dict[int, np.ndarray], truth: Dict[int, np.ndarray],
@@ -138,7 +148,6 @@ def estimation_error(estimates: Dict[int, np.ndarray], truth: Dict[int, np.ndarr
 
 def _timeouts_before(events: List[Tuple[int, str, int, str]], end_ns: int) -> int:
     """Return how often the bridge's command status turned ERROR (a timeout) before end_ns."""
-    from erva_ros.ros.diagnostics import ERROR
     count, was_error = 0, False
     for rx, name, level, _ in events:
         if name == BRIDGE_COMMAND:
@@ -148,10 +157,9 @@ def _timeouts_before(events: List[Tuple[int, str, int, str]], end_ns: int) -> in
     return count
 
 
-def _sum(values: Dict[str, str], keys) -> Optional[int]:
-    """Return the sum of integer counters, None if any is not reported."""
-    parts = [value_int(values.get(k)) for k in keys]
-    return None if any(p is None for p in parts) else sum(parts)
+def _sum(report: Optional[NodeReport], names) -> Optional[int]:
+    """Return the sum of a report's counters (None without the report)."""
+    return None if report is None else sum(getattr(report, n) for n in names)
 
 
 __all__ = ['ECU', 'ESTIMATOR', 'PERIODIC', 'published', 'plant_equivalents', 'hil_block',

@@ -1,7 +1,8 @@
 """The figures of an `erva run` summary, each built by one small function from the monitor's store.
 
-``obs`` is an :class:`~erva_ros.session.monitor.Observations` (decoded): its per-sample
-tables (states, accelerations, power, commands) and each node's newest diagnostics.
+``obs`` is an :class:`~erva_ros.session.observations.Observations` (decoded): its
+per-sample tables (states, accelerations, power, commands) and each node's newest typed
+report.
 :func:`summary` puts the blocks together: ``metrics``, ``commands``, ``nmpc``,
 ``scheduling``, ``plant``, ``road`` (and ``hil``), ``events`` and ``messages``.
 """
@@ -10,19 +11,20 @@ from typing import Any, Dict, Optional
 
 import numpy as np
 
+from erva_ros.core.levels import LEVEL_NAMES
 from erva_ros.core.metrics import comfort_power, percentiles_ms
-from erva_ros.ros.diagnostics import LEVEL_NAMES, value_float, value_int
+from erva_ros.core.reports import Timing
 from erva_ros.session import hil_summary
 
 #: Status changes kept in the summary (the first ones; a flapping node could make many).
 MAX_EVENTS = 200
-#: The NMPC's counters in the summary (its diagnostics' keys).
+#: The NMPC's counters in the summary (fields of its report).
 NMPC_COUNTERS = ('solves', 'commands', 'late', 'deadline_misses', 'state_timeouts',
                  'safe_commands', 'missed_samples', 'superseded_states', 'out_of_order',
                  'stale_previews', 'no_preview', 'rejected_state', 'rejected_preview',
                  'controller_fallback_plan', 'controller_fallback_passive',
                  'controller_failures', 'controller_late')
-#: The NMPC's timings in the summary (prefixes of _p50/_p99/_max/_samples).
+#: The NMPC's timings in the summary.
 NMPC_TIMINGS = ('solve_ms', 'latency_ms', 'cmd_jitter_ms', 'tick_jitter_ms')
 #: The plant's counters and timings in the summary.
 PLANT_COUNTERS = ('steps', 'u_from_command', 'u_from_plan', 'u_from_passive', 'late_commands',
@@ -31,12 +33,20 @@ PLANT_COUNTERS = ('steps', 'u_from_command', 'u_from_plan', 'u_from_passive', 'l
 PLANT_TIMINGS = ('loop_latency_ms', 'cmd_jitter_ms', 'road_latency_ms', 'step_ms')
 
 
-def stats(values: Dict[str, str], prefix: str) -> Dict[str, Any]:
-    """Return p50/p99/max (floats, NaN if absent) and samples of a node's timing ``prefix``."""
-    out: Dict[str, Any] = {k: value_float(values.get(f'{prefix}_{k}'))
-                           for k in ('p50', 'p99', 'max')}
-    out['samples'] = value_int(values.get(f'{prefix}_samples'))
-    return out
+def stats(timing: Optional[Timing]) -> Dict[str, Any]:
+    """Return p50/p99/max (ms, NaN if unknown) and samples (None if unknown) of a Timing."""
+    if timing is None:
+        return {'p50': float('nan'), 'p99': float('nan'), 'max': float('nan'),
+                'samples': None}
+    return timing.as_dict()
+
+
+def _fields(report, names) -> Dict[str, Optional[int]]:
+    return {k: None if report is None else getattr(report, k) for k in names}
+
+
+def _timings(report, names) -> Dict[str, Dict[str, Any]]:
+    return {k: stats(None if report is None else getattr(report, k)) for k in names}
 
 
 def metrics(obs, ts: float, n_steps: int) -> Dict[str, Any]:
@@ -47,14 +57,14 @@ def metrics(obs, ts: float, n_steps: int) -> Dict[str, Any]:
     first and the last state's arrival.
     """
     accel = [obs.accel[s] for s in sorted(obs.accel)][:n_steps]
-    integrator = hil_summary.ECU if obs.hil else 'plant_sim_node'
-    values = obs.diag_values(integrator)
-    harvested = value_float(values.get('harvested_j'))
+    plant = obs.report(hil_summary.ECU if obs.hil else 'plant_sim_node')
+    harvested = float('nan') if plant is None else plant.harvested_j
     out = comfort_power(accel, harvested, len(accel) * ts) if accel else {}
     # Between the samples too (the plant's own integral): the sampled measure sees the
     # instants where commands switch, and a delayed actuator moves the switch (docs/nmpc.md).
-    out.update({'acc_rms_continuous': value_float(values.get('acc_rms_continuous')),
-                'harvested_j': harvested, 'samples': len(accel)})
+    out.update({'acc_rms_continuous': float('nan') if plant is None
+                else plant.acc_rms_continuous, 'harvested_j': harvested,
+                'samples': len(accel)})
     if len(obs.state_rx) > 1:
         rx = sorted(obs.state_rx.values())
         span = (rx[-1] - rx[0]) * 1e-9
@@ -66,8 +76,8 @@ def commands(obs, ts: float, realtime: bool) -> Dict[str, Any]:
     """Return the commands received and, in real time, their rate, jitter and latencies.
 
     Jitter and state-to-command latency are measured where the commands are used, at the
-    plant (its diagnostics; the HIL loop has no plant node), and also as this observer,
-    one more subscriber, receives them.  Sample-to-command runs from the sample time t_k.
+    plant (its report; the HIL loop has no plant node), and also as this observer, one
+    more subscriber, receives them.  Sample-to-command runs from the sample time t_k.
     """
     cmds = obs.commands
     # Commands for samples the plant published a state of: not the safe commands of an
@@ -80,9 +90,9 @@ def commands(obs, ts: float, realtime: bool) -> Dict[str, Any]:
     rx = np.array([c[1] for c in scheduled], dtype=float) * 1e-9
     out['rate_hz'] = float((len(rx) - 1) / (rx[-1] - rx[0]))
     if not obs.hil:
-        plant = obs.diag_values('plant_sim_node')
-        out['period_jitter_ms'] = stats(plant, 'cmd_jitter_ms')
-        out['state_to_command_ms'] = stats(plant, 'loop_latency_ms')
+        plant = obs.report('plant_sim_node')
+        out['period_jitter_ms'] = stats(plant and plant.cmd_jitter_ms)
+        out['state_to_command_ms'] = stats(plant and plant.loop_latency_ms)
     out['sample_to_command_ms'] = percentiles_ms([(c[1] - c[0]) * 1e-9 for c in scheduled])
     out['monitor'] = {
         'period_jitter_ms': percentiles_ms(np.abs(np.diff(rx) - ts)),
@@ -92,49 +102,45 @@ def commands(obs, ts: float, realtime: bool) -> Dict[str, Any]:
 
 
 def nmpc(obs) -> Dict[str, Any]:
-    """Return the controller's name, timings and counters from its newest diagnostics."""
-    values = obs.diag_values('nmpc_node')
-    return {'controller': values.get('controller'),
-            **{k: stats(values, k) for k in NMPC_TIMINGS},
-            **{k: value_int(values.get(k)) for k in NMPC_COUNTERS}}
+    """Return the controller's name, timings and counters from its newest report."""
+    r = obs.report('nmpc_node')
+    return {'controller': None if r is None else r.controller,
+            **_timings(r, NMPC_TIMINGS), **_fields(r, NMPC_COUNTERS)}
 
 
 def scheduling(obs) -> Dict[str, Any]:
     """Return what each node's threads got from realtime_priority (ros/realtime.py)."""
-    return {node.replace(': bag recorder', ''): entry[2]['scheduling']
-            for node, entry in obs.diag.items() if 'scheduling' in entry[2]}
+    return {name.replace(': bag recorder', ''): r.scheduling
+            for name, r in obs.reports.items() if r.scheduling}
 
 
 def plant(obs) -> Dict[str, Any]:
     """Return the plant's counters and timings (in HIL mode: the ECU's equivalents)."""
     if obs.hil:
-        return hil_summary.plant_equivalents(obs.diag_values)
-    values = obs.diag_values('plant_sim_node')
-    out: Dict[str, Any] = {k: value_int(values.get(k)) for k in PLANT_COUNTERS}
-    out.update({k: stats(values, k) for k in PLANT_TIMINGS})
-    return out
+        return hil_summary.plant_equivalents(obs.report)
+    r = obs.report('plant_sim_node')
+    return {**_fields(r, PLANT_COUNTERS), **_timings(r, PLANT_TIMINGS)}
 
 
 def road(obs) -> Dict[str, Any]:
     """Return the road node's samples: published, and skipped by a real-time timer behind."""
-    values = obs.diag_values('road_preview_node')
-    return {k: value_int(values.get(k)) for k in ('samples_published', 'samples_skipped')}
+    return _fields(obs.report('road_preview_node'), ('samples_published', 'samples_skipped'))
 
 
 def rejected(obs, plant_block: Dict[str, Any]) -> Dict[str, Optional[int]]:
     """Return the input messages each node rejected, by topic, and those out of order."""
-    nm = obs.diag_values('nmpc_node')
-    pl = obs.diag_values('plant_sim_node')
-    out = {'state': value_int(nm.get('rejected_state')),
-           'road/preview': value_int(nm.get('rejected_preview')),
-           'road/height': value_int(pl.get('rejected_road_height')),
+    nm, pl = obs.report('nmpc_node'), obs.report('plant_sim_node')
+    road_node = obs.report('road_preview_node')
+    out = {'state': nm and nm.rejected_state,
+           'road/preview': nm and nm.rejected_preview,
+           'road/height': pl and pl.rejected_road_height,
            'damping_cmd': plant_block.get('rejected_damping_cmd'),
-           '/clock': value_int(obs.diag_values('road_preview_node').get('rejected_clock'))}
+           '/clock': road_node and road_node.rejected_clock}
     if obs.hil:   # the ECU ignores absurd road heights without counting them
         del out['road/height']
     # Inputs dropped for a stamp not newer than the newest (stamps going back).
-    out['out_of_order'] = ((value_int(nm.get('out_of_order')) or 0)
-                           + (value_int(pl.get('out_of_order_commands')) or 0))
+    out['out_of_order'] = ((nm.out_of_order if nm else 0)
+                           + (pl.out_of_order_commands if pl else 0))
     return out
 
 
@@ -143,7 +149,7 @@ def events(obs):
     t0 = min(obs.state_rx.values()) if obs.state_rx else 0
     return [{'t_s': round((rx - t0) * 1e-9, 3), 'node': node,
              'level': LEVEL_NAMES.get(level, str(level)), 'message': text}
-            for rx, node, level, text in obs.diag_events[:MAX_EVENTS]]
+            for rx, node, level, text in obs.events[:MAX_EVENTS]]
 
 
 def messages(obs, rejected_block: Dict[str, Optional[int]]) -> Dict[str, Any]:
@@ -152,6 +158,7 @@ def messages(obs, rejected_block: Dict[str, Optional[int]]) -> Dict[str, Any]:
     dropped = obs.dropped(published)
     return {'published': published, 'received': dict(obs.received),
             'foreign': dict(obs.foreign), 'foreign_total': sum(obs.foreign.values()),
+            'foreign_statuses': obs.foreign_statuses,
             'dropped': dropped, 'dropped_total': sum(v for v in dropped.values() if v),
             'rejected': rejected_block,
             'rejected_total': sum(v for v in rejected_block.values() if v)}
@@ -164,9 +171,8 @@ def summary(obs, ts: float, n_steps: int, realtime: bool) -> Dict[str, Any]:
                            'nmpc': nmpc(obs), 'scheduling': scheduling(obs),
                            'plant': plant(obs), 'road': road(obs)}
     if obs.hil:
-        out['hil'] = hil_summary.hil_block(
-            obs.diag_values, obs.states, obs.truth, stats, obs.diag_events,
-            obs.finished_rx.get(hil_summary.ECU))
+        out['hil'] = hil_summary.hil_block(obs.report, obs.states, obs.truth, obs.events,
+                                           obs.finished_rx.get(hil_summary.ECU))
     out['events'] = events(obs)
     out['messages'] = messages(obs, rejected(obs, out['plant']))
     return out

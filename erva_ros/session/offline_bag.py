@@ -29,16 +29,15 @@ from typing import Dict, List, Mapping, Optional
 
 import numpy as np
 
-from erva_ros.core import topics as contract
+from erva_ros.core import contract as wire, topics as contract
 from erva_ros.core.bag.writer import BagWriter
 from erva_ros.core.metrics import percentiles_ms
-from erva_ros.ros import diagnostics as diag, msgs, qos as ros_qos
-from erva_ros.ros.bag_messages import write_message
+from erva_ros.core.reports import NMPCReport, PlantReport, report_status, Timing
 
 TOPIC = {name: f'{contract.NAMESPACE}/{name}' for name in (
     contract.STATE, contract.SPRUNG_ACCEL, contract.GENERATOR, contract.ROAD_HEIGHT,
     contract.ROAD_PREVIEW, contract.DAMPING_CMD)}
-#: Names of the offline session's diagnostic statuses (keys as the live nodes use).
+#: Names of the offline session's reports (typed as the live nodes' reports).
 PLANT_STATUS = 'offline/plant'
 CONTROLLER_STATUS = 'offline/controller'
 #: Session metadata 'source' of offline sessions (their timing is not measured).
@@ -83,43 +82,34 @@ class _CapturingController:
 
 
 def step_messages(step: StepLog, stamp_ns: int, ts: float, kind: str = 'erva') -> List:
-    """Return [(topic, message)] of one step of a ``kind`` model in causal order (module doc)."""
-    ts_ns = msgs.s_to_ns(ts)
-    road = msgs.road_height_msg(stamp_ns, step.distance_m, step.w)
-    return [(TOPIC[contract.ROAD_HEIGHT], road),
-            (TOPIC[contract.ROAD_PREVIEW], msgs.preview_msg(stamp_ns, step.preview, ts_ns)),
-            (TOPIC[contract.STATE], msgs.state_msg(stamp_ns, step.x, kind)),
-            (TOPIC[contract.DAMPING_CMD], msgs.damping_msg(stamp_ns, step.plan, ts_ns)),
-            (TOPIC[contract.SPRUNG_ACCEL], msgs.accel_msg(stamp_ns, step.accel)),
-            (TOPIC[contract.GENERATOR], msgs.generator_msg(stamp_ns, step.gen_position,
-                                                           step.v_gen, step.plan[0]))]
-
-
-def _exact(value):
-    """Return a float as its shortest exact text (repr), anything else unchanged."""
-    return repr(float(value)) if isinstance(value, float) else value
+    """Return [(topic, CDR bytes)] of one step of a ``kind`` model in causal order (module doc)."""
+    ts_ns = wire.s_to_ns(ts)
+    return [(TOPIC[contract.ROAD_HEIGHT], wire.encode_road_height(stamp_ns, step.distance_m,
+                                                                  step.w)),
+            (TOPIC[contract.ROAD_PREVIEW], wire.encode_preview(stamp_ns, step.preview, ts_ns)),
+            (TOPIC[contract.STATE], wire.encode_state(stamp_ns, step.x, kind)),
+            (TOPIC[contract.DAMPING_CMD], wire.encode_command(stamp_ns, step.plan, ts_ns)),
+            (TOPIC[contract.SPRUNG_ACCEL], wire.encode_accel(stamp_ns, step.accel)),
+            (TOPIC[contract.GENERATOR], wire.encode_generator(stamp_ns, step.gen_position,
+                                                              step.v_gen, step.plan[0]))]
 
 
 def diagnostics_message(stamp_ns: int, harvested_j: float, solve_s: List[float],
-                        counters: Mapping[str, int], controller: str):
-    """Return the offline session's DiagnosticArray, keyed as the live nodes key theirs.
+                        counters: Mapping[str, int], controller: str) -> bytes:
+    """Return the offline session's DiagnosticArray: a plant and a controller report.
 
-    Plant: ``harvested_j``, ``steps``; controller: ``solve_ms_p50/p99/max/samples``,
-    ``commands``, ``deadline_misses`` (the controller's late solves) and
-    ``controller_<counter>`` for each controller counter.  Floats are written exactly.
+    Plant: ``harvested_j``, ``steps``; controller: ``solve_ms``, ``commands``,
+    ``deadline_misses`` (the controller's late solves) and its own counters.
     """
-    plant = {'harvested_j': float(harvested_j), 'steps': int(counters.get('steps', 0))}
-    p = percentiles_ms(solve_s)
-    values = {'controller': controller, 'commands': len(solve_s),
-              'deadline_misses': int(counters.get('late', 0))}
-    values.update({f'solve_ms_{k}': float(p[k]) for k in ('p50', 'p99', 'max')})
-    values['solve_ms_samples'] = int(p['samples'])
-    values.update({f'controller_{k}': int(v) for k, v in sorted(counters.items())})
-    return diag.array_msg(stamp_ns, [
-        diag.status_msg(PLANT_STATUS, diag.OK, 'offline plant',
-                        {k: _exact(v) for k, v in plant.items()}, 'erva'),
-        diag.status_msg(CONTROLLER_STATUS, diag.OK, 'offline controller',
-                        {k: _exact(v) for k, v in values.items()}, 'erva')])
+    plant = PlantReport(node=PLANT_STATUS, message='offline plant', hardware_id='erva',
+                        harvested_j=float(harvested_j), steps=int(counters.get('steps', 0)))
+    nmpc = NMPCReport(node=CONTROLLER_STATUS, message='offline controller',
+                      hardware_id='erva', controller=controller, commands=len(solve_s),
+                      deadline_misses=int(counters.get('late', 0)),
+                      solve_ms=Timing.of(percentiles_ms(solve_s)))
+    for key, n in counters.items():
+        setattr(nmpc, f'controller_{key}', int(n))
+    return wire.encode_diagnostics(stamp_ns, [report_status(plant), report_status(nmpc)])
 
 
 def write_session(bag_dir: str, steps: List[StepLog], ts: float, controller: str,
@@ -132,10 +122,10 @@ def write_session(bag_dir: str, steps: List[StepLog], ts: float, controller: str
     The controller counters on /diagnostics count step statuses as they go; the last
     message carries ``final_counters`` (the controller's own, e.g. late) too.
     """
-    from erva_ros.core.bag.qos import profile_to_dict
+    from erva_ros.core.bag.qos import control_profile
     t0_ns = time.time_ns() if t0_ns is None else int(t0_ns)
     session = {'source': OFFLINE_SOURCE, **(session or {})}
-    offered = [profile_to_dict(ros_qos.control_qos())]
+    offered = [control_profile()]
     writer = BagWriter(bag_dir, session=session, custom_data=session)
     try:
         for name, topic in TOPIC.items():
@@ -148,8 +138,8 @@ def write_session(bag_dir: str, steps: List[StepLog], ts: float, controller: str
         solve: List[float] = []
         for k, step in enumerate(steps):
             stamp = t0_ns + int(round(step.t * 1e9))
-            for topic, msg in step_messages(step, stamp, ts, kind):
-                write_message(writer, topic, msg, stamp, stamp)
+            for topic, data in step_messages(step, stamp, ts, kind):
+                writer.write(topic, data, stamp, stamp)
             counters['steps'] += 1
             if step.status in counters:
                 counters[step.status] += 1
@@ -157,7 +147,7 @@ def write_session(bag_dir: str, steps: List[StepLog], ts: float, controller: str
             if k == len(steps) - 1 and final_counters:
                 counters.update(final_counters)
             if (k + 1) % every == 0 or k == len(steps) - 1:
-                write_message(writer, contract.DIAGNOSTICS, diagnostics_message(
+                writer.write(contract.DIAGNOSTICS, diagnostics_message(
                     stamp, step.harvested_j, solve, counters, controller), stamp, stamp)
         return writer.close()
     except BaseException:

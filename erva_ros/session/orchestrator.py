@@ -5,7 +5,7 @@
 1. validates every value in-process first and writes the session's params file
    (:func:`erva_ros.session.run_config.prepare_session`), so a bad option fails with
    one line before any process starts;
-2. starts an in-process monitor node (:class:`~erva_ros.session.monitor.Monitor`), the
+2. starts an in-process monitor node (:class:`~erva_ros.ros.monitor.Monitor`), the
    recorder (when recording, :mod:`erva_ros.session.recording`), nmpc_node,
    plant_sim_node and road_preview_node, each as ``python -m erva_ros.nodes.<name>
    --ros-args -r __ns:=<ns> --params-file F`` in its own process group (and with a
@@ -31,6 +31,7 @@ import shutil
 import signal
 from typing import Any, Callable, Dict, Optional
 
+from erva_ros.core.errors import CLIError
 from erva_ros.session.recording import check_record_dir, recorder_available
 from erva_ros.session.run_config import prepare_session, RunConfig, Session
 from erva_ros.session.supervisor import Supervisor
@@ -59,7 +60,12 @@ def run_session(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> 
     for sig in handlers:   # Ctrl-C / SIGTERM: stop the nodes cleanly, then summarise
         signal.signal(sig, lambda signum, frame: sup.caught.append(signum))
     try:
-        sup.start()
+        try:
+            sup.start()
+        except CLIError:
+            if cfg.session_dir is None:     # nothing started: nothing to look into
+                shutil.rmtree(session.directory, ignore_errors=True)
+            raise
         sup.observe_at_priority()
         sup.supervise()
     finally:
@@ -77,7 +83,7 @@ def run_session(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> 
             node['log'] = None
     elif summary['errors']:
         log(f'node logs and the session params file are in {session.directory}')
-    return RunResult(summary, code, sup.monitor.trajectory(session.n_steps), session)
+    return RunResult(summary, code, sup.obs.trajectory(session.n_steps), session)
 
 
 __all__ = ['RunResult', 'run_session']

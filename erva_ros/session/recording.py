@@ -15,6 +15,7 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
 
 from erva_ros.core import topics
 from erva_ros.core.errors import CLIError
+from erva_ros.core.reports import NodeReport, RecorderReport
 from erva_ros.session import accounting
 from erva_ros.session.processes import ChildProcess, module_argv
 from erva_ros.session.run_config import Session, session_description
@@ -28,19 +29,14 @@ RECORDER_STATUS_S = 0.25
 #: The recorder runs at SCHED_FIFO this much below the loop's nodes: above other work on
 #: the machine, so the record is not starved, below the loop, so the loop goes first.
 RECORDER_PRIORITY_BELOW = 10
-#: The end of the recorder's /diagnostics status name ('<its node name>: bag recorder').
-RECORDER_STATUS = ': bag recorder'
 #: The recorder's process name in `erva run`.
 PROCESS = 'recorder_node'
-
-#: What the monitor keeps of each node's status: name -> (level, message, values, rx_ns).
-Statuses = Mapping[str, Tuple[int, str, Dict[str, str], int]]
 
 
 def record_topics(hil: bool) -> List[str]:
     """Return the topics a session records (and serves): the contract, plus the HIL topics."""
-    from erva_ros.nodes.recorder_node import DEFAULT_TOPICS
-    out = list(DEFAULT_TOPICS)
+    from erva_ros.core.node_params import SCHEMAS
+    out = list(SCHEMAS['recorder'].defaults()['topics'])
     if hil:
         from erva_ros.core.hil.topics import RECORD_TOPICS
         out += RECORD_TOPICS
@@ -82,6 +78,7 @@ def start_recorder(session: Session, namespace: str, bag_parent: str, env: Dict[
         bag_dir, session_description(session), topics=record, namespace=namespace,
         use_sim_time=not session.realtime,
         parameters={'diagnostics_period_s': RECORDER_STATUS_S,
+                    'session_id': session.session_id,
                     'realtime_priority': max(0, loop_priority - RECORDER_PRIORITY_BELOW)
                     if loop_priority > 1 else 0}))
     proc = ChildProcess(PROCESS, argv, env, os.path.join(session.directory, f'{PROCESS}.log'))
@@ -91,14 +88,14 @@ def start_recorder(session: Session, namespace: str, bag_parent: str, env: Dict[
     return proc
 
 
-def recorder_values(statuses: Statuses) -> Dict[str, str]:
-    """Return the recorder's newest status values ({} before its first)."""
-    return next((v[2] for n, v in statuses.items() if n.endswith(RECORDER_STATUS)), {})
+def recorder_report(reports: Mapping[str, NodeReport]) -> Optional[RecorderReport]:
+    """Return the recorder's newest report (None before its first)."""
+    return next((r for r in reports.values() if isinstance(r, RecorderReport)), None)
 
 
-def node_values(statuses: Statuses) -> Dict[str, Dict[str, str]]:
-    """Return the newest status values of every node but the recorder."""
-    return {n: v[2] for n, v in statuses.items() if not n.endswith(RECORDER_STATUS)}
+def node_reports(reports: Mapping[str, NodeReport]) -> List[NodeReport]:
+    """Return the newest report of every node but the recorder."""
+    return [r for r in reports.values() if not isinstance(r, RecorderReport)]
 
 
 class RecorderDrain:
@@ -115,10 +112,11 @@ class RecorderDrain:
         self._total: Optional[int] = None
         self._progress = 0.0
 
-    def caught_up(self, statuses: Statuses, now: Optional[float] = None) -> bool:
+    def caught_up(self, reports: Mapping[str, NodeReport], now: Optional[float] = None
+                  ) -> bool:
         """Return True once nothing is behind, or the recorder stalled (see :attr:`gave_up`)."""
-        behind = accounting.recorder_behind(recorder_values(statuses),
-                                            accounting.published_counts(node_values(statuses)))
+        behind = accounting.recorder_behind(recorder_report(reports),
+                                            accounting.published_counts(node_reports(reports)))
         if not behind:
             return True
         total = sum(got for got, _ in behind.values())
@@ -133,19 +131,22 @@ class RecorderDrain:
         return False
 
 
-def check_recording(bag_dir: str, statuses: Statuses, window: Tuple[int, int]
-                    ) -> Tuple[Dict[str, Any], List[str]]:
+def check_recording(bag_dir: str, reports: Mapping[str, NodeReport], window: Tuple[int, int],
+                    session: str = '') -> Tuple[Dict[str, Any], List[str]]:
     """Compare the bag with what every node published; return (report, one error per loss).
 
-    ``window`` is the span of the session's stamps (ns): others are not the loop's.
+    ``window`` is the span of the session's stamps (ns): others are not the loop's.  A
+    node whose final report is missing (it was killed) has published an unknown number:
+    its topics are reported as such, not as a loss or as more recorded than published.
     """
     errors: List[str] = []
-    report: Dict[str, Any] = {
-        'lost_in_transport': int(recorder_values(statuses).get('lost_in_transport', 0))}
-    published = accounting.published_counts(node_values(statuses))
-    seqs = {n: int(v[2]['status_seq']) for n, v in statuses.items() if 'status_seq' in v[2]}
+    recorder = recorder_report(reports)
+    report: Dict[str, Any] = {'lost_in_transport': 0 if recorder is None
+                              else recorder.lost_in_transport}
+    published = accounting.published_counts(node_reports(reports), final_only=True)
+    seqs = {r.node: r.status_seq for r in reports.values() if r.status_seq}
     try:
-        report.update(accounting.check_bag(bag_dir, published, seqs, window))
+        report.update(accounting.check_bag(bag_dir, published, seqs, window, session))
     except Exception as exc:    # BagError, CdrError: the file itself is the problem
         report['error'] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         return report, [f'the bag cannot be checked: {report["error"]}']
@@ -173,6 +174,6 @@ def record_writers(record: List[str], namespace: str, n_diagnostics: int) -> Dic
 
 
 __all__ = ['RECORDER_STALL_S', 'RECORDER_STATUS_S', 'RECORDER_PRIORITY_BELOW',
-           'RECORDER_STATUS', 'PROCESS', 'record_topics', 'recorder_available',
-           'check_record_dir', 'start_recorder', 'recorder_values', 'node_values',
+           'PROCESS', 'record_topics', 'recorder_available',
+           'check_record_dir', 'start_recorder', 'recorder_report', 'node_reports',
            'RecorderDrain', 'check_recording', 'record_writers']

@@ -111,23 +111,33 @@ def format_summary(s: Dict[str, Any]) -> str:
     if s.get('bag'):
         lines.append(f'  bag       {s["bag"]}')
         lines.extend(_recording_lines(s.get('recording') or {}))
+    for w in s.get('warnings') or []:
+        lines.append(f'  WARN      {w}')
     if s['errors']:
         for e in s['errors']:
             lines.append(f'  ERROR     {e}')
     else:
+        warned = len(s.get('warnings') or [])
         lines.append(f'  ok        all nodes ran and stopped cleanly ({s["wall_time_s"]:.1f} s '
-                     'wall)')
+                     'wall)' + (f', but not all in real time ({warned} warning'
+                                f'{"s" if warned > 1 else ""}; --strict fails such a run)'
+                                if warned else ''))
     return '\n'.join(lines)
 
 
 def _recording_lines(r: Dict[str, Any]) -> List[str]:
     if 'topics' not in r:
         return []
-    pub = sum(c['published'] for c in r['topics'].values())
-    rec = sum(c['recorded'] for c in r['topics'].values())
+    known = {t: c for t, c in r['topics'].items() if c['published'] is not None}
+    pub = sum(c['published'] for c in known.values())
+    rec = sum(c['recorded'] for c in known.values())
     foreign = sum(c['foreign'] for c in r['topics'].values())
-    line = (f'  recorded  {rec} of {pub} published messages on {len(r["topics"])} topics, '
+    line = (f'  recorded  {rec} of {pub} published messages on {len(known)} topics, '
             f'{r["lost"]} lost')
+    unknown = sorted(set(r['topics']) - set(known))
+    if unknown:     # a node stopped without its final report (killed): its count is unknown
+        line += (f'; {sum(r["topics"][t]["recorded"] for t in unknown)} recorded on '
+                 f'{", ".join(unknown)}, published unknown (no final report)')
     if foreign:
         line += f'; {foreign} foreign (stamped outside the session)'
     if r.get('lost_in_transport'):

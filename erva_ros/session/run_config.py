@@ -9,6 +9,7 @@ session directory.
 
 from dataclasses import dataclass, field
 import os
+import secrets
 import tempfile
 from typing import Any, Dict, Optional
 
@@ -20,8 +21,8 @@ from erva_ros.core.controllers.settings import load_controller_settings
 from erva_ros.core.errors import CLIError
 from erva_ros.core.loop.scenario import build_road, required_preview_steps
 from erva_ros.core.params import load_erva_params, ParamError, read_sections
+from erva_ros.core.node_params import LIVE, session_sections
 from erva_ros.core.specs import check_all
-from erva_ros.ros.parameters import LIVE_DEFAULTS, LIVE_SPECS
 
 #: The live nodes in start order (the slowest to start first).
 NODES = ('nmpc_node', 'plant_sim_node', 'road_preview_node')
@@ -32,14 +33,9 @@ HIL_NODES = ('nmpc_node', *HIL_PROCESSES, 'road_preview_node')
 #: Seven processes discover each other on a loaded machine: with 0.5 s the recorder's
 #: readers were sometimes matched ~0.2 s into the run and it lost the first samples.
 HIL_START_DELAY_S = 1.5
-#: Live parameters that belong to one node's section of the session params file.
-NODE_PARAMETERS = {
-    'road_preview_node': ('road', 'road_file', 'seed', 'road_class', 'speed_mps',
-                          'bump_height_m', 'bump_length_m', 'bump_start_s', 'preview_steps',
-                          'preview_noise', 'preview_snr_db', 'preview_delay_s'),
-    'plant_sim_node': ('command_timeout_s', 'lockstep_timeout_s'),
-    'nmpc_node': ('state_timeout_periods',),
-}
+#: The `erva run` option of a live parameter, where its name differs.
+OPTION_OF = {'duration_s': 'duration', 'preview_snr_db': 'preview_snr',
+             'preview_delay_s': 'preview_delay', 'road_file': 'road_file'}
 #: The session params file's name in the session directory.
 PARAMS_FILE = 'session_params.yaml'
 
@@ -56,7 +52,7 @@ def read_live_file(path: Optional[str]) -> Dict[str, Any]:
         raise ParamError(f'live parameter file {path!r} does not exist')
     out: Dict[str, Any] = {}
     for section, params in read_sections(path, NODES):
-        unknown = sorted(set(params) - set(LIVE_DEFAULTS) - {'use_sim_time'})
+        unknown = sorted(set(params) - set(LIVE.specs()) - {'use_sim_time'})
         if unknown:
             raise ParamError(f'{path}: unknown live parameter(s) {", ".join(unknown)} '
                              f'in {section}')
@@ -65,9 +61,9 @@ def read_live_file(path: Optional[str]) -> Dict[str, Any]:
 
 
 def validate_live(values: Dict[str, Any], source: str = '') -> Dict[str, Any]:
-    """Return the live parameters (defaults filled in) checked by their specs (LIVE_SPECS)."""
-    return check_all(LIVE_SPECS, {k: v for k, v in values.items() if k != 'use_sim_time'},
-                     source, LIVE_DEFAULTS)
+    """Return the live parameters (defaults filled in) checked by their specs."""
+    return check_all(LIVE.specs(), {k: v for k, v in values.items() if k != 'use_sim_time'},
+                     source, LIVE.defaults())
 
 
 #: How long (s) a session's processes may take to start and connect: a cold start builds
@@ -100,6 +96,8 @@ class RunConfig:
     foxglove: Optional[str] = None         # [HOST:]PORT: serve the session to Foxglove
     ecu_prefix: tuple = ()                 # argv prefix of the HIL processes (--ecu-prefix)
     extra_readers: int = 0                 # the user's own readers the start waits for
+    force: bool = False                    # start even if another session runs here
+    strict: bool = False                   # real-time warnings fail the run (exit 1)
 
 
 @dataclass
@@ -113,6 +111,11 @@ class Session:
     params_file: str
     scenario: str
     ecu: str = 'none'
+
+    @property
+    def session_id(self) -> str:
+        """Return the session's id: every node of the session reports it."""
+        return self.live['session_id']
 
     @property
     def hil(self) -> bool:
@@ -141,15 +144,19 @@ def live_values(cfg: RunConfig, settings, recording: bool) -> Dict[str, Any]:
     """Return the session's validated live parameters: the live file, then the options."""
     live_path = cfg.live_file or default_config_file('live.yaml')
     values = read_live_file(live_path)
-    if 'ts' in values and abs(float(values['ts']) - settings.ts) > 1e-12:
-        raise ParamError(f'{live_path}: ts = {values["ts"]} s differs from the controller\'s '
-                         f'ts = {settings.ts:g} s; set both to the same sample time')
     values['ts'] = settings.ts
-    for key, value in (('mode', cfg.mode), ('model', cfg.model), ('road', cfg.road),
-                       ('seed', cfg.seed), ('duration_s', cfg.duration_s)):
-        if value is not None:
-            values[key] = value
-    values.update(cfg.live_overrides)
+    # A 64-bit nonce: the nodes report it, so another session on the same DDS domain
+    # (or a stale node of an earlier one) is never counted as this one's.
+    values['session_id'] = secrets.token_hex(8)
+    options = {key: value for key, value in (
+        ('mode', cfg.mode), ('model', cfg.model), ('road', cfg.road), ('seed', cfg.seed),
+        ('duration_s', cfg.duration_s)) if value is not None}
+    options.update(cfg.live_overrides)
+    specs = LIVE.specs()
+    for key, value in options.items():      # an option's error names the option
+        flag = '--' + OPTION_OF.get(key, key).replace('_', '-')
+        options[key] = specs[key].check(key, value, flag)
+    values.update(options)
     live = validate_live(values, source=live_path)
     if cfg.ecu != 'none':
         if live['mode'] != 'realtime':
@@ -169,23 +176,25 @@ def live_values(cfg: RunConfig, settings, recording: bool) -> Dict[str, Any]:
 
 
 def session_params(erva: Dict[str, float], settings, live: Dict[str, Any]) -> Dict[str, Any]:
-    """Return the session params file's content: ``/**`` shared, ``/**/<node>`` per node."""
-    shared = {k: v for k, v in live.items()
-              if not any(k in names for names in NODE_PARAMETERS.values())}
-    shared.update(erva)
+    """Return the session params file's content: ``/**`` shared, ``/**/<node>`` per node.
+
+    Which section each value goes to comes from the nodes' schemas
+    (:func:`erva_ros.core.node_params.session_sections`).
+    """
+    values = {**live, **erva, **{k: v for k, v in settings.as_dict().items() if k != 'ts'}}
+    doc = session_sections(values)
     if live['mode'] == 'lockstep':
-        shared['use_sim_time'] = True
-    doc = {'/**': {'ros__parameters': shared}}
-    for node, names in NODE_PARAMETERS.items():
-        doc[f'/**/{node}'] = {'ros__parameters': {k: live[k] for k in names}}
-    doc['/**/nmpc_node']['ros__parameters'].update(settings.as_dict())
+        doc['/**']['ros__parameters']['use_sim_time'] = True
     return doc
 
 
 def prepare_session(cfg: RunConfig, recording: bool) -> Session:
     """Validate everything and write the session params file; raise ParamError (one line)."""
     erva = load_erva_params(cfg.params_file)
-    overrides = {'controller': cfg.controller, 'alpha1': cfg.alpha1, 'alpha2': cfg.alpha2}
+    # The loop's sample time is the live file's (the controller runs at it).
+    live_file = read_live_file(cfg.live_file)
+    overrides = {'controller': cfg.controller, 'alpha1': cfg.alpha1, 'alpha2': cfg.alpha2,
+                 'ts': live_file.get('ts', LIVE.defaults()['ts'])}
     if cfg.ecu != 'none':
         # The HIL loop's own NMPC settings (config/hil.yaml): the command acts a measured
         # delay after its sample there, and the OCP models it (docs/hil.md §3).
@@ -213,7 +222,7 @@ def session_description(session: Session) -> Dict[str, str]:
         controller=session.settings.controller,
         extra={'mode': session.live['mode'], 'model': session.live['model'],
                'duration_s': session.live['duration_s'], 'ecu': session.ecu,
-               'params_file': session.params_file})
+               'params_file': session.params_file, 'session_id': session.session_id})
 
 
 def ensure_ecu_available(ecu: str) -> None:
@@ -227,7 +236,7 @@ def ensure_ecu_available(ecu: str) -> None:
                        f'import ({exc})') from None
 
 
-__all__ = ['NODES', 'HIL_PROCESSES', 'HIL_NODES', 'HIL_START_DELAY_S', 'NODE_PARAMETERS',
+__all__ = ['NODES', 'HIL_PROCESSES', 'HIL_NODES', 'HIL_START_DELAY_S',
            'RunConfig', 'Session', 'default_config_file', 'read_live_file', 'validate_live',
            'live_values', 'session_params', 'prepare_session', 'session_description',
            'ensure_ecu_available']

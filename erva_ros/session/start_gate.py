@@ -9,19 +9,21 @@ records (:mod:`erva_ros.session.accounting`).  In HIL mode the ROS graph must al
 the whole loop (:meth:`StartGate.graph_ready`).
 """
 
-from typing import Dict, List, Sequence
+import time
+from typing import Callable, Dict, List, Sequence
 
 from erva_ros.core import topics
 from erva_ros.session import accounting, hil_summary
-from erva_ros.session.recording import record_topics, record_writers, recorder_values
+from erva_ros.session.recording import record_topics, record_writers, recorder_report
 
 
 class StartGate:
     """What the session waits for before the loop runs (see the module doc)."""
 
-    def __init__(self, monitor, namespace: str, node_names: Sequence[str], hil: bool,
+    def __init__(self, monitor, obs, namespace: str, node_names: Sequence[str], hil: bool,
                  recording: bool, foxglove: bool, extra_readers: Sequence[Sequence[str]] = ()):
         self.monitor = monitor
+        self.obs = obs
         self.namespace = namespace
         self.node_names = tuple(node_names)
         self.hil, self.recording = hil, recording
@@ -30,7 +32,7 @@ class StartGate:
         loop = accounting.hil_loop_subscribers() if hil else dict(accounting.LOOP_SUBSCRIBERS)
         # The user's readers (`--extra-readers`) count on the time master's topics: the
         # loop's own readers must still all be matched, not stood in for by one of them.
-        observers = [monitor.watched, *extra_readers]
+        observers = [obs.watched, *extra_readers]
         if foxglove:
             observers.append(record_topics(hil))   # the server serves what is recorded
         self.record_writers: Dict[str, int] = {}
@@ -51,17 +53,27 @@ class StartGate:
 
     def matched(self) -> bool:
         """Return True once every loop writer and the recorder have matched all their peers."""
-        statuses = {n: v[2] for n, v in self.monitor.diag.items()}
+        reports = self.obs.reports
         # The ECU simulator reports only once the road runs (its readers are checked by
         # graph_ready): every other node must have said what its writers matched.
         nodes = [n for n in self.node_names if n != hil_summary.ECU]
         nodes += ['recorder'] if self.recording else []
-        missing = accounting.unmatched(statuses, nodes, self.expected, self.later)
+        missing = accounting.unmatched(reports, nodes, self.expected, self.later)
         if self.recording:
-            missing += accounting.recorder_unmatched(recorder_values(self.monitor.diag),
+            missing += accounting.recorder_unmatched(recorder_report(reports),
                                                      self.record_writers)
         self.unmatched = missing
         return not missing
+
+    def twins(self) -> List[str]:
+        """Return the session nodes the ROS graph shows twice in the namespace.
+
+        Another session started here after this one looked for it.
+        """
+        ns = self.namespace.rstrip('/') or '/'
+        names = [name for name, node_ns in self.monitor.get_node_names_and_namespaces()
+                 if node_ns == ns]
+        return [f'{ns.rstrip("/")}/{n}' for n in SESSION_NODES if names.count(n) > 1]
 
     def graph_ready(self) -> bool:
         """HIL: return True once the ROS graph shows the whole loop (always True otherwise).
@@ -89,4 +101,37 @@ class StartGate:
                 and all(m.count_publishers(f'{ns}/{t}') >= 1 for t in published))
 
 
-__all__ = ['StartGate']
+#: Node names of an erva session (the loop, its HIL stand-ins, the session's own nodes).
+SESSION_NODES = ('nmpc_node', 'plant_sim_node', 'road_preview_node', 'ecu_bridge_node',
+                 'state_estimator_node', 'ecu_sim', 'recorder', 'foxglove_server',
+                 topics.MONITOR_NODE)
+#: How long `erva run` looks for another session before it starts its own (s), from the
+#: moment its monitor joined the domain: discovery on one host took up to 1.3 s on a
+#: loaded 2-core machine, and a session's nodes report on /diagnostics every 0.5 s.
+LOOK_S = 3.0
+
+
+def other_session(monitor, obs, namespace: str, spin: Callable[[float], None],
+                  until: float) -> List[str]:
+    """Return the nodes of another live session on this domain and namespace ([]: none).
+
+    Looks at the ROS graph (nodes with a session's names in ``namespace``) and at
+    /diagnostics (statuses from ``namespace`` with another session's id:
+    :attr:`Observations.other_sessions`) until monotonic time ``until``.
+    """
+    ns = namespace.rstrip('/') or '/'
+    end = until
+    while True:
+        found = sorted({f'{node_ns.rstrip("/")}/{name}'
+                        for name, node_ns in monitor.get_node_names_and_namespaces()
+                        if node_ns == ns and name in SESSION_NODES
+                        and name != topics.MONITOR_NODE})
+        found += [f'{ns.rstrip("/")}/{name} (session {sid or "?"})'
+                  for name, sid in sorted(obs.other_sessions.items())
+                  if f'{ns.rstrip("/")}/{name}' not in found]
+        if found or time.monotonic() > end:
+            return found
+        spin(0.05)
+
+
+__all__ = ['StartGate', 'SESSION_NODES', 'other_session']

@@ -3,7 +3,7 @@
 :class:`Supervisor` starts the recorder (when recording), the Foxglove server (when
 serving) and the loop's processes, each in its own process group
 (:mod:`erva_ros.session.processes`); an in-process monitor node
-(:class:`~erva_ros.session.monitor.Monitor`) observes the run.  It waits until the graph
+(:class:`~erva_ros.ros.monitor.Monitor`) observes the run.  It waits until the graph
 is connected (:class:`~erva_ros.session.start_gate.StartGate`), runs the scenario until
 every node reports it finished (or a node dies, or SIGINT/SIGTERM arrives), lets the
 last diagnostics and the recorder catch up, then stops the nodes with SIGINT (SIGTERM,
@@ -16,10 +16,12 @@ import time
 from typing import Any, Dict, List, Optional
 
 from erva_ros.core import topics
+from erva_ros.core.bag import BagError
+from erva_ros.core.errors import CLIError
 from erva_ros.session import accounting, hil_summary
+from erva_ros.core.reports import FoxgloveReport, RecorderReport
 from erva_ros.session.recording import (check_recording, PROCESS as RECORDER,
-                                        RECORDER_PRIORITY_BELOW, RECORDER_STATUS, RecorderDrain,
-                                        start_recorder)
+                                        RECORDER_PRIORITY_BELOW, RecorderDrain, start_recorder)
 from erva_ros.session.processes import (ChildProcess, child_env, node_argv, STOP_GRACE_S,
                                         stop_processes)
 from erva_ros.session.run_config import HIL_NODES, HIL_PROCESSES, NODES, RunConfig, Session
@@ -47,7 +49,8 @@ class Supervisor:
 
     def __init__(self, cfg: RunConfig, session: Session, recording: bool, log):
         from erva_ros.ros.context import RosContext
-        from erva_ros.session.monitor import Monitor
+        from erva_ros.ros.monitor import Monitor
+        from erva_ros.session.observations import Observations
         from erva_ros.session.start_gate import StartGate
 
         self.cfg, self.session, self.recording, self.log = cfg, session, recording, log
@@ -66,20 +69,37 @@ class Supervisor:
             self.finishers = ('nmpc_node', 'road_preview_node', hil_summary.ECU)
             self.needed = set(self.HIL_NEEDED)
         self.ended: set = set()     # exited 0 by themselves at the end (the ECU)
+        self.scenario_done = False  # every node reported the scenario finished
         self._ecu_done: Optional[float] = None
         self.ros = RosContext()
         # The monitor subscribes to the time master's gate topic last (see Monitor): the
         # time master starts only once that subscription is matched too.
         gate = (topics.ROAD_PREVIEW,) if session.realtime else (topics.STATE,)
-        self.monitor = self.ros.add(Monitor(cfg.namespace, context=self.ros.context, gate=gate,
-                                            hil=session.hil, window_ns=session.sim_window_ns))
-        self.gate = StartGate(self.monitor, cfg.namespace, self.node_names, session.hil,
-                              recording, bool(cfg.foxglove),
+        self.obs = Observations(session.hil, session.sim_window_ns, cfg.namespace,
+                                session.session_id)
+        self.monitor = self.ros.add(Monitor(self.obs, cfg.namespace, context=self.ros.context,
+                                            gate=gate))
+        self.gate = StartGate(self.monitor, self.obs, cfg.namespace, self.node_names,
+                              session.hil, recording, bool(cfg.foxglove),
                               [topics.time_master_topics(session.realtime)] * cfg.extra_readers)
         self.drain = RecorderDrain()
 
     def start(self) -> None:
-        """Start the recorder (when recording) and the nodes, slowest first."""
+        """Start the recorder (when recording) and the nodes, slowest first.
+
+        Unless ``--force``, refuses first (CLIError, exit 2) if another session runs on
+        this domain and namespace: two loops on the same topics merge and each bag holds
+        both.
+        """
+        if not self.cfg.force:
+            from erva_ros.session.start_gate import LOOK_S, other_session
+            others = other_session(self.monitor, self.obs, self.cfg.namespace,
+                                   self.ros.spin_once, self.t_start + LOOK_S)
+            if others:
+                raise CLIError(f'another session runs on ROS_DOMAIN_ID '
+                               f'{os.environ.get("ROS_DOMAIN_ID", "0")} in namespace '
+                               f'{self.cfg.namespace}: {", ".join(others[:6])}; stop it, use '
+                               '--namespace or another ROS_DOMAIN_ID, or --force')
         env = child_env()
         if self.cfg.foxglove:   # first: it listens before the loop runs
             from erva_ros.session import foxglove_process
@@ -137,11 +157,12 @@ class Supervisor:
                 if self.phase == 'running':
                     last_progress = now   # the no-progress limit starts when connected
             elif self.phase == 'running':
-                states = self.monitor.received[topics.STATE]
+                states = self.obs.received[topics.STATE]
                 if states != last_states:
                     last_states, last_progress = states, now
                 if self._finished(now):
                     self.phase, finish_seen, finish_ns = 'draining', now, time.time_ns()
+                    self.scenario_done = True
                     continue
                 limit = 10.0 + (5.0 if last_states == 0 else 0.0)
                 if now - last_progress > limit + self.session.live['start_delay_s']:
@@ -153,6 +174,11 @@ class Supervisor:
 
     def _connecting(self, now: float) -> bool:
         """One look at the start gate; return True if the run must stop (it never opened)."""
+        twins = self.gate.twins()
+        if twins:   # another session started here too: neither loop may start
+            self.errors.append(f'another session runs in namespace {self.cfg.namespace}: '
+                               f'two of {", ".join(twins)}; the run was not started')
+            return True
         if self.gate.open():
             self.phase = 'running'
             self.log(f'connected in {now - self.t_start:.1f} s; running '
@@ -171,7 +197,8 @@ class Supervisor:
     def _finished(self, now: float) -> bool:
         """Return True once every node that reports `finished` did (or died)."""
         def done(name):
-            return name in self.ended or self.monitor.diag_values(name).get('finished') == 'true'
+            report = self.obs.report(name)
+            return name in self.ended or (report is not None and report.finished)
         waiting = [n for n in self.finishers if n not in self.dead and not done(n)]
         if not waiting:
             return True
@@ -187,14 +214,14 @@ class Supervisor:
     def _drained(self, elapsed: float, finish_ns: int) -> bool:
         """Return True once the final counters arrived and nothing is missing (or timed out)."""
         if not self.session.hil:
-            done = elapsed > 1.0 or self.monitor.all_received()
+            done = elapsed > 1.0 or self.obs.all_received()
         else:
-            fresh = all(self.monitor.diag_rx(n) > finish_ns for n in hil_summary.PERIODIC
+            fresh = all(self.obs.report_rx.get(n, 0) > finish_ns for n in hil_summary.PERIODIC
                         if n.split(':')[0] not in self.dead)
-            done = elapsed > HIL_DRAIN_S or (fresh and self.monitor.all_received())
+            done = elapsed > HIL_DRAIN_S or (fresh and self.obs.all_received())
         if not done or not self.recording or RECORDER in self.dead:
             return done
-        caught_up = self.drain.caught_up(self.monitor.diag)
+        caught_up = self.drain.caught_up(self.obs.reports)
         if self.drain.gave_up and caught_up:
             self.log(self.drain.gave_up)
         return caught_up
@@ -208,7 +235,7 @@ class Supervisor:
                 self.ended.add(name)    # `erva ecu-sim --duration` ends by itself
                 continue
             self.dead.add(name)
-            where = (f'at t = {self.monitor.received[topics.STATE] * self.session.live["ts"]:.2f}'
+            where = (f'at t = {self.obs.received[topics.STATE] * self.session.live["ts"]:.2f}'
                      f' s' if self.phase == 'running' else f'while {self.phase}')
             self.errors.append(f'{name} died (exit status {p.poll()}) {where}'
                                + (f': {p.tail(1)}' if p.tail(1) else ''))
@@ -222,7 +249,7 @@ class Supervisor:
     def stop(self) -> None:
         """Stop the nodes, then the recorder (so it records to the end), then the monitor."""
         ecu = self.procs.get(hil_summary.ECU)
-        if ecu is not None and hil_summary.ECU in self.monitor.finished_rx:
+        if ecu is not None and hil_summary.ECU in self.obs.finished_rx:
             ecu.wait(STOP_GRACE_S)   # it ends by itself after its last status: let it
             if ecu.poll() == 0:      # print its summary
                 self.ended.add(hil_summary.ECU)
@@ -240,10 +267,9 @@ class Supervisor:
         (The recorder and the Foxglove server, still running, keep reporting: not counted.)
         """
         def loop_arrivals():
-            data = sum(n for t, n in self.monitor.received.items() if t != topics.DIAGNOSTICS)
-            return data, tuple(v[3] for n, v in self.monitor.diag.items()
-                               if not n.endswith((RECORDER_STATUS,
-                                                  ': foxglove server')))
+            data = sum(n for t, n in self.obs.received.items() if t != topics.DIAGNOSTICS)
+            return data, tuple(self.obs.report_rx[n] for n, r in self.obs.reports.items()
+                               if not isinstance(r, (RecorderReport, FoxgloveReport)))
         end = time.monotonic() + limit_s
         last, quiet_since = None, time.monotonic()
         while time.monotonic() < end and time.monotonic() - quiet_since < quiet_s:
@@ -255,7 +281,7 @@ class Supervisor:
     def summary(self) -> Dict[str, Any]:
         """Return the run's summary: the monitor's figures plus scenario, nodes and errors."""
         s = self.session
-        summary = self.monitor.summary(s.live['ts'], s.n_steps, s.realtime)
+        summary = self.obs.summary(s.live['ts'], s.n_steps, s.realtime)
         nodes = {}
         for name, p in self.procs.items():
             status = p.poll()
@@ -269,12 +295,20 @@ class Supervisor:
         if RECORDER in self.procs:
             summary['bag'] = self.procs[RECORDER].bag_dir
             summary['recording'] = self._check_recording()
+            if RECORDER not in self.dead:
+                self._mark_bag_end(summary['bag'])
         if 'foxglove_server' in self.procs:
             from erva_ros.session import foxglove_process
-            summary['foxglove'] = foxglove_process.summary(self.monitor.diag)
+            summary['foxglove'] = foxglove_process.summary(self.obs.reports)
         if summary['commands']['received'] == 0 and not self.caught:
             self.errors.append('no damping commands were received')
         self._check_rejections(summary)
+        summary['warnings'] = []
+        if s.realtime:
+            from erva_ros.session.verdict import quality_limits, warnings
+            summary['warnings'] = warnings(self.obs, summary, quality_limits())
+            if self.cfg.strict:     # --strict: a run that was not real time fails
+                self.errors += [f'{w} (--strict)' for w in summary['warnings']]
         summary.update({
             'scenario': {'controller': s.settings.controller,
                          'weights': list(s.settings.weights), 'road': s.scenario,
@@ -288,9 +322,21 @@ class Supervisor:
         })
         return summary
 
+    def _mark_bag_end(self, bag_dir: str) -> None:
+        """Record in the bag whether the session ran to its end (else why not)."""
+        from erva_ros.core.bag.session_check import mark_session_end
+        why = self.errors[0] if self.errors else (
+            '' if self.scenario_done else f'stopped while {self.phase}')
+        try:
+            mark_session_end(bag_dir, completed=self.scenario_done and not self.errors,
+                             reason=why)
+        except (BagError, OSError) as exc:   # no metadata.yaml: the recorder failed
+            self.log(f'could not record the session\'s end in {bag_dir}: {exc}')
+
     def _check_rejections(self, summary: Dict[str, Any]) -> None:
         """Fail the run if rejected inputs cost the loop a sample of control."""
-        error = accounting.rejections_cost(summary['messages'], summary['nmpc'])
+        error = accounting.rejections_cost(summary['messages']['rejected_total'],
+                                           self.obs.report('nmpc_node'))
         if error:
             self.errors.append(error)
 
@@ -299,8 +345,8 @@ class Supervisor:
         # Stamps outside `erva run`'s lifetime (realtime), or the simulated span
         # (lock-step), are not the loop's.
         window = self.session.sim_window_ns or (self.t_start_ns, time.time_ns())
-        report, errors = check_recording(self.procs[RECORDER].bag_dir, self.monitor.diag,
-                                         window)
+        report, errors = check_recording(self.procs[RECORDER].bag_dir, self.obs.reports,
+                                         window, self.session.session_id)
         if self.drain.gave_up:
             report = {'gave_up': self.drain.gave_up, **report}
         self.errors += errors

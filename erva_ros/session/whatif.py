@@ -8,11 +8,9 @@ closed loop on it, and the run is written as a new session bag.
 import dataclasses
 from typing import Dict, Optional
 
-from erva_ros.core import topics as contract
+from erva_ros.core import contract as wire, topics as contract
 from erva_ros.core.bag import BagError
 from erva_ros.core.bag.reader import Bag
-from erva_ros.ros.bag_messages import decoded
-from erva_ros.ros.msgs import time_to_ns
 
 
 def recorded_road(bag: Bag, namespace: Optional[str] = None):
@@ -25,9 +23,10 @@ def recorded_road(bag: Bag, namespace: Optional[str] = None):
     if topic not in bag.topics:
         raise BagError(f'{bag.path}: no {topic} in the bag, so no road to drive the plant')
     stamps, heights = [], []
-    for _, msg in decoded(bag, [topic]):
-        stamps.append(time_to_ns(msg.header.stamp))
-        heights.append(msg.point.z)
+    for m in bag.messages([topic]):
+        row = wire.decode_road_height(m.data)
+        stamps.append(row.stamp_ns)
+        heights.append(row.height_m)
     if len(stamps) < 2:
         raise BagError(f'{bag.path}: {topic} has {len(stamps)} sample(s); need at least 2')
     order = np.argsort(stamps, kind='stable')

@@ -23,6 +23,19 @@ QOS_KEYS = ('history', 'depth', 'reliability', 'durability', 'deadline', 'lifesp
 PLAYBACK_DEPTH = 10
 
 
+def control_profile(depth: int = 10) -> Dict:
+    """Return the loop's offered QoS (reliable, volatile, keep-last ``depth``) as a profile.
+
+    What ``profile_to_dict(erva_ros.ros.qos.control_qos(depth))`` gives (tested), for
+    writers of bags that run without ROS (the offline sessions).
+    """
+    zero = {'sec': 0, 'nsec': 0}
+    return {'history': 'keep_last', 'depth': int(depth), 'reliability': 'reliable',
+            'durability': 'volatile', 'deadline': dict(zero), 'lifespan': dict(zero),
+            'liveliness': 'system_default', 'liveliness_lease_duration': dict(zero),
+            'avoid_ros_namespace_conventions': False}
+
+
 def _duration_dict(duration) -> Dict[str, int]:
     ns = int(duration.nanoseconds)
     return {'sec': ns // 1_000_000_000, 'nsec': ns % 1_000_000_000}
@@ -77,4 +90,5 @@ def load_profiles(text) -> List[Dict]:
     return data
 
 
-__all__ = ['profile_to_dict', 'dump_profiles', 'load_profiles', 'INFINITE', 'PLAYBACK_DEPTH']
+__all__ = ['control_profile', 'profile_to_dict', 'dump_profiles', 'load_profiles', 'INFINITE',
+           'PLAYBACK_DEPTH']

@@ -282,6 +282,8 @@ class Bag:
 
     def info(self) -> Dict:
         """Return what ``erva bag info`` shows, as plain data."""
+        from erva_ros.core.bag.session_check import session_warnings
+
         def iso(ns):
             if ns is None:
                 return None
@@ -308,7 +310,8 @@ class Bag:
             'start': iso(self.start_ns), 'end': iso(self.end_ns),
             'start_ns': self.start_ns, 'end_ns': self.end_ns,
             'duration_s': round(dur, 9), 'message_count': self.message_count,
-            'topics': topics, 'session': dict(self.session), 'warnings': self.warnings(),
+            'topics': topics, 'session': dict(self.session),
+            'warnings': self.warnings() + session_warnings(self),
         }
 
 

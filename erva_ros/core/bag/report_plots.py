@@ -58,8 +58,8 @@ def write_all(data, out_dir: str, timing: bool = True) -> List[str]:
     paths.append(_save(fig, os.path.join(out_dir, 'damping_cmd.png')))
 
     fig, ax = plt.subplots(figsize=(8, 3.2))
-    energy = [((d['log_ns'] - t0) * 1e-9, float(d['values']['harvested_j']))
-              for d in data.diagnostics if _is_number(d['values'].get('harvested_j'))]
+    energy = [((log_ns - t0) * 1e-9, r.harvested_j) for log_ns, r in data.reports
+              if _is_number(getattr(r, 'harvested_j', None))]
     if data.generator.n:
         t = _t(data.generator, t0)
         p = data.generator.values[:, 1] * data.generator.values[:, 2]

@@ -97,6 +97,30 @@ def session_metadata(scenario: str, parameters: Optional[Mapping[str, Any]] = No
     return {str(k): _text(v) for k, v in meta.items()}
 
 
+def recorder_session(text: str, recorder: str, bag_dir: str) -> Dict[str, str]:
+    """Return the session record of a recorder given ``session_metadata`` = ``text`` (JSON).
+
+    The recorder adds what it knows (version, git commit, host, start time, itself and
+    the bag); the caller's JSON object wins for the keys only it knows.  ParamError
+    (one line) if ``text`` is not a JSON object.
+    """
+    import json
+    from erva_ros.core.params import ParamError
+    try:
+        given = json.loads(text) if text.strip() else {}
+    except ValueError as exc:
+        raise ParamError(f'parameter session_metadata is not JSON ({exc})') from None
+    if not isinstance(given, dict):
+        raise ParamError('parameter session_metadata must be a JSON object')
+    base = session_metadata(str(given.get('scenario', '')),
+                            extra={'recorder': recorder, 'bag_dir': bag_dir})
+    for key in ('parameters', 'controller', 'seed', 'command'):
+        base.pop(key, None)  # only the caller knows these
+    base.update({str(k): v if isinstance(v, str) else json.dumps(v, sort_keys=True)
+                 for k, v in given.items()})
+    return base
+
+
 def command_line(argv: Optional[Sequence[str]] = None) -> str:
     """Return the command that made the session, without this machine's paths.
 
@@ -145,4 +169,5 @@ def recorder_ros_args(bag_dir: str, metadata: Optional[Mapping[str, Any]] = None
     return args
 
 
-__all__ = ['new_bag_dir', 'session_metadata', 'recorder_ros_args', 'git_commit', 'utc_stamp']
+__all__ = ['new_bag_dir', 'session_metadata', 'recorder_session', 'recorder_ros_args',
+           'git_commit', 'utc_stamp']

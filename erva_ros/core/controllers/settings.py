@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, Dict, Mapping, Optional, Tuple
 
 from erva_ros.core.params import ERVA_SPECS, ParamError, read_ros_params
+from erva_ros.core.node_params import TS_SPEC
 from erva_ros.core.specs import Choice, Integer, Number
 
 #: Controllers understood by make_controller (and `erva sim --controller`).
@@ -38,7 +39,7 @@ NODE_NAME = 'nmpc_node'
 #: Numeric settings: allowed range, unit and meaning (reused for ROS descriptors).
 NUMERIC_SPECS: Dict[str, Number] = {
     'horizon': Integer(1, 200, 'steps', 'prediction horizon N (paper: 10)'),
-    'ts': Number(1e-3, 1.0, 's', 'control sample time Ts (paper: 0.02)', lo_open=False),
+    'ts': TS_SPEC,
     'alpha1': Number(0.0, 1e6, '-', 'comfort weight alpha1 on chassis acceleration (eq. (12))'),
     'alpha2': Number(0.0, 1e6, '-', 'energy weight alpha2 on harvested power (eq. (12))'),
     'u_min': Number(0.0, 1e6, 'Ns/m', 'lower bound of the electrical damping c_e'),
@@ -85,35 +86,49 @@ CHOICE_SPECS: Dict[str, Choice] = {
 SPECS: Dict[str, Any] = {**NUMERIC_SPECS, **CHOICE_SPECS}
 
 
+def _shipped_settings() -> Dict[str, Any]:
+    """Return the shipped defaults: config/nmpc.yaml's nmpc_node, ts from config/live.yaml.
+
+    ``ts`` is the loop's sample time, one value for every node (config/live.yaml ``/**``).
+    """
+    from erva_ros.core.config import shipped_defaults
+    values = dict(shipped_defaults('nmpc.yaml', NODE_NAME))
+    values['ts'] = shipped_defaults('live.yaml')['ts']
+    return {k: SPECS[k].check(k, v, 'config/nmpc.yaml') for k, v in values.items()}
+
+
+_SHIPPED = _shipped_settings()
+
+
 @dataclass(frozen=True)
 class ControllerSettings:
-    """Controller configuration (SI units); defaults are the paper's NMPC (N = 10, Ts = 0.02)."""
+    """Controller configuration (SI units); defaults: config/nmpc.yaml as shipped (and ts)."""
 
-    controller: str = 'preview'
-    horizon: int = 10
-    ts: float = 0.02
-    alpha1: float = 1.0
-    alpha2: float = 0.0
-    u_min: float = 0.0
-    u_max: float = 20000.0
-    cost: str = 'continuous'
-    solver: str = 'sqp'
-    max_iter: int = 10
-    sqp_tol: float = 1e-3
-    hessian: str = 'exact'
-    terminal_cost: str = 'passive'
-    ipopt_max_iter: int = 3000
-    ipopt_starts: int = 2
-    time_budget_s: float = 0.01
-    command_delay_s: float = 0.0
-    collocation_degree: int = 3
-    road_prediction: str = 'hold'
-    long_steps: int = 10
-    long_step_s: float = 0.06
-    long_max_iter: int = 8
-    terminal_weight: float = 0.0
-    long_cost: str = 'continuous'
-    codegen: str = 'auto'
+    controller: str = _SHIPPED['controller']
+    horizon: int = _SHIPPED['horizon']
+    ts: float = _SHIPPED['ts']
+    alpha1: float = _SHIPPED['alpha1']
+    alpha2: float = _SHIPPED['alpha2']
+    u_min: float = _SHIPPED['u_min']
+    u_max: float = _SHIPPED['u_max']
+    cost: str = _SHIPPED['cost']
+    solver: str = _SHIPPED['solver']
+    max_iter: int = _SHIPPED['max_iter']
+    sqp_tol: float = _SHIPPED['sqp_tol']
+    hessian: str = _SHIPPED['hessian']
+    terminal_cost: str = _SHIPPED['terminal_cost']
+    ipopt_max_iter: int = _SHIPPED['ipopt_max_iter']
+    ipopt_starts: int = _SHIPPED['ipopt_starts']
+    time_budget_s: float = _SHIPPED['time_budget_s']
+    command_delay_s: float = _SHIPPED['command_delay_s']
+    collocation_degree: int = _SHIPPED['collocation_degree']
+    road_prediction: str = _SHIPPED['road_prediction']
+    long_steps: int = _SHIPPED['long_steps']
+    long_step_s: float = _SHIPPED['long_step_s']
+    long_max_iter: int = _SHIPPED['long_max_iter']
+    terminal_weight: float = _SHIPPED['terminal_weight']
+    long_cost: str = _SHIPPED['long_cost']
+    codegen: str = _SHIPPED['codegen']
 
     @property
     def weights(self) -> Tuple[float, float]:
@@ -204,6 +219,7 @@ def load_controller_settings(path: Optional[str] = None,
     """
     path = path or default_settings_file()
     values = dict(read_ros_params(path, NODE_NAME))
+    # ts is the loop's (config/live.yaml): an older settings file may still name it.
     s = validate_settings(values, source=path)
     if overrides:
         extra = {k: v for k, v in overrides.items() if v is not None}

@@ -26,12 +26,13 @@ them or a third.
 from collections.abc import MutableMapping
 from dataclasses import dataclass
 import time
-from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence
+from typing import Any, Callable, Dict, Iterator, Mapping, Optional, Sequence, Tuple
 
 import can
 
 from erva_ros.core.hil.bridge_diagnostics import (bus_status, command_status, diag_dict,
-                                                  DiagStatus, ecu_status)
+                                                  ecu_status)
+from erva_ros.core.reports import BridgeBusReport, BridgeCommandReport, BridgeEcuReport
 from erva_ros.core.hil.bus_link import BUS_ERRORS, BusLink, is_transient, TRANSIENT_ERRNOS
 from erva_ros.core.hil.codec import Command, E2EReceiver, EcuCodec
 from erva_ros.core.hil.command_watchdog import CommandWatchdog
@@ -98,6 +99,27 @@ class BridgeCore:
         self._rx_bus: Optional[can.BusABC] = None
         self.counts: MutableMapping = CounterView(
             self.watchdog.counts, self.link.counts, self.cycles.counts, self.heartbeat.counts)
+
+    @classmethod
+    def from_parameters(cls, p: Mapping[str, Any], c_e0: float) -> 'BridgeCore':
+        """Return the bridge of ecu_bridge_node's parameters (config/hil.yaml; ts, bus).
+
+        ParamError (one line) for a bus spec or a DBC file that cannot be used.
+        """
+        from erva_ros.core.hil.settings import hardware_of
+        from erva_ros.core.hil.transport import open_bus, parse_spec
+        from erva_ros.core.params import ParamError
+        try:
+            parse_spec(p['bus'])
+            codec = EcuCodec(p['dbc_file'] or None)
+        except (ValueError, FileNotFoundError) as exc:
+            raise ParamError(str(exc)) from None
+        ts = p['ts']
+        return cls(codec, hardware_of(p), BridgeConfig(
+            period_s=ts, command_timeout_s=p['command_timeout_periods'] * ts,
+            sensor_timeout_s=p['sensor_timeout_periods'] * ts, c_e_safe=c_e0,
+            bus_retry_s=p['bus_retry_s'], max_delta_counter=p['max_delta_counter']),
+            lambda: open_bus(p['bus']))
 
     def _now(self, now: Optional[float]) -> float:
         return self._clock() if now is None else now
@@ -200,16 +222,19 @@ class BridgeCore:
     def ecu_silent(self, now: Optional[float] = None) -> bool:
         return self.heartbeat.silent(self._now(now))
 
-    def diagnostics(self, now: Optional[float] = None, prefix: str = 'ecu_bridge') -> List[
-            DiagStatus]:
-        """Return the bridge's three statuses: command link, CAN bus, ECU heartbeat."""
+    def diagnostics(self, now: Optional[float] = None, reports: Optional[Tuple[
+            BridgeCommandReport, BridgeBusReport, BridgeEcuReport]] = None
+                    ) -> Tuple[BridgeCommandReport, BridgeBusReport, BridgeEcuReport]:
+        """Return the bridge's three reports filled: command link, CAN bus, ECU heartbeat."""
         now = self._now(now)
-        return [command_status(self.watchdog, self.counts, self.hw.c_e_range, now,
-                               f'{prefix}: command'),
-                bus_status(self.link, self.counts, self.rx_counts(), f'{prefix}: can bus'),
-                ecu_status(self.heartbeat, self.counts, now, f'{prefix}: ecu')]
+        cmd, bus, ecu = reports or (BridgeCommandReport(node='ecu_bridge: command'),
+                                    BridgeBusReport(node='ecu_bridge: can bus'),
+                                    BridgeEcuReport(node='ecu_bridge: ecu'))
+        return (command_status(self.watchdog, self.counts, self.hw.c_e_range, now, cmd),
+                bus_status(self.link, self.counts, self.rx_counts(), bus),
+                ecu_status(self.heartbeat, self.counts, now, ecu))
 
 
-__all__ = ['BridgeConfig', 'BridgeCore', 'CounterView', 'DiagStatus', 'EcuCycle',
+__all__ = ['BridgeConfig', 'BridgeCore', 'CounterView', 'EcuCycle',
            'SensorFrame', 'diag_dict', 'is_transient', 'TRANSIENT_ERRNOS', 'OK', 'WARN',
            'ERROR', 'STALE']

@@ -29,7 +29,6 @@ BRIDGE_NODE = 'ecu_bridge_node'
 ESTIMATOR_NODE = 'state_estimator_node'
 ECU_SIM_SECTION = 'ecu_sim'
 
-TS_SPEC = Number(1e-3, 1.0, 's', 'command / ECU cycle period Ts (paper: 0.02)')
 
 BRIDGE_SPECS: Dict[str, Any] = {
     'bus': Text('CAN bus: socketcan:IFACE (vehicle), udp:LOCAL_PORT:PEER_PORT (loopback to '
@@ -78,6 +77,8 @@ COMMAND_LINE_DEFAULTS: Dict[str, Any] = {'bus': 'socketcan:can0', 'stamp_on_road
 ROAD_GRID_SPEC = Flag('stamp each ECU cycle with the road sample instant in [-Ts/4, 3Ts/4) '
                       'around its CAN receive time (an ECU sampling on the road grid and '
                       'sending at once)')
+#: The parameters of COMMAND_LINE_DEFAULTS that are in no other table.
+COMMAND_LINE_SPECS: Dict[str, Any] = {'stamp_on_road_grid': ROAD_GRID_SPEC}
 #: Defaults: the shipped config/hil.yaml (and the bus, above).
 BRIDGE_DEFAULTS: Dict[str, Any] = {'bus': COMMAND_LINE_DEFAULTS['bus'],
                                    **_shipped(BRIDGE_NODE, BRIDGE_SPECS)}

@@ -1,10 +1,10 @@
-"""Convert between numpy values and the live system's messages (contract: erva_ros/core/topics.py).
+"""Test helpers (no tests here): the contract's messages as rclpy message objects.
 
-Builders take SI values and a stamp in integer nanoseconds; parsers return
-``(stamp_ns, values)`` and raise :class:`~erva_ros.core.loop.validation.MessageRejected`
-for anything malformed, non-finite or absurd, so a node never acts on a bad value.
-Stamps are kept as integer nanoseconds end to end: the lock-step plant matches a
-command to its sample by exact stamp equality.
+The tests build what they send with the generated message classes and rclpy's own
+serialisation -- not with erva_ros.core.contract, the codec under test -- so a test
+message can also be made malformed field by field.  Builders take SI values and a stamp
+in integer nanoseconds; parsers return ``(stamp_ns, values)`` and raise
+:class:`~erva_ros.core.loop.validation.MessageRejected` for anything malformed.
 """
 
 from typing import Sequence, Tuple
@@ -17,8 +17,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from erva_ros.core import topics
-from erva_ros.core.loop.validation import check_values, MessageRejected
+from erva_ros.core import contract, topics
 
 NS = 1_000_000_000
 #: Tolerance on time_from_start of trajectory points (ns): a point off the Ts grid is rejected.
@@ -123,7 +122,7 @@ def clock_msg(stamp_ns: int) -> Clock:
 
 
 # -- parsers -------------------------------------------------------------------------------
-def joint_state_x(msg: JointState) -> np.ndarray:
+def joint_state_x(msg: JointState) -> np.ndarray:  # noqa: D401
     """Return x = [z_s, ż_s, z_us, ż_us(, z_d, ż_d)] of a state message, unchecked.
 
     For observers of what was published (the monitor, reports); a node acting on a
@@ -134,60 +133,60 @@ def joint_state_x(msg: JointState) -> np.ndarray:
     return x
 
 
+def _bytes(msg) -> bytes:
+    from rclpy.serialization import serialize_message
+    return serialize_message(msg)
+
+
+# The parsers run the contract's decoders (erva_ros.core.contract) on rclpy's bytes: what a
+# node does with what it receives.
 def parse_state(msg: JointState, kind: str) -> Tuple[int, np.ndarray]:
     """Return (stamp_ns, x) of a state message; reject wrong joints or bad values."""
-    names = state_joint_names(kind)
-    if tuple(msg.name) != names:
-        raise MessageRejected(f'joint names {list(msg.name)} are not {list(names)}')
-    if len(msg.position) != len(names) or len(msg.velocity) != len(names):
-        raise MessageRejected(f'need {len(names)} positions and velocities, got '
-                              f'{len(msg.position)} and {len(msg.velocity)}')
-    pos = np.asarray(msg.position, dtype=float)
-    vel = np.asarray(msg.velocity, dtype=float)
-    check_values('position', pos, 'position')
-    check_values('velocity', vel, 'velocity')
-    x = np.empty(2 * len(names))
-    x[0::2] = pos
-    x[1::2] = vel
-    return time_to_ns(msg.header.stamp), x
+    row = contract.decode_state(_bytes(msg), kind)
+    return row.stamp_ns, row.x
 
 
 def parse_road_height(msg: PointStamped) -> Tuple[int, float, float]:
     """Return (stamp_ns, distance_m, height_m) of a road height message."""
-    check_values('point.x', [msg.point.x], 'distance')
-    check_values('point.z', [msg.point.z], 'road_height')
-    return time_to_ns(msg.header.stamp), float(msg.point.x), float(msg.point.z)
-
-
-def _parse_trajectory(msg: JointTrajectory, joint: str, ts_ns: int, min_points: int,
-                      limit: str) -> Tuple[int, np.ndarray]:
-    if list(msg.joint_names) != [joint]:
-        raise MessageRejected(f'joint names {list(msg.joint_names)} are not [{joint!r}]')
-    if len(msg.points) < min_points:
-        raise MessageRejected(f'{len(msg.points)} points, need at least {min_points}')
-    values = np.empty(len(msg.points))
-    for k, p in enumerate(msg.points):
-        if len(p.positions) != 1:
-            raise MessageRejected(f'points[{k}] has {len(p.positions)} positions, need 1')
-        if abs(time_to_ns(p.time_from_start) - k * ts_ns) > GRID_TOL_NS:
-            raise MessageRejected(f'points[{k}].time_from_start is not {k}·Ts '
-                                  f'(Ts = {ts_ns / NS:g} s)')
-        values[k] = p.positions[0]
-    check_values(f'points.positions ({joint})', values, limit)
-    return time_to_ns(msg.header.stamp), values
+    row = contract.decode_road_height(_bytes(msg), strict=True)
+    return row.stamp_ns, row.distance_m, row.height_m
 
 
 def parse_preview(msg: JointTrajectory, ts_ns: int, min_points: int) -> Tuple[int, np.ndarray]:
     """Return (stamp_ns, heights (m)) of a preview with at least ``min_points`` points."""
-    return _parse_trajectory(msg, topics.ROAD_JOINT, ts_ns, min_points, 'road_height')
+    row = contract.decode_preview(_bytes(msg), ts_ns, min_points)
+    return row.stamp_ns, row.heights
 
 
 def parse_damping(msg: JointTrajectory, ts_ns: int) -> Tuple[int, np.ndarray]:
     """Return (stamp_ns, plan (Ns/m)) of a damping command; plan[0] is the command."""
-    return _parse_trajectory(msg, topics.DAMPING_JOINT, ts_ns, 1, 'damping')
+    row = contract.decode_command(_bytes(msg), ts_ns)
+    return row.stamp_ns, row.plan
 
 
 __all__ = ['NS', 'ns_to_time', 'time_to_ns', 'ns_to_duration', 's_to_ns', 'state_joint_names',
            'state_msg', 'accel_msg', 'generator_msg', 'road_height_msg', 'preview_msg',
            'damping_msg', 'clock_msg', 'joint_state_x', 'parse_state', 'parse_road_height',
            'parse_preview', 'parse_damping']
+
+
+def diagnostics_msg(stamp_ns: int, reports):
+    """Return a diagnostic_msgs/DiagnosticArray of typed reports (erva_ros.core.reports)."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    arr = DiagnosticArray(status=[DiagnosticStatus(
+        level=bytes([r.level]), name=r.node, message=r.message, hardware_id=r.hardware_id,
+        values=[KeyValue(key=k, value=v) for k, v in r.values().items()]) for r in reports])
+    arr.header.stamp = ns_to_time(stamp_ns)
+    return arr
+
+
+def decoded(bag, topics=None):
+    """Yield (bag message, rclpy message) in log-time order: rclpy's reading of a bag."""
+    from rclpy.serialization import deserialize_message
+    from erva_ros.ros.bag_messages import message_class
+    classes = {}
+    for m in bag.messages(topics):
+        cls = classes.get(m.type)
+        if cls is None:
+            cls = classes[m.type] = message_class(m.type)
+        yield m, deserialize_message(m.data, cls)

@@ -1,0 +1,155 @@
+"""nmpc_node's core: solve each sample's job, count it, and say what the status should be.
+
+The node feeds :class:`ControlLoop` the states, previews and timer ticks with its clock;
+the :class:`~erva_ros.core.loop.sample_schedule.SampleScheduler` inside decides which
+sample to solve when, :meth:`ControlLoop.solve` runs the controller and
+:meth:`ControlLoop.published` counts what went out (late solves, deadline misses) and
+returns the status the node should show.  Timings and counters go into the node's typed
+report (:class:`~erva_ros.core.reports.NMPCReport`).  No ROS inside.
+"""
+
+from dataclasses import dataclass
+import time
+from typing import Any, Mapping, Optional, Tuple
+
+import numpy as np
+
+from erva_ros.core.levels import ERROR, OK, WARN
+from erva_ros.core.loop.sample_schedule import Job, SampleScheduler
+from erva_ros.core.loop.timing import DurationStats, PeriodStats
+from erva_ros.core.loop.validation import StampWindow
+from erva_ros.core.reports import NMPCReport, Timing
+from erva_ros.core.wire import NS
+
+#: How long (s) a deadline miss or fallback keeps the status at WARN.
+WARN_HOLD_S = 1.0
+#: Scheduler counters the report carries (core/loop/sample_schedule.py).
+SCHEDULER_COUNTS = ('out_of_order', 'superseded_states', 'missed_samples', 'stale_previews',
+                    'no_preview', 'state_timeouts')
+
+
+@dataclass(frozen=True)
+class Output:
+    """A command to publish: its sample stamp and plan (plan[0] = c_e for t_k, Ns/m)."""
+
+    stamp_ns: int
+    plan: np.ndarray
+    status: str            # the controller's: ok, late, fallback_plan, ..., or no_preview
+    solve_s: float
+
+
+class ControlLoop:
+    """Schedule, solve and count the NMPC's samples (see the module doc)."""
+
+    def __init__(self, controller, settings, cfg: Mapping[str, Any], window: StampWindow,
+                 report: NMPCReport):
+        self.controller = controller
+        self.ts = settings.ts
+        self.ts_ns = int(round(settings.ts * NS))
+        self.lockstep = cfg['mode'] == 'lockstep'
+        self.n_preview = controller.horizon + 1
+        self.passive_plan = np.full(controller.horizon, controller.c_e0)
+        self.sched = SampleScheduler(
+            self.ts_ns, int(round(cfg['duration_s'] / self.ts)) + 1, self.n_preview,
+            realtime=not self.lockstep, window=window,
+            state_timeout_ns=int(round(cfg['state_timeout_periods'] * self.ts * NS)))
+        self.timeout_periods = cfg['state_timeout_periods']
+        self.report = report
+        report.mode, report.controller = cfg['mode'], controller.name
+        report.model, report.horizon = cfg['model'], controller.horizon
+        report.time_budget_s = settings.time_budget_s
+        self.solve_time = DurationStats()
+        self.latency = DurationStats()      # sample time t_k -> command published
+        self.rx_latency = DurationStats()   # state received -> command published
+        self.cmd_period = PeriodStats(self.ts)
+        self.tick_period = PeriodStats(self.ts)
+        self.tick_phase = DurationStats()   # tick time after the sample grid t_k
+        self._warn_until = 0.0
+        self.outages_logged = 0
+
+    def warm_up(self, n_states: int) -> None:
+        """Solve once at rest so the first real sample does not pay for first-call set-up."""
+        self.controller.compute(np.zeros(n_states), np.zeros(self.n_preview), 0.0)
+        self.controller.reset()
+
+    # -- the sample's solve ------------------------------------------------------------
+    def solve(self, job: Job) -> Output:
+        """Run the controller on ``job`` (no preview: the passive plan)."""
+        if job.preview is None:
+            return Output(job.stamp_ns, self.passive_plan, 'no_preview', 0.0)
+        t = (job.stamp_ns // self.ts_ns) * self.ts if self.lockstep else job.stamp_ns * 1e-9
+        res = self.controller.compute(job.x, job.preview, t)
+        self.report.solves += 1
+        return Output(job.stamp_ns, res.plan, res.status, res.solve_time_s)
+
+    def published(self, out: Output, pub_ns: int, state_rx_ns: int
+                  ) -> Optional[Tuple[int, str]]:
+        """Count a command published at wall time ``pub_ns``; return the status to show.
+
+        A late solve publishes its own plan (the freshest answer there is) and counts;
+        in real time a command later than t_k + Ts is a deadline miss too.
+        """
+        r = self.report
+        r.commands += 1
+        self.solve_time.add(out.solve_s)
+        missed = out.status == 'late'
+        if not self.lockstep:
+            self.cmd_period.mark(pub_ns * 1e-9)
+            self.latency.add(max(0, pub_ns - out.stamp_ns) * 1e-9)
+            self.rx_latency.add((pub_ns - state_rx_ns) * 1e-9)
+            missed = missed or pub_ns - out.stamp_ns > self.ts_ns
+        if out.status == 'late':
+            r.late += 1
+        if missed:
+            r.deadline_misses += 1
+        if missed or out.status != 'ok':
+            self._warn_until = time.monotonic() + WARN_HOLD_S
+            return WARN, f'last {out.status}' + (', deadline missed' if missed else '')
+        if not self.sched.timed_out and time.monotonic() > self._warn_until:
+            return OK, 'running'
+        return None
+
+    def safe(self) -> Tuple[np.ndarray, str]:
+        """Count a safe passive command; return its plan and the ERROR status text."""
+        self.report.safe_commands += 1
+        return self.passive_plan, (f'no state for more than {self.timeout_periods} periods: '
+                                   'passive command')
+
+    def new_outage(self) -> bool:
+        """Return True once per state outage (to log it once)."""
+        n = self.sched.count['state_timeouts']
+        if n > self.outages_logged:
+            self.outages_logged = n
+            return True
+        return False
+
+    def tick(self, wall_ns: int) -> None:
+        """Record a real-time tick at wall time ``wall_ns`` (its period and phase)."""
+        self.tick_period.mark(wall_ns * 1e-9)
+        self.tick_phase.add(((wall_ns - self.sched.first_stamp) % self.ts_ns) * 1e-9)
+
+    def periodic_status(self) -> Optional[Tuple[int, str]]:
+        """Return the status the period timer should restore (None: keep the current one)."""
+        s = self.sched
+        if (not s.timed_out and not s.finished and s.state is not None
+                and time.monotonic() > self._warn_until):
+            return OK, 'running'
+        return None
+
+    def fill(self) -> None:
+        """Bring the report's counters and timings up to date."""
+        r = self.report
+        r.finished = self.sched.finished
+        for key in SCHEDULER_COUNTS:
+            setattr(r, key, self.sched.count[key])
+        for key, n in self.controller.counters.items():
+            setattr(r, f'controller_{key}', n)
+        r.solve_ms = Timing.of(self.solve_time.summary())
+        r.latency_ms = Timing.of(self.latency.summary())
+        r.rx_latency_ms = Timing.of(self.rx_latency.summary())
+        r.cmd_jitter_ms = Timing.of(self.cmd_period.jitter.summary())
+        r.tick_jitter_ms = Timing.of(self.tick_period.jitter.summary())
+        r.tick_phase_ms = Timing.of(self.tick_phase.summary())
+
+
+__all__ = ['WARN_HOLD_S', 'SCHEDULER_COUNTS', 'Output', 'ControlLoop', 'ERROR']

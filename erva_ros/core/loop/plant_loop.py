@@ -1,0 +1,152 @@
+"""plant_sim_node's core: step the quarter car one period per road sample, with the right u_k.
+
+The plant's state x_k at t_k is published when the road sample w(t_k) arrives; the
+command for t_k comes back from the NMPC, and when w(t_{k+1}) arrives the plant
+integrates [t_k, t_{k+1}) with u_k (the road linear in between), then publishes x_{k+1}
+and the chassis acceleration and generator outputs at t_k (they depend on u_k).  u_k is
+chosen by :class:`~erva_ros.core.loop.command_hold.CommandHold`: the command stamped
+t_k, else the newest command's plan, else passive c_e0, each counted.
+
+Real time: u_k is decided when w(t_{k+1}) arrives, so a command later than that is
+late.  Lock-step: the plant publishes ``/clock``; after the state at t_k it waits for
+the command stamped t_k (or ``lockstep_timeout_s`` of wall time), then asks for the next
+sample -- deterministic, and equal to the offline closed loop (`erva sim`).  No ROS
+inside: :class:`PlantLoop` returns what to publish (:class:`Step`) and the status.
+"""
+
+from dataclasses import dataclass
+from typing import Any, List, Mapping, Optional, Tuple
+
+import numpy as np
+
+from erva_ros.core.levels import ERROR, OK, WARN
+from erva_ros.core.loop.command_hold import CommandHold
+from erva_ros.core.loop.timing import DurationStats, PeriodStats
+from erva_ros.core.loop.validation import MessageRejected
+from erva_ros.core.plant import PlantSimulator
+from erva_ros.core.reports import PlantReport, Timing
+from erva_ros.core.wire import NS
+
+
+@dataclass(frozen=True)
+class Step:
+    """What one plant step publishes: x_{k+1} at t_{k+1}, and the outputs at t_k."""
+
+    t_k: int                  # ns
+    u_k: float                # Ns/m
+    sprung_accel: float       # m/s², at t_k
+    generator: Tuple[float, float]     # position (m), v_gen (m/s) at t_k
+    x_next: np.ndarray        # the state at t_{k+1} = t_k + Ts
+    decision: Optional[Tuple[int, str]] = None   # the status of u_k, if decided now
+
+
+class PlantLoop:
+    """The plant's samples, commands and report (see the module doc)."""
+
+    def __init__(self, params, cfg: Mapping[str, Any], report: PlantReport):
+        self.kind = cfg['model']
+        self.ts = cfg['ts']
+        self.ts_ns = int(round(self.ts * NS))
+        self.lockstep = cfg['mode'] == 'lockstep'
+        self.n_steps = int(round(cfg['duration_s'] / self.ts))
+        self.plant = PlantSimulator(params, self.kind, self.ts)
+        self.hold = CommandHold(self.ts_ns, params.c_e0,
+                                int(round(cfg['command_timeout_s'] * NS)))
+        self.k: Optional[int] = None     # index of the current sample (state x_k published)
+        self.t_ns: Optional[int] = None  # stamp of sample k (ns)
+        self.w_k = 0.0                   # road height at t_k (m)
+        self.u_k: Optional[float] = None  # damping decided for [t_k, t_k + Ts) (Ns/m)
+        self.sample = None               # plant outputs at t_k with u_k
+        self.report = report
+        report.mode, report.model, report.steps_total = cfg['mode'], self.kind, self.n_steps
+        self.road_latency = DurationStats()   # road sample time -> height received
+        self.step_time = DurationStats()      # height received -> state published
+        self.loop_latency = DurationStats()   # state published -> its command received
+        self.cmd_period = PeriodStats(self.ts)   # command arrivals |Δt - Ts|
+
+    @property
+    def finished(self) -> bool:
+        """Return True once the scenario's last step is done."""
+        return self.report.finished
+
+    # -- road samples drive the plant ---------------------------------------------------
+    def on_height(self, stamp: int, w: float) -> List[Step]:
+        """Take w(t) stamped ``stamp``: the first starts the plant; later ones step it.
+
+        Returns the steps to publish (a skipped road sample: the road linear across the
+        gap, counted); MessageRejected for a stamp not after the current sample or off
+        its Ts grid.
+        """
+        if self.k is None:
+            self.k, self.t_ns, self.w_k = 0, stamp, w
+            return []
+        steps, rest = divmod(stamp - self.t_ns, self.ts_ns)
+        if steps <= 0 or rest != 0:
+            why = 'not after' if steps <= 0 else 'off the Ts grid of'
+            raise MessageRejected(f'stamp {stamp} ns is {why} the current sample '
+                                  f'{self.t_ns} ns')
+        if steps > 1:
+            self.report.road_gaps += 1
+        w0, out = self.w_k, []
+        for i in range(1, steps + 1):
+            out.append(self._advance(w0 + (w - w0) * i / steps))
+            if self.finished:
+                break
+        return out
+
+    def _advance(self, w_next: float) -> Step:
+        """Step the plant from t_k to t_{k+1}."""
+        decision = self.decide() if self.u_k is None else None
+        t_k, u_k, sample = self.t_ns, self.u_k, self.sample
+        self.plant.step(u_k, self.w_k, w_next)
+        self.k += 1
+        self.t_ns += self.ts_ns
+        self.w_k, self.u_k, self.sample = w_next, None, None
+        position, v_gen, _ = self.plant.generator(sample.x, u_k)
+        if self.k >= self.n_steps:
+            self.report.finished = True
+        return Step(t_k, u_k, sample.sprung_accel, (position, v_gen),
+                    np.array(self.plant.x, dtype=float), decision)
+
+    def decide(self) -> Tuple[int, str]:
+        """Fix u_k for [t_k, t_k + Ts) from the command, its plan or passive c_e0.
+
+        Returns the status that says where u_k came from.
+        """
+        self.u_k, source = self.hold.select(self.t_ns)
+        self.sample = self.plant.sample(self.u_k, self.w_k)
+        if source == 'command':
+            return OK, 'running'
+        if source == 'plan':
+            return WARN, 'command late: applying the previous plan'
+        if self.hold.stamp_ns is None:
+            return WARN, 'no command yet: passive damping c_e0'
+        return ERROR, 'no command and plan used up: passive damping c_e0'
+
+    # -- commands ----------------------------------------------------------------------
+    def on_command(self, stamp: int, plan: np.ndarray) -> bool:
+        """Take a command; return True if it is the one lock-step waits for (u_k open)."""
+        if self.t_ns is not None and stamp < self.t_ns:
+            self.report.late_commands += 1    # its sample is already integrated
+        self.hold.update(stamp, plan)
+        return (self.lockstep and self.k is not None and not self.finished
+                and self.u_k is None and stamp == self.t_ns)
+
+    def fill(self) -> None:
+        """Bring the report's figures up to date."""
+        r = self.report
+        r.steps = self.k or 0
+        r.sim_time_s = 0.0 if self.k is None else self.k * self.ts
+        r.harvested_j = self.plant.harvested_j
+        r.acc_rms_continuous = self.plant.acc_rms_continuous()
+        r.u_from_command = self.hold.counts['command']
+        r.u_from_plan = self.hold.counts['plan']
+        r.u_from_passive = self.hold.counts['passive']
+        r.out_of_order_commands = self.hold.out_of_order
+        r.road_latency_ms = Timing.of(self.road_latency.summary())
+        r.step_ms = Timing.of(self.step_time.summary())
+        r.loop_latency_ms = Timing.of(self.loop_latency.summary())
+        r.cmd_jitter_ms = Timing.of(self.cmd_period.jitter.summary())
+
+
+__all__ = ['Step', 'PlantLoop']

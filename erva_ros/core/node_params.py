@@ -1,0 +1,317 @@
+"""Every node's parameters: one schema per node, with no ROS import.
+
+A :class:`NodeSchema` names the parameters a node declares, each from one group of
+specs (:mod:`erva_ros.core.specs`) whose defaults are one section of a shipped
+``config/*.yaml`` (:class:`Group`).  Everything else is derived from it: the ROS
+descriptors a node declares (:mod:`erva_ros.ros.parameters`), the sections of the
+session params file `erva run` writes (:func:`session_sections`), the launch file's
+arguments (:data:`LAUNCH_ARGUMENTS`, :func:`launch_arguments`) and the command line's
+options (:func:`argparse_kwargs`).  ``test/test_specs.py`` checks that they agree.
+
+The sample time ``ts`` is one parameter of the whole loop: config/live.yaml's ``/**``.
+"""
+
+from dataclasses import dataclass
+import functools
+from typing import Any, Dict, Mapping, Optional, Sequence, Tuple
+
+from erva_ros.core.specs import Choice, Flag, Integer, Number, Text, Texts
+
+#: Highest SCHED_FIFO priority a node may ask for (99 is the kernel's watchdogs').
+MAX_PRIORITY = 98
+#: Time bases of the live loop.
+MODES = ('realtime', 'lockstep')
+
+#: The sample time Ts of plant, road, controller and ECU: the one spec of ``ts``.
+TS_SPEC = Number(1e-3, 1.0, 's', 'sample time Ts of the loop: plant, road, controller, ECU '
+                 '(paper: 0.02)')
+
+
+@functools.lru_cache(maxsize=None)
+def live_specs() -> Dict[str, Any]:
+    """Return the live nodes' parameter specs (defaults: config/live.yaml ``/**``)."""
+    from erva_ros.core.model import MODEL_KINDS
+    from erva_ros.core.roads import ISO_CLASSES, ROAD_KINDS
+    return {
+        'mode': Choice(MODES, 'time base: realtime (wall clock) or lockstep (the plant '
+                       'publishes /clock)'),
+        'model': Choice(MODEL_KINDS, 'model: erva (nonlinear, eq. (11)) or benchmark (linear, '
+                        'eq. (15))'),
+        'ts': TS_SPEC,
+        'session_id': Text('id of the `erva run` session the node belongs to, reported with '
+                           'its status (\'\': none); one per session, so two sessions on one '
+                           'DDS domain never count each other\'s messages'),
+        'duration_s': Number(0.0, 86400.0, 's', 'scenario length: the road ends and the plant '
+                             'stops', lo_open=True),
+        'road': Choice(ROAD_KINDS[:-1], 'road profile (a recorded one: set road_file)'),
+        'road_file': Text('recorded road: CSV file of time (s), height (m) rows; overrides '
+                          'road'),
+        'seed': Integer(0, 1_000_000_000, '-', 'seed of the road noise and the preview error'),
+        'road_class': Choice(tuple(ISO_CLASSES), 'ISO 8608 road class'),
+        'speed_mps': Number(0.0, 100.0, 'm/s', 'vehicle speed (time to distance)',
+                            lo_open=True),
+        'bump_height_m': Number(-0.5, 0.5, 'm', 'bump road: height of the cosine bump'),
+        'bump_length_m': Number(0.0, 100.0, 'm', 'bump road: length of the bump', lo_open=True),
+        'bump_start_s': Number(0.0, 86400.0, 's', 'bump road: time the tyre reaches the bump'),
+        'preview_steps': Integer(1, 10000, 'steps',
+                                 'preview intervals N (N + 1 points from t_k on)'),
+        'preview_noise': Flag('preview error: add noise at preview_snr_db'),
+        'preview_snr_db': Number(-40.0, 200.0, 'dB', 'preview error: SNR of the added noise'),
+        'preview_delay_s': Number(0.0, 10.0, 's', 'preview error: age of the preview estimate'),
+        'command_timeout_s': Number(0.0, 60.0, 's', 'plant: age after which a command\'s plan '
+                                    'is not used (passive)'),
+        'lockstep_timeout_s': Number(0.01, 3600.0, 's',
+                                     'lock-step: wall time the plant waits for a command'),
+        'state_timeout_periods': Integer(1, 1000, 'periods', 'NMPC: passive command + ERROR '
+                                         'after this many periods without a state'),
+        'wait_for_subscribers': Integer(0, 100, '-', 'time master: subscribers each of its '
+                                        'topics needs first'),
+        'wait_for_reader': Text('time master: one subscriber of each of its topics must be '
+                                'the node of this name (\'\': any)'),
+        'start_delay_s': Number(0.0, 600.0, 's',
+                                'time master: settling time before the first sample'),
+        'diagnostics_period_s': Number(0.05, 3600.0, 's', 'period of the /diagnostics status'),
+        'reject_log_period_s': Number(0.0, 3600.0, 's',
+                                      'rejected messages are logged once per period'),
+        'max_stamp_lead_s': Number(0.0, 3600.0, 's', 'inputs stamped further ahead of the '
+                                   'node\'s clock are rejected (clock skew between hosts; at '
+                                   'least Ts)'),
+        'max_stamp_age_s': Number(0.0, 86400.0, 's', 'inputs stamped longer ago than this are '
+                                  'rejected as stale', lo_open=True),
+        'publisher_history_s': Number(0.0, 3600.0, 's', 'history each loop publisher keeps for '
+                                      'reliable repair: a subscriber (the recorder) may stall '
+                                      'this long losing nothing', lo_open=True),
+        'realtime_priority': Integer(0, MAX_PRIORITY, '-', 'realtime mode: SCHED_FIFO priority '
+                                     'of the node\'s threads, 0 = normal scheduling (needs '
+                                     'CAP_SYS_NICE, else a warning)'),
+    }
+
+
+#: The session nodes' own parameters (defaults: config/session.yaml).
+RECORDER_SPECS: Dict[str, Any] = {
+    'bag_dir': Text('bag directory to create (must not exist)'),
+    'topics': Texts('topics to record; relative names resolve against the node namespace'),
+    'session_metadata': Text('JSON object stored as the erva_session MCAP metadata record'),
+    'chunk_size': Integer(1024, 64 * 1024 * 1024, 'B', 'close an MCAP chunk at this size'),
+    'flush_period_s': Number(0.01, 60.0, 's', 'close the chunk and hand it to the OS at least '
+                             'this often: at most this much is lost if the process is killed'),
+    'compression': Choice(('none', 'zstd', 'lz4'), 'MCAP chunk compression'),
+    'fsync': Flag('also fsync the file at every flush (survives power loss)'),
+    'diagnostics_period_s': Number(0.1, 60.0, 's', 'period of the recorder status on '
+                                   '/diagnostics'),
+    'nice': Integer(0, 19, '-', 'CPU niceness added to the recorder with normal scheduling'),
+    'realtime_priority': Integer(0, MAX_PRIORITY, '-', 'SCHED_FIFO priority of the recorder\'s '
+                                 'threads (0: normal scheduling); below the loop\'s'),
+}
+FOXGLOVE_SPECS: Dict[str, Any] = {
+    'host': Text('address to listen on (loopback by default; anything else exposes the '
+                 'session to that network)'),
+    'port': Integer(0, 65535, '-', 'TCP port to listen on (0: any free port)'),
+    'topics': Texts('topics to serve; relative names resolve against the node namespace'),
+    'session_metadata': Text('JSON object sent on <namespace>/session'),
+    'message_backlog_size': Integer(16, 1_000_000, 'messages', 'messages queued per client '
+                                    'before its oldest are dropped'),
+    'diagnostics_period_s': Number(0.1, 60.0, 's', 'period of the status on /diagnostics'),
+    'nice': Integer(0, 19, '-', 'CPU niceness added to this process, so the control loop goes '
+                    'first'),
+}
+
+
+#: What `erva run` judges a real-time session by (config/session.yaml ``erva_run``).
+QUALITY_SPECS: Dict[str, Any] = {
+    'max_deadline_misses': Integer(0, 10**9, '-', 'deadline misses allowed (commands later '
+                                   'than t_k + Ts, or solves over the budget)'),
+    'max_state_timeouts': Integer(0, 10**9, '-', 'outages of the controller\'s state allowed'),
+    'max_skipped_road_samples': Integer(0, 10**9, '-', 'road samples a late real-time timer '
+                                        'may skip'),
+    'max_command_gap_s': Number(0.0, 3600.0, 's', 'longest pause between two commands',
+                                lo_open=True),
+}
+
+
+@dataclass(frozen=True)
+class Group:
+    """A table of specs whose defaults are one section of a shipped config file."""
+
+    config: str                      # file name in config/ ('': COMMAND_LINE)
+    section: Optional[str] = None    # a node's section ('/**/<node>'), None: '/**'
+
+    def specs(self) -> Dict[str, Any]:
+        """Return the group's specs."""
+        return _GROUP_SPECS[self](self)
+
+    def defaults(self) -> Dict[str, Any]:
+        """Return the group's defaults: its section of the shipped file, checked."""
+        return _defaults(self)
+
+
+@functools.lru_cache(maxsize=None)
+def _defaults(group: Group) -> Dict[str, Any]:
+    from erva_ros.core.config import shipped_defaults
+    specs = group.specs()
+    if group is COMMAND_LINE:
+        from erva_ros.core.hil.settings import COMMAND_LINE_DEFAULTS
+        return {k: v for k, v in COMMAND_LINE_DEFAULTS.items() if k in specs}
+    values = shipped_defaults(group.config, group.section)
+    return {k: specs[k].check(k, v, f'config/{group.config}')
+            for k, v in values.items() if k in specs}
+
+
+def _controller_specs(_) -> Dict[str, Any]:
+    from erva_ros.core.controllers.settings import SPECS
+    return {k: v for k, v in SPECS.items() if k != 'ts'}
+
+
+def _hil(name):
+    def specs(_):
+        from erva_ros.core.hil import settings
+        return getattr(settings, name)
+    return specs
+
+
+def _erva_specs(_) -> Dict[str, Any]:
+    from erva_ros.core.params import ERVA_SPECS
+    return ERVA_SPECS
+
+
+ERVA = Group('erva_paper.yaml')
+LIVE = Group('live.yaml')
+CONTROLLER = Group('nmpc.yaml', 'nmpc_node')
+BRIDGE = Group('hil.yaml', 'ecu_bridge_node')
+ESTIMATOR = Group('hil.yaml', 'state_estimator_node')
+ECU_SIM = Group('hil.yaml', 'ecu_sim')
+#: Set on the command line only (-p): rcl lets a /**/<node> key of a params file win over
+#: ``-p name:=value``, so these have no key in config/hil.yaml (hil/settings.py).
+COMMAND_LINE = Group('', 'command line')
+RECORDER = Group('session.yaml', 'recorder')
+FOXGLOVE = Group('session.yaml', 'foxglove_server')
+QUALITY = Group('session.yaml', 'erva_run')
+_GROUP_SPECS = {ERVA: _erva_specs, LIVE: lambda _: live_specs(), CONTROLLER: _controller_specs,
+                BRIDGE: _hil('BRIDGE_SPECS'), ESTIMATOR: _hil('ESTIMATOR_SPECS'),
+                ECU_SIM: _hil('ECU_SIM_SPECS'), COMMAND_LINE: _hil('COMMAND_LINE_SPECS'),
+                RECORDER: lambda _: RECORDER_SPECS, QUALITY: lambda _: QUALITY_SPECS,
+                FOXGLOVE: lambda _: FOXGLOVE_SPECS}
+
+
+@dataclass(frozen=True)
+class NodeSchema:
+    """The parameters of one node: (group, names) pairs; names () = the whole group."""
+
+    node: str
+    parts: Tuple[Tuple[Group, Tuple[str, ...]], ...]
+
+    def items(self):
+        """Yield (name, spec, group) of every parameter, in declaration order."""
+        for group, names in self.parts:
+            specs = group.specs()
+            for name in names or tuple(specs):
+                yield name, specs[name], group
+
+    def specs(self) -> Dict[str, Any]:
+        """Return {name: spec}."""
+        return {name: spec for name, spec, _ in self.items()}
+
+    def defaults(self) -> Dict[str, Any]:
+        """Return {name: default} of every parameter."""
+        from erva_ros.core.hil.settings import COMMAND_LINE_DEFAULTS
+        out = {}
+        for name, _, group in self.items():
+            defaults = group.defaults()
+            out[name] = defaults[name] if name in defaults else COMMAND_LINE_DEFAULTS[name]
+        return out
+
+    def group(self, name: str) -> Group:
+        """Return the group of parameter ``name``."""
+        for n, _, group in self.items():
+            if n == name:
+                return group
+        raise KeyError(f'{self.node} has no parameter {name!r}')
+
+
+#: What every loop node declares from the live group.
+_LOOP = ('mode', 'ts', 'session_id', 'duration_s', 'diagnostics_period_s',
+         'reject_log_period_s', 'publisher_history_s', 'realtime_priority')
+_HIL = ('ts', 'model', 'session_id', 'realtime_priority', 'publisher_history_s')
+
+SCHEMAS: Dict[str, NodeSchema] = {s.node: s for s in (
+    NodeSchema('road_preview_node', ((LIVE, _LOOP + (
+        'road', 'road_file', 'seed', 'road_class', 'speed_mps', 'bump_height_m',
+        'bump_length_m', 'bump_start_s', 'preview_steps', 'preview_noise', 'preview_snr_db',
+        'preview_delay_s', 'wait_for_subscribers', 'wait_for_reader', 'start_delay_s')),)),
+    NodeSchema('plant_sim_node', ((ERVA, ()), (LIVE, _LOOP + (
+        'model', 'command_timeout_s', 'lockstep_timeout_s', 'wait_for_subscribers',
+        'wait_for_reader', 'start_delay_s', 'max_stamp_lead_s', 'max_stamp_age_s')))),
+    NodeSchema('nmpc_node', ((ERVA, ()), (CONTROLLER, ()), (LIVE, _LOOP + (
+        'model', 'state_timeout_periods', 'max_stamp_lead_s', 'max_stamp_age_s')))),
+    NodeSchema('ecu_bridge_node', ((ERVA, ()), (LIVE, _HIL), (BRIDGE, ()))),
+    NodeSchema('state_estimator_node', ((ERVA, ()), (LIVE, _HIL), (ESTIMATOR, ()),
+                                        (COMMAND_LINE, ('stamp_on_road_grid',)))),
+    NodeSchema('recorder', ((LIVE, ('session_id',)), (RECORDER, ()))),
+    NodeSchema('foxglove_server', ((LIVE, ('session_id',)), (FOXGLOVE, ()))),
+)}
+#: The loop nodes of `erva run` (full state), whose params the session file carries.
+LOOP_NODES = ('nmpc_node', 'plant_sim_node', 'road_preview_node')
+
+
+def session_sections(values: Mapping[str, Any], nodes: Sequence[str] = LOOP_NODES
+                     ) -> Dict[str, Dict[str, Any]]:
+    """Return a session params file's sections: ``/**`` and ``/**/<node>``.
+
+    A value goes to ``/**`` when it is in a ``/**`` group declared by more than one of
+    ``nodes``, else to the section of each node that declares it (so a node-only value,
+    like the road's, is not offered to the others).
+    """
+    users: Dict[str, list] = {}
+    for node in nodes:
+        for name, _, group in SCHEMAS[node].items():
+            users.setdefault(name, []).append((node, group))
+    doc: Dict[str, Dict[str, Any]] = {'/**': {}}
+    doc.update({f'/**/{n}': {} for n in nodes})
+    for name, value in values.items():
+        who = users.get(name)
+        if not who:
+            continue
+        shared = len(who) > 1 and all(g.section is None for _, g in who)
+        for section in (['/**'] if shared else [f'/**/{n}' for n, _ in who]):
+            doc[section][name] = value
+    return {k: {'ros__parameters': v} for k, v in doc.items() if v}
+
+
+#: The launch file's arguments (besides ``namespace``): parameters of the loop's nodes.
+LAUNCH_ARGUMENTS = ('mode', 'model', 'controller', 'alpha1', 'alpha2', 'road', 'seed',
+                    'duration_s')
+
+
+def launch_arguments() -> Tuple[Tuple[str, str, type, str], ...]:
+    """Return (name, default text, python type, description) of each launch argument."""
+    specs, defaults = {}, {}
+    for node in LOOP_NODES:
+        specs.update(SCHEMAS[node].specs())
+        defaults.update(SCHEMAS[node].defaults())
+    out = []
+    for name in LAUNCH_ARGUMENTS:
+        spec = specs[name]
+        kind = getattr(spec, 'python_type', str)
+        out.append((name, str(defaults[name]), kind, f'{spec.doc} ({spec.describe()})'))
+    return tuple(out)
+
+
+def spec_of(name: str, node: Optional[str] = None):
+    """Return the spec of parameter ``name`` (of ``node``, else of any node that has it)."""
+    for schema in ([SCHEMAS[node]] if node else SCHEMAS.values()):
+        specs = schema.specs()
+        if name in specs:
+            return specs[name]
+    raise KeyError(name)
+
+
+def argparse_kwargs(name: str, help: str = '', node: Optional[str] = None) -> Dict[str, Any]:
+    """Return ``add_argument`` keywords of the option for parameter ``name`` (its spec)."""
+    return spec_of(name, node).argparse(help)
+
+
+__all__ = ['MAX_PRIORITY', 'MODES', 'TS_SPEC', 'live_specs', 'RECORDER_SPECS', 'FOXGLOVE_SPECS',
+           'Group', 'ERVA', 'LIVE', 'CONTROLLER', 'BRIDGE', 'ESTIMATOR', 'ECU_SIM', 'RECORDER',
+           'FOXGLOVE', 'QUALITY', 'QUALITY_SPECS', 'NodeSchema', 'SCHEMAS', 'LOOP_NODES',
+           'session_sections', 'LAUNCH_ARGUMENTS', 'launch_arguments', 'spec_of',
+           'argparse_kwargs']
