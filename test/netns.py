@@ -91,8 +91,8 @@ class HostPair:
         The kernel reports the carrier a moment after ``link set up``.  A Fast DDS
         process started before that finds no running interface, and its host id falls
         back to one value on both sides: each side would then take the other for itself
-        and use shared memory instead of the link: nothing connects (a CI failure,
-        reproduced by bringing the link up 4 s after the loop started).
+        and use shared memory instead of the link: nothing connects (as when the link
+        comes up 4 s after the loop started).
         """
         end = time.monotonic() + timeout
         while True:

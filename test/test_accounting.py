@@ -68,7 +68,8 @@ def test_rejected_inputs_that_cost_samples_fail_the_run():
     # A foreign state rejected, the loop untouched: fine.  A busy controller's skipped
     # samples are load, not rejection.
     assert accounting.rejections_cost(1, ok) is None
-    # Every state refused after a wrong first stamp: passive for want of a state.
+    # Every state refused after a wrong first stamp: passive for want of a state, which
+    # fails the run although no sample was missed.
     refused = NMPCReport(missed_samples=0, superseded_states=0, safe_commands=319)
     assert accounting.rejections_cost(400, refused) == (
         '319 samples went without a command of their own while 400 input messages were '

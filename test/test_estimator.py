@@ -27,7 +27,7 @@ def test_prediction_is_the_shared_model_and_its_exact_jacobian(ekf):
     xn, a = ekf._pred(X, 15000.0, 1e-3, 1.2e-3)
     assert np.allclose(np.asarray(xn).ravel(), np.asarray(step(X, 15000.0, 1e-3, 1.2e-3)).ravel(),
                        rtol=0, atol=1e-15)
-    assert ekf.substeps >= 8        # h·|λ| <= 1.39 at 22.8 kNs/m (NOTES.md: stiff)
+    assert ekf.substeps >= 8        # h·|λ| <= 1.39 at 22.8 kNs/m (stiff: docs/model.md)
     fd = np.empty((6, 6))
     for i in range(6):
         d = np.zeros(6)

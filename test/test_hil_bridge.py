@@ -288,8 +288,8 @@ def test_ecu_applies_valid_commands_and_falls_back_after_the_timeout(codec, chan
 
 
 def test_a_timeout_ended_within_its_cycle_is_in_the_mode_log(codec, channel):
-    # Seen under load: the ECU counted a timeout that its mode record did not show, since
-    # the next command ended it before the sample (the status only tells the mode at t_k).
+    # A timeout that the next command ends before the sample is invisible in the status
+    # (it tells the mode at t_k), so the mode record logs it at its latch instant.
     with _ecu_started(codec, channel) as (bridge_bus, ecu, tx):
         bridge_bus.send(_command(codec, tx, T0 + 0.0105, 20000.0))
         for _ in range(3):

@@ -392,9 +392,9 @@ def test_estimator_takes_one_message_per_cycle_and_rejects_bad_ones(tmp_path):
 
 def test_on_the_road_grid_no_state_goes_out_before_the_first_road_sample(tmp_path):
     # With stamp_on_road_grid a cycle before the road's first sample has no grid: a state
-    # stamped off it made the NMPC take that grid and refuse every later state (a CI run
-    # of the loop split across two hosts).  Such a cycle waits Ts/4 for the road, then is
-    # counted (before_road) and not published; once the road runs, states are on its grid.
+    # stamped off it would make the NMPC take that grid and refuse every later state.
+    # Such a cycle waits Ts/4 for the road, then is counted (before_road) and not
+    # published; once the road runs, states are on its grid.
     from erva_ros.core.hil import topics as hil_topics
     from erva_ros.session.hil_processes import hil_process_specs
     from ros_msgs import ns_to_time

@@ -58,8 +58,8 @@ def test_linearisation_at_rest_is_the_linear_erva(u):
         (P.M_s + P.m_b) * (P.M_us + P.m_b) - P.m_b ** 2), rel=1e-9)
 
 
-def test_stiffness_matches_notes():
-    # NOTES.md: fastest eigenvalue ≈ -250, -520, -1300 1/s at 10, 20, 50 kNs/m.
+def test_fastest_eigenvalues_are_as_documented():
+    # docs/model.md: fastest eigenvalue ≈ -250, -520, -1300 1/s at 10, 20, 50 kNs/m.
     m = get_model(P, 'erva')
     for u, lam in [(1e4, 250), (2e4, 520), (5e4, 1300)]:
         ev = np.linalg.eigvals(linearize(m, u0=u)[0])
@@ -101,7 +101,7 @@ def test_energy_conserved_without_damping(kind):
 @pytest.mark.parametrize('kind', ['erva', 'benchmark'])
 @pytest.mark.parametrize('switching,tol', [(False, 1e-4), (True, 3e-3)])
 def test_energy_balance_with_damping_and_road(kind, switching, tol):
-    """Road work = Δ stored energy + dissipated in c + harvested (NOTES.md sanity check)."""
+    """Road work = Δ stored energy + dissipated in c + harvested (docs/model.md)."""
     m = get_model(P, kind)
     dt, n = 5e-4, 8000
     t = dt * np.arange(n + 1)

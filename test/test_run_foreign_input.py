@@ -1,10 +1,10 @@
 """A message from outside the loop cannot stop or steer it (`erva run`).
 
 One valid ``/erva/state`` stamped an hour ahead, published by another process on the
-domain, used to make nmpc_node report ``finished`` and stop controlling.  Now every
-input stamp is checked against a window around the receiving node's clock: the
-foreign state is rejected and counted, the monitor counts it as foreign, and the loop
-runs as if it had never been sent -- in lock-step exactly as `erva sim`.
+domain, would end nmpc_node's scenario if stamps were trusted.  Every input stamp is
+checked against a window around the receiving node's clock: the foreign state is
+rejected and counted, the monitor counts it as foreign, and the loop runs as if it had
+never been sent -- in lock-step exactly as `erva sim`.
 """
 
 import json
@@ -94,9 +94,9 @@ def test_realtime_a_future_stamped_foreign_state_is_rejected_and_reported():
 
 
 def test_lockstep_a_reader_already_there_cannot_stand_in_for_the_monitor(erva, tmp_path):
-    # A `ros2 topic echo /erva/state` before the run: it counts as one of the plant's
-    # readers, and with no settling time the plant used to start before the monitor's
-    # last subscription was matched -- its first states never reached the monitor.
+    # A `ros2 topic echo /erva/state` before the run counts as one of the plant's
+    # readers; with no settling time only the named reader (the monitor) tells the plant
+    # that the monitor is matched and will get the first states.
     import rclpy
     from sensor_msgs.msg import JointState
 

@@ -81,7 +81,7 @@ def test_hil_loop_closes_on_the_50_hz_grid_and_controls(hil_run, erva):
     assert n - 1 - skipped <= s['metrics']['samples'] <= n - 1, (s['metrics'], skipped)
     # Comfort on the ECU's ground truth.  How close it comes to the plain loop depends on
     # the loop's latency (the ECU applies each command when it arrives): a benchmark
-    # figure (docs/hil.md, 1.1-1.5x the offline NMPC).  Here: the NMPC acted, so the
+    # figure (docs/hil.md §3: HIL against the full-state loop).  Here: the NMPC acted, so the
     # run is better than passive damping (2.4x worse than the NMPC offline), also when a
     # loaded machine left some samples passive.
     ref = {c: json.loads(erva('sim', '--duration', DURATION, '--controller', c, '--json',

@@ -113,9 +113,9 @@ def test_no_state_for_three_periods_gives_safe_stamps_on_the_grid_until_states_r
 
 
 def test_each_sample_gets_one_command_also_when_its_state_comes_after_the_safe_one():
-    # Seen on a loaded machine: the estimator stalled, the NMPC published the safe command
-    # for a sample, then that sample's late state arrived and was solved: two
-    # damping_cmd with one stamp (the plant refuses the second, the bag holds both).
+    # A sample that got the safe command (no state for 3 periods) gets no second command
+    # when its late state arrives: one damping_cmd per stamp, or the plant refuses the
+    # second while the bridge applies both.
     s = scheduler()
     s.on_preview(T0, H, T0)
     s.on_state(T0, X, T0)

@@ -19,7 +19,7 @@ converges from a wrong initial state (tested).
 
 Model.  x_{k+1} = F_d(x_k, u_k, w_k, w_{k+1}) is ``QuarterCarModel.rk4_step`` (paper
 eq. (11), the only copy of the equations) with enough RK4 sub-steps to be stable up to
-the hardware's largest c_e (NOTES.md: the dynamics are stiff); its Jacobian
+the hardware's largest c_e (the dynamics are stiff, docs/model.md); its Jacobian
 A = ∂F_d/∂x and the output Jacobian H = ∂h/∂x are CasADi's exact derivatives of the
 same expressions, evaluated in one call each.
 
@@ -115,7 +115,7 @@ class ExtendedKalmanFilter:
         self.noise = noise
         nx = self.model.nx
         self.nx = nx
-        # Stable over the whole input box (stiff at high c_e, see NOTES.md).
+        # Stable over the whole input box (stiff at high c_e, docs/model.md).
         self.substeps = substeps or rk4_stable_substeps(self.model, self.ts, max(u_max, 1.0))
         step = self.model.rk4_step(self.ts, self.substeps)
         x, u = ca.SX.sym('x', nx), ca.SX.sym('u')

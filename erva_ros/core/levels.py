@@ -1,7 +1,7 @@
 """Status levels of ``/diagnostics`` (diagnostic_msgs/DiagnosticStatus), defined once.
 
 The plain-Python cores that judge their own health (the HIL bridge) and the ROS side
-that publishes and reads the statuses (erva_ros/ros/diagnostics.py, the reports) use
+that publishes and reads the statuses (erva_ros/core/reports.py, the nodes) use
 these values; the message package itself is not imported here (core ring).
 """
 

@@ -18,7 +18,7 @@ mechanical energy), ``generator`` (its position, v_gen, P), ``deflection``
 so the tyre force is continuous).
 
 Why sub-steps: the dynamics are stiff at high c_e (fastest eigenvalue ≈ -1300 1/s
-at 50 kNs/m, see NOTES.md); explicit RK4 is stable only for h·|λ| < 2.78, so
+at 50 kNs/m, docs/model.md); explicit RK4 is stable only for h·|λ| < 2.78, so
 the plant integrates at 0.5 ms by default and :func:`rk4_stable_substeps`
 tells a caller how many sub-steps a given damping bound needs.
 """

@@ -52,7 +52,7 @@ class EcuSimRos:
 
         self.kind = kind
         self.hw = hardware
-        self.scheduling = 'off'            # set by `erva ecu-sim` (live/realtime.py)
+        self.scheduling = 'off'            # set by `erva ecu-sim` (ros/realtime.py)
         self.context = rclpy.Context()
         # Signals stay with `erva ecu-sim`, which stops the ECU loop cleanly.
         rclpy.init(args=[], context=self.context, signal_handler_options=SignalHandlerOptions.NO)

@@ -104,7 +104,7 @@ def format_summary(s: Dict[str, Any]) -> str:
         lines.append(f'  road      {skipped} sample{"" if skipped == 1 else "s"} skipped '
                      f'(timer behind){bridged}')
     lines.append(f'  messages  dropped {msg["dropped_total"]}, rejected {msg["rejected_total"]}')
-    if s.get('scheduling'):     # what realtime_priority got each node (live/realtime.py)
+    if s.get("scheduling"):     # what realtime_priority got each node (ros/realtime.py)
         kinds = sorted(set(s['scheduling'].values()))
         lines.append(f'  sched     {"; ".join(kinds)} '
                      f'({len(s["scheduling"])} node{"s" if len(s["scheduling"]) > 1 else ""})')

@@ -124,7 +124,7 @@ def recorder_session(text: str, recorder: str, bag_dir: str) -> Dict[str, str]:
 def command_line(argv: Optional[Sequence[str]] = None) -> str:
     """Return the command that made the session, without this machine's paths.
 
-    ``python -m erva_ros.x.y`` shows as that; a console script (``erva``) by its name.
+    ``python -m erva_ros.<module>`` shows as that; a console script (``erva``) by its name.
     """
     argv = list(sys.argv if argv is None else argv)
     if not argv:
