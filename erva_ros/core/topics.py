@@ -76,3 +76,20 @@ def type_of(name: str, namespace: str = NAMESPACE):
     if name.startswith(prefix):
         return type_of(name[len(prefix):])
     return None
+
+
+def clock_topic(namespace: str) -> str:
+    """Return the lock-step clock of a session in ``namespace``.
+
+    ``/clock`` in the default namespace (what ROS tools expect), ``<namespace>/clock``
+    in any other: two lock-step sessions on one DDS domain must not share a clock.
+    The nodes get it as a remapping of ``/clock`` (:func:`clock_remap`).
+    """
+    ns = namespace.rstrip('/')
+    return CLOCK if ns in ('', NAMESPACE) else f'{ns}{CLOCK}'
+
+
+def clock_remap(namespace: str) -> list:
+    """Return the ``--ros-args`` remapping of ``/clock`` for ``namespace`` ([] if none)."""
+    clock = clock_topic(namespace)
+    return [] if clock == CLOCK else ['-r', f'{CLOCK}:={clock}']

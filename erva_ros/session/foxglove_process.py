@@ -12,6 +12,7 @@ import os
 import time
 from typing import Any, Callable, Dict, List, Tuple
 
+from erva_ros.core.topics import clock_remap
 from erva_ros.core.errors import CLIError
 from erva_ros.ros import foxglove_server as fg
 from erva_ros.session.processes import ChildProcess, node_argv, stop_processes
@@ -67,6 +68,7 @@ def start_process(cfg, session, env: Dict[str, str], log: Callable[[str], None],
     host, port = fg.parse_address(cfg.foxglove)
     argv = server_argv(host, port, cfg.namespace, record_topics(session.hil), description,
                        use_sim_time=not session.realtime, session_id=session.session_id)
+    argv += clock_remap(cfg.namespace)
     proc = ChildProcess(PROCESS, argv, env, os.path.join(session.directory, f'{PROCESS}.log'))
     deadline = time.monotonic() + START_TIMEOUT_S
     while True:

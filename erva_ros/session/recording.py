@@ -81,6 +81,7 @@ def start_recorder(session: Session, namespace: str, bag_parent: str, env: Dict[
                     'session_id': session.session_id,
                     'realtime_priority': max(0, loop_priority - RECORDER_PRIORITY_BELOW)
                     if loop_priority > 1 else 0}))
+    argv += topics.clock_remap(namespace)
     proc = ChildProcess(PROCESS, argv, env, os.path.join(session.directory, f'{PROCESS}.log'))
     proc.bag_dir = bag_dir
     proc.topics = record

@@ -121,6 +121,7 @@ def other_session(monitor, obs, namespace: str, spin: Callable[[float], None],
     """
     ns = namespace.rstrip('/') or '/'
     end = until
+    seen = None
     while True:
         found = sorted({f'{node_ns.rstrip("/")}/{name}'
                         for name, node_ns in monitor.get_node_names_and_namespaces()
@@ -129,7 +130,10 @@ def other_session(monitor, obs, namespace: str, spin: Callable[[float], None],
         found += [f'{ns.rstrip("/")}/{name} (session {sid or "?"})'
                   for name, sid in sorted(obs.other_sessions.items())
                   if f'{ns.rstrip("/")}/{name}' not in found]
-        if found or time.monotonic() > end:
+        now = time.monotonic()
+        if found and seen is None:      # name all of them: discovery comes in pieces
+            seen, end = now, min(end, now + 0.5)
+        if now > end:
             return found
         spin(0.05)
 

@@ -120,6 +120,8 @@ class Supervisor:
             spec = hil.get(name)
             argv = spec.argv if spec else node_argv(name, self.cfg.namespace,
                                                     [self.session.params_file])
+            if not self.session.realtime:   # lock-step: the session's own /clock
+                argv += topics.clock_remap(self.cfg.namespace)
             self.procs[name] = ChildProcess(name, argv, spec.env if spec else env,
                                             os.path.join(self.session.directory, f'{name}.log'))
         self.log('started ' + ', '.join(f'{n} (pid {p.pid})' for n, p in self.procs.items()))
