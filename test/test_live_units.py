@@ -305,3 +305,18 @@ def test_duration_stats_are_exact_then_binned_for_a_long_session():
     for s in (0.0, 5e3, 1e-12, 0.002, 0.003):                            # out of the bins' range
         edge.add(s)
     assert edge.summary()['max'] == 5e6 and edge.summary()['samples'] == 5
+
+
+def test_stale_session_dirs_of_dead_runs_go_but_a_failed_runs_stay(tmp_path):
+    from erva_ros.session.run_config import FAILED_NOTE, remove_stale_session_dirs
+    import subprocess
+    dead = subprocess.Popen(['true'])
+    dead.wait()                                    # a pid that no longer runs
+    for name in (f'erva_run_{dead.pid}_a', f'erva_run_{dead.pid}_b',
+                 f'erva_run_{os.getppid()}_c', 'erva_run_x', 'other'):
+        (tmp_path / name).mkdir()
+    (tmp_path / f'erva_run_{dead.pid}_b' / FAILED_NOTE).write_text('nmpc_node died')
+    assert remove_stale_session_dirs(str(tmp_path)) == [str(tmp_path / f'erva_run_{dead.pid}_a')]
+    assert sorted(os.listdir(tmp_path)) == sorted([f'erva_run_{dead.pid}_b',
+                                                   f'erva_run_{os.getppid()}_c',
+                                                   'erva_run_x', 'other'])

@@ -134,6 +134,10 @@ def test_a_road_timer_behind_skips_samples_counts_them_and_the_run_still_ends(tm
     code, s, err = run_with_node_stopped('road_preview_node', tmp_path, 4, 0.6, 0.3)
     assert code == 0, err
     assert s['ok'] and not s['errors'], s['errors']
+    # Not real time, and said so: a WARN line with the count and the widest gap.
+    skipped = s['road']['samples_skipped']
+    assert any(w.startswith(f'{skipped} road samples skipped by a late timer (widest gap ')
+               for w in s['warnings']), s['warnings']
     skipped, plant = s['road']['samples_skipped'], s['plant']
     published = s['messages']['published']
     assert skipped >= 1 and 1 <= plant['road_gaps'] <= skipped, (s['road'], plant)
@@ -147,6 +151,17 @@ def test_a_road_timer_behind_skips_samples_counts_them_and_the_run_still_ends(tm
     counts = bag_counts(s['bag'], decode=True)
     for topic, n in published.items():
         assert counts[f'/erva/{topic}'] == n, (topic, counts)
+
+
+def test_strict_fails_a_run_that_was_not_real_time_and_its_bag_says_so(tmp_path, erva):
+    code, s, err = run_with_node_stopped('road_preview_node', tmp_path, 3, 0.6, 0.3,
+                                         '--strict')
+    assert code == 1 and not s['ok'], err
+    assert s['warnings'] and s['errors'] == [f'{w} (--strict)' for w in s['warnings']]
+    assert s['recording']['lost'] == 0           # recorded whole: only the verdict failed
+    info = json.loads(erva('bag', 'info', s['bag'], '--json', check=True).stdout)
+    assert [w for w in info['warnings'] if 'cut short' in w] == [
+        f'the session was cut short: {s["errors"][0]}']
 
 
 @pytest.mark.parametrize('sig, code', [(signal.SIGINT, 130), (signal.SIGTERM, 143),
@@ -173,9 +188,12 @@ def test_signals_stop_every_process(sig, code):
             time.sleep(0.1)
         assert all(_gone(p) for p in pids.values()), pids
         if sig == signal.SIGKILL:
+            # Nobody left to clean up: the next run removes the directory of a dead run.
+            from erva_ros.session.run_config import remove_stale_session_dirs
             session_dir = os.path.dirname(params_file)
-            assert os.path.isdir(session_dir)       # nobody left to clean up: the test does
-            shutil.rmtree(session_dir)
+            assert os.path.isdir(session_dir)
+            assert session_dir in remove_stale_session_dirs(os.path.dirname(session_dir))
+            assert not os.path.exists(session_dir)
     finally:
         watch.close()
         if proc.poll() is None:

@@ -27,13 +27,14 @@ HIL topics, and the summary gets a ``hil`` block (:mod:`erva_ros.session.hil_sum
 """
 
 from dataclasses import dataclass
+import os
 import shutil
 import signal
 from typing import Any, Callable, Dict, Optional
 
 from erva_ros.core.errors import CLIError
 from erva_ros.session.recording import check_record_dir, recorder_available
-from erva_ros.session.run_config import prepare_session, RunConfig, Session
+from erva_ros.session.run_config import FAILED_NOTE, prepare_session, RunConfig, Session
 from erva_ros.session.supervisor import Supervisor
 
 
@@ -82,6 +83,9 @@ def run_session(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> 
         for node in summary['nodes'].values():
             node['log'] = None
     elif summary['errors']:
+        # Kept to look into (the next run's clean-up of stale directories leaves it).
+        with open(os.path.join(session.directory, FAILED_NOTE), 'w', encoding='utf-8') as fh:
+            fh.write('\n'.join(summary['errors']) + '\n')
         log(f'node logs and the session params file are in {session.directory}')
     return RunResult(summary, code, sup.obs.trajectory(session.n_steps), session)
 

@@ -10,8 +10,9 @@ session directory.
 from dataclasses import dataclass, field
 import os
 import secrets
+import shutil
 import tempfile
-from typing import Any, Dict, Optional
+from typing import Any, Dict, List, Optional
 
 import yaml
 
@@ -36,6 +37,10 @@ HIL_START_DELAY_S = 1.5
 #: The `erva run` option of a live parameter, where its name differs.
 OPTION_OF = {'duration_s': 'duration', 'preview_snr_db': 'preview_snr',
              'preview_delay_s': 'preview_delay', 'road_file': 'road_file'}
+#: Temporary session directories: <tmp>/erva_run_<pid of erva run>_<random>.
+SESSION_DIR_PREFIX = 'erva_run_'
+#: In the session directory of a failed run: its errors (and the directory is kept).
+FAILED_NOTE = 'failed.txt'
 #: The session params file's name in the session directory.
 PARAMS_FILE = 'session_params.yaml'
 
@@ -202,7 +207,9 @@ def prepare_session(cfg: RunConfig, recording: bool) -> Session:
     overrides.update(cfg.settings_overrides)
     settings = load_controller_settings(cfg.nmpc_file, overrides)
     live = live_values(cfg, settings, recording)
-    directory = cfg.session_dir or tempfile.mkdtemp(prefix='erva_run_')
+    if cfg.session_dir is None:
+        remove_stale_session_dirs()
+    directory = cfg.session_dir or tempfile.mkdtemp(prefix=f'{SESSION_DIR_PREFIX}{os.getpid()}_')
     os.makedirs(directory, exist_ok=True)
     scenario = live['road'] if not live['road_file'] else 'recorded'
     path = os.path.join(directory, PARAMS_FILE)
@@ -210,6 +217,39 @@ def prepare_session(cfg: RunConfig, recording: bool) -> Session:
         fh.write('# Effective parameters of an `erva run` session (ROS 2 params file).\n')
         yaml.safe_dump(session_params(erva.as_dict(), settings, live), fh, sort_keys=False)
     return Session(erva.as_dict(), settings, live, directory, path, scenario, cfg.ecu)
+
+
+def remove_stale_session_dirs(parent: Optional[str] = None) -> List[str]:
+    """Remove the temporary session directories of `erva run` processes that are gone.
+
+    A run removes its own when it ends well, and keeps it when it failed (with the errors
+    in ``FAILED_NOTE``); a run killed with SIGKILL can do neither, so the next one removes
+    a directory whose owner's pid (in its name) no longer runs and that no failure kept.
+    Returns the removed paths.
+    """
+    parent = parent or tempfile.gettempdir()
+    removed = []
+    for name in sorted(os.listdir(parent)):
+        if not name.startswith(SESSION_DIR_PREFIX):
+            continue
+        pid = name[len(SESSION_DIR_PREFIX):].split('_', 1)[0]
+        path = os.path.join(parent, name)
+        if (not pid.isdigit() or int(pid) == os.getpid() or _alive(int(pid))
+                or os.path.exists(os.path.join(path, FAILED_NOTE))):
+            continue
+        shutil.rmtree(path, ignore_errors=True)
+        removed.append(path)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def session_description(session: Session) -> Dict[str, str]:

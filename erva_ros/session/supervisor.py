@@ -297,8 +297,6 @@ class Supervisor:
         if RECORDER in self.procs:
             summary['bag'] = self.procs[RECORDER].bag_dir
             summary['recording'] = self._check_recording()
-            if RECORDER not in self.dead:
-                self._mark_bag_end(summary['bag'])
         if 'foxglove_server' in self.procs:
             from erva_ros.session import foxglove_process
             summary['foxglove'] = foxglove_process.summary(self.obs.reports)
@@ -311,6 +309,8 @@ class Supervisor:
             summary['warnings'] = warnings(self.obs, summary, quality_limits())
             if self.cfg.strict:     # --strict: a run that was not real time fails
                 self.errors += [f'{w} (--strict)' for w in summary['warnings']]
+        if RECORDER in self.procs and RECORDER not in self.dead:
+            self._mark_bag_end(summary['bag'])
         summary.update({
             'scenario': {'controller': s.settings.controller,
                          'weights': list(s.settings.weights), 'road': s.scenario,

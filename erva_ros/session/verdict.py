@@ -15,7 +15,7 @@ def _worst(pairs: List[Tuple[float, int]], t0: int) -> Optional[str]:
     """Return 'X ms at t = Y s' of the largest (value_s, at_ns) pair (None if none)."""
     if not pairs:
         return None
-    value, at = max(pairs)
+    value, at = max(pairs, key=lambda p: (p[0], -p[1]))     # the first of the worst
     return f'{value * 1e3:.0f} ms at t = {(at - t0) * 1e-9:.2f} s'
 
 
@@ -25,14 +25,15 @@ def warnings(obs, summary: Mapping[str, Any], limits: Mapping[str, Any]) -> List
     ``obs`` is the session's Observations (decoded), ``summary`` its figures.
     """
     out: List[str] = []
-    t0 = min(obs.state_rx.values()) if obs.state_rx else 0
+    t0 = min(obs.state_rx.values()) if obs.state_rx else 0    # arrivals: from the first state's
+    s0 = min(obs.states) if obs.states else 0                 # stamps: from its sample
     nmpc, road = summary.get('nmpc') or {}, summary.get('road') or {}
     late = [((rx - stamp) * 1e-9, stamp) for stamp, rx, _ in obs.commands
             if stamp in obs.states]
     misses = nmpc.get('deadline_misses') or 0
     if misses > limits['max_deadline_misses']:
         out.append(f'{misses} missed deadline{"s" if misses != 1 else ""} (worst sample -> '
-                   f'command {_worst(late, t0)})')
+                   f'command {_worst(late, s0)})')
     outages = nmpc.get('state_timeouts') or 0
     if outages > limits['max_state_timeouts']:
         rx = sorted(obs.state_rx.values())
@@ -44,7 +45,7 @@ def warnings(obs, summary: Mapping[str, Any], limits: Mapping[str, Any]) -> List
         stamps = sorted(obs.heights)
         gaps = [((b - a) * 1e-9, a) for a, b in zip(stamps, stamps[1:])]
         out.append(f'{skipped} road sample{"s" if skipped != 1 else ""} skipped by a late '
-                   f'timer (widest gap {_worst(gaps, t0)})')
+                   f'timer (widest gap {_worst(gaps, s0)})')
     rx = sorted(rx for stamp, rx, _ in obs.commands)
     gaps = [((b - a) * 1e-9, a) for a, b in zip(rx, rx[1:])]
     over = [g for g in gaps if g[0] > limits['max_command_gap_s']]
