@@ -18,7 +18,7 @@ file holds -- read back from disk, not the recorder's word for it -- and, for
 ``/diagnostics``, that every node's status sequence numbers are there without a gap.
 """
 
-from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
+from typing import Any, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 from erva_ros.core import topics
 from erva_ros.core.reports import NMPCReport, NodeReport, RecorderReport
@@ -204,6 +204,47 @@ def check_bag(bag_path: str, published: Mapping[str, Optional[int]],
     return out
 
 
+def recorder_report(reports: Mapping[str, NodeReport]) -> Optional[RecorderReport]:
+    """Return the recorder's newest report (None before its first)."""
+    return next((r for r in reports.values() if isinstance(r, RecorderReport)), None)
+
+
+def node_reports(reports: Mapping[str, NodeReport]) -> List[NodeReport]:
+    """Return the newest report of every node but the recorder."""
+    return [r for r in reports.values() if not isinstance(r, RecorderReport)]
+
+
+def check_recording(bag_dir: str, reports: Mapping[str, NodeReport], window: Tuple[int, int],
+                    session: str = '') -> Tuple[Dict[str, Any], List[str]]:
+    """Compare the bag with what every node published; return (report, one error per loss).
+
+    ``window`` is the span of the session's stamps (ns): others are not the loop's.  A
+    node whose final report is missing (it was killed) has published an unknown number:
+    its topics are reported as such, not as a loss or as more recorded than published.
+    """
+    errors: List[str] = []
+    recorder = recorder_report(reports)
+    report: Dict[str, Any] = {'lost_in_transport': 0 if recorder is None
+                              else recorder.lost_in_transport}
+    published = published_counts(node_reports(reports), final_only=True)
+    seqs = {r.node: r.status_seq for r in reports.values() if r.status_seq}
+    try:
+        report.update(check_bag(bag_dir, published, seqs, window, session))
+    except Exception as exc:    # BagError, CdrError: the file itself is the problem
+        report['error'] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        return report, [f'the bag cannot be checked: {report["error"]}']
+    for topic, c in report['topics'].items():
+        if c['lost']:
+            errors.append(f'the bag lost {c["lost"]} of {c["published"]} messages on {topic}')
+    for name, gaps in report['diagnostics_missing'].items():
+        errors.append(f'the bag lacks /diagnostics statuses of {name}: {gaps}')
+    if report['lost_in_transport']:
+        errors.append(f'the middleware reported {report["lost_in_transport"]} '
+                      f'messages lost before the recorder took them')
+    return report, errors
+
+
 __all__ = ['LOOP_SUBSCRIBERS', 'hil_loop_subscribers', 'qualify', 'expected_subscribers',
            'unmatched', 'rejections_cost', 'recorder_unmatched', 'published_counts',
-           'recorder_behind', 'check_bag']
+           'recorder_behind', 'check_bag', 'recorder_report', 'node_reports',
+           'check_recording']

@@ -3,7 +3,7 @@
 :func:`run_session` does, in order:
 
 1. validates every value in-process first and writes the session's params file
-   (:func:`erva_ros.session.run_config.prepare_session`), so a bad option fails with
+   (:func:`erva_ros.session.session_file.prepare_session`), so a bad option fails with
    one line before any process starts;
 2. starts an in-process monitor node (:class:`~erva_ros.ros.monitor.Monitor`), the
    recorder (when recording, :mod:`erva_ros.session.recording`), nmpc_node,
@@ -34,7 +34,9 @@ from typing import Any, Callable, Dict, Optional
 
 from erva_ros.core.errors import CLIError
 from erva_ros.session.recording import check_record_dir, recorder_available
-from erva_ros.session.run_config import FAILED_NOTE, prepare_session, RunConfig, Session
+from erva_ros.session.run_config import RunConfig
+from erva_ros.session.session_file import prepare_session, Session
+from erva_ros.session.session_dirs import FAILED_NOTE
 from erva_ros.session.supervisor import Supervisor
 
 

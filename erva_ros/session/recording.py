@@ -4,21 +4,19 @@
   description, below the loop's real-time priority;
 * :class:`RecorderDrain` tells when the recorder holds every message the nodes published
   (the nodes stay up until then, as long as it makes progress);
-* :func:`check_recording` compares the finished bag with what every node said it
-  published, and names each loss.
 """
 
 import os
 import tempfile
 import time
-from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
+from typing import Callable, Dict, List, Mapping, Optional
 
 from erva_ros.core import topics
 from erva_ros.core.errors import CLIError
-from erva_ros.core.reports import NodeReport, RecorderReport
+from erva_ros.core.reports import NodeReport
 from erva_ros.session import accounting
 from erva_ros.session.processes import ChildProcess, module_argv
-from erva_ros.session.run_config import Session, session_description
+from erva_ros.session.session_file import Session, session_description
 
 #: `erva run` waits for the recorder to report every message the nodes published (its
 #: status comes every RECORDER_STATUS_S) before stopping them, while it makes progress,
@@ -89,16 +87,6 @@ def start_recorder(session: Session, namespace: str, bag_parent: str, env: Dict[
     return proc
 
 
-def recorder_report(reports: Mapping[str, NodeReport]) -> Optional[RecorderReport]:
-    """Return the recorder's newest report (None before its first)."""
-    return next((r for r in reports.values() if isinstance(r, RecorderReport)), None)
-
-
-def node_reports(reports: Mapping[str, NodeReport]) -> List[NodeReport]:
-    """Return the newest report of every node but the recorder."""
-    return [r for r in reports.values() if not isinstance(r, RecorderReport)]
-
-
 class RecorderDrain:
     """Tell when the recorder holds every message the nodes published (so far).
 
@@ -116,8 +104,9 @@ class RecorderDrain:
     def caught_up(self, reports: Mapping[str, NodeReport], now: Optional[float] = None
                   ) -> bool:
         """Return True once nothing is behind, or the recorder stalled (see :attr:`gave_up`)."""
-        behind = accounting.recorder_behind(recorder_report(reports),
-                                            accounting.published_counts(node_reports(reports)))
+        behind = accounting.recorder_behind(
+            accounting.recorder_report(reports),
+            accounting.published_counts(accounting.node_reports(reports)))
         if not behind:
             return True
         total = sum(got for got, _ in behind.values())
@@ -130,36 +119,6 @@ class RecorderDrain:
                             f'{topic} at {got} of {n} messages; the nodes were stopped')
             return True
         return False
-
-
-def check_recording(bag_dir: str, reports: Mapping[str, NodeReport], window: Tuple[int, int],
-                    session: str = '') -> Tuple[Dict[str, Any], List[str]]:
-    """Compare the bag with what every node published; return (report, one error per loss).
-
-    ``window`` is the span of the session's stamps (ns): others are not the loop's.  A
-    node whose final report is missing (it was killed) has published an unknown number:
-    its topics are reported as such, not as a loss or as more recorded than published.
-    """
-    errors: List[str] = []
-    recorder = recorder_report(reports)
-    report: Dict[str, Any] = {'lost_in_transport': 0 if recorder is None
-                              else recorder.lost_in_transport}
-    published = accounting.published_counts(node_reports(reports), final_only=True)
-    seqs = {r.node: r.status_seq for r in reports.values() if r.status_seq}
-    try:
-        report.update(accounting.check_bag(bag_dir, published, seqs, window, session))
-    except Exception as exc:    # BagError, CdrError: the file itself is the problem
-        report['error'] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        return report, [f'the bag cannot be checked: {report["error"]}']
-    for topic, c in report['topics'].items():
-        if c['lost']:
-            errors.append(f'the bag lost {c["lost"]} of {c["published"]} messages on {topic}')
-    for name, gaps in report['diagnostics_missing'].items():
-        errors.append(f'the bag lacks /diagnostics statuses of {name}: {gaps}')
-    if report['lost_in_transport']:
-        errors.append(f'the middleware reported {report["lost_in_transport"]} '
-                      f'messages lost before the recorder took them')
-    return report, errors
 
 
 def record_writers(record: List[str], namespace: str, n_diagnostics: int) -> Dict[str, int]:
@@ -176,5 +135,5 @@ def record_writers(record: List[str], namespace: str, n_diagnostics: int) -> Dic
 
 __all__ = ['RECORDER_STALL_S', 'RECORDER_STATUS_S', 'RECORDER_PRIORITY_BELOW',
            'PROCESS', 'record_topics', 'recorder_available',
-           'check_record_dir', 'start_recorder', 'recorder_report', 'node_reports',
-           'RecorderDrain', 'check_recording', 'record_writers']
+           'check_record_dir', 'start_recorder',
+           'RecorderDrain', 'record_writers']

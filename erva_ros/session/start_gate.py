@@ -14,7 +14,8 @@ from typing import Callable, Dict, List, Sequence
 
 from erva_ros.core import topics
 from erva_ros.session import accounting, hil_summary
-from erva_ros.session.recording import record_topics, record_writers, recorder_report
+from erva_ros.session.accounting import recorder_report
+from erva_ros.session.recording import record_topics, record_writers
 
 
 class StartGate:

@@ -20,12 +20,13 @@ from erva_ros.core.bag import BagError
 from erva_ros.core.errors import CLIError
 from erva_ros.session import accounting, hil_summary
 from erva_ros.core.reports import FoxgloveReport, RecorderReport
-from erva_ros.session.recording import (check_recording, PROCESS as RECORDER,
-                                        RECORDER_PRIORITY_BELOW, RecorderDrain, start_recorder)
+from erva_ros.session.accounting import check_recording
+from erva_ros.session.recording import (PROCESS as RECORDER, RECORDER_PRIORITY_BELOW,
+                                        RecorderDrain, start_recorder)
 from erva_ros.session.processes import (ChildProcess, child_env, node_argv, STOP_GRACE_S,
                                         stop_processes)
-from erva_ros.session.run_config import HIL_NODES, HIL_PROCESSES, NODES, RunConfig, Session
-from erva_ros.session.run_config import session_description
+from erva_ros.session.run_config import HIL_NODES, HIL_PROCESSES, NODES, RunConfig
+from erva_ros.session.session_file import Session, session_description
 
 #: Once the ECU finished (no state comes any more), how long the others may take.
 HIL_FINISH_WAIT_S = 2.0
