@@ -5,6 +5,7 @@ import math
 from erva_ros.commands._common import (add_json_option, positive_float, positive_int,
                                        print_json)
 from erva_ros.core.errors import CLIError
+from erva_ros.core.progress import Progress
 
 COMMAND = 'bag'
 HELP = ('session bags: info (topics, counts, session), repair (after a crash), bench '
@@ -93,8 +94,6 @@ def _add_soak(sub) -> None:
 
 
 def _soak(args) -> int:
-    import sys
-
     from erva_ros.session import soak
     if args.busy < 0:
         raise CLIError(f'--busy {args.busy}: give 0 or more processes')
@@ -104,9 +103,10 @@ def _soak(args) -> int:
         if not os.path.isfile(args.live):
             raise CLIError(f'--live {args.live}: no such file')
         run_args += ['--live', os.path.abspath(args.live)]
+    progress = Progress('erva bag soak: runs', args.runs, enabled=not args.json)
     result = soak.soak(args.runs, args.duration, args.busy, run_args, args.keep_bags,
-                       progress=lambda s: print(f'erva bag soak: {s}', file=sys.stderr,
-                                                flush=True))
+                       progress=lambda line: progress.advance(note=line))
+    progress.close()
     if args.json:
         print_json(result)
     else:

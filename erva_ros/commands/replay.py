@@ -8,6 +8,7 @@ from erva_ros.commands._common import (add_json_option, add_params_option, posit
                                        print_json)
 from erva_ros.commands.run import FOXGLOVE_DEFAULT
 from erva_ros.core.errors import CLIError
+from erva_ros.core.progress import Progress
 
 COMMAND = 'replay'
 HELP = 'play a bag like "ros2 bag play", or drive a fresh plant with its road (--drive-plant)'
@@ -160,7 +161,10 @@ def _reevaluate(args, bag) -> int:
     data = load_session(bag)
     with _native_stdout_to_stderr():
         controller = make_controller(settings.controller, params, settings, kind=data.model)
-        result = summarize(reevaluate(data, controller, args.max_commands))
+        total = len(data.cmd.stamp_ns[:args.max_commands])
+        with Progress('erva replay --reevaluate: commands', total,
+                      enabled=not args.json) as progress:
+            result = summarize(reevaluate(data, controller, args.max_commands, progress))
     result.update({'bag': bag.path, 'controller': settings.controller})
     if args.json:
         print_json(jsonable(result))
