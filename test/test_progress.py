@@ -74,9 +74,10 @@ def test_plain_lines_without_a_terminal_one_per_tenth_not_too_often():
     assert out.getvalue().splitlines() == ['short 50/50 (100 %), done in 4 s']
 
 
-def test_a_stage_started_with_with_says_so_and_an_early_stop_is_named():
+def test_a_started_stage_says_so_an_early_stop_is_named_an_error_left_alone():
     out, clock = Stream(tty=False), Clock()
     with Progress('erva table: seeds', 4, stream=out, clock=clock) as p:
+        p(0)              # started: shown even though nothing is done yet
         clock.t += 80
         p(1)
     assert out.getvalue().splitlines() == [
@@ -88,6 +89,15 @@ def test_a_stage_started_with_with_says_so_and_an_early_stop_is_named():
         pass
     assert out.getvalue().splitlines() == ['compiling the NMPC, 0 s elapsed',
                                            'compiling the NMPC, done in 0 s']
+    # An error inside the stage: its own line follows; the progress adds none (a terminal
+    # line in progress is only ended).
+    for tty, expected in ((False, ''), (True, '\rx 1/3 (33 %), 0 s elapsed, ETA 0 s\x1b[K\n')):
+        out = Stream(tty)
+        with pytest.raises(ValueError):
+            with Progress('x', 3, stream=out, clock=Clock()) as p:
+                p(1)
+                raise ValueError('bad input')
+        assert out.getvalue() == expected
 
 
 def test_disabled_progress_prints_nothing():

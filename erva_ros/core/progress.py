@@ -43,9 +43,10 @@ class Progress:
     """The progress of one stage (``label``) towards ``total`` units (see module doc).
 
     Call it as ``progress(done, total)`` (the callback the cores take), or use
-    :meth:`advance`; :meth:`close` ends the stage's line.  As a context manager it also
-    prints the stage's first line at once.  A stage with ``total`` None shows the elapsed
-    time only.
+    :meth:`advance`; :meth:`close` ends the stage's line.  ``progress(0)`` -- the work
+    has started (a pool is up, a cluster connected) -- always shows, so a stage whose
+    first unit takes minutes says so.  A stage with ``total`` None shows the elapsed time
+    only; as a context manager it prints its start line at once.
     """
 
     def __init__(self, label: str, total: Optional[int] = None, enabled: bool = True,
@@ -95,13 +96,20 @@ class Progress:
             self._show(final=True)
 
     def __enter__(self) -> 'Progress':
-        """Start the stage with its line (its first unit may take long)."""
-        if self.enabled:
+        """Start the stage; one without a total says so at once."""
+        if self.enabled and self.total is None:
             self._show(final=False, force=True)
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, *_) -> None:
+        """End the stage; after an error, only end the open line (the error says why)."""
+        if exc_type is None:
+            self.close()
+            return
+        if self.enabled and self._open_line:
+            self.stream.write('\n')
+            self.stream.flush()
+        self.closed = True
 
     # -- text ------------------------------------------------------------------------
     def _finished(self) -> bool:
@@ -134,7 +142,8 @@ class Progress:
         else:
             tenth = (10 * self.done // self.total) if self.total else -1
             since = now - (self.started if self._shown_at is None else self._shown_at)
-            due = (final or force or bool(self.note) or since >= PLAIN_INTERVAL_S
+            started = self._shown_at is None and self.done == 0
+            due = (final or force or started or bool(self.note) or since >= PLAIN_INTERVAL_S
                    or (tenth != self._shown_tenth and since >= PLAIN_MIN_S))
             if not due:
                 return

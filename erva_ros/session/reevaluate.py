@@ -58,6 +58,8 @@ def reevaluate(data: SessionData, controller, max_commands: Optional[int] = None
     controller.reset()
     out = Reevaluation(data.cmd.stamp_ns.copy(), [], [], [])
     stamps = data.cmd.stamp_ns.tolist()[:max_commands]
+    if progress is not None:
+        progress(0, len(stamps))
     for j, stamp in enumerate(stamps):
         i = states.get(stamp)
         if i is None:
