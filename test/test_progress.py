@@ -162,3 +162,15 @@ print(matplotlib.get_backend(), 'matplotlib.pyplot' in sys.modules)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.split() == ['svg', 'False']
     assert (tmp_path / 'cdf.png').read_bytes()[:8] == PNG_MAGIC
+
+
+@pytest.mark.parametrize('command,args,label', [
+    ('fr', ['--f-min', 1, '--f-max', 3, '--f-step', 1, '--models', 'benchmark'],
+     'erva fr: benchmark, tones'),
+    ('pareto', ['--seeds', 1, '--duration', 0.2, '--ratios', 1, '--jobs', 1], 'erva pareto: runs'),
+    ('delay-study', ['--seeds', 1, '--duration', 0.2, '--jobs', 1], 'erva delay-study: seeds'),
+])
+def test_study_commands_show_their_stage_unless_json(erva, command, args, label):
+    lines = _progress_lines(erva(command, *args, check=True).stderr, label)
+    assert lines[0].startswith(f'{label} 0/') and ', done in ' in lines[-1]
+    assert label not in erva(command, *args, '--json', check=True).stderr
