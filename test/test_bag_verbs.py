@@ -136,6 +136,8 @@ def test_bad_play_and_record_options_are_one_line_before_anything_starts(erva, t
     _one_line(erva('replay', SAMPLE, '--start-offset', -1),
               'erva replay: error: --start-offset -1 must be >= 0')
     _one_line(erva('bag', 'play', SAMPLE, '--remap', 'a=b'), "--remap 'a=b'")
+    _one_line(erva('bag', 'play', SAMPLE, '--topics', '/erva/state', '-m', '/erva/gen:=/g'),
+              '--remap /erva/gen: not a played topic (the played ones: /erva/state)')
     _one_line(erva('bag', 'play', SAMPLE, '--topics', '/nope'),
               '/nope not in the bag; it has /diagnostics, /erva/damping_cmd')
     _one_line(erva('bag', 'play', SAMPLE, '-x', '.*'), 'leaves nothing to play')
@@ -257,13 +259,17 @@ def test_record_what_is_played_from_a_start_offset(tmp_path):
 @pytest.mark.ros
 @pytest.mark.parametrize('how', ['signals', 'space key'])
 def test_nothing_is_published_while_paused_and_everything_after(how):
-    """Pause mid-bag: the subscriber's count stands still; resumed, the rest comes in order."""
+    """Pause mid-bag: the subscriber's count stands still; resumed, the rest comes in order.
+
+    With signals, the topic is also remapped (-m): the subscriber listens to the new name.
+    """
     topic = '/erva/state'
-    counter = TopicCounter(topic)
+    remap = ['-m', f'{topic}:=/test/remapped'] if how == 'signals' else []
+    counter = TopicCounter('/test/remapped' if remap else topic)
     master = slave = proc = None
     try:
         args = ['bag', 'play', SAMPLE, '--topics', topic, '--rate', '0.5',
-                '--wait-for-subscribers', '60', '--json']
+                '--wait-for-subscribers', '60', '--json', *remap]
         if how == 'signals':
             proc = _start(*args)
             pause = lambda: proc.send_signal(signal.SIGUSR1)    # noqa: E731

@@ -344,7 +344,6 @@ def check_play_options(args, bag=None) -> None:
 
 def play_main(args, prog: str) -> int:
     """Play a bag (`erva bag play`, `erva replay` without a what-if)."""
-    from erva_ros.core.bag import BagError
     from erva_ros.core.bag.playback import select_topics
     from erva_ros.core.bag.reader import open_bag
 
@@ -355,11 +354,13 @@ def play_main(args, prog: str) -> int:
         check_address(args.foxglove)
     bag = open_bag(args.bag)
     check_play_options(args, bag)
-    try:   # a bad selection: one line before any node starts
-        select_topics(bag.topics, args.topics or (), args.regex, args.exclude_topics,
-                      args.exclude_regex)
-    except BagError as exc:
-        raise CLIError(str(exc)) from None
+    # A bad selection: one line before any node starts.
+    played = select_topics(bag.topics, args.topics or (), args.regex, args.exclude_topics,
+                           args.exclude_regex)
+    unknown = sorted(set(_remaps(args.remap)) - set(played))
+    if unknown:
+        raise CLIError(f'--remap {", ".join(unknown)}: not a played topic (the played ones: '
+                       f'{", ".join(played)})')
     return _play(args, bag)
 
 

@@ -95,7 +95,8 @@ class Player:
         self.clock_ticks = 0
         self.pauses = 0
         self.lateness_s: List[float] = []
-        self.clock = PlaybackClock(0, self.rate, time.monotonic(), paused=self.start_paused)
+        #: The playback time: bag time as a function of wall time, with its pauses.
+        self.playback = PlaybackClock(0, self.rate, time.monotonic(), paused=self.start_paused)
 
     # -- pause and resume (safe from signal handlers and other threads) --------------------
     def pause(self) -> None:
@@ -117,12 +118,12 @@ class Player:
             except queue.Empty:
                 return
             if request == 'toggle':
-                request = 'resume' if self.clock.paused else 'pause'
-            changed = self.clock.pause(now) if request == 'pause' else self.clock.resume(now)
+                request = 'resume' if self.playback.paused else 'pause'
+            changed = self.playback.pause(now) if request == 'pause' else self.playback.resume(now)
             if changed:
                 self.pauses += request == 'pause'
                 if self.on_pause is not None:
-                    self.on_pause(self.clock.paused, sum(self.published.values()))
+                    self.on_pause(self.playback.paused, sum(self.published.values()))
 
     def _depth(self, count: int, history_s: float) -> int:
         """Return how many of a topic's ``count`` messages are played in ``history_s``."""
@@ -160,10 +161,10 @@ class Player:
             if period is not None:
                 tick = self._pass_wall0 + self._pass_ticks * period
                 if tick <= now:   # ticks fallen due meanwhile go out at once
-                    self._publish_clock(self.clock.bag_ns(now))
+                    self._publish_clock(self.playback.bag_ns(now))
                     self._pass_ticks += 1
                     continue
-            due = self.clock.due(bag_ns)
+            due = self.playback.due(bag_ns)
             if due is not None and due <= now:
                 return due
             wake = [now + SLEEP_SLICE_S] + ([due] if due is not None else []) + \
@@ -195,7 +196,7 @@ class Player:
             for m in self.bag.messages(self.topics):
                 if window is None:
                     window = self._window(m.log_time_ns)
-                    self.clock.restart(window[0], time.monotonic())
+                    self.playback.restart(window[0], time.monotonic())
                 if m.log_time_ns < window[0]:
                     continue       # before --start-offset
                 if window[1] is not None and m.log_time_ns > window[1]:
@@ -228,7 +229,7 @@ class Player:
         return {'bag': self.bag.path, 'rate': self.rate, 'passes': passes,
                 'stopped': stopped, 'wall_s': time.monotonic() - started,
                 'start_offset_s': self.start_offset_s, 'pauses': self.pauses,
-                'paused_s': self.clock.paused_s, 'remap': dict(self.remap),
+                'paused_s': self.playback.paused_s, 'remap': dict(self.remap),
                 'published': dict(self.published), 'total': sum(self.published.values()),
                 'clock_ticks': self.clock_ticks,
                 'lateness_ms': percentiles_ms(self.lateness_s)}
