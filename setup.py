@@ -31,7 +31,8 @@ setup(
         (os.path.join('share', package_name, 'launch'), glob('launch/*.launch.py')),
     ],
     python_requires='>=3.10',
-    install_requires=['setuptools', 'numpy', 'casadi', 'mcap', 'pyyaml', 'matplotlib'],
+    install_requires=['setuptools', 'numpy', 'casadi', 'mcap', 'pyyaml', 'matplotlib',
+                      'argcomplete'],   # shell completion of `erva` (as ros2cli)
     extras_require={
         # ROS 2 Jazzy from PyPI wheels, for machines without a ROS install.
         'ros': [
@@ -44,10 +45,12 @@ setup(
             'ros-jazzy-rosgraph-msgs',
             'ros-jazzy-builtin-interfaces',
             'ros-jazzy-ament-index-python',
+            'ros-jazzy-rosidl-parser',    # ros/cdr.py: message definitions
         ],
         'hil': ['python-can', 'cantools'],
-        # `erva run --foxglove`, `erva replay --foxglove`: the Foxglove WebSocket server.
-        'foxglove': ['foxglove-sdk'],
+        # `erva run --foxglove`, `erva replay --foxglove`: the Foxglove WebSocket server;
+        # `erva bench --live --foxglove-ab`: its headless viewer (a WebSocket client).
+        'foxglove': ['foxglove-sdk', 'websockets'],
         # `erva table/pareto --scheduler ADDRESS`: run the jobs on a Dask cluster.
         'dask': ['dask[distributed]'],
         'test': [

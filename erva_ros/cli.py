@@ -1,10 +1,15 @@
+# PYTHON_ARGCOMPLETE_OK  (marks the tool for argcomplete's global shell completion)
 """``erva`` — the ERVA NMPC command-line tool.
 
 Subcommands live in :mod:`erva_ros.commands`, one module each, and are
 discovered at start-up.  A command module defines ``COMMAND`` (its name),
 ``HELP`` (one line), optionally ``DESCRIPTION``, ``add_arguments(parser)`` and
 ``main(args) -> int``.  Modules keep heavy imports (rclpy, matplotlib) inside
-``main`` so ``erva --help`` stays fast.
+``main`` so ``erva --help`` (and shell completion) stays fast.
+
+Shell completion is argcomplete's, as ros2cli's: ``eval "$(register-python-argcomplete
+erva)"`` in bash or zsh; the shell then runs ``erva`` with ``_ARGCOMPLETE`` set, and
+:func:`main` answers with the candidates and exits before parsing.
 """
 
 import argparse
@@ -56,8 +61,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _complete(parser: argparse.ArgumentParser) -> None:
+    """Answer a shell's completion request (argcomplete) and exit; else return."""
+    if '_ARGCOMPLETE' not in os.environ:
+        return
+    try:
+        import argcomplete
+    except ImportError:    # an install without it: no completion, the tool still runs
+        return
+    argcomplete.autocomplete(parser)
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = build_parser()
+    _complete(parser)
     args = parser.parse_args(argv)
     name = f'erva {args._name}'
     try:

@@ -12,20 +12,15 @@ from erva_ros.core import topics as contract
 from erva_ros.ros import qos as ros_qos
 
 
-class DiagnosticsWatcher:
-    """Collect /diagnostics statuses in this process (rclpy in a thread)."""
+class SpinningNode:
+    """An rclpy node in a context of its own, spun in a thread (the tests' subscribers)."""
 
-    def __init__(self):
+    def __init__(self, name):
         import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.executors import SingleThreadedExecutor
         self.context = rclpy.context.Context()
         rclpy.init(context=self.context)
-        self.node = rclpy.create_node('diag_watcher', context=self.context)
-        self.statuses = []
-        self.node.create_subscription(DiagnosticArray, contract.DIAGNOSTICS,
-                                      lambda m: self.statuses.extend(m.status),
-                                      ros_qos.control_qos())
+        self.node = rclpy.create_node(name, context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.running = True
@@ -35,6 +30,25 @@ class DiagnosticsWatcher:
     def _spin(self):
         while self.running:
             self.executor.spin_once(timeout_sec=0.05)
+
+    def close(self):
+        import rclpy
+        self.running = False
+        self.thread.join()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)
+
+
+class DiagnosticsWatcher(SpinningNode):
+    """Collect /diagnostics statuses in this process (rclpy in a thread)."""
+
+    def __init__(self):
+        from diagnostic_msgs.msg import DiagnosticArray
+        super().__init__('diag_watcher')
+        self.statuses = []
+        self.node.create_subscription(DiagnosticArray, contract.DIAGNOSTICS,
+                                      lambda m: self.statuses.extend(m.status),
+                                      ros_qos.control_qos())
 
     def values(self, name_part):
         """Return the key-values of each status so far whose name contains ``name_part``."""
@@ -52,13 +66,6 @@ class DiagnosticsWatcher:
         return [s for s in self.statuses
                 if name_part in s.name and s.level == b'\x02' or
                 (name_part in s.name and s.level == 2)]
-
-    def close(self):
-        import rclpy
-        self.running = False
-        self.thread.join()
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.context)
 
 
 def recorded_counts(watcher, name='recorder'):

@@ -326,3 +326,60 @@ def test_replay_serves_the_bag_with_its_bytes_and_times():
     assert viewer.times == sorted(viewer.times) and len(viewer.times) == stats['total']
     total = sum(map(len, recorded.values()))
     assert stats['foxglove']['forwarded_total'] == stats['total'] == total
+
+
+# -- the benchmark's headless viewer (erva_ros.session.foxglove_viewer) -------------------------
+def test_headless_viewer_answers_binary_pings_and_counts_every_message():
+    """The viewer of `erva bench --live --foxglove-ab`, run as the benchmark runs it.
+
+    The server here (websockets' own) pings with a payload that is not UTF-8: the pong
+    must carry it back byte for byte (websockets checks, and only then sets the event),
+    and every message sent before the close is counted, per topic, with its size.
+    """
+    from websockets.sync.server import serve
+    payloads = {'/erva/state': [bytes([0xff, 0xfe, i]) * 10 for i in range(40)],
+                '/erva/damping_cmd': [bytes([0x80 + i]) * 7 for i in range(25)]}
+    seen = {}
+
+    def session(ws):
+        seen['subprotocol'] = ws.subprotocol
+        ws.send(json.dumps({'op': 'serverInfo', 'name': 'test', 'capabilities': []}))
+        ws.send(json.dumps({'op': 'advertise', 'channels': [
+            {'id': 10 + i, 'topic': t, 'encoding': 'cdr', 'schemaName': 'x', 'schema': ''}
+            for i, t in enumerate(payloads)]}))
+        request = json.loads(ws.recv(timeout=60))
+        seen['subscribe'] = request
+        subs = {s['channelId']: s['id'] for s in request['subscriptions']}
+        seen['pong'] = ws.ping(b'\xff\x00\xfe\x80').wait(timeout=60)
+        for i, (topic, messages) in enumerate(payloads.items()):
+            for k, data in enumerate(messages):
+                ws.send(struct.pack('<BIQ', MESSAGE_DATA, subs[10 + i], k) + data)
+        ws.close()
+
+    with serve(session, '127.0.0.1', 0, subprotocols=PROTOCOLS, compression=None) as server:
+        port = server.socket.getsockname()[1]
+        thread = threading.Thread(target=server.serve_forever, daemon=True)
+        thread.start()
+        proc = subprocess.run([sys.executable, '-m', 'erva_ros.session.foxglove_viewer',
+                               '--port', str(port)], env=ros_env(), cwd=REPO,
+                              capture_output=True, text=True, timeout=120)
+        server.shutdown()
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert seen['subprotocol'] == 'foxglove.sdk.v1' and seen['pong'] is True
+    assert [s['id'] for s in seen['subscribe']['subscriptions']] == [1, 2]
+    assert result == {'subscribed': 2, 'total': 65,
+                      'messages': {t: len(m) for t, m in payloads.items()},
+                      'bytes': {t: sum(map(len, m)) for t, m in payloads.items()}}
+
+
+def test_headless_viewer_without_a_server_is_one_line_exit_2():
+    with socket.socket() as free:
+        free.bind(('127.0.0.1', 0))
+        port = free.getsockname()[1]     # bound, not listening: refused
+    proc = subprocess.run([sys.executable, '-m', 'erva_ros.session.foxglove_viewer',
+                           '--port', str(port), '--connect-timeout', '0.5'],
+                          env=ros_env(), cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('foxglove_viewer: error: '), proc.stderr

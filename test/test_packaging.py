@@ -61,3 +61,70 @@ def test_colcon_build_installs_nodes_config_and_launch(tmp_path):
                          capture_output=True, text=True, timeout=60)
     assert run.returncode == 0, run.stderr
     assert 'usage: erva' in run.stdout
+
+
+#: rosdep key (package.xml) of every third-party module erva_ros imports; None: no key,
+#: installed with pip (README) or an optional extra.  Keys checked against rosdistro's
+#: rosdep/python.yaml and jazzy/distribution.yaml.
+ROSDEP_KEYS = {
+    'rclpy': 'rclpy', 'rcl_interfaces': 'rcl_interfaces', 'std_msgs': 'std_msgs',
+    'sensor_msgs': 'sensor_msgs', 'geometry_msgs': 'geometry_msgs',
+    'trajectory_msgs': 'trajectory_msgs', 'diagnostic_msgs': 'diagnostic_msgs',
+    'rosgraph_msgs': 'rosgraph_msgs', 'builtin_interfaces': 'builtin_interfaces',
+    'lifecycle_msgs': 'lifecycle_msgs', 'ament_index_python': 'ament_index_python',
+    'rosidl_parser': 'rosidl_parser', 'launch': 'launch', 'launch_ros': 'launch_ros',
+    'numpy': 'python3-numpy', 'yaml': 'python3-yaml', 'matplotlib': 'python3-matplotlib',
+    'can': 'python3-can', 'argcomplete': 'python3-argcomplete',
+    'casadi': 'casadi-pip', 'cantools': 'python3-cantools-pip',
+    'mcap': None,                            # no key: pip install mcap
+    'foxglove': None, 'websockets': None,    # extra erva_ros[foxglove]
+    'distributed': None,                     # extra erva_ros[dask]
+}
+
+
+def _imported_modules():
+    """Return the top-level third-party modules imported anywhere in erva_ros and launch/."""
+    import ast
+    names = set()
+    for folder in ('erva_ros', 'launch'):
+        for base, _, files in os.walk(os.path.join(REPO, folder)):
+            for f in files:
+                if not f.endswith('.py'):
+                    continue
+                with open(os.path.join(base, f), encoding='utf-8') as fh:
+                    tree = ast.parse(fh.read())
+                for node in ast.walk(tree):
+                    if isinstance(node, ast.Import):
+                        names.update(a.name.split('.')[0] for a in node.names)
+                    elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                        names.add(node.module.split('.')[0])
+    return {n for n in names if n not in sys.stdlib_module_names and n != 'erva_ros'}
+
+
+def test_every_imported_package_is_declared_with_its_rosdep_key():
+    deps = {e.text for e in ET.parse(os.path.join(REPO, 'package.xml')).getroot()
+            .findall('exec_depend')}
+    imported = _imported_modules()
+    assert imported <= set(ROSDEP_KEYS), f'no decision for {imported - set(ROSDEP_KEYS)}'
+    missing = {ROSDEP_KEYS[m] for m in imported if ROSDEP_KEYS[m]} - deps
+    assert not missing, f'package.xml lacks <exec_depend> {sorted(missing)}'
+    # The pip-installed ones with a rosdistro key use it (not a comment saying there is none).
+    assert {'casadi-pip', 'python3-cantools-pip', 'rosidl_parser'} <= deps
+
+
+def test_every_requirement_is_pinned_and_the_viewer_library_is_in_its_extra():
+    """CI installs from scratch: each requirement of setup.py has an exact pin."""
+    import importlib.metadata
+    import re
+    pins = {}
+    with open(os.path.join(REPO, '.ci', 'constraints.txt'), encoding='utf-8') as fh:
+        for line in fh:
+            name, _, version = line.strip().partition('==')
+            pins[re.sub(r'[-_.]+', '-', name).lower()] = version
+    requires = importlib.metadata.requires('erva_ros')
+    for req in requires:
+        name = re.sub(r'[-_.]+', '-', re.split(r'[\[;<>=! ]', req)[0]).lower()
+        if name != 'setuptools':
+            assert pins.get(name), f'{req}: no pin in .ci/constraints.txt'
+    assert 'argcomplete' in requires                       # `erva` completion, always
+    assert 'websockets; extra == "foxglove"' in requires   # the benchmark's viewer

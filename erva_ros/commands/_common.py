@@ -2,7 +2,6 @@
 
 import argparse
 import os
-import sys
 from typing import Optional
 
 from erva_ros.core.errors import CLIError
@@ -80,26 +79,3 @@ def ensure_out_dir(path: Optional[str]) -> Optional[str]:
     if not os.access(path, os.W_OK):
         raise CLIError(f'output directory {path!r} is not writable')
     return path
-
-
-class Progress:
-    """Progress on stderr: a rewritten line on a terminal, a line per 10 % otherwise."""
-
-    def __init__(self, label: str, enabled: bool = True):
-        self.label = label
-        self.enabled = enabled
-        self.tty = sys.stderr.isatty()
-        self._last_decile = -1
-
-    def __call__(self, done: int, total: int) -> None:
-        if not self.enabled or total <= 0:
-            return
-        if self.tty:
-            end = '\n' if done == total else ''
-            sys.stderr.write(f'\r{self.label}: {done}/{total}{end}')
-            sys.stderr.flush()
-            return
-        decile = (10 * done) // total
-        if decile != self._last_decile:
-            self._last_decile = decile
-            print(f'{self.label}: {done}/{total}', file=sys.stderr, flush=True)

@@ -41,6 +41,8 @@ def run_jobs(fn: Callable, jobs: Sequence, n_jobs: Optional[int] = None,
         return _run_dask(fn, jobs, scheduler, progress)
     n_jobs = min(n_jobs or default_jobs(), len(jobs))
     results = []
+    if progress:
+        progress(0, len(jobs))
     if n_jobs > 1:
         import multiprocessing
         with multiprocessing.get_context('fork').Pool(n_jobs) as pool:
@@ -68,6 +70,8 @@ def _run_dask(fn, jobs, address, progress):
         raise CLIError(f'--scheduler: cannot connect to {address!r}: {first}') from None
     try:
         futures = client.map(fn, list(jobs), pure=False)
+        if progress:
+            progress(0, len(futures))
         index = {f.key: i for i, f in enumerate(futures)}
         results = [None] * len(futures)
         for done, fut in enumerate(as_completed(futures), 1):

@@ -1,14 +1,16 @@
 """``erva bag``: inspect, repair and benchmark session bags (rosbag2 directories with MCAP)."""
 
 import math
+import os
 
 from erva_ros.commands._common import (add_json_option, positive_float, positive_int,
                                        print_json)
 from erva_ros.core.errors import CLIError
+from erva_ros.core.progress import Progress
 
 COMMAND = 'bag'
 HELP = ('session bags: info (topics, counts, session), repair (after a crash), bench '
-        '(recorder), soak (loss under load)')
+        '(recorder), soak (loss under load); play, record, reindex as ros2 bag')
 DESCRIPTION = """\
 Session bags are rosbag2 directories (metadata.yaml, bag format version 9) holding one
 MCAP file (profile ros2, ros2msg schemas, cdr messages), as ros2 bag record writes
@@ -20,6 +22,15 @@ them: ros2 bag info/play and Foxglove open them directly.
                          index from every flushed chunk and write metadata.yaml
   erva bag bench         recorder throughput and the latency it adds to a 50 Hz loop
   erva bag soak          many `erva run` sessions on a loaded machine: anything lost?
+
+The verbs of ros2 bag (rosbag2 Jazzy), with its options where they overlap:
+
+  erva bag play BAG      = erva replay BAG (-r, --topics, -e, -x, -l, --clock, -d,
+                         --start-offset, -p, --playback-duration, -m, ...); space
+                         pauses, kill -USR1/-USR2 pause/resume
+  erva bag record        record a running graph with erva's recorder (-o, --topics,
+                         -a, -e, --exclude-*, --use-sim-time, --custom-data, ...)
+  erva bag reindex BAG   = erva bag repair BAG
 
 BAG is a bag directory or its .mcap file."""
 
@@ -35,12 +46,16 @@ def add_arguments(parser):
                                    'session metadata the recorder stored.')
     p.add_argument('bag', metavar='BAG', help='bag directory or .mcap file')
     add_json_option(p)
-    p = sub.add_parser('repair', help='make a bag whose recorder died complete again',
+    p = sub.add_parser('repair', aliases=['reindex'],
+                       help='make a bag whose recorder died complete again (alias: reindex, '
+                            'as ros2 bag reindex)',
                        description='Copy every readable record (all flushed chunks) of a '
                                    'bag into a new, indexed MCAP file and write '
                                    'metadata.yaml; the original file is kept as '
                                    '<file>.orig unless --no-backup.')
     p.add_argument('bag', metavar='BAG', help='bag directory or .mcap file')
+    p.add_argument('-s', '--storage', choices=('mcap',), default=None,
+                   help='storage of the bag (only mcap; default: detected)')
     p.add_argument('--no-backup', action='store_true',
                    help='do not keep the damaged original as <file>.orig')
     add_json_option(p)
@@ -66,6 +81,7 @@ def add_arguments(parser):
                    help='seconds of each throughput run (default 4)')
     add_json_option(p)
     _add_soak(sub)
+    _add_rosbag2_verbs(sub)
 
 
 def _add_soak(sub) -> None:
@@ -92,9 +108,134 @@ def _add_soak(sub) -> None:
     add_json_option(p)
 
 
-def _soak(args) -> int:
+def _add_rosbag2_verbs(sub) -> None:
+    """Add `erva bag play` and `erva bag record`, named and optioned as ros2 bag's."""
+    from erva_ros.commands.replay import add_play_arguments, PLAY_CONTROLS
+    import argparse
+    p = sub.add_parser('play', help='play a bag, as ros2 bag play (= erva replay)',
+                       description='Publish a bag\'s messages with their original timing, '
+                                   'as "ros2 bag play" does, with its options where they '
+                                   'overlap (the same as `erva replay BAG`).  Uses '
+                                   '$ROS_DOMAIN_ID.\n\n' + PLAY_CONTROLS,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_play_arguments(p)
+    add_json_option(p)
+    _add_record(sub)
+
+
+def _add_record(sub) -> None:
+    from erva_ros.session.bag_record import STORAGE_KEYS
+    p = sub.add_parser('record', help='record a running graph, as ros2 bag record',
+                       description='Record topics of the running ROS graph into a new bag '
+                                   '(rosbag2 layout, MCAP) with erva\'s recorder '
+                                   '(recorder_node, its own process), as "ros2 bag record" '
+                                   'does, with its options where they overlap.  Without '
+                                   '--topics, -a or -e: the topics `erva run` records.  '
+                                   '-a and -e choose among the topics the graph shows '
+                                   'after --discovery-wait (once: as ros2 bag record '
+                                   '--no-discovery).  Ctrl-C (or --duration) stops: the '
+                                   'recorder takes what was delivered to it (up to 5 s '
+                                   'while publishers go on), closes the bag, which is '
+                                   'then read back and counted.  Uses $ROS_DOMAIN_ID.')
+    p.add_argument('-o', '--output', metavar='DIR', default=None,
+                   help='bag directory to create (default: bags/<UTC time>_record)')
+    p.add_argument('-s', '--storage', choices=('mcap',), default='mcap',
+                   help='storage (only mcap, the default)')
+    p.add_argument('--topics', nargs='+', metavar='TOPIC', default=[],
+                   help='record these topics (relative names: under /)'
+                   ).completer = _known_topics
+    p.add_argument('-a', '--all', action='store_true', dest='all_topics',
+                   help='record every topic the graph shows (except hidden ones)')
+    p.add_argument('--all-topics', action='store_true', dest='all_topics',
+                   help='the same as --all (erva records no services)')
+    p.add_argument('-e', '--regex', default='', metavar='REGEX',
+                   help='record the topics containing a match of REGEX')
+    p.add_argument('--exclude-regex', default='', metavar='REGEX',
+                   help='do not record the topics containing a match of REGEX')
+    p.add_argument('--exclude-topics', nargs='+', metavar='TOPIC', default=[],
+                   help='do not record these topics').completer = _known_topics
+    p.add_argument('--include-hidden-topics', action='store_true',
+                   help='-a and -e also choose hidden topics')
+    p.add_argument('--use-sim-time', action='store_true',
+                   help='log times from /clock (the recorder\'s use_sim_time)')
+    p.add_argument('--node-name', default='erva_bag_recorder',
+                   help='name of the recorder node (default erva_bag_recorder)')
+    p.add_argument('--custom-data', nargs='+', metavar='KEY=VALUE', default=[],
+                   help='stored with the bag (metadata.yaml custom_data and the session)')
+    p.add_argument('--storage-config-file', metavar='FILE', default=None,
+                   help='MCAP writer options as rosbag2_storage_mcap takes them (here: '
+                        f'{", ".join(STORAGE_KEYS)})')
+    p.add_argument('--duration', type=positive_float, default=None, metavar='S',
+                   help='stop after S seconds (default: at Ctrl-C)')
+    p.add_argument('--discovery-wait', type=positive_float, default=2.0, metavar='S',
+                   help='-a, -e: look at the graph this long before choosing (default 2)')
+    add_json_option(p)
+
+
+def _known_topics(prefix, **_):
+    """Complete a topic of the erva contract (shell completion; no graph is asked)."""
+    from erva_ros.core import topics
+    return [t for t in sorted(topics.TOPIC_TYPES) if t.startswith(prefix)]
+
+
+def _play(args) -> int:
+    from erva_ros.commands.replay import play_main
+    return play_main(args, 'erva bag play')
+
+
+def _record(args) -> int:
+    import shlex
+    import signal
     import sys
 
+    from erva_ros.core import topics as contract
+    from erva_ros.core.bag.session import new_bag_dir
+    from erva_ros.session import bag_record
+    from erva_ros.session.recording import record_topics
+
+    custom = {}
+    for item in args.custom_data:
+        key, sep, value = item.partition('=')
+        if not sep or not key:
+            raise CLIError(f'--custom-data {item!r}: give KEY=VALUE')
+        custom[key] = value
+    opts = bag_record.RecordOptions(
+        output=args.output or new_bag_dir('bags', 'record'), topics=args.topics,
+        all_topics=args.all_topics, regex=args.regex, exclude_topics=args.exclude_topics,
+        exclude_regex=args.exclude_regex, include_hidden=args.include_hidden_topics,
+        node_name=args.node_name, use_sim_time=args.use_sim_time, custom_data=custom,
+        storage=bag_record.storage_parameters(args.storage_config_file),
+        duration_s=args.duration, discovery_s=args.discovery_wait,
+        command=' '.join(shlex.quote(a) for a in ['erva', 'bag', *sys.argv[2:]]))
+    if args.output is None:
+        os.makedirs('bags', exist_ok=True)
+    bag_record.check_output(opts.output)
+    default = [t if t.startswith('/') else f'{contract.NAMESPACE}/{t}'
+               for t in record_topics(hil=True)]
+    graph = bag_record.graph_topics(opts.discovery_s) if opts.needs_graph else {}
+    chosen = bag_record.choose_topics(opts, graph, default)
+    stop = {'flag': False}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.update(flag=True))
+    result = bag_record.record(opts, chosen, lambda: stop['flag'],
+                               lambda line: print(f'erva bag record: {line}',
+                                                  file=sys.stderr, flush=True))
+    if args.json:
+        print_json(result)
+    elif 'error' in result:
+        print(f'erva bag record: the recorder wrote no readable bag: {result["error"]}')
+    else:
+        print(f'{result["bag"]}: {result["messages"]} messages on {len(result["counts"])} '
+              f'topics, {result["duration_s"]:.3f} s (stopped by {result["stopped_by"]})')
+        for topic, n in sorted(result['counts'].items()):
+            print(f'  {topic}: {n}')
+    if result.get('recorder_log'):
+        print(f'erva bag record: recorder_node exited {result["exit_status"]}:\n'
+              f'{result["recorder_log"]}', file=sys.stderr)
+    return 0 if result['exit_status'] == 0 and 'error' not in result else 1
+
+
+def _soak(args) -> int:
     from erva_ros.session import soak
     if args.busy < 0:
         raise CLIError(f'--busy {args.busy}: give 0 or more processes')
@@ -104,9 +245,10 @@ def _soak(args) -> int:
         if not os.path.isfile(args.live):
             raise CLIError(f'--live {args.live}: no such file')
         run_args += ['--live', os.path.abspath(args.live)]
+    progress = Progress('erva bag soak: runs', args.runs, enabled=not args.json)
     result = soak.soak(args.runs, args.duration, args.busy, run_args, args.keep_bags,
-                       progress=lambda s: print(f'erva bag soak: {s}', file=sys.stderr,
-                                                flush=True))
+                       progress=lambda line: progress.advance(note=line))
+    progress.close()
     if args.json:
         print_json(result)
     else:
@@ -240,6 +382,6 @@ def _bench(args) -> int:
 
 
 def main(args) -> int:
-    handler = {'info': _info, 'repair': _repair, 'bench': _bench,
-               'soak': _soak}[args.bag_command]
+    handler = {'info': _info, 'repair': _repair, 'reindex': _repair, 'bench': _bench,
+               'soak': _soak, 'play': _play, 'record': _record}[args.bag_command]
     return handler(args)

@@ -6,9 +6,11 @@ import numpy as np
 
 from erva_ros.commands._closed_loop_options import (add_settings_options, load_settings,
                                                     seed_int, seed_list)
-from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
-                                       positive_int, print_json, realtime_priority)
+from erva_ros.commands._common import (add_json_option, add_out_option, add_params_option,
+                                       ensure_out_dir, positive_float, positive_int,
+                                       print_json, realtime_priority)
 from erva_ros.core.errors import CLIError
+from erva_ros.core.progress import Progress
 
 COMMAND = 'bench'
 HELP = 'NMPC solve-time benchmark: >= 2000 closed-loop steps, suboptimality vs IPOPT'
@@ -73,6 +75,8 @@ def add_arguments(parser):
     parser.add_argument('--foxglove-viewer', choices=('reading', 'stalled'), default='reading',
                         help='--foxglove-ab: the viewer reads everything, or never reads '
                              '(default reading)')
+    add_out_option(parser, 'solve_time_cdf.png (offline: the solve-time CDF against the '
+                           'budget, with the IPOPT reference)')
     add_json_option(parser)
 
 
@@ -99,6 +103,8 @@ def _main(args) -> int:
         check_address('127.0.0.1:0')   # foxglove-sdk installed
         from erva_ros.session.foxglove_bench import run_foxglove_ab
         return run_foxglove_ab(args)
+    if args.live and args.out:
+        raise CLIError('--out writes the offline solve-time CDF; it cannot go with --live')
     if args.live:
         try:
             from erva_ros.session.benchmark import run_live_bench
@@ -112,6 +118,7 @@ def _main(args) -> int:
         raise CLIError('give either --seed or --seeds')
     if args.realtime_priority is not None:
         raise CLIError('--realtime-priority applies to --live only')
+    out = ensure_out_dir(args.out)
 
     from erva_ros.core.params import load_erva_params
 
@@ -123,7 +130,10 @@ def _main(args) -> int:
                        'preview or preview_long')
     settings = settings.with_(controller=name)
     seeds = args.seeds if args.seeds is not None else [args.seed]
-    results = [bench_seed(args, params, settings, seed) for seed in seeds]
+    samples = {}
+    results = [bench_seed(args, params, settings, seed, samples) for seed in seeds]
+    if out:
+        _write_cdf(out, settings, seeds, samples, results)
     if len(results) > 1:
         return _print_seeds(args, results)
     result = results[0]
@@ -149,11 +159,30 @@ def _main(args) -> int:
         print(f'  SQP iterations per sample: mean {result["iterations_mean"]:.2f} '
               f'(max_iter {result["max_iter"]})')
         print(f'  real-time factor {result["realtime_factor"]:.1f}x')
+        for f in result.get('files', []):
+            print(f'wrote {f}')
     return 0
 
 
-def bench_seed(args, params, settings, seed: int) -> dict:
-    """Run the benchmark of ``settings`` on the paper road of ``seed``; return the result."""
+def _write_cdf(out, settings, seeds, samples, results) -> None:
+    """Write the solve-time CDF of every seed's runs against the budget (``--out``)."""
+    import os
+    from erva_ros.core.plots import solve_time_cdf_figure
+    path = solve_time_cdf_figure(
+        {label: np.concatenate(v) for label, v in samples.items()},
+        settings.time_budget_s * 1e3, os.path.join(out, 'solve_time_cdf.png'),
+        f'{settings.controller}, {results[0]["samples"]} samples x {len(seeds)} seed(s), '
+        f'paper road; {platform.machine()}, load {os.getloadavg()[0]:.1f}',
+        period_ms=settings.ts * 1e3)
+    for r in results:
+        r['files'] = [path]
+
+
+def bench_seed(args, params, settings, seed: int, samples=None) -> dict:
+    """Run the benchmark of ``settings`` on the paper road of ``seed``; return the result.
+
+    ``samples`` (a dict) collects the solve times (ms) per solver for the CDF figure.
+    """
     from erva_ros.core.closed_loop import closed_loop_cost, simulate_closed_loop
     from erva_ros.core.controllers import make_controller
     from erva_ros.core.roads import make_road
@@ -167,7 +196,13 @@ def bench_seed(args, params, settings, seed: int) -> dict:
         ctrl = make_controller(name, params, s)
         if record:
             ctrl.recorded_problems = []
-        return ctrl, simulate_closed_loop(params, ctrl, road, duration, s.ts)
+        progress = Progress(f'erva bench: seed {seed}, {s.solver}, samples',
+                            enabled=not args.json)
+        r = simulate_closed_loop(params, ctrl, road, duration, s.ts, progress=progress)
+        progress.close()
+        if samples is not None:
+            samples.setdefault(f'{name} / {s.solver}', []).append(r.solve_time_s * 1e3)
+        return ctrl, r
 
     ctrl, main_run = run(settings, record=settings.solver != 'ipopt')
     m = main_run.metrics
@@ -189,7 +224,14 @@ def bench_seed(args, params, settings, seed: int) -> dict:
     }
     if not args.no_reference and settings.solver != 'ipopt':
         problems = ctrl.recorded_problems[::args.audit_every]
-        gaps = 100 * np.array([ctrl.reference_gap(pr) for pr in problems])
+        progress = Progress(f'erva bench: seed {seed}, gap to IPOPT, samples', len(problems),
+                            enabled=not args.json)
+        gaps = []
+        for i, pr in enumerate(problems, 1):
+            gaps.append(100 * ctrl.reference_gap(pr))
+            progress(i)
+        progress.close()
+        gaps = np.array(gaps)
         if gaps.size:
             result['step_gap_pct'] = {
                 'p50': float(np.percentile(gaps, 50)), 'p99': float(np.percentile(gaps, 99)),
@@ -242,4 +284,6 @@ def _print_seeds(args, results) -> int:
     if subs:
         print(f'mean vs IPOPT {summary["suboptimality_pct_mean"]:+.2f} %, worst '
               f'{summary["suboptimality_pct_max"]:+.2f} % (negative = better)')
+    for f in results[0].get('files', []):
+        print(f'wrote {f}')
     return 0

@@ -5,8 +5,9 @@ import os
 import sys
 
 from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
-                                       positive_int, print_json, Progress, realtime_priority)
+                                       positive_int, print_json, realtime_priority)
 from erva_ros.core.errors import CLIError
+from erva_ros.core.progress import Progress
 from erva_ros.ros.realtime import DEFAULT_PRIORITY
 
 COMMAND = 'bench-hil'
@@ -140,7 +141,7 @@ def _evaluate(args):
             if w is not None:
                 s = s.with_(alpha1=w[0], alpha2=w[1])
             runs.append((name, w, s))
-    progress = Progress('erva bench-hil --estimator-eval', enabled=not args.json)
+    progress = Progress('erva bench-hil --estimator-eval: runs', enabled=not args.json)
     rows = []
     total = len(runs) * args.seeds
     done = 0

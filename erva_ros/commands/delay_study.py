@@ -2,9 +2,10 @@
 
 from erva_ros.commands._closed_loop_options import add_settings_options, load_settings
 from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
-                                       positive_int, print_json, Progress)
+                                       positive_int, print_json)
 from erva_ros.commands._jobs import run_jobs
 from erva_ros.core.errors import CLIError
+from erva_ros.core.progress import Progress
 
 COMMAND = 'delay-study'
 HELP = 'command delay: comfort/power without, with, and with the delay modelled, per seed'
@@ -85,8 +86,8 @@ def main(args) -> int:
     if not args.delay < settings.ts:
         raise CLIError(f'--delay {args.delay:g} must be below ts = {settings.ts:g} s')
     jobs = [(params, settings, seed, args.duration, args.delay) for seed in range(args.seeds)]
-    progress = Progress('erva delay-study: seeds', enabled=True)
-    per_seed = dict(run_jobs(run_seed, jobs, args.jobs, progress=progress))
+    with Progress('erva delay-study: seeds', len(jobs), enabled=not args.json) as progress:
+        per_seed = dict(run_jobs(run_seed, jobs, args.jobs, progress=progress))
     keys = ('acc_rms_continuous', 'acc_rms', 'power_w')
     summary = {}
     for v in VARIANTS:

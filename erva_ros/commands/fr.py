@@ -5,8 +5,9 @@ import os
 import time
 
 from erva_ros.commands._common import (add_json_option, add_out_option, add_params_option,
-                                       ensure_out_dir, positive_float, print_json, Progress)
+                                       ensure_out_dir, positive_float, print_json)
 from erva_ros.core.errors import CLIError
+from erva_ros.core.progress import Progress
 
 COMMAND = 'fr'
 HELP = 'frequency response road -> chassis acceleration and harvested power (paper Fig. 4)'
@@ -61,9 +62,9 @@ def main(args) -> int:
     t0 = time.perf_counter()
     curves = {}
     for kind in models:
-        progress = Progress(f'erva fr: {kind}', enabled=True)
-        curves[kind] = fr.sweep(get_model(params, kind), freqs, args.amplitude, damping,
-                                progress=progress)
+        with Progress(f'erva fr: {kind}, tones', len(freqs), enabled=not args.json) as progress:
+            curves[kind] = fr.sweep(get_model(params, kind), freqs, args.amplitude, damping,
+                                    progress=progress)
     elapsed = time.perf_counter() - t0
 
     result = {kind: {'accel_peaks_hz': [round(f, 3) for f in fr.find_peaks(c.freqs, c.accel)],

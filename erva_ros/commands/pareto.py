@@ -8,9 +8,10 @@ from erva_ros.commands._closed_loop_options import (add_settings_options, load_s
                                                     PAPER_T1_S)
 from erva_ros.commands._common import (add_json_option, add_out_option, add_params_option,
                                        ensure_out_dir, positive_float, positive_int,
-                                       print_json, Progress)
+                                       print_json)
 from erva_ros.commands._jobs import add_jobs_options, run_jobs
 from erva_ros.core.errors import CLIError
+from erva_ros.core.progress import Progress
 
 COMMAND = 'pareto'
 HELP = 'comfort vs harvested power as alpha2/alpha1 sweeps, with passive and skyhook points'
@@ -83,9 +84,9 @@ def main(args) -> int:
              + [(base, settings) for base in ('passive', 'skyhook')])
     jobs = [(params, s, ctrl, seed, args.duration) for ctrl, s in cases
             for seed in range(args.seeds)]
-    progress = Progress('erva pareto: runs', enabled=True)
     t0 = time.perf_counter()
-    results = run_jobs(run_point, jobs, args.jobs, args.scheduler, progress)
+    with Progress('erva pareto: runs', len(jobs), enabled=not args.json) as progress:
+        results = run_jobs(run_point, jobs, args.jobs, args.scheduler, progress)
     means = [np.mean(results[i:i + args.seeds], axis=0)
              for i in range(0, len(results), args.seeds)]
     curve = []

@@ -8,17 +8,27 @@ from erva_ros.commands._common import (add_json_option, add_params_option, posit
                                        print_json)
 from erva_ros.commands.run import FOXGLOVE_DEFAULT
 from erva_ros.core.errors import CLIError
+from erva_ros.core.progress import Progress
+
+#: What `erva bag play` and `erva replay` print about pausing (also in --help).
+PLAY_CONTROLS = """\
+Pause and resume: on a terminal the space bar toggles (as ros2 bag play; off with
+--disable-keyboard-controls); from another process kill -USR1 PID pauses and
+kill -USR2 PID resumes.  While paused nothing is published and the playback time (and
+/clock) stands still; the schedule continues where it stopped.  Ctrl-C stops."""
+
 
 COMMAND = 'replay'
 HELP = 'play a bag like "ros2 bag play", or drive a fresh plant with its road (--drive-plant)'
 DESCRIPTION = """\
-Play (default): publishes every recorded message at its original time offset
-(receive times, scaled by --rate), as raw CDR from publishers offering the
-recorded QoS, like "ros2 bag play".  Nodes and tools subscribed to the topics see
-the session again.  --clock publishes the playback time on /clock (then a
-recorded /clock is not replayed).  Uses $ROS_DOMAIN_ID.  --foxglove [HOST:]PORT also
-serves the played messages to Foxglove as `erva run --foxglove` does (same channels,
-schemas and layout; log times as recorded); playing starts once a viewer subscribes.
+Play (default; also `erva bag play`): publishes every recorded message at its
+original time offset (receive times, scaled by --rate), as raw CDR from publishers
+offering the recorded QoS, like "ros2 bag play" (same options where they overlap).
+Nodes and tools subscribed to the topics see the session again.  --clock publishes
+the playback time on /clock (then a recorded /clock is not replayed).  Uses
+$ROS_DOMAIN_ID.  --foxglove [HOST:]PORT also serves the played messages to Foxglove
+as `erva run --foxglove` does (same channels, schemas and layout; log times as
+recorded); playing starts once a viewer subscribes.
 
 Re-evaluation (--reevaluate): nothing is published.  The recorded states and
 previews are fed, in order, to a fresh controller built from the parameters stored
@@ -32,23 +42,48 @@ What-if (--drive-plant): nothing is published.  The road recorded at the tyre
 
 Examples:
   erva replay bags/sample --rate 2 --topics /erva/state /erva/damping_cmd
-  erva replay bags/sample --loop --clock 100
+  erva replay bags/sample --loop --clock 100 --start-offset 1.5
   erva replay bags/sample --reevaluate
-  erva replay bags/sample --drive-plant --controller skyhook"""
+  erva replay bags/sample --drive-plant --controller skyhook
+
+""" + PLAY_CONTROLS
 
 
-def add_arguments(parser):
+def add_play_arguments(parser) -> None:
+    """Add BAG and the options of playing, named as ``ros2 bag play``'s (rosbag2 Jazzy)."""
     parser.add_argument('bag', metavar='BAG', help='bag directory or .mcap file')
-    parser.add_argument('--rate', type=positive_float, default=1.0,
+    parser.add_argument('-s', '--storage', choices=('mcap',), default=None,
+                        help='storage of the bag (only mcap; default: detected)')
+    parser.add_argument('-r', '--rate', type=positive_float, default=1.0,
                         help='playback speed factor (default 1 = original timing)')
     parser.add_argument('--topics', nargs='+', metavar='TOPIC', default=None,
-                        help='play only these topics (default: all)')
-    parser.add_argument('--loop', action='store_true', help='play again until Ctrl-C')
+                        help='play these topics (with --regex: these and the matching ones; '
+                             'default: all)').completer = _bag_topics
+    parser.add_argument('-e', '--regex', default='', metavar='REGEX',
+                        help='play the topics whose whole name matches REGEX')
+    parser.add_argument('-x', '--exclude-regex', default='', metavar='REGEX',
+                        help='do not play the topics whose whole name matches REGEX')
+    parser.add_argument('--exclude-topics', nargs='+', metavar='TOPIC', default=(),
+                        help='do not play these topics').completer = _bag_topics
+    parser.add_argument('-l', '--loop', action='store_true', help='play again until Ctrl-C')
+    parser.add_argument('-m', '--remap', nargs='+', metavar='OLD:=NEW', default=(),
+                        help='publish recorded topic OLD as NEW')
     parser.add_argument('--clock', nargs='?', type=positive_float, const=40.0, default=None,
                         metavar='HZ', help='publish the playback time on /clock at HZ '
                                            '(default 40 when given without a value)')
-    parser.add_argument('--delay', type=float, default=0.0, metavar='S',
+    parser.add_argument('-d', '--delay', type=float, default=0.0, metavar='S',
                         help='wait S seconds before the first message (discovery)')
+    parser.add_argument('--start-offset', type=float, default=0.0, metavar='S',
+                        help='start S seconds after the bag\'s first message (default 0)')
+    parser.add_argument('--playback-duration', type=float, default=None, metavar='S',
+                        help='play only S seconds of the bag from the start point')
+    parser.add_argument('-p', '--start-paused', action='store_true',
+                        help='start paused (space or kill -USR2 resumes)')
+    parser.add_argument('--disable-keyboard-controls', action='store_true',
+                        help='do not read the space bar from the terminal')
+    parser.add_argument('--wait-for-all-acked', type=int, default=5000, metavar='MS',
+                        help='at the end, wait up to MS ms until every reliable subscriber '
+                             'acknowledged every message (default 5000)')
     parser.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='S',
                         help='wait up to S seconds until every topic (and /clock with --clock) '
                              'has a subscriber')
@@ -57,6 +92,19 @@ def add_arguments(parser):
                         help='also serve the messages to Foxglove on this address (default '
                              f'{FOXGLOVE_DEFAULT}: this machine only; PORT 0 = any free '
                              'port); playing starts when a viewer subscribes')
+
+
+def _bag_topics(prefix, parsed_args, **_):
+    """Complete a topic name from the bag on the command line (shell completion)."""
+    from erva_ros.core.bag.reader import open_bag
+    try:
+        return [t for t in open_bag(parsed_args.bag).topics if t.startswith(prefix)]
+    except Exception:  # noqa: BLE001 -- no bag (yet): no candidates
+        return []
+
+
+def add_arguments(parser):
+    add_play_arguments(parser)
     again = parser.add_argument_group('re-evaluation (--reevaluate)')
     again.add_argument('--reevaluate', action='store_true',
                        help='recompute the recorded commands with a fresh controller')
@@ -160,7 +208,10 @@ def _reevaluate(args, bag) -> int:
     data = load_session(bag)
     with _native_stdout_to_stderr():
         controller = make_controller(settings.controller, params, settings, kind=data.model)
-        result = summarize(reevaluate(data, controller, args.max_commands))
+        total = len(data.cmd.stamp_ns[:args.max_commands])
+        with Progress('erva replay --reevaluate: commands', total,
+                      enabled=not args.json) as progress:
+            result = summarize(reevaluate(data, controller, args.max_commands, progress))
     result.update({'bag': bag.path, 'controller': settings.controller})
     if args.json:
         print_json(jsonable(result))
@@ -179,6 +230,9 @@ def _play(args, bag) -> int:
     from erva_ros.ros.context import RosContext
     from erva_ros.ros.replay import Player
 
+    from erva_ros.session.play_controls import PlayControls
+
+    prog = getattr(args, 'prog', 'erva replay')
     server = None
     stop = {'flag': False}
     ros = RosContext()
@@ -187,18 +241,23 @@ def _play(args, bag) -> int:
     try:
         node = ros.create_node('erva_replay')
         player = Player(node, bag, rate=args.rate, topics=args.topics, loop=args.loop,
-                        clock_hz=args.clock or 0.0)
+                        clock_hz=args.clock or 0.0, start_offset_s=args.start_offset,
+                        playback_duration_s=args.playback_duration,
+                        start_paused=args.start_paused, regex=args.regex,
+                        exclude_topics=args.exclude_topics,
+                        exclude_regex=args.exclude_regex, remap=_remaps(args.remap))
         if args.foxglove is not None:
             server = _serve(args.foxglove, bag, player, lambda: stop['flag'])
         if args.wait_for_subscribers > 0 and not player.wait_for_subscribers(
                 args.wait_for_subscribers):
-            print('erva replay: warning: not every topic has a subscriber; playing anyway',
+            print(f'{prog}: warning: not every topic has a subscriber; playing anyway',
                   file=sys.stderr)
         end = time.monotonic() + max(0.0, args.delay)
         while time.monotonic() < end and not stop['flag']:
             time.sleep(0.02)
-        stats = player.run(lambda: stop['flag'])
-        stats['acknowledged'] = player.finish()
+        with PlayControls(player, prog, keyboard=not args.disable_keyboard_controls):
+            stats = player.run(lambda: stop['flag'])
+        stats['acknowledged'] = player.finish(args.wait_for_all_acked / 1000.0)
         if server is not None:
             stats['foxglove'] = server.stats()
     finally:
@@ -256,33 +315,80 @@ def _serve(address, bag, player, should_stop):
     return server
 
 
+def _remaps(items):
+    """Return {old: new} of ``--remap OLD:=NEW ...``; CLIError for a malformed one."""
+    out = {}
+    for item in items or ():
+        old, sep, new = item.partition(':=')
+        if not sep or not old.startswith('/') or not new.startswith('/'):
+            raise CLIError(f'--remap {item!r}: give /old/topic:=/new/topic')
+        out[old] = new
+    return out
+
+
+def check_play_options(args, bag=None) -> None:
+    """Raise CLIError for play options out of range (before anything starts)."""
+    for name in ('delay', 'wait_for_subscribers', 'start_offset'):
+        value = getattr(args, name)
+        if not value >= 0 or value == float('inf'):
+            raise CLIError(f'--{name.replace("_", "-")} {value:g} must be >= 0 and finite')
+    if args.playback_duration is not None and not args.playback_duration > 0:
+        raise CLIError(f'--playback-duration {args.playback_duration:g} must be positive')
+    if args.wait_for_all_acked < 0:
+        raise CLIError(f'--wait-for-all-acked {args.wait_for_all_acked} must be >= 0 ms')
+    _remaps(args.remap)
+    if bag is not None and args.start_offset > bag.duration_s:
+        raise CLIError(f'--start-offset {args.start_offset:g} is past the end of the bag '
+                       f'({bag.duration_s:.3f} s long)')
+
+
+def play_main(args, prog: str) -> int:
+    """Play a bag (`erva bag play`, `erva replay` without a what-if)."""
+    from erva_ros.core.bag.playback import select_topics
+    from erva_ros.core.bag.reader import open_bag
+
+    args.prog = prog
+    check_play_options(args)
+    if args.foxglove is not None:
+        from erva_ros.session.foxglove_process import check_address
+        check_address(args.foxglove)
+    bag = open_bag(args.bag)
+    check_play_options(args, bag)
+    # A bad selection: one line before any node starts.
+    played = select_topics(bag.topics, args.topics or (), args.regex, args.exclude_topics,
+                           args.exclude_regex)
+    unknown = sorted(set(_remaps(args.remap)) - set(played))
+    if unknown:
+        raise CLIError(f'--remap {", ".join(unknown)}: not a played topic (the played ones: '
+                       f'{", ".join(played)})')
+    return _play(args, bag)
+
+
 def main(args) -> int:
     from erva_ros.core.bag.reader import open_bag
 
-    if args.delay < 0 or args.wait_for_subscribers < 0:
-        raise CLIError('--delay and --wait-for-subscribers must be >= 0')
     what_if = (args.alpha1, args.alpha2, args.settings, args.duration)
     if not args.drive_plant and any(v is not None for v in what_if):
         raise CLIError('--alpha1/2, --settings and --duration need --drive-plant')
     if args.controller is not None and not (args.drive_plant or args.reevaluate):
         raise CLIError('--controller needs --drive-plant or --reevaluate')
-    if args.drive_plant and args.reevaluate:
-        raise CLIError('choose one of --drive-plant and --reevaluate')
-    if (args.drive_plant or args.reevaluate) and (args.loop or args.clock or args.topics):
-        raise CLIError('--drive-plant and --reevaluate do not publish: drop --loop, --clock '
-                       'and --topics')
     if args.max_commands is not None and (not args.reevaluate or args.max_commands < 1):
         raise CLIError('--max-commands needs --reevaluate and a positive count')
+    if not (args.drive_plant or args.reevaluate):
+        return play_main(args, 'erva replay')
+    if args.drive_plant and args.reevaluate:
+        raise CLIError('choose one of --drive-plant and --reevaluate')
+    playing = (args.loop, args.clock, args.topics, args.regex, args.exclude_regex,
+               args.exclude_topics, args.remap, args.start_offset, args.start_paused,
+               args.playback_duration is not None, args.delay, args.wait_for_subscribers)
+    if any(playing):
+        raise CLIError('--drive-plant and --reevaluate do not publish: drop the play options '
+                       '(--loop, --clock, --topics, --start-offset, ...)')
     if args.foxglove is not None:
-        if args.drive_plant or args.reevaluate:
-            raise CLIError('--foxglove serves what is played: drop --drive-plant/--reevaluate')
-        from erva_ros.session.foxglove_process import check_address
-        check_address(args.foxglove)
+        raise CLIError('--foxglove serves what is played: drop --drive-plant/--reevaluate')
     bag = open_bag(args.bag)
     if args.reevaluate:
         return _reevaluate(args, bag)
-    if args.drive_plant:
-        if os.path.exists(args.record_dir) and not os.path.isdir(args.record_dir):
-            raise CLIError(f'--record-dir {args.record_dir} is not a directory')
-        return _drive_plant(args, bag)
-    return _play(args, bag)
+    if os.path.exists(args.record_dir) and not os.path.isdir(args.record_dir):
+        raise CLIError(f'--record-dir {args.record_dir} is not a directory')
+    return _drive_plant(args, bag)

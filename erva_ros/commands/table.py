@@ -10,9 +10,10 @@ from erva_ros.commands._closed_loop_options import (add_settings_options, load_s
                                                     weight_list)
 from erva_ros.commands._common import (add_json_option, add_out_option, add_params_option,
                                        ensure_out_dir, positive_float, positive_int,
-                                       print_json, Progress)
+                                       print_json)
 from erva_ros.commands._jobs import add_jobs_options, run_jobs
 from erva_ros.core.errors import CLIError
+from erva_ros.core.progress import Progress
 
 COMMAND = 'table'
 HELP = "the paper's results table (§IV.B) as mean ± spread over road seeds, with the bound"
@@ -70,7 +71,8 @@ def add_arguments(parser):
                         help='projected L-BFGS iterations of the bound on the plant '
                              '(default 60; 0: no polish)')
     add_jobs_options(parser, 'seed')
-    add_out_option(parser, 'table.md, table.json and table.csv')
+    add_out_option(parser, 'table.md, table.json, table.csv and table.png (comfort and '
+                           'power per controller, with the bound)')
     add_json_option(parser)
 
 
@@ -278,9 +280,10 @@ def main(args) -> int:
                                         'polish_iter': args.bound_polish}
     jobs = [(params, settings, seed, args.duration, weights, names, bound)
             for seed in range(args.seeds)]
-    progress = Progress('erva table: seeds', enabled=True)
     t0 = time.perf_counter()
-    per_seed = [r for _, r in run_jobs(run_seed, jobs, args.jobs, args.scheduler, progress)]
+    with Progress('erva table: seeds', len(jobs), enabled=not args.json) as progress:
+        per_seed = [r for _, r in run_jobs(run_seed, jobs, args.jobs, args.scheduler,
+                                           progress)]
     elapsed = time.perf_counter() - t0
     all_names = names + ([] if args.no_bound else ['clairvoyant'])
     rows = aggregate(per_seed, weights, all_names)
@@ -308,7 +311,11 @@ def main(args) -> int:
                                      f'{v["acc_rms"]:.6g}', f'{v["acc_rms_continuous"]:.6g}',
                                      f'{v["power_w"]:.6g}', f'{v["J"]:.6g}',
                                      f'{v["time_s"]:.3f}'])
-        result['files'] = [md_path, json_path, csv_path]
+        from erva_ros.core.plots_closed_loop import table_figure
+        png_path = table_figure(rows, os.path.join(out, 'table.png'),
+                                f'paper road, {args.duration:g} s, {args.seeds} seed(s), mean ± '
+                                f'std; NMPC cost {settings.cost}')
+        result['files'] = [md_path, json_path, csv_path, png_path]
     if args.json:
         print_json(result)
     else:

@@ -86,6 +86,8 @@ def sweep(model: QuarterCarModel, freqs: Sequence[float], amplitude_m: float, da
           progress: Optional[Callable[[int, int], None]] = None, **kw) -> FRCurve:
     """Frequency response over ``freqs`` (Hz) at constant damping ``damping`` (Ns/m)."""
     curve = FRCurve(model.kind, damping, amplitude_m)
+    if progress:
+        progress(0, len(freqs))
     for i, f in enumerate(freqs):
         curve.tones.append(tone_response(model, float(f), amplitude_m, damping, **kw))
         if progress:

@@ -1,15 +1,10 @@
-"""Closed-loop figures (matplotlib, Agg): time series like paper Figs. 5-7, and the Pareto plot."""
+"""Closed-loop figures: time series like paper Figs. 5-7, the Pareto plot, the results table."""
 
 from typing import Mapping, Sequence
 
 import numpy as np
 
-
-def _pyplot():
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    return plt
+from erva_ros.core.plots import save, subplots
 
 
 def timeseries_figure(runs: Mapping[str, object], path: str, title: str = '') -> str:
@@ -18,8 +13,7 @@ def timeseries_figure(runs: Mapping[str, object], path: str, title: str = '') ->
     ``runs`` maps a label to a ClosedLoopResult (paper Figs. 5-7 show the first three
     for passive, NMPC without and with preview).
     """
-    plt = _pyplot()
-    fig, axes = plt.subplots(4, 1, figsize=(8, 9), sharex=True)
+    fig, axes = subplots(4, 1, figsize=(8, 9), sharex=True)
     first = next(iter(runs.values()))
     axes[0].plot(first.t, first.w * 1e3, color='0.3')
     axes[0].set_ylabel('road z_r (mm)')
@@ -39,17 +33,13 @@ def timeseries_figure(runs: Mapping[str, object], path: str, title: str = '') ->
     axes[0].grid(alpha=0.3)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def pareto_figure(curve: Sequence[dict], baselines: Sequence[dict], path: str,
                   title: str = '') -> str:
     """Write chassis-acceleration RMS vs harvested power: the NMPC sweep and baselines."""
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6.5, 5))
+    fig, ax = subplots(figsize=(6.5, 5))
     p = np.array([c['power_w'] for c in curve])
     a = np.array([c['acc_rms'] for c in curve])
     ax.plot(p, a, 'o-', label='NMPC, α2/α1 sweep')
@@ -64,10 +54,53 @@ def pareto_figure(curve: Sequence[dict], baselines: Sequence[dict], path: str,
     ax.legend(fontsize=8)
     if title:
         ax.set_title(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
-__all__ = ['timeseries_figure', 'pareto_figure']
+#: Comfort and power panels of the table figure: (row key, axis label).
+TABLE_PANELS = (('acc_2norm', 'chassis acc. 2-norm, sampled (m/s²)'),
+                ('power_w', 'average harvested power (W)'))
+BOUND = 'clairvoyant'
+
+
+def table_figure(rows: Sequence[dict], path: str, title: str = '') -> str:
+    """Write the results table as bars: comfort and power per controller, with the bound.
+
+    One row of panels per weighting (α1, α2): each causal controller's mean ± std over
+    the seeds (``erva table`` rows), the clairvoyant bound as a hatched bar and a dashed
+    line across, so the gap to it is read off directly.
+    """
+    weights = []
+    for r in rows:
+        if tuple(r['weights']) not in weights:
+            weights.append(tuple(r['weights']))
+    fig, axes = subplots(len(weights), len(TABLE_PANELS), squeeze=False,
+                         figsize=(10, 2.9 * len(weights) + 0.6))
+    for i, alpha in enumerate(weights):
+        mine = [r for r in rows if tuple(r['weights']) == alpha]
+        names = [r['controller'] for r in mine]
+        for j, (key, label) in enumerate(TABLE_PANELS):
+            ax = axes[i][j]
+            mean = [r[key]['mean'] if r[key] else np.nan for r in mine]
+            std = [r[key]['std'] if r[key] else 0.0 for r in mine]
+            colors = ['0.85' if n == BOUND else f'C{k}' for k, n in enumerate(names)]
+            bars = ax.bar(range(len(names)), mean, yerr=std, capsize=3, color=colors,
+                          edgecolor='0.2')
+            for n, bar in zip(names, bars):
+                if n == BOUND:
+                    bar.set_hatch('//')
+                    ax.axhline(bar.get_height(), color='0.2', ls='--', lw=0.9,
+                               label='clairvoyant (the bound on J)')
+            ax.set_xticks(range(len(names)))
+            ax.set_xticklabels(names, rotation=20, fontsize=8)
+            ax.set_ylabel(label, fontsize=8)
+            ax.set_title(f'(α1, α2) = ({alpha[0]:g}, {alpha[1]:g})', fontsize=9)
+            ax.grid(axis='y', alpha=0.3)
+            if BOUND in names:
+                ax.legend(fontsize=7, loc='upper left')
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return save(fig, path)
+
+
+__all__ = ['timeseries_figure', 'pareto_figure', 'table_figure']

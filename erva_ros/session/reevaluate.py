@@ -12,7 +12,7 @@ the bag lacks).
 
 import bisect
 from dataclasses import dataclass
-from typing import List, Optional
+from typing import Callable, List, Optional
 
 import numpy as np
 
@@ -40,11 +40,12 @@ class Reevaluation:
         return worst
 
 
-def reevaluate(data: SessionData, controller, max_commands: Optional[int] = None
-               ) -> Reevaluation:
+def reevaluate(data: SessionData, controller, max_commands: Optional[int] = None,
+               progress: Optional[Callable[[int, int], None]] = None) -> Reevaluation:
     """Recompute the recorded commands of ``data`` (the first ``max_commands``).
 
-    ``controller`` must be built for the recorded model (``data.model``).
+    ``controller`` must be built for the recorded model (``data.model``); ``progress``
+    gets (done, total) after each command.
     """
     state_stamps = data.state.stamp_ns.tolist()
     if not data.cmd.n:
@@ -56,7 +57,10 @@ def reevaluate(data: SessionData, controller, max_commands: Optional[int] = None
     ts = controller.ts
     controller.reset()
     out = Reevaluation(data.cmd.stamp_ns.copy(), [], [], [])
-    for j, stamp in enumerate(data.cmd.stamp_ns.tolist()[:max_commands]):
+    stamps = data.cmd.stamp_ns.tolist()[:max_commands]
+    if progress is not None:
+        progress(0, len(stamps))
+    for j, stamp in enumerate(stamps):
         i = states.get(stamp)
         if i is None:
             raise BagError(f'command stamped {stamp} answers no recorded state')
@@ -68,6 +72,8 @@ def reevaluate(data: SessionData, controller, max_commands: Optional[int] = None
         out.recorded.append(np.asarray(data.plans[j], dtype=float))
         out.recomputed.append(np.asarray(res.plan, dtype=float))
         out.statuses.append(res.status)
+        if progress is not None:
+            progress(j + 1, len(stamps))
     return out
 
 

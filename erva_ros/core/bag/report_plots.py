@@ -1,11 +1,11 @@
-"""Figures of ``erva report`` (matplotlib, off-screen); kept apart from the figures' data."""
+"""Figures of ``erva report`` (matplotlib, no backend chosen); kept apart from their data."""
 
 import os
 from typing import List
 
 import numpy as np
 
-from erva_ros.core.plots import plt  # the Agg backend is selected there
+from erva_ros.core.plots import save, subplots
 
 
 def _t(series, t0_ns: int) -> np.ndarray:
@@ -20,10 +20,7 @@ def _is_number(text) -> bool:
 
 
 def _save(fig, path: str) -> str:
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def _empty(ax, what: str) -> None:
@@ -37,7 +34,7 @@ def write_all(data, out_dir: str, timing: bool = True) -> List[str]:
     title = os.path.basename(os.path.normpath(data.bag.bag_dir or data.bag.mcap_path))
     paths = []
 
-    fig, ax = plt.subplots(figsize=(8, 3.2))
+    fig, ax = subplots(figsize=(8, 3.2))
     if data.accel.n:
         ax.plot(_t(data.accel, t0), data.accel.values[:, 0], lw=1)
     else:
@@ -47,7 +44,7 @@ def write_all(data, out_dir: str, timing: bool = True) -> List[str]:
     ax.grid(True, alpha=0.3)
     paths.append(_save(fig, os.path.join(out_dir, 'acceleration.png')))
 
-    fig, ax = plt.subplots(figsize=(8, 3.2))
+    fig, ax = subplots(figsize=(8, 3.2))
     if data.cmd.n:
         ax.step(_t(data.cmd, t0), data.cmd.values[:, 0] * 1e-3, where='post', lw=1)
     else:
@@ -57,7 +54,7 @@ def write_all(data, out_dir: str, timing: bool = True) -> List[str]:
     ax.grid(True, alpha=0.3)
     paths.append(_save(fig, os.path.join(out_dir, 'damping_cmd.png')))
 
-    fig, ax = plt.subplots(figsize=(8, 3.2))
+    fig, ax = subplots(figsize=(8, 3.2))
     energy = [((log_ns - t0) * 1e-9, r.harvested_j) for log_ns, r in data.reports
               if _is_number(getattr(r, 'harvested_j', None))]
     if data.generator.n:
@@ -82,7 +79,7 @@ def write_all(data, out_dir: str, timing: bool = True) -> List[str]:
     ax.grid(True, alpha=0.3)
     paths.append(_save(fig, os.path.join(out_dir, 'power.png')))
 
-    fig, ax = plt.subplots(figsize=(8, 3.6))
+    fig, ax = subplots(figsize=(8, 3.6))
     if data.road.n:
         ax.plot(_t(data.road, t0), data.road.values[:, 1] * 1e3, color='k', lw=1.2,
                 label='road height at the tyre')
@@ -103,7 +100,7 @@ def write_all(data, out_dir: str, timing: bool = True) -> List[str]:
     paths.append(_save(fig, os.path.join(out_dir, 'road_preview.png')))
 
     if timing and data.cmd.n > 2:
-        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(9, 3.2))
+        fig, (ax1, ax2) = subplots(1, 2, figsize=(9, 3.2))
         d = np.diff(np.sort(data.cmd.pub_ns)) * 1e-6
         ax1.hist(d, bins=50)
         ax1.set(xlabel='command period, publish times (ms)', ylabel='count',
