@@ -43,11 +43,11 @@ def _same_bytes(ours: bytes, msg) -> None:
     assert len(ours) == 4 + encoded_size(msg)
 
 
-def _trajectory(joint, values, ts_ns=TS_NS):
+def _trajectory(joint, values, ts_ns=TS_NS, first_ns=0):
     msg = _stamp(JointTrajectory(joint_names=[joint]))
     for k, v in enumerate(values):
         p = JointTrajectoryPoint(positions=[v])
-        p.time_from_start.sec, p.time_from_start.nanosec = divmod(k * ts_ns, 10**9)
+        p.time_from_start.sec, p.time_from_start.nanosec = divmod(first_ns + k * ts_ns, 10**9)
         msg.points.append(p)
     return msg
 
@@ -115,6 +115,22 @@ def test_preview_and_command():
     assert row.offsets_s == (0.0, 0.02, 0.04)
     with pytest.raises(MessageRejected, match='joint names'):
         c.decode_command(serialize(_trajectory('road_height', plan)), strict=True)
+    assert row.delay_ns == 0 and row.act_ns == STAMP
+
+    # A command acts d after its sample: every point d + j·Ts, 0 <= d < Ts.
+    d = 6_000_000
+    msg = _trajectory('c_e', plan, first_ns=d)
+    _same_bytes(c.encode_command(STAMP, plan, TS_NS, d), msg)
+    row = c.decode_command(serialize(msg), TS_NS)
+    assert row.delay_ns == d and row.act_ns == STAMP + d and list(row.plan) == plan
+    assert row.offsets_s == pytest.approx((0.006, 0.026, 0.046), abs=1e-12)
+    c.check_command_delay(row, d)
+    with pytest.raises(MessageRejected, match="command_delay_s is 0.004 s"):
+        c.check_command_delay(row, 4_000_000)
+    with pytest.raises(MessageRejected, match=r'not in \[0, Ts\)'):
+        c.decode_command(serialize(_trajectory('c_e', plan, first_ns=TS_NS)), TS_NS)
+    with pytest.raises(MessageRejected, match='is not 0'):      # a preview starts at t_k
+        c.decode_preview(serialize(_trajectory('road_height', heights, first_ns=d)), TS_NS)
     bad = _trajectory('c_e', [-1.0])
     assert c.decode_command(serialize(bad)).u == -1.0      # observer: as sent
     with pytest.raises(MessageRejected, match='absurd'):

@@ -16,7 +16,6 @@ from erva_ros.core.levels import ERROR
 from erva_ros.core.loop.status import StatusReporter
 from erva_ros.core.node_params import LIVE, NodeSchema
 from erva_ros.core.reports import NodeReport, report_from_status
-from erva_ros.core.config import shipped_defaults
 from erva_ros.session.run_config import RunConfig
 from erva_ros.session.session_file import prepare_session, read_live_file, validate_live
 from erva_ros.ros.parameters import declare_node_parameters, declare_schema
@@ -109,6 +108,24 @@ def test_command_hold_uses_command_then_plan_then_passive():
     short.update(0, np.full(10, 5.0))
     assert short.select(2 * TS_NS) == (1e4, 'passive')      # plan too old: timeout
     assert hold.counts == {'command': 1, 'plan': 2, 'passive': 2}
+
+
+def test_command_hold_late_rule():
+    # At t_k + d the newest command received by then acts (its plan entry for t_k); a
+    # command received after its own instant never acts and is counted late.
+    d = TS_NS // 4
+    hold = CommandHold(TS_NS, c_e0=1e4, timeout_ns=10 * TS_NS)
+    hold.update(0, np.array([100.0, 200.0, 300.0]), rx_ns=d - 1)
+    assert hold.select(0, deadline_ns=d) == (100.0, 'command')
+    hold.update(TS_NS, np.array([110.0, 210.0]), rx_ns=TS_NS + d + 1)   # late by 1 ns
+    assert hold.select(TS_NS, deadline_ns=TS_NS + d) == (200.0, 'plan')
+    assert hold.late == 1
+    # ... but its plan serves the next instant, which it reached in time.
+    assert hold.select(2 * TS_NS, deadline_ns=2 * TS_NS + d) == (210.0, 'plan')
+    hold.update(3 * TS_NS, np.array([120.0]), rx_ns=3 * TS_NS + d)      # on the dot
+    assert hold.select(3 * TS_NS, deadline_ns=3 * TS_NS + d) == (120.0, 'command')
+    assert hold.select(3 * TS_NS) == (120.0, 'command')       # lock-step: no deadline
+    assert hold.late == 1 and hold.counts == {'command': 3, 'plan': 2, 'passive': 0}
 
 
 def test_grid_delay_and_period_jitter():
@@ -217,19 +234,26 @@ def test_session_params_file_is_what_rclpy_gives_each_node(tmp_path, ros_context
     assert road['seed'] == 3 and road['preview_noise'] is True
 
 
-def test_hil_sessions_model_the_measured_command_delay(tmp_path):
-    # The HIL loop's command acts after its sample: config/hil.yaml's nmpc_node section
-    # (the measured delay) applies over nmpc.yaml with --ecu only; an explicit value wins.
-    hil_delay = shipped_defaults('hil.yaml', 'nmpc_node')['command_delay_s']
-    assert 0 < hil_delay < 0.02
+def test_one_command_delay_for_ocp_plant_and_ecu(tmp_path):
+    # d is the live loop's (config/live.yaml), the same with and without --ecu; an option
+    # wins, and it reaches the controller's settings and every node's section.
+    shipped = LIVE.defaults()['command_delay_s']
 
-    def delay(**kw):
-        cfg = RunConfig(session_dir=str(tmp_path / str(len(kw))), duration_s=1.0, **kw)
-        return prepare_session(cfg, recording=False).settings.command_delay_s
+    def session(name, **kw):
+        cfg = RunConfig(session_dir=str(tmp_path / name), duration_s=1.0, **kw)
+        return prepare_session(cfg, recording=False)
 
-    assert delay() == shipped_defaults('nmpc.yaml', 'nmpc_node')['command_delay_s'] == 0.0
-    assert delay(ecu='virtual') == hil_delay
-    assert delay(ecu='virtual', settings_overrides={'command_delay_s': 0.0}) == 0.0
+    for name, kw in (('full', {}), ('hil', {'ecu': 'virtual'})):
+        s = session(name, **kw)
+        assert s.settings.command_delay_s == s.live['command_delay_s'] == shipped
+    s = session('opt', live_overrides={'command_delay_s': 0.004})
+    assert s.settings.command_delay_s == 0.004
+    doc = yaml.safe_load(open(s.params_file))
+    sections = [v['ros__parameters'] for v in doc.values()]
+    assert sum(p.get('command_delay_s') == 0.004 for p in sections) >= 1
+    assert all(p.get('command_delay_s', 0.004) == 0.004 for p in sections)
+    with pytest.raises(ParamError, match='command_delay_s'):
+        session('bad', live_overrides={'command_delay_s': 0.02})
 
 
 def test_road_file_is_read_and_bad_rows_are_one_line(tmp_path):

@@ -6,8 +6,7 @@ import sys
 
 from erva_ros.commands._closed_loop_options import non_negative_int
 from erva_ros.commands._common import (add_json_option, add_params_option, live_type,
-                                       positive_float, print_json, realtime_priority,
-                                       settings_type)
+                                       positive_float, print_json, realtime_priority)
 from erva_ros.core import topics
 from erva_ros.core.errors import CLIError
 
@@ -51,7 +50,7 @@ FOXGLOVE_DEFAULT = '127.0.0.1:8765'
 # Checked by the parameters' own specs (the session file checks the same).
 _snr = live_type('preview_snr_db')
 _delay = live_type('preview_delay_s')
-_command_delay = settings_type('command_delay_s')
+_command_delay = live_type('command_delay_s')
 
 
 def _option(parser, flag: str, name: str, help: str, **kw) -> None:
@@ -93,9 +92,9 @@ def add_scenario_arguments(parser, duration_default: str = 'config/live.yaml: 4 
     parser.add_argument('--nmpc', metavar='FILE', default=None,
                         help='controller settings params file (default: config/nmpc.yaml)')
     parser.add_argument('--command-delay', type=_command_delay, default=None, metavar='S',
-                        help='the NMPC models this delay from the sample t_k to the command '
-                             'acting (s, < Ts; 0 = none; default: the settings file, and '
-                             'with --ecu config/hil.yaml\'s measured 0.006)')
+                        help='command delay d: each command acts at its sample t_k + d in '
+                             'the plant (or ECU), and the OCP models it (s, < Ts; 0 = the '
+                             'paper\'s ideal loop; default: config/live.yaml)')
     parser.add_argument('--live', metavar='FILE', default=None,
                         help='live-system params file (default: config/live.yaml)')
     parser.add_argument('--namespace', default=topics.NAMESPACE, metavar='NS',
@@ -161,15 +160,14 @@ def run_config(args, record_dir=None):
         live['road_file'] = os.path.abspath(args.road_file)
     if args.realtime_priority is not None:
         live['realtime_priority'] = args.realtime_priority
-    settings = {}
     if args.command_delay is not None:
-        settings['command_delay_s'] = args.command_delay
+        live['command_delay_s'] = args.command_delay
     return RunConfig(controller=args.controller, alpha1=args.alpha1, alpha2=args.alpha2,
                      road=args.road, seed=args.seed, mode=args.mode, model=args.model,
                      duration_s=args.duration, params_file=args.params, nmpc_file=args.nmpc,
                      live_file=args.live, record_dir=record_dir, namespace=args.namespace,
                      live_overrides=live, ecu=args.ecu, ecu_prefix=_ecu_prefix(args),
-                     foxglove=getattr(args, 'foxglove', None), settings_overrides=settings,
+                     foxglove=getattr(args, 'foxglove', None),
                      extra_readers=getattr(args, 'extra_readers', 0),
                      force=getattr(args, 'force', False),
                      strict=getattr(args, 'strict', False))

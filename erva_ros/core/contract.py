@@ -94,16 +94,27 @@ class Preview:
 
 @dataclass(frozen=True)
 class Command:
-    """``damping_cmd``: plan[0] = c_e to apply for sample t_k, plan[j] the plan (Ns/m)."""
+    """``damping_cmd``: plan[0] = c_e for sample t_k, plan[j] the plan for t_{k+j} (Ns/m).
+
+    Each value acts at a fixed instant, its point's time_from_start after the stamp:
+    plan[j] at t_k + d + j·Ts, where d (``delay_ns``, 0 <= d < Ts) is the loop's command
+    delay -- the logical execution time of the sample's computation.
+    """
 
     stamp_ns: int
     plan: np.ndarray
     offsets_s: Tuple[float, ...] = ()
+    delay_ns: int = 0
 
     @property
     def u(self) -> float:
         """Return the command itself, plan[0] (Ns/m)."""
         return float(self.plan[0])
+
+    @property
+    def act_ns(self) -> int:
+        """Return the instant (ns) at which the command itself acts: t_k + d."""
+        return self.stamp_ns + self.delay_ns
 
 
 @dataclass(frozen=True)
@@ -308,36 +319,47 @@ def _decode_trajectory(data: bytes):
 
 
 def _trajectory_values(data: bytes, joint: str, ts_ns: Optional[int], min_points: int,
-                       limit: Optional[str]):
+                       limit: Optional[str], delayed: bool = False):
+    """Return (stamp, values, time_from_start s, offset ns of the first point).
+
+    With ``ts_ns`` the points must lie on the Ts grid from the first one's time, which
+    is 0 -- or, ``delayed`` (a command), any d in [0, Ts).
+    """
     stamp, names, points = _decode_trajectory(data)
     if limit is not None and names != [joint]:
         raise MessageRejected(f'joint names {names} are not [{joint!r}]')
     if len(points) < min_points:
         raise MessageRejected(f'{len(points)} points, need at least {min_points}')
+    first = points[0][1] if points else 0
+    if ts_ns is not None and not (0 <= first < ts_ns if delayed else abs(first) <= GRID_TOL_NS):
+        raise MessageRejected(f'points[0].time_from_start = {first * 1e-9:g} s is not '
+                              + ('in [0, Ts)' if delayed else '0') + f' (Ts = {ts_ns / NS:g} s)')
     values = np.empty(len(points))
     for k, (positions, t_ns) in enumerate(points):
         if len(positions) != 1:
             raise MessageRejected(f'points[{k}] has {len(positions)} positions, need 1')
-        if ts_ns is not None and abs(t_ns - k * ts_ns) > GRID_TOL_NS:
-            raise MessageRejected(f'points[{k}].time_from_start is not {k}·Ts '
+        if ts_ns is not None and abs(t_ns - first - k * ts_ns) > GRID_TOL_NS:
+            lead = f'{first * 1e-9:g} s + ' if first else ''
+            raise MessageRejected(f'points[{k}].time_from_start is not {lead}{k}·Ts '
                                   f'(Ts = {ts_ns / NS:g} s)')
         values[k] = positions[0]
     if limit is not None:
         check_values(f'points.positions ({joint})', values, limit)
-    return stamp, values, tuple(t * 1e-9 for _, t in points)
+    return stamp, values, tuple(t * 1e-9 for _, t in points), first
 
 
-def _encode_trajectory(stamp_ns: int, joint: str, values: Sequence[float], ts_ns: int) -> bytes:
+def _encode_trajectory(stamp_ns: int, joint: str, values: Sequence[float], ts_ns: int,
+                       first_ns: int = 0) -> bytes:
     w = Writer().header(stamp_ns).strings((joint,)).u32(len(values))
     for k, v in enumerate(values):
-        w.doubles((float(v),)).u32(0).u32(0).u32(0).time_ns(k * ts_ns)
+        w.doubles((float(v),)).u32(0).u32(0).u32(0).time_ns(first_ns + k * ts_ns)
     return w.bytes()
 
 
 def decode_preview(data: bytes, ts_ns: Optional[int] = None, min_points: int = 1) -> Preview:
     """Return a preview; with ``ts_ns`` (a node acting on it) grid and values are checked."""
-    stamp, heights, _ = _trajectory_values(data, topics.ROAD_JOINT, ts_ns, min_points,
-                                           'road_height' if ts_ns is not None else None)
+    stamp, heights, _, _ = _trajectory_values(data, topics.ROAD_JOINT, ts_ns, min_points,
+                                              'road_height' if ts_ns is not None else None)
     return Preview(stamp, heights)
 
 
@@ -354,14 +376,22 @@ def encode_preview(stamp_ns: int, heights: Sequence[float], ts_ns: int) -> bytes
 def decode_command(data: bytes, ts_ns: Optional[int] = None, strict: bool = False) -> Command:
     """Return a damping command; ``strict`` (or ``ts_ns``): joints, grid and values checked."""
     strict = strict or ts_ns is not None
-    stamp, plan, offsets = _trajectory_values(data, topics.DAMPING_JOINT, ts_ns, 1,
-                                              'damping' if strict else None)
-    return Command(stamp, plan, offsets)
+    stamp, plan, offsets, first = _trajectory_values(
+        data, topics.DAMPING_JOINT, ts_ns, 1, 'damping' if strict else None, delayed=True)
+    return Command(stamp, plan, offsets, max(0, first))
 
 
-def encode_command(stamp_ns: int, plan: Sequence[float], ts_ns: int) -> bytes:
-    """Return plan[0] = the command, plan[j] the plan at t_k + j·Ts, as a JointTrajectory."""
-    return _encode_trajectory(stamp_ns, topics.DAMPING_JOINT, plan, ts_ns)
+def check_command_delay(cmd: Command, delay_ns: int) -> None:
+    """Raise MessageRejected unless ``cmd`` acts at the loop's command delay d."""
+    if abs(cmd.delay_ns - delay_ns) > GRID_TOL_NS:
+        raise MessageRejected(f'command acts {cmd.delay_ns * 1e-9:g} s after its sample; '
+                              f'this loop\'s command_delay_s is {delay_ns * 1e-9:g} s')
+
+
+def encode_command(stamp_ns: int, plan: Sequence[float], ts_ns: int,
+                   delay_ns: int = 0) -> bytes:
+    """Return a command as a JointTrajectory: plan[j] acts at t_k + d + j·Ts (Command)."""
+    return _encode_trajectory(stamp_ns, topics.DAMPING_JOINT, plan, ts_ns, delay_ns)
 
 
 # -- rosgraph_msgs/Clock -------------------------------------------------------------------
@@ -426,6 +456,6 @@ __all__ = ['GRID_TOL_NS', 'MEASUREMENT_LIMITS', 'NS', 's_to_ns', 'state_joint_na
            'decode_state', 'encode_state', 'decode_generator', 'encode_generator',
            'decode_measurements', 'decode_accel', 'encode_accel', 'decode_road_height',
            'encode_road_height', 'decode_preview', 'decode_command_offsets', 'encode_preview',
-           'decode_command',
-           'encode_command', 'decode_clock', 'encode_clock', 'decode_diagnostics',
-           'encode_diagnostics', 'DECODERS', 'CdrError', 'MessageRejected']
+           'decode_command', 'check_command_delay', 'encode_command', 'decode_clock',
+           'encode_clock', 'decode_diagnostics', 'encode_diagnostics', 'DECODERS', 'CdrError',
+           'MessageRejected']

@@ -8,7 +8,8 @@ session params file `erva run` writes (:func:`session_sections`), the launch fil
 arguments (:data:`LAUNCH_ARGUMENTS`, :func:`launch_arguments`) and the command line's
 options (:func:`argparse_kwargs`).  ``test/test_specs.py`` checks that they agree.
 
-The sample time ``ts`` is one parameter of the whole loop: config/live.yaml's ``/**``.
+The sample time ``ts`` and the command delay ``command_delay_s`` are parameters of the
+whole loop: config/live.yaml's ``/**``.
 """
 
 from dataclasses import dataclass
@@ -25,6 +26,10 @@ MODES = ('realtime', 'lockstep')
 #: The sample time Ts of plant, road, controller and ECU: the one spec of ``ts``.
 TS_SPEC = Number(1e-3, 1.0, 's', 'sample time Ts of the loop: plant, road, controller, ECU '
                  '(paper: 0.02)')
+#: The loop's command delay d: the one spec of ``command_delay_s`` (logical execution time).
+COMMAND_DELAY_SPEC = Number(0.0, 1.0, 's', 'command delay d: each command acts at its sample '
+                            't_k + d (plant, ECU) and the OCP plans from x(t_k + d); < ts, '
+                            '0 = the paper\'s ideal loop', lo_open=False)
 
 
 @functools.lru_cache(maxsize=None)
@@ -38,6 +43,7 @@ def live_specs() -> Dict[str, Any]:
         'model': Choice(MODEL_KINDS, 'model: erva (nonlinear, eq. (11)) or benchmark (linear, '
                         'eq. (15))'),
         'ts': TS_SPEC,
+        'command_delay_s': COMMAND_DELAY_SPEC,
         'session_id': Text('id of the `erva run` session the node belongs to, reported with '
                            'its status (\'\': none); one per session, so two sessions on one '
                            'DDS domain never count each other\'s messages'),
@@ -159,7 +165,7 @@ def _defaults(group: Group) -> Dict[str, Any]:
 
 def _controller_specs(_) -> Dict[str, Any]:
     from erva_ros.core.controllers.settings import SPECS
-    return {k: v for k, v in SPECS.items() if k != 'ts'}
+    return {k: v for k, v in SPECS.items() if k not in ('ts', 'command_delay_s')}
 
 
 def _hil(name):
@@ -239,10 +245,12 @@ SCHEMAS: Dict[str, NodeSchema] = {s.node: s for s in (
         'bump_length_m', 'bump_start_s', 'preview_steps', 'preview_noise', 'preview_snr_db',
         'preview_delay_s', 'wait_for_subscribers', 'wait_for_reader', 'start_delay_s')),)),
     NodeSchema('plant_sim_node', ((ERVA, ()), (LIVE, _LOOP + (
-        'model', 'command_timeout_s', 'lockstep_timeout_s', 'wait_for_subscribers',
-        'wait_for_reader', 'start_delay_s', 'max_stamp_lead_s', 'max_stamp_age_s')))),
+        'model', 'command_delay_s', 'command_timeout_s', 'lockstep_timeout_s',
+        'wait_for_subscribers', 'wait_for_reader', 'start_delay_s', 'max_stamp_lead_s',
+        'max_stamp_age_s')))),
     NodeSchema('nmpc_node', ((ERVA, ()), (CONTROLLER, ()), (LIVE, _LOOP + (
-        'model', 'state_timeout_periods', 'max_stamp_lead_s', 'max_stamp_age_s')))),
+        'model', 'command_delay_s', 'state_timeout_periods', 'max_stamp_lead_s',
+        'max_stamp_age_s')))),
     NodeSchema('ecu_bridge_node', ((ERVA, ()), (LIVE, _HIL), (BRIDGE, ()))),
     NodeSchema('state_estimator_node', ((ERVA, ()), (LIVE, _HIL), (ESTIMATOR, ()),
                                         (COMMAND_LINE, ('stamp_on_road_grid',)))),

@@ -152,6 +152,16 @@ class PlantSimulator:
         self.t = self.k * self.ts
         return self.x
 
+    def prepare_delay(self, delay_s: float) -> None:
+        """Build (and call once) :meth:`step_delayed`'s pieces for ``delay_s`` now.
+
+        A live plant must not pay their construction (~30 ms) in its first period: the
+        commands of the samples behind it would all be late.
+        """
+        if delay_s > 0:
+            for piece in self._split_steps(float(delay_s)):
+                piece(self.x, 0.0, 0.0, 0.0)
+
     def _split_steps(self, delay_s: float):
         if not delay_s < self.ts:
             raise ValueError(f'actuation delay {delay_s:g} s must be below Ts = {self.ts:g} s')

@@ -187,6 +187,7 @@ class PlantReport(NodeReport):
     u_from_plan: int = 0
     u_from_passive: int = 0
     late_commands: int = 0
+    command_delay_ms: float = 0.0     # d: each command acts at its sample + d
     road_gaps: int = 0
     lockstep_timeouts: int = 0
     out_of_order_commands: int = 0
@@ -196,6 +197,9 @@ class PlantReport(NodeReport):
     step_ms: Timing = field(default_factory=Timing)
     loop_latency_ms: Timing = field(default_factory=Timing)
     cmd_jitter_ms: Timing = field(default_factory=Timing)
+    # realtime: sample t_k -> its command received; the smallest d with 99.9 % on time
+    command_arrival_ms: Timing = field(default_factory=Timing)
+    arrival_p999_ms: float = math.nan
 
 
 @dataclass

@@ -5,8 +5,9 @@ A thin adapter around the controller of :func:`erva_ros.core.controllers.make_co
 :class:`erva_ros.core.loop.control_loop.ControlLoop` (which sample to solve when, what
 counts as late, the safe command without states).  For the state x(t_k) and the preview
 stamped t_k it publishes ``damping_cmd``: points[0] = u_k, points[j] = the planned
-u_{k+j} (Ns/m), stamped t_k.  ``realtime``: a 1/Ts wall-clock timer in phase with the
-state stamps; ``lockstep``: each state solved once its preview is there, no budget.
+u_{k+j} (Ns/m), stamped t_k; u_{k+j} acts at t_{k+j} + d (``command_delay_s``, which
+the OCP models).  ``realtime``: a 1/Ts wall-clock timer in phase with the state stamps;
+``lockstep``: each state solved once its preview is there, no budget.
 Inputs are validated (:mod:`erva_ros.core.contract`): a bad one never reaches a solve.
 """
 
@@ -52,6 +53,7 @@ class NMPCNode(LoopNode):
                                 self.report)
         self.loop.warm_up(len(STATE_NAMES[self.kind]))
         self.ts_ns = self.loop.ts_ns
+        self.delay_ns = int(round(settings.command_delay_s * 1e9))   # commands act at t_k + d
         self.state_rx_ns = 0         # wall time the state being solved arrived
         self._tick_timer = self._align_timer = None
         self.pub_cmd = self.publisher(JointTrajectory, topics.DAMPING_CMD)
@@ -62,8 +64,8 @@ class NMPCNode(LoopNode):
         self.status.set(OK, 'waiting for the first state')
         self.get_logger().info(
             f'{controller.name} on the {self.kind} model, {p["mode"]}, Ts = {settings.ts:g} '
-            f's, horizon {controller.horizon}, weights ({settings.alpha1:g}, '
-            f'{settings.alpha2:g}), budget {settings.time_budget_s:g} s')
+            f's, d = {settings.command_delay_s:g} s, horizon {controller.horizon}, weights '
+            f'({settings.alpha1:g}, {settings.alpha2:g}), budget {settings.time_budget_s:g} s')
 
     # -- inputs ------------------------------------------------------------------------
     def _on_state(self, data: bytes, rx_ns: int) -> None:
@@ -119,7 +121,7 @@ class NMPCNode(LoopNode):
                                         f'periods: publishing the passive command '
                                         f'{self.loop.controller.c_e0:g} Ns/m')
             plan, text = self.loop.safe()
-            self.pub_cmd.publish(contract.encode_command(safe, plan, self.ts_ns))
+            self.pub_cmd.publish(contract.encode_command(safe, plan, self.ts_ns, self.delay_ns))
             self.status.set(ERROR, text)
 
     # -- solving -----------------------------------------------------------------------
@@ -127,7 +129,7 @@ class NMPCNode(LoopNode):
         """Solve one sample and publish its command with the plan."""
         out: Output = self.loop.solve(job)
         self.pub_cmd.publish(contract.encode_command(out.stamp_ns, np.asarray(out.plan),
-                                                     self.ts_ns))
+                                                     self.ts_ns, self.delay_ns))
         change = self.loop.published(out, time.time_ns(), self.state_rx_ns)
         if change is not None:
             self.status.set(*change)

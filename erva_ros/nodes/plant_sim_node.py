@@ -6,7 +6,8 @@ publishes ``state`` at t_{k+1} and ``sprung_accel`` and ``generator`` at t_k.
 ``realtime``: the road's wall-clock samples set the pace (and the node measures the
 loop as it sees it: state out -> command back, the command period jitter).
 ``lockstep``: it publishes ``/clock`` and waits for each sample's command (at most
-``lockstep_timeout_s`` of wall time): deterministic, and equal to `erva sim`.
+``lockstep_timeout_s`` of wall time): deterministic, and equal to `erva sim`.  Each
+command acts at its sample + ``command_delay_s`` (and must say so: the contract).
 """
 
 import time
@@ -60,7 +61,8 @@ class PlantSimNode(LoopNode):
         self.status.set(OK, 'waiting for the nodes before publishing /clock' if self.lockstep
                         else 'waiting for the road')
         self.get_logger().info(f'{self.loop.kind} plant, {p["mode"]}, Ts = {p["ts"]:g} s, '
-                               f'{self.loop.n_steps} steps ({p["duration_s"]:g} s)')
+                               f'd = {p["command_delay_s"]:g} s, {self.loop.n_steps} steps '
+                               f'({p["duration_s"]:g} s)')
 
     def _on_height(self, data: bytes, rx_ns: int) -> None:
         try:
@@ -106,6 +108,7 @@ class PlantSimNode(LoopNode):
         try:
             cmd = contract.decode_command(data, self.loop.ts_ns)
             self.window.check('command', cmd.stamp_ns, self.now_ns())
+            contract.check_command_delay(cmd, self.loop.delay_ns)
         except MessageRejected as exc:
             self.reject(topics.DAMPING_CMD, str(exc))
             return
@@ -113,7 +116,7 @@ class PlantSimNode(LoopNode):
             # The loop as the plant sees it: its state out -> the command for it back.
             self.loop.loop_latency.add((rx_ns - self._state_pub_ns) * 1e-9)
             self.loop.cmd_period.mark(rx_ns * 1e-9)
-        if self.loop.on_command(cmd.stamp_ns, cmd.plan):
+        if self.loop.on_command(cmd.stamp_ns, cmd.plan, rx_ns):
             self._decide()
             self._tick_clock()
 

@@ -7,6 +7,7 @@ report.
 ``scheduling``, ``plant``, ``road`` (and ``hil``), ``events`` and ``messages``.
 """
 
+import math
 from typing import Any, Dict, Optional
 
 import numpy as np
@@ -29,8 +30,9 @@ NMPC_TIMINGS = ('solve_ms', 'latency_ms', 'cmd_jitter_ms', 'tick_jitter_ms')
 #: The plant's counters and timings in the summary.
 PLANT_COUNTERS = ('steps', 'u_from_command', 'u_from_plan', 'u_from_passive', 'late_commands',
                   'road_gaps', 'lockstep_timeouts', 'rejected_road_height',
-                  'rejected_damping_cmd')
-PLANT_TIMINGS = ('loop_latency_ms', 'cmd_jitter_ms', 'road_latency_ms', 'step_ms')
+                  'rejected_damping_cmd', 'command_delay_ms', 'arrival_p999_ms')
+PLANT_TIMINGS = ('loop_latency_ms', 'cmd_jitter_ms', 'road_latency_ms', 'step_ms',
+                 'command_arrival_ms')
 
 
 def stats(timing: Optional[Timing]) -> Dict[str, Any]:
@@ -99,6 +101,27 @@ def commands(obs, ts: float, realtime: bool) -> Dict[str, Any]:
         'state_to_command_ms': percentiles_ms(
             [(c[1] - obs.state_rx[c[0]]) * 1e-9 for c in scheduled])}
     return out
+
+
+def actuation(plant_block: Dict[str, Any], for_samples: int) -> Dict[str, Any]:
+    """Return the timing model's figures: d, late commands, arrival, the d they would need.
+
+    Each command acts at its sample t_k + d (logical execution time); it must arrive by
+    then.  ``arrival_ms`` is t_k -> command received where it acts (plant or ECU), and
+    ``smallest_delay_ms`` the least d that would have had 99.9 % of them on time (their
+    p99.9).  ``actuation_jitter_ms`` is the actual application instant − t_k − d: the
+    ECU measures its own; the simulated plant applies at t_k + d exactly (None).
+    """
+    late = plant_block.get('late_commands')
+    p999 = plant_block.get('arrival_p999_ms')
+    return {'command_delay_ms': plant_block.get('command_delay_ms'),
+            'late': late,
+            'late_pct': (100.0 * late / for_samples if late is not None and for_samples
+                         else None),
+            'arrival_ms': plant_block.get('command_arrival_ms', stats(None)),
+            'smallest_delay_ms': (None if p999 is None or p999 != p999
+                                  else math.ceil(p999 * 10) / 10),
+            'actuation_jitter_ms': plant_block.get('actuation_jitter_ms')}
 
 
 def nmpc(obs) -> Dict[str, Any]:
@@ -173,10 +196,12 @@ def summary(obs, ts: float, n_steps: int, realtime: bool) -> Dict[str, Any]:
     if obs.hil:
         out['hil'] = hil_summary.hil_block(obs.report, obs.states, obs.truth, obs.events,
                                            obs.finished_rx.get(hil_summary.ECU))
+    if realtime:
+        out['commands']['actuation'] = actuation(out['plant'], out['commands']['for_samples'])
     out['events'] = events(obs)
     out['messages'] = messages(obs, rejected(obs, out['plant']))
     return out
 
 
-__all__ = ['MAX_EVENTS', 'stats', 'metrics', 'commands', 'nmpc', 'scheduling', 'plant', 'road',
-           'rejected', 'events', 'messages', 'summary']
+__all__ = ['MAX_EVENTS', 'stats', 'metrics', 'commands', 'actuation', 'nmpc', 'scheduling',
+           'plant', 'road', 'rejected', 'events', 'messages', 'summary']

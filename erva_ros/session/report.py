@@ -12,6 +12,7 @@ TARGETS = {
     'latency_p99_ms': 5.0,
     'deadline_misses': 0,
     'dropped_messages': 0,
+    'late_commands_pct': 0.1,         # commands after their instant t_k + d, below
 }
 
 
@@ -46,6 +47,21 @@ def print_json(obj: Any) -> None:
     json.dump(obj, sys.stdout, indent=2, allow_nan=False)
     sys.stdout.write('\n')
     sys.stdout.flush()
+
+
+def _actuation_lines(act: Dict[str, Any]):
+    """Return the timing model's lines: commands act at t_k + d; late; the d they need."""
+    pct = act.get('late_pct')
+    need = act.get('smallest_delay_ms')
+    lines = [f'  timing    commands act at t_k + d, d = {act["command_delay_ms"]:g} ms: late '
+             f'{act.get("late")}' + ('' if pct is None else f' ({pct:.2g} %)')
+             + ('' if need is None else
+                f'; the smallest d with 99.9 % on time was {need:g} ms'),
+             f'            sample time -> command where it acts {_ms(act.get("arrival_ms"))}']
+    jitter = act.get('actuation_jitter_ms')
+    lines.append('            actuation instant - (t_k + d) '
+                 + (_ms(jitter) if jitter else '0 (simulated actuator: exact)'))
+    return lines
 
 
 def format_summary(s: Dict[str, Any]) -> str:
@@ -85,6 +101,9 @@ def format_summary(s: Dict[str, Any]) -> str:
         lines.append(f'  latency   state -> command at the monitor '
                      f'{_ms(cmd["monitor"]["state_to_command_ms"])}')
         lines.append(f'            sample time -> command {_ms(cmd["sample_to_command_ms"])}')
+    act = cmd.get('actuation')
+    if act and act.get('command_delay_ms') is not None:
+        lines.extend(_actuation_lines(act))
     lines.append(f'  solve     {_ms(nm.get("solve_ms"))}')
     lines.append(f'  deadlines {nm.get("deadline_misses")} missed; controller fallbacks: plan '
                  f'{nm.get("controller_fallback_plan")}, passive '

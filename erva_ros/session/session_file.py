@@ -16,7 +16,7 @@ from typing import Any, Dict, Optional
 import yaml
 
 from erva_ros.core import topics
-from erva_ros.core.config import shipped_config, shipped_defaults
+from erva_ros.core.config import shipped_config
 from erva_ros.core.controllers.settings import load_controller_settings
 from erva_ros.core.errors import CLIError
 from erva_ros.core.loop.scenario import build_road, required_preview_steps
@@ -105,6 +105,7 @@ def live_values(cfg: RunConfig, settings, recording: bool) -> Dict[str, Any]:
     live_path = cfg.live_file or default_config_file('live.yaml')
     values = read_live_file(live_path)
     values['ts'] = settings.ts
+    values['command_delay_s'] = settings.command_delay_s
     # A 64-bit nonce: the nodes report it, so another session on the same DDS domain
     # (or a stale node of an earlier one) is never counted as this one's.
     values['session_id'] = secrets.token_hex(8)
@@ -141,7 +142,8 @@ def session_params(erva: Dict[str, float], settings, live: Dict[str, Any]) -> Di
     Which section each value goes to comes from the nodes' schemas
     (:func:`erva_ros.core.node_params.session_sections`).
     """
-    values = {**live, **erva, **{k: v for k, v in settings.as_dict().items() if k != 'ts'}}
+    own = {k: v for k, v in settings.as_dict().items() if k not in ('ts', 'command_delay_s')}
+    values = {**live, **erva, **own}
     doc = session_sections(values)
     if live['mode'] == 'lockstep':
         doc['/**']['ros__parameters']['use_sim_time'] = True
@@ -153,12 +155,11 @@ def prepare_session(cfg: RunConfig, recording: bool) -> Session:
     erva = load_erva_params(cfg.params_file)
     # The loop's sample time is the live file's (the controller runs at it).
     live_file = read_live_file(cfg.live_file)
+    # So is the command delay d: the OCP models the d at which plant and ECU apply.
+    loop = {key: cfg.live_overrides.get(key, live_file.get(key, LIVE.defaults()[key]))
+            for key in ('ts', 'command_delay_s')}
     overrides = {'controller': cfg.controller, 'alpha1': cfg.alpha1, 'alpha2': cfg.alpha2,
-                 'ts': live_file.get('ts', LIVE.defaults()['ts'])}
-    if cfg.ecu != 'none':
-        # The HIL loop's own NMPC settings (config/hil.yaml): the command acts a measured
-        # delay after its sample there, and the OCP models it (docs/hil.md §3).
-        overrides.update(shipped_defaults('hil.yaml', 'nmpc_node'))
+                 **loop}
     overrides.update(cfg.settings_overrides)
     settings = load_controller_settings(cfg.nmpc_file, overrides)
     live = live_values(cfg, settings, recording)

@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, Dict, Mapping, Optional, Tuple
 
 from erva_ros.core.params import ERVA_SPECS, ParamError, read_ros_params
-from erva_ros.core.node_params import TS_SPEC
+from erva_ros.core.node_params import COMMAND_DELAY_SPEC, TS_SPEC
 from erva_ros.core.specs import Choice, Integer, Number
 
 #: Controllers understood by make_controller (and `erva sim --controller`).
@@ -51,9 +51,7 @@ NUMERIC_SPECS: Dict[str, Number] = {
     'ipopt_starts': Integer(1, 4, 'starts', 'IPOPT reference: converge from the warm start, '
                             '+ constant c_e0, + first move at u_max, + at u_min; keep the best'),
     'time_budget_s': Number(0.0, 10.0, 's', 'solve time beyond which the plan is not used'),
-    'command_delay_s': Number(0.0, 1.0, 's', 'known delay from the sample t_k to the command '
-                              'acting (0: none); plan from x(t_k + delay), < ts',
-                              lo_open=False),
+    'command_delay_s': COMMAND_DELAY_SPEC,
     'collocation_degree': Integer(1, 6, '-', 'Radau collocation points per interval (model)'),
     'long_steps': Integer(0, 200, 'steps', 'preview_long: coarse intervals after the first N'),
     'long_step_s': Number(1e-3, 1.0, 's', 'preview_long: length of a coarse interval'),
@@ -120,7 +118,9 @@ class ControllerSettings:
     ipopt_max_iter: int = _SHIPPED['ipopt_max_iter']
     ipopt_starts: int = _SHIPPED['ipopt_starts']
     time_budget_s: float = _SHIPPED['time_budget_s']
-    command_delay_s: float = _SHIPPED['command_delay_s']
+    # Offline the paper's ideal loop (the command acts at its sample); the live loop's d
+    # is config/live.yaml's, one value for the OCP, the plant and the ECU.
+    command_delay_s: float = 0.0
     collocation_degree: int = _SHIPPED['collocation_degree']
     road_prediction: str = _SHIPPED['road_prediction']
     long_steps: int = _SHIPPED['long_steps']

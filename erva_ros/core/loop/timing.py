@@ -65,19 +65,22 @@ class DurationStats:
     def __len__(self) -> int:
         return self._count
 
+    def quantile(self, q: float) -> float:
+        """Return a quantile, e.g. 0.999 (s; NaN without samples), as :meth:`summary` does."""
+        if not self._count:
+            return math.nan
+        if self._hist is None:
+            return float(np.percentile(np.fromiter(self._samples, float), 100 * q))
+        k = int(np.searchsorted(np.cumsum(self._hist), q * self._count))  # bin of that rank
+        centre = math.exp(_LOG_LO + (k + 0.5) * _LOG_STEP) if k else 0.0
+        return min(centre, self._max)
+
     def summary(self) -> Dict[str, float]:
         """Return {'p50', 'p99', 'max' (ms), 'samples'}."""
         if self._hist is None:
             return percentiles_ms(list(self._samples))
-        cdf = np.cumsum(self._hist)
-        out = {}
-        for key, q in (('p50', 0.50), ('p99', 0.99)):
-            k = int(np.searchsorted(cdf, q * self._count))   # the bin holding that rank
-            centre = math.exp(_LOG_LO + (k + 0.5) * _LOG_STEP) if k else 0.0
-            out[key] = min(centre, self._max) * 1e3
-        out['max'] = self._max * 1e3
-        out['samples'] = self._count
-        return out
+        return {'p50': self.quantile(0.5) * 1e3, 'p99': self.quantile(0.99) * 1e3,
+                'max': self._max * 1e3, 'samples': self._count}
 
 
 class PeriodStats:
