@@ -46,6 +46,7 @@ setup(
             'ros-jazzy-builtin-interfaces',
             'ros-jazzy-ament-index-python',
             'ros-jazzy-rosidl-parser',    # ros/cdr.py: message definitions
+            'ros-jazzy-lifecycle-msgs',   # managed nodes (ros/lifecycle.py)
         ],
         'hil': ['python-can', 'cantools'],
         # `erva run --foxglove`, `erva replay --foxglove`: the Foxglove WebSocket server;

@@ -2,6 +2,13 @@
 
     ros2 launch erva_ros erva.launch.py
     ros2 launch erva_ros erva.launch.py mode:=lockstep controller:=no_preview seed:=3
+    ros2 launch erva_ros erva.launch.py autostart:=false     # managed by you
+
+The nodes are lifecycle (managed) nodes.  With ``autostart:=true`` (default) this
+file brings them up as `erva run` does: it configures them one by one, then activates
+them in ACTIVATION_ORDER (the controller first, the time master last -- the road in
+real time, the plant in lock-step).  With ``autostart:=false`` they stay unconfigured
+for your lifecycle manager or ``ros2 lifecycle set /erva/<node> configure|activate``.
 
 The same system `erva run` starts (without its monitor and recorder; record with
 ``ros2 bag record -s mcap /erva/state ...`` or ``ros2 run erva_ros recorder_node``).
@@ -16,6 +23,7 @@ Importing this file needs no ROS (only erva_ros's core): the launch imports are 
 import os
 
 from erva_ros.core.node_params import launch_arguments, LOOP_NODES
+from erva_ros.session.run_config import ACTIVATION_ORDER
 from erva_ros.core.params import read_ros_params
 from erva_ros.core.topics import NAMESPACE
 
@@ -39,13 +47,60 @@ def node_section(path: str, node: str) -> dict:
     return read_ros_params(path, node, wildcard=False, required=False)
 
 
+def bring_up(nodes, order):
+    """Return the event handlers that configure ``nodes`` in ``order``, then activate them.
+
+    ``nodes``: {name: LifecycleNode action}.  Each step waits for the previous node to
+    reach its state (configure: inactive; activate: active).
+    """
+    from launch.actions import EmitEvent, RegisterEventHandler
+    from launch.event_handlers import OnProcessStart
+    from launch.events import matches_action
+    from launch_ros.event_handlers import OnStateTransition
+    from launch_ros.events.lifecycle import ChangeState
+    from lifecycle_msgs.msg import Transition
+
+    def change(name, transition):
+        return EmitEvent(event=ChangeState(lifecycle_node_matcher=matches_action(nodes[name]),
+                                           transition_id=transition))
+    steps = ([(name, Transition.TRANSITION_CONFIGURE, 'inactive') for name in order]
+             + [(name, Transition.TRANSITION_ACTIVATE, 'active') for name in order])
+    handlers = [RegisterEventHandler(OnProcessStart(target_action=nodes[order[0]],
+                                                    on_start=[change(*steps[0][:2])]))]
+    for (name, _, reached), (following, transition, _) in zip(steps, steps[1:]):
+        handlers.append(RegisterEventHandler(OnStateTransition(
+            target_lifecycle_node=nodes[name], goal_state=reached,
+            entities=[change(following, transition)])))
+    return handlers
+
+
+def _nodes(context, paper, nmpc, live, overrides):
+    """Return the nodes and, with autostart, their bring-up (an OpaqueFunction's body)."""
+    from launch.substitutions import LaunchConfiguration
+    from launch_ros.actions import LifecycleNode
+
+    nodes = {}
+    for name in NODES:
+        params = [paper, live]
+        if name == 'nmpc_node':
+            params.append(node_section(nmpc, 'nmpc_node'))
+        params.append({**overrides, 'autostart': False})   # this file drives them
+        nodes[name] = LifecycleNode(package='erva_ros', executable=name, name=name,
+                                    namespace=LaunchConfiguration('namespace'),
+                                    parameters=params, output='screen', emulate_tty=True)
+    actions = list(nodes.values())
+    if LaunchConfiguration('autostart').perform(context).lower() in ('true', '1'):
+        mode = LaunchConfiguration('mode').perform(context)
+        actions += bring_up(nodes, ACTIVATION_ORDER[mode])
+    return actions
+
+
 def generate_launch_description():
     """Return the launch description of the live system."""
     from ament_index_python.packages import get_package_share_directory
     from launch import LaunchDescription
-    from launch.actions import DeclareLaunchArgument
+    from launch.actions import DeclareLaunchArgument, OpaqueFunction
     from launch.substitutions import LaunchConfiguration, PythonExpression
-    from launch_ros.actions import Node
     from launch_ros.parameter_descriptions import ParameterValue
 
     config = os.path.join(get_package_share_directory('erva_ros'), 'config')
@@ -53,17 +108,9 @@ def generate_launch_description():
     declared = [DeclareLaunchArgument(name, default_value=default, description=doc)
                 for name, default, _, doc in ARGUMENTS]
     overrides = {name: ParameterValue(LaunchConfiguration(name), value_type=kind)
-                 for name, _, kind, _ in ARGUMENTS if name != 'namespace'}
+                 for name, _, kind, _ in ARGUMENTS if name not in ('namespace', 'autostart')}
     overrides['use_sim_time'] = ParameterValue(
         PythonExpression(["'", LaunchConfiguration('mode'), "' == 'lockstep'"]),
         value_type=bool)
-    nodes = []
-    for name in NODES:
-        params = [paper, live]
-        if name == 'nmpc_node':
-            params.append(node_section(nmpc, 'nmpc_node'))
-        params.append(overrides)
-        nodes.append(Node(package='erva_ros', executable=name, name=name,
-                          namespace=LaunchConfiguration('namespace'), parameters=params,
-                          output='screen', emulate_tty=True))
-    return LaunchDescription(declared + nodes)
+    return LaunchDescription(declared + [OpaqueFunction(
+        function=_nodes, args=[paper, nmpc, live, overrides])])

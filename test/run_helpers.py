@@ -18,9 +18,13 @@ def start_run(*args):
                             env=ros_env(), cwd=REPO, start_new_session=True)
 
 
-def wait_connected(proc, timeout=120.0):
-    """Read erva run's stderr until it is connected; return {node: pid} it reported."""
-    pids, lines = {}, []
+def wait_connected(proc, timeout=120.0, lines=None):
+    """Read erva run's stderr until it is connected; return {node: pid} it reported.
+
+    The lines read go to ``lines`` (a list) if given.
+    """
+    pids = {}
+    lines = [] if lines is None else lines
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         line = proc.stderr.readline()

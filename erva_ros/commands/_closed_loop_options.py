@@ -97,9 +97,9 @@ def add_settings_options(parser: argparse.ArgumentParser, controller: bool = Tru
     option('--u-min', 'u_min', 'lower bound of the damping command', metavar='NS_PER_M')
     option('--u-max', 'u_max', 'upper bound of the damping command', metavar='NS_PER_M')
     option('--command-delay', 'command_delay_s',
-           'compensate a known delay from the sample to the command acting: plan from the '
-           'state predicted S seconds ahead (S < ts; default: command_delay_s in the '
-           'settings file, 0)', metavar='S')
+           'the OCP models a command delay d = S: the command acts at t_k + d, planned '
+           'from the state predicted to then (S < ts; offline default 0, the paper\'s loop; '
+           'live loops: config/live.yaml)', metavar='S')
 
 
 def add_road_options(parser: argparse.ArgumentParser, seed: bool = True) -> None:

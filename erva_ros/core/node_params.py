@@ -44,6 +44,8 @@ def live_specs() -> Dict[str, Any]:
                         'eq. (15))'),
         'ts': TS_SPEC,
         'command_delay_s': COMMAND_DELAY_SPEC,
+        'autostart': Flag('configure and activate at start-up (false: a managed node, '
+                          'driven by `erva run` or `ros2 lifecycle set`)'),
         'session_id': Text('id of the `erva run` session the node belongs to, reported with '
                            'its status (\'\': none); one per session, so two sessions on one '
                            'DDS domain never count each other\'s messages'),
@@ -235,9 +237,9 @@ class NodeSchema:
 
 
 #: What every loop node declares from the live group.
-_LOOP = ('mode', 'ts', 'session_id', 'duration_s', 'diagnostics_period_s',
+_LOOP = ('autostart', 'mode', 'ts', 'session_id', 'duration_s', 'diagnostics_period_s',
          'reject_log_period_s', 'publisher_history_s', 'realtime_priority')
-_HIL = ('ts', 'model', 'session_id', 'realtime_priority', 'publisher_history_s')
+_HIL = ('autostart', 'ts', 'model', 'session_id', 'realtime_priority', 'publisher_history_s')
 
 SCHEMAS: Dict[str, NodeSchema] = {s.node: s for s in (
     NodeSchema('road_preview_node', ((LIVE, _LOOP + (
@@ -286,7 +288,7 @@ def session_sections(values: Mapping[str, Any], nodes: Sequence[str] = LOOP_NODE
 
 
 #: The launch file's arguments (besides ``namespace``): parameters of the loop's nodes.
-LAUNCH_ARGUMENTS = ('mode', 'model', 'controller', 'alpha1', 'alpha2', 'road', 'seed',
+LAUNCH_ARGUMENTS = ('autostart', 'mode', 'model', 'controller', 'alpha1', 'alpha2', 'road', 'seed',
                     'duration_s')
 
 

@@ -94,6 +94,7 @@ class NodeReport:
     final: bool = False
     finished: bool = False
     scheduling: str = 'off'
+    lifecycle: str = ''       # managed nodes: unconfigured | inactive | active
     published: Dict[str, int] = keyed('published:')
     subscribers: Dict[str, int] = keyed('subscribers:')
 

@@ -20,7 +20,7 @@ from trajectory_msgs.msg import JointTrajectory
 from erva_ros.core import contract, topics
 from erva_ros.core.controllers import make_controller
 from erva_ros.core.controllers.settings import NUMERIC_SPECS, SPECS, validate_settings
-from erva_ros.core.levels import ERROR, OK
+from erva_ros.core.levels import ERROR, OK, WARN
 from erva_ros.core.loop.control_loop import ControlLoop, Output
 from erva_ros.core.loop.sample_schedule import Job
 from erva_ros.core.loop.timing import next_grid_delay_ns
@@ -38,8 +38,7 @@ class NMPCNode(LoopNode):
     NAME = 'nmpc_node'
     REPORT = NMPCReport
 
-    def __init__(self):
-        super().__init__(self.NAME)
+    def configure(self) -> None:
         p = self.p
         self.kind = p['model']
         self.lockstep = p['mode'] == 'lockstep'
@@ -61,11 +60,21 @@ class NMPCNode(LoopNode):
         self.subscribe(JointTrajectory, topics.ROAD_PREVIEW, self._on_preview)
         self.subscribe(JointState, topics.STATE, self._on_state)
         self.status_timer(2 * settings.ts)
-        self.status.set(OK, 'waiting for the first state')
         self.get_logger().info(
             f'{controller.name} on the {self.kind} model, {p["mode"]}, Ts = {settings.ts:g} '
             f's, d = {settings.command_delay_s:g} s, horizon {controller.horizon}, weights '
             f'({settings.alpha1:g}, {settings.alpha2:g}), budget {settings.time_budget_s:g} s')
+
+    # -- lifecycle ---------------------------------------------------------------------
+    def activate(self) -> None:
+        if self.loop.sched.first_stamp is not None:     # again, after a deactivate
+            self.loop.sched.resume()
+            self.loop.controller.reset()                # its warm start is stale
+            self.loop.cmd_period.restart()
+        self.status.set(OK, 'waiting for the first state')
+
+    def deactivate(self) -> None:
+        self.status.set(WARN, 'inactive: no command is published')
 
     # -- inputs ------------------------------------------------------------------------
     def _on_state(self, data: bytes, rx_ns: int) -> None:
@@ -107,7 +116,7 @@ class NMPCNode(LoopNode):
         """Run at the first grid instant: start the periodic timer and act as its tick."""
         self._align_timer.cancel()
         self.destroy_timer(self._align_timer)
-        self._tick_timer = self.create_timer(self.loop.ts, self._on_tick)
+        self._tick_timer = self.timer(self.loop.ts, self._on_tick)
         self.loop.sched.armed = True   # the first tick is a period away: the next state is due
 
     def _on_tick(self) -> None:

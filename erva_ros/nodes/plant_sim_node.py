@@ -34,8 +34,7 @@ class PlantSimNode(LoopNode):
     NAME = 'plant_sim_node'
     REPORT = PlantReport
 
-    def __init__(self):
-        super().__init__(self.NAME)
+    def configure(self) -> None:
         p = self.p
         self.loop = PlantLoop(validate_erva({k: p[k] for k in ERVA_SPECS}), p, self.report)
         self.report.hardware_id = f'plant:{self.loop.kind}'
@@ -57,12 +56,15 @@ class PlantSimNode(LoopNode):
         self.sub_height = self.subscribe(PointStamped, topics.ROAD_HEIGHT, self._on_height)
         self.status_timer(2 * p['ts'])
         if self.lockstep:   # wall-clock timer: sim time stands still while the plant waits
-            self.create_timer(0.05, self._on_lockstep_timer, clock=self.steady)
-        self.status.set(OK, 'waiting for the nodes before publishing /clock' if self.lockstep
-                        else 'waiting for the road')
+            self.timer(0.05, self._on_lockstep_timer, clock=self.steady)
         self.get_logger().info(f'{self.loop.kind} plant, {p["mode"]}, Ts = {p["ts"]:g} s, '
                                f'd = {p["command_delay_s"]:g} s, {self.loop.n_steps} steps '
                                f'({p["duration_s"]:g} s)')
+
+    def activate(self) -> None:
+        if self.loop.k is None:
+            self.status.set(OK, 'waiting for the nodes before publishing /clock'
+                            if self.lockstep else 'waiting for the road')
 
     def _on_height(self, data: bytes, rx_ns: int) -> None:
         try:

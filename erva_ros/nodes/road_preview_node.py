@@ -9,8 +9,9 @@ ISO 8608, bump, sine, or a recorded CSV profile), publishing for every sample t_
 
 Modes: ``realtime`` -- a wall-clock timer at 1/Ts, started once both topics have
 ``wait_for_subscribers`` subscribers (one of them ``wait_for_reader``'s, see
-:mod:`erva_ros.ros.time_master`) plus ``start_delay_s``; it is the time base of the
-live run.  ``lockstep`` -- one sample per ``/clock`` message from the plant.
+:mod:`erva_ros.ros.time_master`) plus ``start_delay_s`` once active; it is the time
+base of the live run (deactivated, it skips the samples meanwhile, counted).
+``lockstep`` -- one sample per ``/clock`` message from the plant.
 """
 
 import time
@@ -35,8 +36,7 @@ class RoadPreviewNode(LoopNode):
     NAME = 'road_preview_node'
     REPORT = RoadReport
 
-    def __init__(self):
-        super().__init__(self.NAME)
+    def configure(self) -> None:
         self.source = RoadSource(self.p, self.report)
         self.report.hardware_id = f'road:{self.source.road.name}'
         self._settling = Settling(self.p['start_delay_s'])
@@ -49,16 +49,18 @@ class RoadPreviewNode(LoopNode):
         self.pub_height = self.publisher(PointStamped, topics.ROAD_HEIGHT)
         self.status_timer(2 * self.source.ts)
         if self.p['mode'] == 'realtime':
-            self._start_timer = self.create_timer(0.01, self._on_start_timer,
-                                                  clock=self.steady)
-            self.status.set(OK, 'waiting for subscribers')
-        else:
-            self.status.set(OK, 'waiting for /clock')
+            self._start_timer = self.timer(0.01, self._on_start_timer, clock=self.steady)
         model = self.source.error_model
         self.get_logger().info(
             f'road {self.source.road.name}, {self.source.n_samples} samples of '
             f'{self.source.ts:g} s, preview {self.p["preview_steps"]} steps, error model '
             f'{"perfect" if model.is_perfect else model}')
+
+    def activate(self) -> None:
+        if self.p['mode'] == 'lockstep':
+            self.status.set(OK, 'waiting for /clock')
+        elif self._sample_timer is None:
+            self.status.set(OK, 'waiting for subscribers')
 
     def _publish(self, s: RoadSample) -> None:
         self.pub_height.publish(contract.encode_road_height(s.stamp_ns, s.distance_m,
@@ -83,7 +85,7 @@ class RoadPreviewNode(LoopNode):
         self._start_timer.cancel()
         # rcl timers fire at creation + m·period without drift; the grid is anchored at the
         # first firing's scheduled instant (below), so no sample is stamped ahead of its time.
-        self._sample_timer = self.create_timer(self.source.ts, self._on_sample_timer)
+        self._sample_timer = self.timer(self.source.ts, self._on_sample_timer)
         self.status.set(OK, 'running')
 
     def _on_sample_timer(self) -> None:

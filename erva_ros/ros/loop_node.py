@@ -1,34 +1,49 @@
 """The skeleton every erva node is built on: written once, so a node file holds only its wiring.
 
-:class:`LoopNode` owns what each node needs besides its own core:
+:class:`LoopNode` is a ROS 2 managed (lifecycle) node that owns what each node needs
+besides its own core:
 
 * its parameters, declared from its schema (:data:`erva_ros.core.node_params.SCHEMAS`,
-  the node's name is the key) with descriptors: ``self.p``;
+  the node's name is the key) with descriptors: ``self.p`` (read-only: a bad value
+  stops the node at start-up with one line);
 * its typed report (:mod:`erva_ros.core.reports`) and the :class:`StatusReporter` that
-  publishes it on ``/diagnostics``: ``self.report``, ``self.status``;
-* counted publishers (``published`` per topic in the report: the session's loss
-  accounting) and raw subscriptions whose callbacks get the CDR bytes and the
-  middleware's reception time (the message families of :mod:`erva_ros.core.contract`
-  decode them);
-* the steady clock for its timers, the input rejections (counted, logged at a limited
-  rate), its real-time priority (applied by :func:`erva_ros.ros.runtime.run_node` once
-  the node is built) and the one shutdown protocol (:meth:`stop`).
+  publishes it on ``/diagnostics`` in every lifecycle state: ``self.report``,
+  ``self.status``;
+* counted lifecycle publishers (``published`` per topic in the report: the session's
+  loss accounting; they publish only while the node is active), raw subscriptions whose
+  callbacks get the CDR bytes and the middleware's reception time (dropped unless
+  active) and loop timers (idle unless active);
+* the steady clock, the input rejections (counted, logged at a limited rate), its
+  real-time priority (applied at the first activation) and the one shutdown protocol
+  (:meth:`stop`).
 
-Hooks a node may override: :meth:`refresh_report` (bring the report's figures up to date
-before a status goes out), :meth:`started` (after the priority is set, e.g. start
-threads) and :meth:`stop` (the shutdown protocol; the recorder finishes its bag there).
+Lifecycle (rclpy.lifecycle, the services ``ros2 lifecycle`` uses): the node starts
+*unconfigured*; ``configure`` builds its core, publishers, subscriptions and timers
+(:meth:`configure`), ``activate`` lets it act, ``deactivate`` stops it acting (no
+command, no sample goes out; inputs are dropped), ``cleanup`` takes back what configure
+built.  With the parameter ``autostart`` (default true) the node configures and
+activates itself at start-up, as `ros2 run` users expect; `erva run` and the launch
+file's ``autostart:=false`` drive the transitions instead (docs/live.md).
+
+Hooks a node may override: :meth:`configure`, :meth:`activate`, :meth:`deactivate`,
+:meth:`refresh_report` (bring the report's figures up to date before a status goes
+out), :meth:`started` (once active at its priority, e.g. start threads) and :meth:`stop`
+(the shutdown protocol; the recorder finishes its bag there).
 """
 
+import gc
 import time
 from typing import Callable, List, Optional, Type
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 
 from erva_ros.core import topics
+from erva_ros.core.levels import ERROR
 from erva_ros.core.loop.status import StatusReporter
+from erva_ros.core.params import ParamError
 from erva_ros.core.loop.validation import Rejections, StampWindow
 from erva_ros.core.reports import NodeReport
 from erva_ros.ros import qos as ros_qos
@@ -39,7 +54,7 @@ SLICE_S = 0.1
 
 
 class CountedPublisher:
-    """A publisher that counts what it published, for the session's loss accounting."""
+    """A (lifecycle) publisher that counts what it published, for the loss accounting."""
 
     def __init__(self, publisher):
         self.publisher = publisher
@@ -47,7 +62,9 @@ class CountedPublisher:
         self.count = 0
 
     def publish(self, msg) -> None:
-        """Publish ``msg`` (a message or its CDR bytes) and count it."""
+        """Publish ``msg`` (a message or its CDR bytes) and count it (only while active)."""
+        if not getattr(self.publisher, 'is_activated', True):
+            return
         self.publisher.publish(msg)
         self.count += 1
 
@@ -56,15 +73,25 @@ class CountedPublisher:
         return self.publisher.get_subscription_count()
 
 
-class LoopNode(Node):
-    """An erva node: parameters, report, status, clocks, publishers, shutdown (module doc)."""
+class LoopNode(LifecycleNode):
+    """An erva node: parameters, report, status, lifecycle, publishers, shutdown (module doc)."""
 
     #: The node's report type.
     REPORT: Type[NodeReport] = NodeReport
 
-    def __init__(self, name: str, hardware_id: str = '', namespace: Optional[str] = None):
+    #: The node's name (the key of its schema).
+    NAME = ''
+
+    def __init__(self, name: str = '', hardware_id: str = '', namespace: Optional[str] = None):
+        name = name or self.NAME
         super().__init__(name, **({'namespace': namespace} if namespace else {}))
         self.p = declare_node_parameters(self, name)
+        self.autostart = self.p.get('autostart', True)
+        self.active = False
+        self.configured = False
+        self.config_error: Optional[ParamError] = None
+        self._built: List = []            # (destroy, entity) of what configure made
+        self._prioritised = False
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.scheduling = 'off'
         self.report = self.REPORT(node=self.get_fully_qualified_name(), hardware_id=hardware_id,
@@ -80,6 +107,11 @@ class LoopNode(Node):
         #: other processes at real-time priority.
         self.realtime_priority = (self.p.get('realtime_priority', 0)
                                   if self.p.get('mode', 'realtime') == 'realtime' else 0)
+        self.report.lifecycle = 'unconfigured'
+        self.report.message = 'unconfigured'
+        self._status_timer = None
+        if 'diagnostics_period_s' in self.p:    # seen in every state; configure may refine it
+            self.status_timer()
 
     # -- building blocks ---------------------------------------------------------------
     def now_ns(self) -> int:
@@ -87,26 +119,138 @@ class LoopNode(Node):
         return self.get_clock().now().nanoseconds
 
     def publisher(self, msg_type, topic: str, qos=None) -> CountedPublisher:
-        """Return a counted publisher of a loop topic (history: ``publisher_history_s``)."""
+        """Return a counted lifecycle publisher of a loop topic (history: ``publisher_history_s``).
+
+        It publishes only while the node is active; configure makes it, cleanup takes it back.
+        """
         if qos is None:
             qos = ros_qos.publisher_qos(self.p['publisher_history_s'], self.p['ts'])
-        pub = CountedPublisher(self.create_publisher(msg_type, topic, qos))
+        raw = self.create_lifecycle_publisher(msg_type, topic, qos)
+        if self.active:               # made while active (a legacy node): enabled too
+            raw.on_activate(None)
+        pub = CountedPublisher(raw)
         self.status.publishers.append(pub)
+        self._built.append((self._destroy_publisher, pub))
         return pub
 
     def subscribe(self, msg_type, topic: str, callback: Callable[[bytes, int], None],
                   qos=None):
-        """Subscribe raw: ``callback(data, rx_ns)`` with the middleware's reception time."""
+        """Subscribe raw: ``callback(data, rx_ns)`` with the middleware's reception time.
+
+        Messages that arrive while the node is not active are dropped.
+        """
         def on_message(data: bytes, info) -> None:
-            callback(data, info.get('received_timestamp') or time.time_ns())
-        return self.create_subscription(msg_type, topic, on_message,
-                                        qos or ros_qos.control_qos(), raw=True)
+            if self.active:
+                callback(data, info.get('received_timestamp') or time.time_ns())
+        sub = self.create_subscription(msg_type, topic, on_message,
+                                       qos or ros_qos.control_qos(), raw=True)
+        self._built.append((self.destroy_subscription, sub))
+        return sub
+
+    def timer(self, period_s: float, callback: Callable[[], None], clock=None):
+        """Return a loop timer: it calls ``callback`` only while the node is active."""
+        def on_timer() -> None:
+            if self.active:
+                callback()
+        t = self.create_timer(period_s, on_timer, **({'clock': clock} if clock else {}))
+        self._built.append((self.destroy_timer, t))
+        return t
 
     def status_timer(self, busy_window_s: float = 0.0, period_s: Optional[float] = None):
-        """Publish the status every ``diagnostics_period_s`` (see StatusReporter.on_timer)."""
+        """Publish the status every ``diagnostics_period_s`` (see StatusReporter.on_timer).
+
+        In every lifecycle state; one such timer per node (a second call replaces it).
+        """
         period = period_s or self.p['diagnostics_period_s']
-        return self.create_timer(period, lambda: self.on_status_timer(busy_window_s),
-                                 clock=self.steady)
+        if self._status_timer is not None:
+            self.destroy_timer(self._status_timer)
+
+        def on_timer() -> None:     # before configure: no core to ask yet
+            if self.configured:
+                self.on_status_timer(busy_window_s)
+            else:
+                self.status.on_timer(busy_window_s)
+        self._status_timer = self.create_timer(period, on_timer, clock=self.steady)
+        return self._status_timer
+
+    def _destroy_publisher(self, pub: CountedPublisher) -> None:
+        self.status.publishers.remove(pub)
+        self.destroy_lifecycle_publisher(pub.publisher)
+
+    # -- lifecycle ---------------------------------------------------------------------
+    def on_configure(self, state) -> TransitionCallbackReturn:
+        """Build the node's core, publishers, subscriptions and timers (:meth:`configure`)."""
+        try:
+            self.configure()
+        except ParamError as exc:       # one line; the node stays unconfigured
+            self.config_error = exc
+            self.get_logger().error(f'configure failed: {exc}')
+            self._take_back()
+            self.status.set(ERROR, f'configure failed: {exc}')
+            return TransitionCallbackReturn.FAILURE
+        # What configure built lives as long as the node: out of the collector's way, so
+        # a collection during the loop scans only new objects.
+        gc.collect()
+        gc.freeze()
+        self.configured = True
+        self._state('inactive')
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state) -> TransitionCallbackReturn:
+        """Enable the publishers, then let the node act (:meth:`activate`)."""
+        result = super().on_activate(state)
+        if not self._prioritised:   # after the build: a FIFO thread building CasADi
+            self._prioritised = True    # functions would starve the other nodes
+            self.prioritise()
+        self.active = True
+        self.activate()
+        self._state('active')
+        return result
+
+    def on_deactivate(self, state) -> TransitionCallbackReturn:
+        """Stop acting (:meth:`deactivate`): inputs dropped, nothing published."""
+        self.deactivate()
+        self.active = False
+        result = super().on_deactivate(state)
+        self._state('inactive')
+        return result
+
+    def on_cleanup(self, state) -> TransitionCallbackReturn:
+        """Take back what configure built."""
+        self._take_back()
+        self.configured = False
+        self._state('unconfigured')
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state) -> TransitionCallbackReturn:
+        """Stop acting; the process ends with :meth:`stop` (run_node)."""
+        if self.active:
+            self.on_deactivate(state)
+        return TransitionCallbackReturn.SUCCESS
+
+    def _take_back(self) -> None:
+        for destroy, entity in reversed(self._built):
+            destroy(entity)
+        self._built.clear()
+
+    def _state(self, label: str) -> None:
+        self.report.lifecycle = label
+        self.status.publish()
+
+    def prioritise(self) -> None:
+        """Give the node's threads ``realtime_priority`` (SCHED_FIFO), then :meth:`started`."""
+        from erva_ros.ros.realtime import set_fifo_priority
+        self.scheduling = set_fifo_priority(self.realtime_priority, self.get_logger().warning)
+        if self.realtime_priority > 0 and self.scheduling.startswith('SCHED_FIFO'):
+            self.get_logger().info(f'running at {self.scheduling}')
+        self.started()
+
+    def start_up(self) -> None:
+        """``autostart``: configure and activate now; raise a configure error (ParamError)."""
+        self.trigger_configure()
+        if self.config_error is not None:
+            raise self.config_error
+        self.trigger_activate()
 
     def on_status_timer(self, busy_window_s: float) -> None:
         """Publish the status when due (a node may check its health here first)."""
@@ -130,15 +274,25 @@ class LoopNode(Node):
         return self.rejections.counts.get(topic, 0)
 
     # -- hooks -------------------------------------------------------------------------
+    def configure(self) -> None:
+        """Build the core, publishers, subscriptions and timers (raise ParamError if bad)."""
+
+    def activate(self) -> None:
+        """Start acting (publishers are enabled, inputs flow from now on)."""
+
+    def deactivate(self) -> None:
+        """Stop acting (publishers are disabled and inputs dropped right after)."""
+
     def _refresh(self) -> None:
         self.report.scheduling = self.scheduling
-        self.refresh_report()
+        if self.configured:
+            self.refresh_report()
 
     def refresh_report(self) -> None:
         """Bring the report's figures up to date (called before each status goes out)."""
 
     def started(self) -> None:
-        """Start what runs once the node is built and its priority set (its threads)."""
+        """Start what runs once the node is built, first active and at its priority."""
 
     def stop(self, stopping: Callable[[], bool], limit_s: float) -> int:
         """Stop: publish the final status, then wait until all of it is delivered.

@@ -23,7 +23,6 @@ a thread spinning after its peer died) is both ended and located.
 """
 
 import faulthandler
-import gc
 import os
 import signal
 import sys
@@ -32,7 +31,6 @@ from typing import List, Optional, Type
 
 from erva_ros.core.params import ParamError
 from erva_ros.ros.context import check_domain_id
-from erva_ros.ros.realtime import set_fifo_priority
 
 #: Exit status of a node stopped by a bad parameter or option.
 EXIT_BAD_PARAMETER = 2
@@ -81,16 +79,8 @@ def run_node(node_class: Type, args: Optional[List[str]] = None) -> int:
     code = 0
     try:
         node = node_class()
-        # Start-up objects (CasADi functions, messages, modules) never die: move them out
-        # of the collector's way so a collection during the loop scans only new objects.
-        gc.collect()
-        gc.freeze()
-        # Last, after the start-up work: a FIFO thread building CasADi functions would
-        # starve the other nodes starting on the same cores.
-        node.scheduling = set_fifo_priority(node.realtime_priority, node.get_logger().warning)
-        if node.realtime_priority > 0 and node.scheduling.startswith('SCHED_FIFO'):
-            node.get_logger().info(f'running at {node.scheduling}')
-        node.started()
+        if node.autostart:      # else `erva run` or `ros2 lifecycle set` drive it
+            node.start_up()
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         while not signalled and rclpy.ok():

@@ -15,6 +15,11 @@ NODES = ('nmpc_node', 'plant_sim_node', 'road_preview_node')
 #: The processes replacing plant_sim_node with --ecu virtual, in start order.
 HIL_PROCESSES = ('ecu_sim', 'ecu_bridge_node', 'state_estimator_node')
 HIL_NODES = ('nmpc_node', *HIL_PROCESSES, 'road_preview_node')
+#: Managed (lifecycle) nodes `erva run` configures, then activates in this order: the
+#: controller first, the time master (the road in real time, the plant in lock-step)
+#: last, so nothing is published before every node that takes it acts on it.
+ACTIVATION_ORDER = {'realtime': ('nmpc_node', 'plant_sim_node', 'road_preview_node'),
+                    'lockstep': ('nmpc_node', 'road_preview_node', 'plant_sim_node')}
 #: The `erva run` option of a live parameter, where its name differs.
 OPTION_OF = {'duration_s': 'duration', 'preview_snr_db': 'preview_snr',
              'preview_delay_s': 'preview_delay', 'road_file': 'road_file'}
@@ -65,5 +70,6 @@ def ensure_ecu_available(ecu: str) -> None:
                        f'import ({exc})') from None
 
 
-__all__ = ['NODES', 'HIL_PROCESSES', 'HIL_NODES', 'OPTION_OF', 'STARTUP_TIMEOUT_S',
+__all__ = ['NODES', 'HIL_PROCESSES', 'HIL_NODES', 'ACTIVATION_ORDER', 'OPTION_OF',
+           'STARTUP_TIMEOUT_S',
            'RunConfig', 'ensure_ecu_available']

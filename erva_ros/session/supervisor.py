@@ -25,7 +25,8 @@ from erva_ros.session.recording import (PROCESS as RECORDER, RECORDER_PRIORITY_B
                                         RecorderDrain, start_recorder)
 from erva_ros.session.processes import (ChildProcess, child_env, node_argv, STOP_GRACE_S,
                                         stop_processes)
-from erva_ros.session.run_config import HIL_NODES, HIL_PROCESSES, NODES, RunConfig
+from erva_ros.session.run_config import (ACTIVATION_ORDER, HIL_NODES, HIL_PROCESSES, NODES,
+                                         RunConfig)
 from erva_ros.session.session_file import Session, session_description
 
 #: Once the ECU finished (no state comes any more), how long the others may take.
@@ -84,6 +85,12 @@ class Supervisor:
                               session.hil, recording, bool(cfg.foxglove),
                               [topics.time_master_topics(session.realtime)] * cfg.extra_readers)
         self.drain = RecorderDrain()
+        # The managed nodes, in activation order (run_config.ACTIVATION_ORDER).
+        from erva_ros.ros.lifecycle import LifecycleDriver
+        self.managed = [n for n in ACTIVATION_ORDER[session.live['mode']]
+                        if n in self.node_names]
+        self.lifecycle = LifecycleDriver(self.monitor, self.managed, cfg.namespace)
+        self._to_activate: List[str] = []
 
     def start(self) -> None:
         """Start the recorder (when recording) and the nodes, slowest first.
@@ -119,8 +126,9 @@ class Supervisor:
                 realtime_priority=live['realtime_priority'], prefix=self.cfg.ecu_prefix)}
         for name in self.node_names:
             spec = hil.get(name)
-            argv = spec.argv if spec else node_argv(name, self.cfg.namespace,
-                                                    [self.session.params_file])
+            argv = spec.argv if spec else node_argv(
+                name, self.cfg.namespace, [self.session.params_file],
+                {'autostart': False} if name in self.managed else None)
             if not self.session.realtime:   # lock-step: the session's own /clock
                 argv += topics.clock_remap(self.cfg.namespace)
             self.procs[name] = ChildProcess(name, argv, spec.env if spec else env,
@@ -142,8 +150,8 @@ class Supervisor:
                 max(1, loop - RECORDER_PRIORITY_BELOW), lambda line: None)
 
     def supervise(self) -> None:
-        """Connect, run and drain, until the scenario ends, a needed node dies or a signal."""
-        self.phase = 'connecting'
+        """Bring up, connect, run and drain, until the scenario ends, a node dies or a signal."""
+        self.phase = 'configuring'
         last_progress, last_states, finish_seen, finish_ns = time.monotonic(), 0, 0.0, 0
         while True:
             self.ros.spin_once(0.02)
@@ -154,7 +162,10 @@ class Supervisor:
             if self._check_deaths():
                 return
             now = time.monotonic()
-            if self.phase == 'connecting':
+            if self.phase in ('configuring', 'activating'):
+                if self._bring_up(now):
+                    return
+            elif self.phase == 'connecting':
                 if self._connecting(now):
                     return
                 if self.phase == 'running':
@@ -174,6 +185,46 @@ class Supervisor:
                     return
             elif self._drained(now - finish_seen, finish_ns):
                 return   # drained: the final diagnostics and messages in flight arrived
+
+    def _bring_up(self, now: float) -> bool:
+        """Configure every managed node, then activate them in order; True: it failed.
+
+        The order: :data:`~erva_ros.session.run_config.ACTIVATION_ORDER`.
+        """
+        lc = self.lifecycle
+        for name in lc.pending():
+            ok = lc.result(name)
+            if ok is False:
+                log = self.procs[name].tail(1)
+                self.errors.append(f'{name} refused to {self.phase[:-3] + "e"}'
+                                   + (f': {log}' if log else ''))
+                return True
+        if lc.pending():
+            return self._startup_late(now, f'{self.phase} {", ".join(lc.pending())}')
+        if self.phase == 'configuring':
+            if not lc.ready():
+                return self._startup_late(now, 'the nodes\' lifecycle services')
+            if not self._to_activate:          # not asked yet
+                self._to_activate = list(self.managed)
+                for name in self.managed:
+                    lc.request(name, 'configure')
+                return False
+            self.phase = 'activating'
+            self.log(f'configured {", ".join(self.managed)} in {now - self.t_start:.1f} s; '
+                     f'activating them in this order')
+        if self._to_activate:
+            lc.request(self._to_activate.pop(0), 'activate')
+            return False
+        self.phase = 'connecting'
+        return False
+
+    def _startup_late(self, now: float, waiting: str) -> bool:
+        """Return True (an error recorded) once the start-up took longer than allowed."""
+        if now - self.t_start > self.cfg.startup_timeout_s:
+            self.errors.append(f'the nodes did not start within '
+                               f'{self.cfg.startup_timeout_s:g} s (waiting for: {waiting})')
+            return True
+        return False
 
     def _connecting(self, now: float) -> bool:
         """One look at the start gate; return True if the run must stop (it never opened)."""

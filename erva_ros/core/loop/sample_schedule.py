@@ -82,6 +82,13 @@ class SampleScheduler:
         self.count = {'out_of_order': 0, 'superseded_states': 0, 'missed_samples': 0,
                       'stale_previews': 0, 'no_preview': 0, 'state_timeouts': 0}
 
+    def resume(self) -> None:
+        """Start over after a pause (a lifecycle deactivate): the old state is not solved.
+
+        Its sample passed long ago; a state timeout counts from the next state on.
+        """
+        self.state, self.awaiting, self.timed_out, self.armed = None, None, False, True
+
     # -- inputs ------------------------------------------------------------------------
     def _check_stamp(self, what: str, stamp: int, now_ns: int) -> None:
         self.window.check(what, stamp, now_ns)
