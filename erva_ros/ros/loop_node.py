@@ -173,6 +173,16 @@ class LoopNode(LifecycleNode):
         self._status_timer = self.create_timer(period, on_timer, clock=self.steady)
         return self._status_timer
 
+    def destroy_node(self) -> None:
+        """Destroy the node, and the lifecycle state machine that holds its handle.
+
+        rclpy's LifecycleNode never frees its state machine, which keeps the rcl node
+        alive: the participant then would not leave the graph before the process ends
+        (peers see it go only when its lease runs out, 20 s).
+        """
+        super().destroy_node()
+        self._state_machine.destroy_when_not_in_use()
+
     def _destroy_publisher(self, pub: CountedPublisher) -> None:
         self.status.publishers.remove(pub)
         self.destroy_lifecycle_publisher(pub.publisher)
