@@ -52,12 +52,16 @@ def add_arguments(parser):
                        description='Copy every readable record (all flushed chunks) of a '
                                    'bag into a new, indexed MCAP file and write '
                                    'metadata.yaml; the original file is kept as '
-                                   '<file>.orig unless --no-backup.')
+                                   '<file>.orig unless --no-backup.  --out DIR writes the '
+                                   'repaired bag there instead.')
     p.add_argument('bag', metavar='BAG', help='bag directory or .mcap file')
     p.add_argument('-s', '--storage', choices=('mcap',), default=None,
                    help='storage of the bag (only mcap; default: detected)')
     p.add_argument('--no-backup', action='store_true',
                    help='do not keep the damaged original as <file>.orig')
+    p.add_argument('--out', metavar='DIR', default=None,
+                   help='write the repaired bag to DIR (new or empty) and leave BAG as it is, '
+                        'e.g. when BAG\'s disk is full')
     add_json_option(p)
     p = sub.add_parser('bench', help='recorder throughput and added control-loop latency',
                        description='Run a 50 Hz echo control loop (state -> command '
@@ -336,7 +340,9 @@ def _info(args) -> int:
 
 def _repair(args) -> int:
     from erva_ros.core.bag.repair import repair_bag
-    result = repair_bag(args.bag, keep_original=not args.no_backup)
+    if args.out is not None and args.no_backup:
+        raise CLIError('--no-backup applies to a repair in place; --out leaves BAG untouched')
+    result = repair_bag(args.bag, keep_original=not args.no_backup, out_dir=args.out)
     if args.json:
         print_json(result)
         return 0

@@ -144,7 +144,8 @@ def _build_core(args, road):
     from erva_ros.core.hil.transport import open_bus
     from erva_ros.core.params import load_erva_params
 
-    params = load_erva_params(args.params)
+    from erva_ros.ros.parameters import LIVE_DEFAULTS
+    params = load_erva_params(args.params, others=LIVE_DEFAULTS)   # or a session file
     bridge = load_bridge_section(args.hil_config)
     sim = load_ecu_sim_section(args.hil_config)
     noise = SensorNoise.none() if args.noise_free else SensorNoise(

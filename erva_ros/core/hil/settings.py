@@ -22,8 +22,8 @@ from typing import Any, Dict, Optional
 from erva_ros.core.config import shipped_defaults
 from erva_ros.core.estimator import EstimatorNoise, NOISE_SPECS, validate_noise
 from erva_ros.core.hil.hardware import GeneratorHardware, HARDWARE_SPECS, validate_hardware
-from erva_ros.core.params import read_ros_params
-from erva_ros.core.specs import check_all, Flag, Integer, Number, Text
+from erva_ros.core.params import ERVA_SPECS, read_ros_params, ROS_BUILTINS
+from erva_ros.core.specs import check_all, Flag, Integer, Number, Text, unknown_parameters
 
 BRIDGE_NODE = 'ecu_bridge_node'
 ESTIMATOR_NODE = 'state_estimator_node'
@@ -102,10 +102,19 @@ def _section(path: Optional[str], node: str) -> Dict[str, Any]:
     return read_ros_params(path or default_hil_file(), node, wildcard=False, required=False)
 
 
+#: Keys a HIL node's section may hold that its own table does not check: the nodes also
+#: declare the physical parameters and these of the live loop; and ROS's own.
+NODE_SHARED = (*ERVA_SPECS, 'ts', 'model', 'realtime_priority', 'publisher_history_s',
+               'stamp_on_road_grid', *ROS_BUILTINS)
+
+
 def _validated(values: Dict[str, Any], specs: Dict[str, Any], defaults: Dict[str, Any],
                source: str) -> Dict[str, Any]:
-    # Keys the tables do not know are ignored, as before (a node's section may hold
-    # ROS built-ins or keys of a newer version).
+    # Any other key is a typo (it was ignored, so the value kept its default): one line
+    # naming the closest known key.
+    unknown = set(values) - set(specs) - set(NODE_SHARED)
+    if unknown:
+        raise unknown_parameters(unknown, [*specs, *NODE_SHARED], source)
     return check_all(specs, {k: v for k, v in values.items() if k in specs}, source, defaults)
 
 
