@@ -191,11 +191,11 @@ def test_one_solver_for_no_preview_and_for_values_that_are_parameters(tmp_path, 
     s = ControllerSettings(controller='preview', horizon=4)
     variants = [s, s.with_(controller='no_preview'),
                 s.with_(alpha1=0.0, alpha2=1.0, max_iter=3, sqp_tol=0.1, time_budget_s=0.5),
-                s.with_(command_delay_s=0.004)]
+                s.with_(command_delay_s=0.004), s.with_(command_delay_s=0.015)]
     targets = [warmup.nmpc_target(paper_params(), v) for v in variants]
     plans, compiled, errors = warmup._plan_and_compile(targets, 2, None)
     libs = [sorted(p.libs) for p in plans]
-    assert len(libs[0]) == 2 and libs[0] == libs[1] == libs[2] != libs[3]
+    assert len(libs[0]) == 2 and libs[0] == libs[1] == libs[2] != libs[3] == libs[4]
     assert compiled == set() and errors == {} and _libs(tmp_path) == []
     keys = {warmup._target_key(t, 'salt') for t in targets}
     assert len(keys) == 2
@@ -210,7 +210,8 @@ def test_erva_compile_check_and_json(tmp_path, erva):
     labels = [t['target'] for t in res['targets']]
     assert labels[:3] == ['the NMPC (preview_long, erva model)', 'the NMPC (preview, erva model)',
                           'the NMPC (no_preview, erva model)']
-    assert 'the NMPC (preview, erva model, command delay 6 ms)' in labels
+    assert 'the NMPC (preview, erva model, with a command delay)' in labels
+    assert 'the NMPC (preview_long, benchmark model, with a command delay)' in labels
     assert 'the NMPC (preview, benchmark model)' in labels
     assert {'the plant (erva model)', 'the plant (benchmark model)', 'the EKF (erva model)',
             "the simulated ECU's plant (erva model)"} <= set(labels)

@@ -13,8 +13,9 @@ compiles them, up to a minute each; this command does it for every shipped
 configuration at once, in parallel, with one line per part:
 
   the NMPCs preview_long, preview and no_preview (config/nmpc.yaml) on the ERVA and the
-  benchmark model, and with the HIL loop's command delay (config/hil.yaml) on the ERVA
-  model; the plant on both models; the EKF and the simulated ECU's plant.
+  benchmark model, without and with a command delay (command_delay_s > 0: any value
+  loads the same functions); the plant on both models; the EKF and the simulated ECU's
+  plant of the HIL loop (config/hil.yaml).
 
 A library is written atomically, so an interrupted compile leaves nothing broken and
 the next one goes on with what is missing; processes compiling the same function

@@ -37,6 +37,9 @@ from erva_ros.core.params import ERVAParams, load_erva_params, ParamError, valid
 NMPC_CONTROLLERS = ('no_preview', 'preview', 'preview_long')
 #: The models of the shipped configurations.
 MODELS = ('erva', 'benchmark')
+#: The command delay (a share of Ts) the "with a command delay" NMPCs are built with: any
+#: d > 0 gives the same functions.
+DELAYED_S = 0.25
 #: Where the per-target manifests live in the cache directory.
 MANIFESTS = 'targets'
 
@@ -69,7 +72,7 @@ class Target:
         """Return what the progress line calls it, e.g. ``the NMPC (preview, erva model)``."""
         if self.role == 'nmpc':
             s = self.settings
-            delay = f', command delay {s.command_delay_s * 1e3:g} ms' if s.command_delay_s else ''
+            delay = ', with a command delay' if s.command_delay_s else ''
             return f'the NMPC ({s.controller}, {self.model} model{delay})'
         if self.role == 'ekf':
             return f'the EKF ({self.model} model)'
@@ -137,32 +140,25 @@ def shipped_targets(params_file: Optional[str] = None, nmpc_file: Optional[str] 
                     ) -> List[Target]:
     """Return every core the shipped configurations build (``erva compile``).
 
-    On each model the NMPCs (preview_long, preview, no_preview) with config/nmpc.yaml and
-    the plant; on the ERVA model also the NMPCs with the HIL loop's settings (config/
-    hil.yaml's command delay), the EKF and the simulated ECU's plant.  Other files may
-    replace the shipped ones.
+    On each model the NMPCs (preview_long, preview, no_preview) of config/nmpc.yaml, without
+    and with a command delay (config/live.yaml's ``command_delay_s``: any d > 0 loads the
+    same functions, d is a parameter of the OCP), and the plant; the EKF and the simulated
+    ECU's plant of the HIL loop (config/hil.yaml).  Other files may replace the shipped ones.
     """
-    from erva_ros.core.config import shipped_defaults
     params = load_erva_params(params_file)
-    hil = shipped_defaults('hil.yaml', 'nmpc_node') if hil_file is None else \
-        _hil_nmpc_section(hil_file)
     base = load_controller_settings(nmpc_file)
     out: List[Target] = []
     for model in models:
-        for overrides in ({}, hil) if model == 'erva' else ({},):
+        for delay in (0.0, DELAYED_S * base.ts):
             for name in ('preview_long', 'preview', 'no_preview'):   # the largest first
-                settings = load_controller_settings(nmpc_file, dict(overrides, controller=name))
+                settings = load_controller_settings(
+                    nmpc_file, {'controller': name, 'command_delay_s': delay})
                 out.append(nmpc_target(params, settings, model))
         out.append(Target('plant', params, model, base.ts))
     # The HIL loop (config/hil.yaml calibrates the ERVA's generator): estimator and ECU.
     out += session_targets(params, base, {'model': 'erva', 'ts': base.ts}, 'virtual',
                            hil_file)[1:]
     return out
-
-
-def _hil_nmpc_section(path: str) -> Dict[str, Any]:
-    from erva_ros.core.params import read_ros_params
-    return read_ros_params(path, 'nmpc_node', wildcard=False, required=False)
 
 
 @dataclass

@@ -10,7 +10,7 @@ progress line per core; on a warm cache it costs milliseconds and starts nothing
 from typing import Callable, Optional
 
 from erva_ros.core.warmup import ensure_compiled, session_targets, WarmResult
-from erva_ros.session.run_config import Session
+from erva_ros.session.session_file import Session
 
 
 def warm_session(session: Session, log: Callable[[str], None],
