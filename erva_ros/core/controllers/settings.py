@@ -14,9 +14,9 @@ stable over the whole box: it is Radau IIA collocation (L-stable), see ocp.py.
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, Dict, Mapping, Optional, Tuple
 
-from erva_ros.core.params import ERVA_SPECS, ParamError, read_ros_params
+from erva_ros.core.params import ERVA_SPECS, ParamError, read_ros_params, ROS_BUILTINS
 from erva_ros.core.node_params import COMMAND_DELAY_SPEC, TS_SPEC
-from erva_ros.core.specs import Choice, Integer, Number
+from erva_ros.core.specs import Choice, Integer, Number, unknown_parameters
 
 #: Controllers understood by make_controller (and `erva sim --controller`).
 CONTROLLER_NAMES = ('passive', 'skyhook', 'no_preview', 'preview', 'preview_long')
@@ -167,15 +167,12 @@ def validate_settings(values: Mapping[str, Any], source: str = '') -> Controller
     """Validate a mapping of settings (missing keys take defaults); raise ParamError."""
     where = f'{source}: ' if source else ''
     known = {f.name for f in fields(ControllerSettings)}
-    out: Dict[str, Any] = {}
-    for key, value in values.items():
-        if key in known:
-            out[key] = _check(key, value, source)
-        elif key in ERVA_SPECS or key == 'use_sim_time':
-            continue  # physical parameters or ROS built-ins sharing the file
-        else:
-            raise ParamError(f'{where}unknown parameter {key!r}; '
-                             f'known: {", ".join(sorted(known))}')
+    # Physical parameters and ROS's own may share the file; anything else is a typo.
+    unknown = set(values) - known - set(ERVA_SPECS) - set(ROS_BUILTINS)
+    if unknown:
+        raise unknown_parameters(unknown, known, source)
+    out: Dict[str, Any] = {key: _check(key, value, source)
+                           for key, value in values.items() if key in known}
     s = replace(ControllerSettings(), **out)
     if not s.u_min < s.u_max:
         raise ParamError(f'{where}parameter \'u_max\' = {s.u_max:g} must exceed '
