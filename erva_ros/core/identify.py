@@ -474,22 +474,26 @@ def _information(problem: _Problem, p: np.ndarray, x0s: np.ndarray, cols: Sequen
     return 0.5 * (f + f.T)
 
 
+def _covariance(f: np.ndarray) -> np.ndarray:
+    """Return F⁻¹ by eigen-decomposition, an undetermined direction given variance ~1e8.
+
+    (Through the eigenvalues, clipped at 0, so no diagonal element comes out negative
+    by round-off, as a plain inverse of a matrix with condition 1e16 can.)
+    """
+    lam, vec = np.linalg.eigh(0.5 * (f + f.T))
+    return (vec / (np.maximum(lam, 0.0) + 1e-8)) @ vec.T
+
+
 def _rel_std(f: np.ndarray) -> np.ndarray:
-    """Return sqrt(diag(F⁻¹)), regularised so an undetermined direction gives ~1e4."""
+    """Return sqrt(diag(F⁻¹)): ~1e4 for a direction the data do not determine."""
     if f.size == 0:
         return np.zeros(0)
-    reg = f + 1e-8 * np.eye(f.shape[0])
-    try:
-        cov = np.linalg.inv(reg)
-    except np.linalg.LinAlgError:
-        cov = np.linalg.pinv(reg)
-    return np.sqrt(np.maximum(np.diag(cov), 0.0))
+    return np.sqrt(np.diag(_covariance(f)))
 
 
 def _correlations(f: np.ndarray) -> np.ndarray:
-    reg = f + 1e-8 * np.eye(f.shape[0])
-    cov = np.linalg.pinv(reg)
-    d = np.sqrt(np.maximum(np.diag(cov), 1e-300))
+    cov = _covariance(f)
+    d = np.sqrt(np.diag(cov))
     return cov / np.outer(d, d)
 
 

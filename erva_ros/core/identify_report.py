@@ -96,7 +96,7 @@ def params_yaml(result: FitResult, sources: Sequence[str] = ()) -> str:
                     f'prior {_num(p.prior)}')
         else:
             note = f'prior (fixed: {p.reason})'
-        lines.append(f'    {p.name}: {p.value!r}'.ljust(30) + f'# {unit}, {note}')
+        lines.append(f'{"    " + p.name + ": " + repr(p.value):<30s}  # {unit}, {note}')
     return '\n'.join(lines) + '\n'
 
 

@@ -112,7 +112,7 @@ class StudyConfig:
     excite_s: float = 60.0
     heldout_s: float = 20.0
     road: str = 'iso8608'
-    road_class: str = 'B'
+    road_class: str = 'C'
     eval_road: str = 'paper'
     eval_s: float = 10.0
     weights: Tuple[Tuple[float, float], ...] = ((1.0, 0.0), (0.0, 1.0))
