@@ -31,8 +31,10 @@ always kept.  For each free parameter the relative standard deviation each chann
 alone would give says which signal determines it.
 
 **Intervals** are the Gauss-Newton covariance σ²·(JᵀJ)⁻¹ of the log-parameters (so
-asymmetric in the parameter, never negative), 95 %: exp(±1.96·sd).  They assume white
-residuals; the fit reports the residuals' lag-1 autocorrelation to show how far that holds.
+asymmetric in the parameter, never negative), 95 %: exp(±1.96·sd), plus what the
+undetermined parameters' prior spread (±20 % uniform) does to the estimates through
+their correlation (m_d takes up the error of m_r's prior).  They assume white residuals;
+the fit reports the residuals' lag-1 autocorrelation to show how far that holds.
 
 **Held-out fit:** on data not used by the fit, each contiguous run is simulated from an
 initial state fitted to it (6 unknowns), and the normalised RMS fit per channel is
@@ -62,6 +64,11 @@ ECU_CHANNELS = ('sprung_accel', 'deflection', 'generator_speed')
 STATE_CHANNELS = ('sprung_accel', 'z_s', 'zdot_s', 'z_us', 'zdot_us', 'z_d', 'zdot_d')
 #: Data needed at least, after the held-out part is set aside (s).
 MIN_FIT_S = 5.0
+#: Why a parameter was fixed, when the data do not determine it.
+UNDETERMINED = 'not determined by the data'
+#: Relative standard deviation of an undetermined parameter's prior, propagated into the
+#: intervals of the others: a uniform spread of ±20 % around the prior.
+PRIOR_REL_STD = 0.2 / math.sqrt(3)
 #: Default relative standard deviation above which a parameter counts as undetermined:
 #: its 95 % interval would span ±20 %, the spread a prototype's parameters are assumed to
 #: have around the prior -- the data then say nothing the prior does not.
@@ -352,6 +359,7 @@ class ParameterResult:
     reason: str = ''                          # why fixed
     by_channel: Dict[str, Optional[float]] = field(default_factory=dict)  # rel sd, alone
     truth: Optional[float] = None             # for studies on simulated plants
+    rel_std_data: Optional[float] = None      # from the data alone (fixed ones exact)
 
 
 @dataclass
@@ -627,13 +635,16 @@ def check_data(recs: Sequence[Recording], min_fit_s: float = MIN_FIT_S) -> None:
 def identify(recs: Sequence[Recording], prior: ERVAParams, *,
              heldout: Sequence[Recording] = (), sigma0: Optional[Dict[str, float]] = None,
              segment_s: float = 1.0, substeps: Optional[int] = None,
-             max_rel_std: float = MAX_REL_STD, fix: Sequence[str] = (),
+             max_rel_std: float = MAX_REL_STD, prior_rel_std: float = PRIOR_REL_STD,
+             fix: Sequence[str] = (),
              estimate: Optional[Sequence[str]] = None, max_iter: int = 40,
              truth: Optional[ERVAParams] = None, progress=None) -> FitResult:
     """Identify the parameters from ``recs`` (see the module doc); hold out ``heldout``.
 
-    ``fix`` keeps parameters at the prior; ``estimate`` names the only parameters to fit
-    (no automatic fixing: an undetermined one is an :class:`IdentifyError` naming it).
+    ``fix`` keeps parameters at the prior (known: e.g. a weighed mass); ``estimate`` names
+    the only parameters to fit (no automatic fixing: an undetermined one is an
+    :class:`IdentifyError` naming it).  The intervals include the spread
+    ``prior_rel_std`` of the parameters fixed because the data do not determine them.
     ``sigma0`` gives the channels' noise std for the first fit (default: 1 % of each
     channel's RMS).  ``truth`` (a simulated plant) is only reported next to the result.
     """
@@ -696,7 +707,7 @@ def identify(recs: Sequence[Recording], prior: ERVAParams, *,
             corr = _correlations(f)[worst]
             corr[worst] = 0.0
             j = int(np.argmax(np.abs(corr)))
-            why = (f'not determined by the data: relative sd {100 * sd[worst]:.0f} % '
+            why = (f'{UNDETERMINED}: relative sd {100 * sd[worst]:.0f} % '
                    f'> {100 * max_rel_std:g} %')
             if len(free) > 1 and abs(corr[j]) > 0.5:
                 why += f' (correlation {corr[j]:+.2f} with {free[j]})'
@@ -724,9 +735,21 @@ def identify(recs: Sequence[Recording], prior: ERVAParams, *,
         free = new_free
         say('refit without ' + ', '.join(k for k in PARAMETERS if k not in free
                                          and k not in NOT_IN_MODEL))
+    # The fixed parameters the data could not determine are not known either: their
+    # prior's spread moves the estimates (m_d takes up m_r's error).  Linearised,
+    # θ̂_f − θ_f = noise + G·(θ_u,prior − θ_u), G = −F_ff⁻¹·F_fu, so
+    # Cov = F_ff⁻¹ + G·Σ_u·Gᵀ with Σ_u = prior_rel_std²·I (log-parameters).
+    undetermined = [k for k, why in fixed.items() if why.startswith(UNDETERMINED)]
     cols = [PARAMETERS.index(k) for k in free]
-    f = _information(problem, p, x0s, cols, p[cols])
-    sd = _rel_std(f)
+    both = cols + [PARAMETERS.index(k) for k in undetermined]
+    f_all = _information(problem, p, x0s, both, p[both])
+    nf = len(cols)
+    f = f_all[:nf, :nf]
+    cov_data = _covariance(f)
+    gain = -cov_data @ f_all[:nf, nf:]
+    cov = cov_data + prior_rel_std ** 2 * gain @ gain.T
+    sd = np.sqrt(np.diag(cov))
+    sd_data = np.sqrt(np.diag(cov_data))
     eig = np.linalg.eigvalsh(f)
     condition = float(eig[-1] / max(eig[0], 1e-300))
     by_channel = {}
@@ -749,7 +772,8 @@ def identify(recs: Sequence[Recording], prior: ERVAParams, *,
                   for name in channels}
             results.append(ParameterResult(k, getattr(prior, k), v, True, float(sd[i]),
                                            (v * math.exp(-Z95 * sd[i]),
-                                            v * math.exp(Z95 * sd[i])), '', bc, t))
+                                            v * math.exp(Z95 * sd[i])), '', bc, t,
+                                           float(sd_data[i])))
         else:
             results.append(ParameterResult(k, getattr(prior, k), getattr(prior, k), False,
                                            reason=fixed[k], truth=t))
@@ -771,6 +795,7 @@ def identify(recs: Sequence[Recording], prior: ERVAParams, *,
 
 
 __all__ = ['PARAMETERS', 'NOT_IN_MODEL', 'UNITS', 'ECU_CHANNELS', 'STATE_CHANNELS',
-           'MIN_FIT_S', 'MAX_REL_STD', 'IdentifyError', 'Recording', 'Segment',
+           'MIN_FIT_S', 'MAX_REL_STD', 'PRIOR_REL_STD', 'UNDETERMINED', 'IdentifyError',
+           'Recording', 'Segment',
            'make_segments', 'ParametricModel', 'parametric_model', 'default_substeps',
            'ParameterResult', 'FitResult', 'check_data', 'identify', 'fit_per_channel']

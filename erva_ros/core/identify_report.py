@@ -26,7 +26,7 @@ def as_dict(result: FitResult, sources: Sequence[str] = ()) -> Dict:
         'sources': list(sources),
         'parameters': [{
             'name': p.name, 'unit': ERVA_SPECS[p.name].unit, 'prior': p.prior, 'value': p.value,
-            'free': p.free, 'rel_std': p.rel_std,
+            'free': p.free, 'rel_std': p.rel_std, 'rel_std_data': p.rel_std_data,
             'ci95': list(p.ci95) if p.ci95 else None, 'reason': p.reason or None,
             'rel_std_by_channel': p.by_channel or None,
             **({'truth': p.truth} if p.truth is not None else {})}
@@ -58,8 +58,9 @@ def table(result: FitResult) -> str:
                          f'{ci:24s} {_pct(p.rel_std):>8s}  {by}')
         else:
             lines.append(f'{p.name:10s} {unit:7s} {_num(p.prior):12s} {"fixed":12s} {p.reason}')
-    lines.append('(rel. sd per signal: what that signal alone would determine, every other '
-                 'free parameter estimated too; - = not determined by it alone)')
+    lines.append('(rel. sd: with the ±20 % prior spread of the undetermined fixed parameters; '
+                 'per signal: what that signal alone would determine, every other free '
+                 'parameter estimated too; - = not determined by it alone)')
     lines.append(f'fit: {result.fit_samples} samples in {result.segments} segments, '
                  f'{result.iterations} iterations, condition {result.condition:.3g}')
     lines.append('residual RMS (noise) per signal: ' + ', '.join(

@@ -20,7 +20,8 @@
 """
 
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Tuple
+import time
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -127,10 +128,18 @@ def _road(kind: str, duration_s: float, seed: int, road_class: str):
 
 
 def study_plant(job) -> Dict:
-    """Identify plant ``index`` and compare the NMPCs on it (module doc); a pure function."""
+    """Identify plant ``index`` and compare the NMPCs on it (module doc); a pure function.
+
+    Returns plain data: the truth, the fit (:func:`identify_report.as_dict`) and, per
+    weighting, J = α1·acc_rms² − α2·P_avg with the comfort sampled at t_k (the paper's
+    measure) and continuous (∫z̈_s² dt, what the continuous-cost NMPC minimises), the
+    two comfort measures and the power, of the NMPC on the identified, true and nominal
+    model.
+    """
     from erva_ros.core.closed_loop import simulate_closed_loop
     from erva_ros.core.controllers import make_controller
     from erva_ros.core.hil.ecu_sim import SensorNoise
+    from erva_ros.core.identify_report import as_dict
     from erva_ros.core.metrics import evaluation_objective
 
     cfg, settings, index = job
@@ -146,22 +155,74 @@ def study_plant(job) -> Dict:
                             name='heldout')
     sigma0 = {'sprung_accel': noise.sprung_accel, 'deflection': noise.deflection,
               'generator_speed': noise.speed}
+    t0 = time.process_time()
     result = identify([fit], paper_params(), heldout=[held], sigma0=sigma0, truth=truth)
+    fit_cpu = time.process_time() - t0
     road = _road(cfg.eval_road, cfg.eval_s, base + 2, cfg.road_class)
     runs: List[Dict] = []
     for alpha in cfg.weights:
         s = settings.with_(alpha1=alpha[0], alpha2=alpha[1])
-        row = {'weights': list(alpha)}
+        row: Dict = {'weights': list(alpha)}
         for label, model in (('identified', result.params), ('true', truth),
                              ('nominal', paper_params())):
-            ctrl = make_controller(cfg.controller, model, s)
-            run = simulate_closed_loop(truth, ctrl, road, cfg.eval_s, s.ts)
+            run = simulate_closed_loop(truth, make_controller(cfg.controller, model, s), road,
+                                       cfg.eval_s, s.ts)
             m = run.metrics
-            row[label] = {'J': evaluation_objective(m, alpha), 'acc_rms': m['acc_rms'],
+            cont = dict(m, acc_rms=m['acc_rms_continuous'])
+            row[label] = {'J_sampled': evaluation_objective(m, alpha),
+                          'J_continuous': evaluation_objective(cont, alpha),
+                          'acc_rms': m['acc_rms'],
+                          'acc_rms_continuous': m['acc_rms_continuous'],
                           'power_w': m['power_w']}
         runs.append(row)
-    return {'plant': index, 'truth': truth.as_dict(), 'result': result, 'closed_loop': runs}
+    return {'plant': index, 'truth': truth.as_dict(), 'fit': as_dict(result),
+            'fit_cpu_s': fit_cpu, 'closed_loop': runs}
+
+
+def summarise(plants: Sequence[Dict], objective: str = 'J_continuous') -> Dict:
+    """Return the study's tables: parameter errors and coverage, the NMPC's J gaps.
+
+    ``objective``: J_continuous or J_sampled (module doc of :func:`study_plant`).
+    """
+    params = []
+    for name in PARAMETERS:
+        rows = [next(p for p in pl['fit']['parameters'] if p['name'] == name) for pl in plants]
+        free = [r for r in rows if r['free']]
+        err = [100 * (r['value'] / r['truth'] - 1) for r in free]
+        prior_err = [100 * (r['prior'] / r['truth'] - 1) for r in rows]
+        inside = sum(r['ci95'][0] <= r['truth'] <= r['ci95'][1] for r in free)
+        params.append({
+            'name': name, 'free_in': len(free), 'plants': len(rows),
+            'prior_error_pct_mean_abs': float(np.mean(np.abs(prior_err))),
+            'error_pct_mean_abs': float(np.mean(np.abs(err))) if err else None,
+            'error_pct_max_abs': float(np.max(np.abs(err))) if err else None,
+            'rel_std_pct_mean': float(np.mean([100 * r['rel_std'] for r in free]))
+            if free else None,
+            'inside_95': inside,
+            'fixed_reasons': sorted({r['reason'].split(':')[0] for r in rows if not r['free']}),
+        })
+    gaps = []
+    for k, row in enumerate(plants[0]['closed_loop'] if plants else []):
+        alpha = row['weights']
+        rel = {lab: [] for lab in ('identified', 'nominal')}
+        for pl in plants:
+            r = pl['closed_loop'][k]
+            ref = abs(r['true'][objective])
+            for lab in rel:
+                rel[lab].append(100 * (r[lab][objective] - r['true'][objective]) / ref)
+        gaps.append({'weights': alpha, 'objective': objective,
+                     'identified_gap_pct': rel['identified'], 'nominal_gap_pct': rel['nominal'],
+                     'identified_gap_pct_max_abs': float(np.max(np.abs(rel['identified']))),
+                     'nominal_gap_pct_max_abs': float(np.max(np.abs(rel['nominal']))),
+                     'within_2pct': int(sum(abs(g) <= 2.0 for g in rel['identified']))})
+    held = {}
+    for c in ECU_CHANNELS:
+        held[c] = {'identified_mean': float(np.mean([p['fit']['heldout_fit_pct'][c]
+                                                     for p in plants])),
+                   'prior_mean': float(np.mean([p['fit']['heldout_prior_fit_pct'][c]
+                                                for p in plants]))}
+    return {'parameters': params, 'closed_loop': gaps, 'heldout_fit_pct': held}
 
 
 __all__ = ['HIL_DELAY_S', 'perturbed_params', 'simulate_session', 'StudyConfig',
-           'study_plant']
+           'study_plant', 'summarise']

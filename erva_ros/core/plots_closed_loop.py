@@ -1,4 +1,4 @@
-"""Closed-loop figures (matplotlib, Agg): time series like paper Figs. 5-7, and the Pareto plot."""
+"""Closed-loop figures (matplotlib, Agg): time series like paper Figs. 5-7, Pareto, tornado."""
 
 from typing import Mapping, Sequence
 
@@ -70,4 +70,46 @@ def pareto_figure(curve: Sequence[dict], baselines: Sequence[dict], path: str,
     return path
 
 
-__all__ = ['timeseries_figure', 'pareto_figure']
+def _label(row: Mapping) -> str:
+    from erva_ros.core.sensitivity import unit
+    levels = ', '.join(f'{v["level"]:g}' for v in row['levels'])
+    return f'{row["factor"]} ({levels} {unit(row["factor"])})'
+
+
+def tornado_figure(rows: Sequence[Mapping], path: str, title: str = '') -> str:
+    """Write the tornado plot: per weighting, each factor's ΔJ % at its levels, largest on top."""
+    from erva_ros.core.identify import PARAMETERS
+    plt = _pyplot()
+    weights = []
+    for r in rows:
+        if r['weights'] not in weights:
+            weights.append(r['weights'])
+    fig, axes = plt.subplots(1, len(weights), figsize=(6.5 * len(weights), 6), squeeze=False)
+    for ax, alpha in zip(axes[0], weights):
+        mine = sorted((r for r in rows if r['weights'] == alpha), key=lambda r: r['swing_pct'])
+        for i, r in enumerate(mine):
+            lv = [v for v in r['levels'] if v['dJ_pct'] is not None]
+            lo = min(min(v['dJ_pct'] for v in lv), 0.0)
+            hi = max(max(v['dJ_pct'] for v in lv), 0.0)
+            ax.barh(i, hi - lo, left=lo, color='tab:blue', alpha=0.35)
+            for v in lv:
+                neg = v['level'] < 0 and r['factor'] in PARAMETERS
+                ax.plot(v['dJ_pct'], i, 'v' if neg else '^',
+                        color='tab:red' if neg else 'tab:green', ms=6)
+        ax.set_yticks(range(len(mine)))
+        ax.set_yticklabels([_label(r) for r in mine], fontsize=8)
+        ax.axvline(0, color='k', lw=0.8)
+        ax.margins(x=0.08)
+        ax.set_xlabel('ΔJ, % of |J nominal| (positive: worse); ▼ model parameter '
+                      'too low, ▲ too high or an input level', fontsize=8)
+        ax.set_title(f'(α1, α2) = ({alpha[0]:g}, {alpha[1]:g})')
+        ax.grid(True, axis='x', alpha=0.3)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+__all__ = ['timeseries_figure', 'pareto_figure', 'tornado_figure']
