@@ -171,3 +171,23 @@ def test_point_and_accel_decoders_read_what_rclpy_writes(frame_id):
                                                   (0.5, 0.0, 0.0))
     with pytest.raises(CdrDecodeError):
         decode_point_stamped(serialize(p)[:-1])
+
+
+def test_a_full_state_session_identifies_and_says_what_it_cannot(tmp_path, capsys):
+    from erva_ros.session.offline_bag import run_and_record
+    bag = tmp_path / 'full_state'
+    run_and_record(str(bag), TRUTH, make_controller('excite', TRUTH, EXCITE),
+                   make_road('iso8608', 8.0, seed=3), 8.0)
+    code, stdout, err = _cli(capsys, bag, '--json')
+    assert code == 0, err
+    res = json.loads(stdout)
+    assert res['channels'] == ['sprung_accel', 'z_s', 'zdot_s', 'z_us', 'zdot_us', 'z_d',
+                               'zdot_d']
+    free = {p['name']: p for p in res['parameters'] if p['free']}
+    # Noise-free states: the masses and springs to 0.1 %.  The arm l is seen only through
+    # the small inertia nonlinearity here (z_d is a translation): far less well determined.
+    for name in ('M_s', 'M_us', 'k_t', 'k_s', 'k_d', 'm_b'):
+        assert abs(free[name]['value'] / getattr(TRUTH, name) - 1) < 1e-3, name
+    assert 'l' not in free or free['l']['rel_std'] > 20 * free['k_s']['rel_std']
+    # Model error dominates noise-free residuals: the report says its intervals are narrow.
+    assert any('intervals are too narrow' in n for n in res['notes'])

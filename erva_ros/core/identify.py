@@ -518,10 +518,12 @@ def _fit_states(problem: _Problem, p: np.ndarray, x0s: np.ndarray, iterations: i
 
 
 def _lm(problem: _Problem, p: np.ndarray, x0s: np.ndarray, free: Sequence[int],
-        max_iter: int = 40, tol: float = 1e-10) -> Tuple[np.ndarray, np.ndarray, int]:
-    """Levenberg-Marquardt on (log-parameters ``free``, segment states); return p, x0s, its.
+        max_iter: int = 40, tol: float = 1e-10
+        ) -> Tuple[np.ndarray, np.ndarray, int, bool]:
+    """Levenberg-Marquardt on (log-parameters ``free``, segment states).
 
-    Stops when a step gains less than ``tol`` of the cost, or no damping finds a gain.
+    Returns (p, x0s, iterations, converged): converged when a step gains less than
+    ``tol`` of the cost, or no damping finds a gain (a minimum), before ``max_iter``.
     """
     cols = list(free)
     blocks = problem.evaluate(p, x0s)
@@ -551,8 +553,8 @@ def _lm(problem: _Problem, p: np.ndarray, x0s: np.ndarray, free: Sequence[int],
                 break
             mu *= 10
         if gain is None or gain < tol:
-            break
-    return p, x0s, it
+            return p, x0s, it, True
+    return p, x0s, it, False
 
 
 def _prior_vector(prior: ERVAParams) -> np.ndarray:
@@ -723,11 +725,11 @@ def identify(recs: Sequence[Recording], prior: ERVAParams, *,
     total_it = 0
     for _round in range(4):
         cols = [PARAMETERS.index(k) for k in free]
-        p, x0s, it = _lm(problem, p, x0s, cols, max_iter)
+        p, x0s, it, _ = _lm(problem, p, x0s, cols, max_iter)
         total_it += it
         # Weights from the residuals of this fit, then refit once with them.
         problem.sigma = _sigma_rms(problem, p, x0s)
-        p, x0s, it = _lm(problem, p, x0s, cols, max_iter)
+        p, x0s, it, converged = _lm(problem, p, x0s, cols, max_iter)
         total_it += it
         new_free, f = select(p, x0s, free)
         if new_free == free:
@@ -789,9 +791,18 @@ def identify(recs: Sequence[Recording], prior: ERVAParams, *,
             for vec, dest in ((p, held), (p_prior, held_prior)):
                 xs = _fit_states(hp, vec, np.zeros((len(held_segs), NX)), 4)
                 dest.update(fit_per_channel(hp, vec, xs))
+    notes = []
+    if not converged:
+        notes.append(f'the fit stopped after {max_iter} iterations without converging: the '
+                     f'numbers may not be a minimum')
+    correlated = [c for c, v in lag1.items() if abs(v) > 0.5]
+    if correlated:
+        notes.append(f'the residuals of {", ".join(correlated)} are correlated (lag-1 '
+                     f'autocorrelation > 0.5): model error, not white noise, dominates them, '
+                     f'and the intervals are too narrow')
     return FitResult(params, prior, results, channels, sigma, fit_pct, held, held_prior, lag1,
                      total_it, len(segs), int(sum(d.mask.any(axis=1).sum() for d in data)),
-                     held_n, condition, substeps)
+                     held_n, condition, substeps, notes)
 
 
 __all__ = ['PARAMETERS', 'NOT_IN_MODEL', 'UNITS', 'ECU_CHANNELS', 'STATE_CHANNELS',

@@ -39,7 +39,7 @@ def as_dict(result: FitResult, sources: Sequence[str] = ()) -> Dict:
         'heldout_prior_fit_pct': result.heldout_prior_fit_pct or None,
         'iterations': result.iterations, 'segments': result.segments,
         'fit_samples': result.fit_samples, 'heldout_samples': result.heldout_samples,
-        'condition': result.condition, 'substeps': result.substeps,
+        'condition': result.condition, 'substeps': result.substeps, 'notes': result.notes,
         'params': result.params.as_dict(),
     }
 
@@ -74,6 +74,7 @@ def table(result: FitResult) -> str:
                      f'model: ' + ', '.join(
                          f'{c} {result.heldout_fit_pct[c]:.1f} / '
                          f'{result.heldout_prior_fit_pct[c]:.1f}' for c in ch))
+    lines += [f'note: {n}' for n in result.notes]
     return '\n'.join(lines)
 
 
