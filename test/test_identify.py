@@ -112,6 +112,11 @@ def test_identify_recovers_a_perturbed_plant_within_its_intervals(hil_bag, tmp_p
     # The params file: what `erva sim --params`, `erva run --params` and the nodes read.
     params = load_erva_params(str(out))
     assert params.as_dict() == pytest.approx(res['params'], rel=1e-15)
+    from rcl_interfaces.msg import ParameterType
+    from rclpy.parameter import parameter_dict_from_yaml_file
+    ros = parameter_dict_from_yaml_file(str(out), use_wildcard=True)
+    assert {k: v.value.double_value for k, v in ros.items()} == params.as_dict()
+    assert {v.value.type for v in ros.values()} == {ParameterType.PARAMETER_DOUBLE}
     assert params.m_r == paper_params().m_r and params.c_e0 == paper_params().c_e0
 
 

@@ -16,6 +16,15 @@ def _num(v: float) -> str:
     return f'{v:.6g}'
 
 
+def _yaml_float(v: float) -> str:
+    """Return ``v`` exactly, always read back as a float (YAML 1.1 wants 1.0e+20, not 1e+20)."""
+    text = repr(float(v))
+    mantissa, _, exponent = text.partition('e')
+    if exponent and '.' not in mantissa:
+        text = f'{mantissa}.0e{exponent}'
+    return text
+
+
 def _pct(v) -> str:
     return '-' if v is None else f'{100 * v:.2g} %' if v < 0.1 else f'{100 * v:.0f} %'
 
@@ -98,7 +107,7 @@ def params_yaml(result: FitResult, sources: Sequence[str] = ()) -> str:
                     f'prior {_num(p.prior)}')
         else:
             note = f'prior (fixed: {p.reason})'
-        lines.append(f'{"    " + p.name + ": " + repr(p.value):<30s}  # {unit}, {note}')
+        lines.append(f'{"    " + p.name + ": " + _yaml_float(p.value):<30s}  # {unit}, {note}')
     return '\n'.join(lines) + '\n'
 
 
