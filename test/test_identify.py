@@ -1,4 +1,4 @@
-"""Identification: the excite controller, `erva identify` on a simulated HIL bag, bad input.
+"""Identification: the excite controller, `erva identify` on simulated HIL and full-state bags.
 
 The sessions are simulated (erva_ros/core/identify_study.py): a plant whose parameters are
 the paper's perturbed by up to ±20 %, the excite controller through a 6 ms actuator delay,
@@ -20,7 +20,7 @@ from erva_ros.core.hil.ecu_sim import SensorNoise
 from erva_ros.core.identify_study import perturbed_params, simulate_session
 from erva_ros.core.params import load_erva_params, paper_params, ParamError
 from erva_ros.core.roads import make_road
-from erva_ros.session.ident_bag import load_recording, write_recording
+from erva_ros.core.identify_bag import load_recording, write_recording
 
 #: The plant of these tests: study seed 4242, plant 0 (not a seed of the docs' study).
 TRUTH = perturbed_params(4242, 0)
@@ -157,27 +157,6 @@ def test_bad_input_is_one_line_and_exit_2(hil_bag, tmp_path, capsys, repo_root):
             assert len(lines) == 1, (args, err)
 
 
-@pytest.mark.parametrize('frame_id', ['', 'a', 'base_link', 'abcdefg'])
-def test_point_and_accel_decoders_read_what_rclpy_writes(frame_id):
-    from geometry_msgs.msg import AccelStamped, PointStamped
-    from erva_ros.core.bag.decode import (CdrDecodeError, decode_accel_stamped,
-                                          decode_point_stamped)
-    from erva_ros.ros.bag_messages import serialize
-    p = PointStamped()
-    p.header.stamp.sec, p.header.stamp.nanosec = 1700000000, 123456789
-    p.header.frame_id = frame_id
-    p.point.x, p.point.y, p.point.z = 1.5, -2.25, 3e-4
-    assert decode_point_stamped(serialize(p)) == (1700000000123456789, (1.5, -2.25, 3e-4))
-    a = AccelStamped()
-    a.header.stamp.sec = 7
-    a.header.frame_id = frame_id
-    a.accel.linear.z, a.accel.angular.x = -9.81, 0.5
-    assert decode_accel_stamped(serialize(a)) == (7_000_000_000, (0.0, 0.0, -9.81),
-                                                  (0.5, 0.0, 0.0))
-    with pytest.raises(CdrDecodeError):
-        decode_point_stamped(serialize(p)[:-1])
-
-
 def test_a_full_state_session_identifies_and_says_what_it_cannot(tmp_path, capsys):
     from erva_ros.session.offline_bag import run_and_record
     bag = tmp_path / 'full_state'
@@ -196,3 +175,12 @@ def test_a_full_state_session_identifies_and_says_what_it_cannot(tmp_path, capsy
     assert 'l' not in free or free['l']['rel_std'] > 20 * free['k_s']['rel_std']
     # Model error dominates noise-free residuals: the report says its intervals are narrow.
     assert any('intervals are too narrow' in n for n in res['notes'])
+
+
+@pytest.mark.parametrize('args', [['--help'], ['identify', '--help'],
+                                  ['identify-study', '--help'], ['sensitivity', '--help']])
+def test_help_of_the_new_commands(args, capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(args)
+    assert exc.value.code == 0
+    assert 'usage: erva' in capsys.readouterr().out

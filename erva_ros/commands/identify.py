@@ -100,7 +100,7 @@ def main(args) -> int:
     from erva_ros.core.identify import identify, MAX_REL_STD
     from erva_ros.core.identify_report import as_dict, params_yaml, table
     from erva_ros.core.params import load_erva_params
-    from erva_ros.session.ident_bag import load_recordings
+    from erva_ros.core.identify_bag import load_recordings
 
     prior = load_erva_params(args.prior)
     if args.out and os.path.isdir(args.out):

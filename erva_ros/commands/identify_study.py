@@ -11,7 +11,7 @@ from erva_ros.commands._common import (add_json_option, add_out_option, ensure_o
 from erva_ros.commands._jobs import add_jobs_options, run_jobs
 
 COMMAND = 'identify-study'
-HELP = 'identify simulated devices (±20 % off the paper) and compare their NMPCs'
+HELP = 'identify simulated devices (±20 %% off the paper) and compare their NMPCs'
 DESCRIPTION = """\
 For each of --plants devices, every parameter of the equations of motion is the paper's
 times a factor drawn uniformly from [1 - spread, 1 + spread] (seeded by --seed and the

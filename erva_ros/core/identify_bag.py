@@ -1,7 +1,7 @@
 """A session bag as identification data (:class:`erva_ros.core.identify.Recording`).
 
-Read with the project's bag reader and decoded without rclpy (``ros/cdr.py`` for
-JointState, ``core/bag/decode.py`` for PointStamped and AccelStamped).  Two kinds:
+Read with the project's bag reader and decoded by the contract's decoders
+(:mod:`erva_ros.core.contract`, no ROS needed).  Two kinds:
 
 * **HIL** (`erva run --ecu ...`, or a vehicle): ``<ns>/ecu/measurements`` -- the ECU's
   c_e now and its cycle mean, z̈_s, z_s − z_us and φ̇ -- and the road height at the
@@ -22,13 +22,12 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from erva_ros.core import topics as contract
+from erva_ros.core import contract as wire, topics as contract
 from erva_ros.core.bag import BagError
-from erva_ros.core.bag.decode import CdrDecodeError, decode_accel_stamped, decode_point_stamped
 from erva_ros.core.bag.reader import open_bag
 from erva_ros.core.hil import topics as hil
 from erva_ros.core.identify import ECU_CHANNELS, IdentifyError, Recording, STATE_CHANNELS
-from erva_ros.ros.cdr import CdrError, decode_joint_state, decode_joint_trajectory
+from erva_ros.core.loop.validation import MessageRejected
 
 #: Minimum road samples to place a grid.
 MIN_ROAD_SAMPLES = 10
@@ -53,7 +52,7 @@ def _messages(bag, topic: str, decode):
     try:
         for m in bag.messages([topic]):
             out.append(decode(m.data))
-    except (CdrError, CdrDecodeError) as exc:
+    except MessageRejected as exc:       # CdrError included
         raise IdentifyError(f'{bag.path}: {topic}: undecodable message ({exc})') from None
     except BagError as exc:
         raise IdentifyError(str(exc)) from None
@@ -113,9 +112,10 @@ def load_recording(path: str, namespace: Optional[str] = None,
             f'{path}: no {road}: identification needs the road height at the tyre at '
             f'each sample -- record on a rig with a known road, or give a road estimate\'s '
             f'topic (--road-topic)')
-    rows = _messages(bag, road, decode_point_stamped)
-    grid = _Grid(np.array([s for s, _ in rows], dtype=np.int64), path)
-    w = grid.place([s for s, _ in rows], [[p[2]] for _, p in rows], 1, early=0.5)[:, 0]
+    rows = _messages(bag, road, wire.decode_road_height)
+    stamps = [r.stamp_ns for r in rows]
+    grid = _Grid(np.array(stamps, dtype=np.int64), path)
+    w = grid.place(stamps, [[r.height_m] for r in rows], 1, early=0.5)[:, 0]
     if kind == 'hil':
         rec = _hil(bag, meas, grid, w, path)
     else:
@@ -124,19 +124,12 @@ def load_recording(path: str, namespace: Optional[str] = None,
 
 
 def _hil(bag, topic: str, grid: _Grid, w: np.ndarray, path: str) -> Recording:
-    msgs = _messages(bag, topic, decode_joint_state)
+    msgs = _messages(bag, topic, lambda data: wire.decode_measurements(data, strict=False))
     if not msgs:
         raise IdentifyError(f'{path}: {topic} has no message')
-    names = tuple(msgs[0][1])
-    missing = [n for n in ('c_e', 'c_e_mean', 'sprung_accel', 'suspension', 'generator_speed')
-               if n not in names]
-    if missing:
-        raise IdentifyError(f'{path}: {topic} lacks {", ".join(missing)}')
-    idx = [names.index(n) for n in ('c_e', 'c_e_mean', 'sprung_accel', 'suspension',
-                                    'generator_speed')]
-    vals = [[m[2][i] if i < len(m[2]) else np.nan for i in idx] for m in msgs]
+    vals = [[m.c_e, m.c_e_mean, m.sprung_accel, m.deflection, m.speed] for m in msgs]
     # Measured just after t_k: the estimator's window [t_k − Ts/4, t_k + 3Ts/4).
-    on_grid = grid.place([m[0] for m in msgs], vals, 5, early=0.25)
+    on_grid = grid.place([m.stamp_ns for m in msgs], vals, 5, early=0.25)
     return Recording(path, grid.ts_ns * 1e-9, w, on_grid[:, 0], on_grid[:, 1], on_grid[:, 2:],
                      ECU_CHANNELS, grid.t0 * 1e-9)
 
@@ -144,27 +137,24 @@ def _hil(bag, topic: str, grid: _Grid, w: np.ndarray, path: str) -> Recording:
 def _full_state(bag, topics: List[str], cmd_topic: str, grid: _Grid, w: np.ndarray,
                 path: str) -> Recording:
     st_topic, acc_topic, gen_topic = topics
-    states = _messages(bag, st_topic, decode_joint_state)
-    if states and tuple(states[0][1]) != contract.STATE_JOINTS:
-        raise IdentifyError(f'{path}: {st_topic} has joints {list(states[0][1])}: only the '
+    joints = _messages(bag, st_topic, wire.decode_joints)
+    if joints and joints[0].names != contract.STATE_JOINTS:
+        raise IdentifyError(f'{path}: {st_topic} has joints {list(joints[0].names)}: only the '
                             f'ERVA model ({", ".join(contract.STATE_JOINTS)}) is identified')
+    states = _messages(bag, st_topic, wire.decode_state)
     # Full-state stamps are the sample instants themselves: the nearest grid point.
-    x = grid.place([s[0] for s in states],
-                   [[m[2][0], m[3][0], m[2][1], m[3][1], m[2][2], m[3][2]] for m in states], 6,
-                   early=0.5)
-    acc = _messages(bag, acc_topic, decode_accel_stamped)
-    a = grid.place([s for s, _, _ in acc], [[lin[2]] for _, lin, _ in acc], 1, early=0.5)
-    gen = _messages(bag, gen_topic, decode_joint_state)
-    u_gen = []
-    for m in gen:
-        v, f = (m[3][0] if m[3] else np.nan), (m[4][0] if m[4] else np.nan)
-        u_gen.append([f / v if abs(v) > 1e-12 else np.nan])
-    u = grid.place([m[0] for m in gen], u_gen, 1, early=0.5)[:, 0]
+    x = grid.place([s.stamp_ns for s in states], [s.x for s in states], 6, early=0.5)
+    acc = _messages(bag, acc_topic, wire.decode_accel)
+    a = grid.place([r.stamp_ns for r in acc], [[r.sprung_accel] for r in acc], 1, early=0.5)
+    gen = _messages(bag, gen_topic, wire.decode_generator)
+    # The applied u_k = effort / velocity (effort = u·v_gen); where v_gen = 0, the command.
+    u_gen = [[g.effort / g.velocity if abs(g.velocity) > 1e-12 else np.nan] for g in gen]
+    u = grid.place([g.stamp_ns for g in gen], u_gen, 1, early=0.5)[:, 0]
     if np.isnan(u).any() and cmd_topic in bag.topics:
         cmds: Dict[int, float] = {}
-        for stamp, _, points in _messages(bag, cmd_topic, decode_joint_trajectory):
-            if points and points[0][0]:
-                cmds.setdefault(grid.index(stamp, 0.5), points[0][0][0])
+        for c in _messages(bag, cmd_topic, wire.decode_command):
+            if c.plan.size:
+                cmds.setdefault(grid.index(c.stamp_ns, 0.5), c.u)
         for k in np.flatnonzero(np.isnan(u)):
             u[k] = cmds.get(int(k), np.nan)
     u_mean = np.concatenate([[np.nan], u[:-1]])     # u_k held over [t_k, t_k+1)
@@ -177,33 +167,28 @@ def write_recording(bag_dir: str, rec: Recording, session: Optional[Dict[str, st
                     namespace: str = contract.NAMESPACE) -> Dict:
     """Write an ECU recording as an HIL session bag: road/height and ecu/measurements.
 
-    For simulated sessions (`erva identify-study --bags`, the tests): each measurement is
-    stamped ``lag_s`` after its sample, as the bridge stamps the CAN receive time.
+    For simulated sessions (the tests, a study's sessions): each measurement is stamped
+    ``lag_s`` after its sample, as the bridge stamps the CAN receive time.
     """
-    from erva_ros.core.bag.qos import profile_to_dict
+    from erva_ros.core.bag.qos import control_profile
     from erva_ros.core.bag.writer import BagWriter
-    from erva_ros.ros import msgs, qos as ros_qos
-    from erva_ros.ros.bag_messages import write_message
-    from erva_ros.ros.cdr import JointStateEncoder
     if rec.channels != ECU_CHANNELS:
         raise ValueError('write_recording writes ECU recordings only')
     road = _topic(namespace, contract.ROAD_HEIGHT)
     meas = _topic(namespace, hil.ECU_MEASUREMENTS)
-    offered = [profile_to_dict(ros_qos.control_qos())]
-    encoder = JointStateEncoder(hil.MEASUREMENT_NAMES)
+    offered = [control_profile()]
     writer = BagWriter(bag_dir, session=dict(session or {}), custom_data=dict(session or {}))
     try:
-        writer.add_topic(road, contract.TOPIC_TYPES[f'{contract.NAMESPACE}/'
-                                                    f'{contract.ROAD_HEIGHT}'], offered)
-        writer.add_topic(meas, hil.TOPIC_TYPES[f'{contract.NAMESPACE}/{hil.ECU_MEASUREMENTS}'],
-                         offered)
+        writer.add_topic(road, contract.type_of(contract.ROAD_HEIGHT), offered)
+        writer.add_topic(meas, contract.type_of(hil.ECU_MEASUREMENTS), offered)
         ts_ns = int(round(rec.ts * 1e9))
         for k in range(rec.n):
             stamp = t0_ns + k * ts_ns
-            write_message(writer, road, msgs.road_height_msg(stamp, 0.0, rec.w[k]), stamp, stamp)
+            writer.write(road, wire.encode_road_height(stamp, 0.0, rec.w[k]), stamp, stamp)
             m_stamp = stamp + int(round(lag_s * 1e9))
             values = [rec.u_now[k], rec.u_mean[k], *rec.y[k], float('nan')]
-            writer.write(meas, encoder.encode(m_stamp, values), m_stamp, m_stamp)
+            writer.write(meas, wire.MEASUREMENTS_ENCODER.encode(m_stamp, values), m_stamp,
+                         m_stamp)
         return writer.close()
     except BaseException:
         writer.abort()
