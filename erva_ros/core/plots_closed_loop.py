@@ -99,13 +99,14 @@ def tornado_figure(rows: Sequence[Mapping], path: str, title: str = '') -> str:
         ax.set_yticks(range(len(mine)))
         ax.set_yticklabels([_label(r) for r in mine], fontsize=8)
         ax.axvline(0, color='k', lw=0.8)
-        ax.margins(x=0.08)
-        ax.set_xlabel('ΔJ, % of |J nominal| (positive: worse); ▼ model parameter '
-                      'too low, ▲ too high or an input level', fontsize=8)
+        ax.use_sticky_edges = False       # bars stick to their ends: keep a margin
+        ax.margins(x=0.05)
+        ax.set_xlabel('ΔJ, % of |J nominal| (positive: worse)')
         ax.set_title(f'(α1, α2) = ({alpha[0]:g}, {alpha[1]:g})')
         ax.grid(True, axis='x', alpha=0.3)
-    if title:
-        fig.suptitle(title, fontsize=10)
+    fig.suptitle((title + '\n' if title else '') + '▼ the model\'s parameter too low, '
+                 '▲ too high (or an input error\'s level); bar: the range over the levels',
+                 fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
