@@ -116,3 +116,16 @@ def test_settings_are_checked():
     empty = MapProfile('r', GRID, HP, 0, np.zeros(5), np.zeros(5), np.zeros(5, dtype=int))
     with pytest.raises(MapError, match='empty'):
         MapPreview(empty, TS)
+
+
+def test_a_session_checks_the_map_before_it_starts():
+    mp = _map(rh.route(0), start=10.0, end=60.0, gap=(40.0, 41.0))
+    mp.route = 'paper:seed=0@20m/s'
+    mp.check_covers('paper:seed=0@20m/s', 14.0, 30.0)
+    for route, lo, hi, needle in (
+            ('paper:seed=5@20m/s', 14.0, 30.0, "drives 'paper:seed=5@20m/s'"),
+            ('', 5.0, 30.0, 'the map covers 10.0..60.0 m, the session needs 2.0..33.0 m'),
+            ('', 14.0, 80.0, 'needs 11.0..83.0 m'),
+            ('', 14.0, 50.0, r'gap at 40\.\d\.\.41\.0 m')):
+        with pytest.raises(MapError, match=needle):
+            mp.check_covers(route, lo, hi)

@@ -28,8 +28,7 @@ from erva_ros.core.roadmap.cdr import (CdrFormatError, joint_state, point_stampe
                                        pose_with_covariance_stamped)
 from erva_ros.core.roadmap.drive import DriveRecord
 
-#: The road estimate a vehicle publishes (proposed contract topic, docs/road.md).
-ROAD_ESTIMATE = 'road/estimate'
+ROAD_ESTIMATE = contract.ROAD_ESTIMATE
 _MEAS_ROWS = ('sprung_accel', 'suspension', 'generator_speed', 'f_gen')
 
 

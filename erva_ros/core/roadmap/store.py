@@ -137,6 +137,27 @@ class MapProfile:
             var = np.where(ok, v[i0] * (1 - frac) + v[i1] * frac, np.inf)
         return height, var, ok
 
+    def check_covers(self, route: str, start_m: float, end_m: float,
+                     margin_m: float = 3.0) -> None:
+        """Raise MapError (one line) unless the map is of ``route`` and covers the drive.
+
+        What a session checks before it starts: the route name ('' on either side: not
+        checked), the span [start_m − margin, end_m + margin] (odometry error and the
+        preview horizon) inside the map, and no gap in it.
+        """
+        if route and self.route and route != self.route:
+            raise MapError(f'the map is of route {self.route!r}, the session drives {route!r}')
+        if not self.valid.any():
+            raise MapError('the map is empty')
+        lo, hi = start_m - margin_m, end_m + margin_m
+        if lo < self.start_m or hi > self.end_m:
+            raise MapError(f'the map covers {self.start_m:.1f}..{self.end_m:.1f} m, the '
+                           f'session needs {lo:.1f}..{hi:.1f} m')
+        inside = [(a, b) for a, b in self.gaps() if b >= lo and a <= hi]
+        if inside:
+            raise MapError(f'the map has a gap at {inside[0][0]:.1f}..{inside[0][1]:.1f} m, '
+                           f'inside the {lo:.1f}..{hi:.1f} m the session needs')
+
     def gaps(self) -> List[tuple]:
         """Return the runs of nodes without data inside the map, as (start_m, end_m)."""
         out, i = [], 0
@@ -168,9 +189,10 @@ def register(profile: GridProfile, ref: MapProfile, search_m: float,
              segment_m: float = 20.0, refine_m: float = 0.5) -> Registration:
     """Return the offset and scale that put ``profile`` on the map ``ref`` (module doc).
 
-    Two passes: every segment searched within ±``search_m``, a line through the offsets
-    that matched; then every segment again within ±``refine_m`` of that line (a scale
-    error smears a long search), and the line refitted.  MapError if nothing matches.
+    Two passes.  First the segments in driving order, each within ±``search_m`` of the
+    line through the offsets found so far (a scale error moves the offset along the
+    drive, beyond any fixed search); then every segment again within ±``refine_m`` of
+    that line, and the line refitted.  MapError if too few segments match.
     """
     s, h = profile.s, profile.h
     origin = float(s[0])
@@ -180,32 +202,35 @@ def register(profile: GridProfile, ref: MapProfile, search_m: float,
         seg = slice(a, min(a + per, s.size))
         ok = np.isfinite(h[seg])
         if ok.sum() >= per // 2:
-            segments.append((s[seg][ok], h[seg][ok]))
-    line = (0.0, 0.0)
-    for center, width in ((None, search_m), (True, refine_m)):
+            segments.append((s[seg][ok], h[seg][ok], float(np.mean(s[seg][ok])) - origin))
+
+    def fit(mids, offs):
+        if len(offs) >= 2 and np.ptp(mids) > 0:
+            b, a0 = np.polyfit(mids, offs, 1)
+            return float(a0), float(b)
+        return (float(np.median(offs)), 0.0) if offs else (0.0, 0.0)
+
+    result = None
+    for refine in (False, True):
+        line = result and (result.offset_m, result.scale)
         mids, offs, rhos = [], [], []
-        for ss, hh in segments:
-            mid = float(np.mean(ss))
-            c = 0.0 if center is None else line[0] + line[1] * (mid - origin)
-            m = match(ss, hh, ref.start_m, ref.grid_m, ref.h, c, width, ref.grid_m)
+        for ss, hh, mid in segments:
+            c = fit(mids, offs) if not refine else line
+            m = match(ss, hh, ref.start_m, ref.grid_m, ref.h, c[0] + c[1] * mid,
+                      refine_m if refine else search_m, ref.grid_m)
             if m.correlation >= MIN_CORRELATION and not m.at_edge:
                 mids.append(mid)
                 offs.append(m.offset_m)
                 rhos.append(m.correlation)
         if len(offs) < max(1, MIN_MATCHED * len(segments)):
-            if center is None:
+            if result is None:
                 raise MapError(f'the drive matches the map nowhere ({len(offs)} of '
                                f'{len(segments)} {segment_m:g} m segments correlate >= '
                                f'{MIN_CORRELATION} within ±{search_m:g} m): another route, or '
                                'the map does not cover it')
             break
-        mids_a, offs_a = np.array(mids) - origin, np.array(offs)
-        if offs_a.size >= 2 and np.ptp(mids_a) > 0:
-            b, a0 = np.polyfit(mids_a, offs_a, 1)
-            line = (float(a0), float(b))
-        else:
-            line = (float(np.median(offs_a)), 0.0)
-        result = Registration(line[0], line[1], origin, float(np.median(rhos)), len(offs))
+        a0, b = fit(mids, offs)
+        result = Registration(a0, b, origin, float(np.median(rhos)), len(offs))
     return result
 
 

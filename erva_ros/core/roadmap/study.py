@@ -36,6 +36,7 @@ from typing import Dict, List, Sequence, Tuple
 import numpy as np
 
 from erva_ros.core.params import ERVAParams
+from erva_ros.core.roadmap import MapError
 
 #: Road seeds of the study: nothing was tuned on them (development used 0-2).
 FIRST_SEED = 100
@@ -126,7 +127,7 @@ def _maps(params: ERVAParams, cfg: StudyConfig, seed: int, route, ts: float):
         truth = highpass(route.height(g.s), cfg.grid_m, cfg.highpass_m)
         ok = np.isfinite(g.h)
         errors.append(float(np.sqrt(np.mean((g.h[ok] - truth[ok]) ** 2))))
-    maps = {}
+    maps, refused = {}, {}
     for e in cfg.odometry_m:
         road_map = RoadMap.create(':memory:', route.name, cfg.grid_m, cfg.highpass_m)
         for d, (run, est) in enumerate(estimates):
@@ -134,11 +135,14 @@ def _maps(params: ERVAParams, cfg: StudyConfig, seed: int, route, ts: float):
             est = replace(est, distance=np.array([odo.step(cfg.map_speed)[0]
                                                   for _ in range(run.t.size)]))
             g = grid_profile(est, cfg.grid_m, cfg.highpass_m, ts=ts)
-            road_map.add(g, f'{seed}-{d}-{e}', f'drive {d}', search_m=cfg.search_m)
+            try:
+                road_map.add(g, f'{seed}-{d}-{e}', f'drive {d}', search_m=cfg.search_m)
+            except MapError:                 # not placed on the map: counted, left out
+                refused[e] = refused.get(e, 0) + 1
             if d + 1 in cfg.drives:
                 maps[(d + 1, e)] = road_map.profile()
         road_map.close()
-    return maps, errors
+    return maps, errors, refused
 
 
 def run_seed(job) -> Tuple[int, Dict]:
@@ -157,7 +161,7 @@ def run_seed(job) -> Tuple[int, Dict]:
     ts = settings.ts
     route = Route.of(make_road('paper', cfg.route_m / cfg.map_speed, seed=seed,
                                speed_mps=cfg.map_speed))
-    maps, drive_errors = _maps(params, cfg, seed, route, ts)
+    maps, drive_errors, refused = _maps(params, cfg, seed, route, ts)
     ekf = RoadEKF(params, ts=ts)
     controllers = {}
     rows = []
@@ -200,6 +204,7 @@ def run_seed(job) -> Tuple[int, Dict]:
     truth = highpass(route.height(np.arange(0, cfg.route_m, cfg.grid_m)), cfg.grid_m,
                      cfg.highpass_m)
     return seed, {'rows': rows, 'drive_errors_m': drive_errors, 'map_errors': map_errors,
+                  'drives_refused': {f'{e:g}': n for e, n in refused.items()},
                   'road_detail_rms_m': float(np.sqrt(np.mean(truth ** 2)))}
 
 
@@ -254,7 +259,11 @@ def aggregate(per_seed: Sequence[Dict], cfg: StudyConfig) -> Dict:
             goal[f'{alpha[0]:g},{alpha[1]:g}'] = {'share_pct': row['share_pct'],
                                                   'target_pct': target,
                                                   'met': (row['share_pct'] or 0) >= target}
-    return {'rows': table, 'goal': goal,
+    refused = {}
+    for r in per_seed:
+        for e, n in r.get('drives_refused', {}).items():
+            refused[e] = refused.get(e, 0) + n
+    return {'rows': table, 'goal': goal, 'drives_refused': refused,
             'drive_error_m': _mean([e for r in per_seed for e in r['drive_errors_m']]),
             'road_detail_rms_m': _mean([r['road_detail_rms_m'] for r in per_seed]),
             'map_errors': {k: {q: _mean([r['map_errors'][k][q] for r in per_seed])
