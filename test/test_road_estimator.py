@@ -112,3 +112,27 @@ def test_road_error_at_the_shipped_sensor_noise_is_bounded(road):
     assert a['filter_detail'] < 4e-4, a
     assert a['smoother_detail'] < 0.5 * a['road_detail'], a
     assert math.isfinite(a['filter_raw']) and a['predicted_std'] > 0
+
+
+def test_the_period_is_predicted_as_the_ecu_applied_it():
+    """A command latched 6 ms after the sample: two pieces, not the period's mean."""
+    from erva_ros.core.plant import PlantSimulator
+    from erva_ros.core.road_estimator import damping_profile
+    ts, d = 0.02, 0.006
+    u_prev, u_now = 20000.0, 0.0
+    u_mean = (d * u_prev + (ts - d) * u_now) / ts
+    assert damping_profile(u_mean, u_now, u_prev, ts) == pytest.approx((u_prev, u_now, d))
+    assert damping_profile(u_mean, u_now, None, ts) == (u_mean, u_mean, 0.0)
+    assert damping_profile(5000.0, 5000.0, 5000.0, ts) == (5000.0, 5000.0, 0.0)
+    assert damping_profile(30000.0, 0.0, 20000.0, ts) == (30000.0, 30000.0, 0.0)  # no fit
+    x0 = np.array([0.004, 0.05, 0.001, -0.3, 0.002, 0.4])
+    plant = PlantSimulator(P, ts=ts, x0=x0)
+    plant.step_delayed(u_prev, u_now, d, 0.0, 0.0)
+    errors = []
+    for prev in (u_prev, None):
+        ekf = RoadEKF(P, codegen='off')
+        ekf.reset(x0)
+        ekf.cycle([np.nan] * 5, u_mean, u_now, prev)           # prediction only
+        errors.append(np.abs(ekf.x - plant.x).max())
+    # Two pieces: the plant to RK4's accuracy; the mean throughout: far off.
+    assert errors[0] < 1e-6 < 1e-4 < errors[1], errors

@@ -159,6 +159,23 @@ class RoadSensors:
                          self.unsprung_accel is not None])
 
 
+def damping_profile(u_mean: float, u_now: float, u_prev: Optional[float], ts: float
+                    ) -> Tuple[float, float, float]:
+    """Return (u_a, u_b, d): u_a acts on [0, d), u_b on [d, Ts) of an ECU period.
+
+    The ECU reports the damping at the end of the period (u_now) and its mean; a command
+    latched once, d after the sample (the HIL loop's ~6 ms), gives
+    d = Ts·(u_mean − u_now)/(u_prev − u_now).  When that does not hold (no change, more
+    than one, a timeout) the mean acts throughout: (u_mean, u_mean, 0).
+    """
+    if u_prev is None or abs(u_prev - u_now) <= 1e-9 * max(1.0, abs(u_now)):
+        return u_mean, u_mean, 0.0
+    d = ts * (u_mean - u_now) / (u_prev - u_now)
+    if not -1e-3 * ts <= d <= ts * (1 + 1e-3):
+        return u_mean, u_mean, 0.0
+    return u_prev, u_now, min(max(d, 0.0), ts)
+
+
 def road_noise() -> EstimatorNoise:
     """Return the road estimator's default noise (shipped sensors, ROAD_PROCESS_NOISE)."""
     return EstimatorNoise(q_accel_s=ROAD_PROCESS_NOISE, q_accel_us=ROAD_PROCESS_NOISE,
@@ -214,15 +231,18 @@ class RoadEKF:
         nx, nr = self.model.nx, road.n_states
         self.nx, self.nz = nx, nx + nr
         self.substeps = rk4_stable_substeps(self.model, self.ts, max(u_max, 1.0))
-        step = self.model.rk4_step(self.ts, self.substeps)
+        flow = self.model.rk4_flow(self.substeps)      # (x, u, w0, w1, dt), stable to Ts
         phi, self.Qe = road.matrices(self.ts)
         self._shift = np.zeros(nx)
         self._shift[0] = self._shift[2] = 1.0           # S: z_s and z_us ride on w
-        z, u, e = ca.SX.sym('z', self.nz), ca.SX.sym('u'), ca.SX.sym('e', nr)
+        z, e = ca.SX.sym('z', self.nz), ca.SX.sym('e', nr)
+        u = ca.SX.sym('u', 3)                           # u_a on [0, d), u_b on [d, Ts), d
         xi, r = z[:nx], z[nx:]
         r1 = ca.mtimes(ca.DM(phi), r) + e
         dw = r1[0] - r[0]
-        zn = ca.vertcat(step(xi, u, 0, dw) - ca.DM(self._shift) * dw, r1)
+        wd = dw * u[2] / self.ts                        # the road at the switch
+        xd = flow(xi, u[0], 0, wd, u[2])
+        zn = ca.vertcat(flow(xd, u[1], wd, dw, self.ts - u[2]) - ca.DM(self._shift) * dw, r1)
         zn0 = ca.substitute(zn, e, ca.DM.zeros(nr))
         a = ca.jacobian(zn0, z)
         g = ca.substitute(ca.jacobian(zn, e), e, ca.DM.zeros(nr))
@@ -263,7 +283,7 @@ class RoadEKF:
         zk, pk, nis = sequential_update(zn, p1, yh, hh, y, mask, r)
         return ca.Function('road_ekf_cycle', [z, p, q, qe, r, u, u_now, y, mask],
                            [ca.densify(v) for v in (zk, pk, nis, zn, p1, a)],
-                           ['z', 'P', 'Q', 'Qe', 'r', 'u_mean', 'u_now', 'y', 'mask'],
+                           ['z', 'P', 'Q', 'Qe', 'r', 'u_profile', 'u_now', 'y', 'mask'],
                            ['z_next', 'P_next', 'nis', 'z_pred', 'P_pred', 'A'])
 
     # -- the filter ---------------------------------------------------------------------
@@ -319,16 +339,21 @@ class RoadEKF:
             self.history = _History(z_filt=[self.z.copy()], p_filt=[self.P.copy()])
         return self._estimate(nis, int(mask.sum()))
 
-    def cycle(self, y, u_mean: float, u_now: float) -> RoadEstimate:
-        """Predict over one ECU period with its mean damping ``u_mean``, then correct.
+    def cycle(self, y, u_mean: float, u_now: float, u_prev: Optional[float] = None
+              ) -> RoadEstimate:
+        """Predict over one ECU period with its damping, then correct with y.
 
         y in :data:`ROAD_MEASUREMENTS` order, NaN = missing (all NaN: a cycle without
         measurements, predicted only); ``u_now`` is the damping applied when the sensors
-        were sampled (the ECU's status frame), in Ns/m.
+        were sampled, ``u_mean`` its mean over the period (the ECU's status frame) and
+        ``u_prev`` the damping at the previous sample, in Ns/m.  With ``u_prev`` the
+        period is predicted as the ECU applied it (:func:`damping_profile`), else with
+        ``u_mean`` throughout.
         """
         y, mask = self._mask(y)
+        profile = damping_profile(u_mean, u_now, u_prev, self.ts)
         z, p, nis, zp, pp, a = self._cycle(self.z, self.P, self.Qx, self.Qe, self._r,
-                                           u_mean, u_now, y, mask.astype(float))
+                                           profile, u_now, y, mask.astype(float))
         self.z, self.P = z, p
         self.k += 1
         h = self.history
@@ -364,4 +389,5 @@ class RoadEKF:
 
 
 __all__ = ['ROAD_MEASUREMENTS', 'ROAD_MODEL_KINDS', 'QUANTA', 'ROAD_PROCESS_NOISE', 'RoadModel',
-           'RoadSensors', 'RoadEKF', 'RoadEstimate', 'SmoothedDrive', 'road_noise']
+           'RoadSensors', 'RoadEKF', 'RoadEstimate', 'SmoothedDrive', 'damping_profile',
+           'road_noise']

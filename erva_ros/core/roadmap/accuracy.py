@@ -97,7 +97,7 @@ def accuracy(params: ERVAParams, road: str, seed: int, variant: str = 'shipped',
     ekf.reset()
     ekf.start(run.y[0], run.u_now[0])
     for k in range(1, run.t.size):
-        ekf.cycle(run.y[k], run.u_mean[k], run.u_now[k])
+        ekf.cycle(run.y[k], run.u_mean[k], run.u_now[k], run.u_now[k - 1])
     sm = ekf.smooth()
     skip = int(round(1.0 / ts))
     dx = speed_mps * ts

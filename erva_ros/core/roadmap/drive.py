@@ -79,7 +79,7 @@ def estimate_drive(record: DriveRecord, params: ERVAParams, ts: float = 0.02,
     u_mean = np.where(np.isfinite(record.u_mean), record.u_mean, u_now)
     ekf.start(record.y[0], u_now[0])
     for k in range(1, len(record.t)):
-        ekf.cycle(record.y[k], u_mean[k], u_now[k])
+        ekf.cycle(record.y[k], u_mean[k], u_now[k], u_now[k - 1])
     sm = ekf.smooth()
     return DriveEstimate(np.asarray(record.distance, dtype=float), sm.w, sm.var_w,
                          sm.w_filtered)

@@ -224,7 +224,8 @@ def simulate_vehicle(params: ERVAParams, controller, road: Road, duration_s: flo
         if estimator is None:
             x_ctrl, w_hat, var_w = plant.x, w_k, 0.0
         else:
-            est = estimator.start(y, acting) if k == 0 else estimator.cycle(y, u_mean, acting)
+            est = (estimator.start(y, acting) if k == 0
+                   else estimator.cycle(y, u_mean, acting, previous))
             x_ctrl, w_hat, var_w = est.x, est.w, est.var_w
         s_odo, v_odo = odo.step(road.speed_mps)
         p = source(t_k, s_odo, v_odo, w_hat, var_w, points)
