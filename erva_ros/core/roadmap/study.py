@@ -103,7 +103,8 @@ def variants(cfg: StudyConfig) -> List[Variant]:
     return out
 
 
-def _maps(params: ERVAParams, cfg: StudyConfig, seed: int, route, ts: float):
+def _maps(params: ERVAParams, cfg: StudyConfig, seed: int, route, ts: float,
+          codegen: str = 'auto'):
     """Return {(drives, e): MapProfile} and the map drives' own estimation errors."""
     from erva_ros.core.controllers import ControllerSettings, make_controller
     from erva_ros.core.road_estimator import RoadEKF
@@ -113,7 +114,7 @@ def _maps(params: ERVAParams, cfg: StudyConfig, seed: int, route, ts: float):
     from erva_ros.core.roadmap.vehicle import Odometry, OdometryError, simulate_vehicle
 
     passive = make_controller('passive', params, ControllerSettings())
-    ekf = RoadEKF(params, ts=ts, keep_history=True)
+    ekf = RoadEKF(params, ts=ts, keep_history=True, codegen=codegen)
     n_max = max(cfg.drives)
     duration = cfg.route_m / cfg.map_speed
     estimates, errors = [], []
@@ -161,8 +162,8 @@ def run_seed(job) -> Tuple[int, Dict]:
     ts = settings.ts
     route = Route.of(make_road('paper', cfg.route_m / cfg.map_speed, seed=seed,
                                speed_mps=cfg.map_speed))
-    maps, drive_errors, refused = _maps(params, cfg, seed, route, ts)
-    ekf = RoadEKF(params, ts=ts)
+    maps, drive_errors, refused = _maps(params, cfg, seed, route, ts, settings.codegen)
+    ekf = RoadEKF(params, ts=ts, codegen=settings.codegen)
     controllers = {}
     rows = []
     for var in variants(cfg):
