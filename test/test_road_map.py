@@ -170,3 +170,18 @@ def test_grid_and_open_errors(tmp_path):
         m._conn.execute("UPDATE meta SET value = '99' WHERE key = 'schema_version'")
     with pytest.raises(MapError, match="schema version '99'"):
         RoadMap.open(str(tmp_path / 'v.db'))
+
+
+def test_a_standstill_adds_nothing_and_reversing_is_refused():
+    from erva_ros.core.roadmap.drive import DriveEstimate
+    s = np.concatenate([np.arange(0, 20, 0.4), np.full(30, 20.0), np.arange(20.4, 40, 0.4)])
+    w = np.sin(s)
+    g = grid_profile(DriveEstimate(s, w, np.full(s.size, 1e-8), w), 0.1, 6.0, skip_s=0.0)
+    assert g.first == 0 and g.h.size == 397 and np.isfinite(g.h).all()
+    back = s.copy()
+    back[60] -= 1.0
+    with pytest.raises(MapError, match='decreases'):
+        grid_profile(DriveEstimate(back, w, np.full(s.size, 1e-8), w), 0.1, 6.0, skip_s=0.0)
+    with pytest.raises(MapError, match='did not move'):
+        grid_profile(DriveEstimate(np.full(5, 3.0), w[:5], np.ones(5), w[:5]), 0.1, 6.0,
+                     skip_s=0.0)

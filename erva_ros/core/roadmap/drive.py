@@ -145,14 +145,20 @@ def grid_profile(est: DriveEstimate, grid_m: float, highpass_m: float,
     """Return the drive's detail on the map grid, without its first ``skip_s`` (filter start).
 
     The smoothed height is put on the grid, high-passed there, and its variance
-    interpolated; distances must increase (the vehicle drives forward).
+    interpolated.  Cycles at standstill (the distance not increasing by more than 1 mm)
+    add nothing: only the first at each position is kept.  Reversing is an error.
     """
     skip = min(int(round(skip_s / ts)), max(len(est.w) - 2, 0))
     s, w, v = est.distance[skip:], est.w[skip:], est.var_w[skip:]
     ok = np.isfinite(s) & np.isfinite(w) & np.isfinite(v)
     s, w, v = s[ok], w[ok], v[ok]
-    if s.size < 2 or np.any(np.diff(s) <= 0):
-        raise MapError('drive: the odometry distance must increase (forward driving only)')
+    if s.size and np.any(np.diff(s) < -1e-3):
+        raise MapError('drive: the odometry distance decreases (forward driving only)')
+    keep = np.ones(s.size, dtype=bool)
+    keep[1:] = s[1:] > np.maximum.accumulate(s)[:-1] + 1e-3
+    s, w, v = s[keep], w[keep], v[keep]
+    if s.size < 2:
+        raise MapError('drive: the vehicle did not move')
     g = _on_grid(s, w, v, grid_m)
     g.h = highpass(g.h, grid_m, highpass_m)
     return g

@@ -31,8 +31,11 @@ def gaussian_lowpass(h: np.ndarray, dx: float, sigma_m: float) -> np.ndarray:
     half = int(math.ceil(4 * sigma_m / dx))
     x = np.arange(-half, half + 1) * dx
     kernel = np.exp(-0.5 * (x / sigma_m) ** 2)
-    num = np.convolve(np.where(valid, h, 0.0), kernel, mode='same')
-    den = np.convolve(valid.astype(float), kernel, mode='same')
+    # 'full' and the centre: 'same' returns the longer of the two (a drive shorter
+    # than the kernel, 8·sigma_m).
+    centre = slice(half, half + h.size)
+    num = np.convolve(np.where(valid, h, 0.0), kernel)[centre]
+    den = np.convolve(valid.astype(float), kernel)[centre]
     with np.errstate(invalid='ignore', divide='ignore'):
         out = num / den
     return np.where(valid, out, np.nan)
