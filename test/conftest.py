@@ -85,3 +85,20 @@ def erva():
 @pytest.fixture(scope='session')
 def repo_root():
     return REPO
+
+
+@pytest.fixture(scope='session', autouse=True)
+def compiled_functions():
+    """Compile the shipped configurations' functions once, before any test starts a node.
+
+    On an empty cache (ERVA_CACHE_DIR, a fresh machine) a node compiling its solver
+    itself took up to a minute, beyond other nodes' start-up timeouts; `erva compile`
+    does it up front (both xdist workers call it: the second waits for the first's
+    libraries, and on a warm cache it returns at once).  A failed compile is not a test
+    failure (codegen: auto runs the functions uncompiled): its line is shown.
+    """
+    proc = run_erva('compile', '--json', timeout=1800)
+    if proc.returncode != 0:
+        import warnings
+        warnings.warn(f'erva compile failed ({proc.returncode}): '
+                      f'{(proc.stderr or proc.stdout).strip()[-500:]}')

@@ -77,3 +77,62 @@ def test_any_cut_recovers_a_prefix(tmp_path):
         seen.add(n)
         shutil.rmtree(bag)
     assert len(seen) > 5 and max(seen) >= 250   # cuts land in different chunks
+
+
+def _crashed(tmp_path):
+    bag = str(tmp_path / 'crashed')
+    proc = subprocess.run([sys.executable, '-c', CRASHER, bag], capture_output=True)
+    assert proc.returncode == -9
+    return bag
+
+
+def _snapshot(bag):
+    return {name: open(os.path.join(bag, name), 'rb').read() for name in os.listdir(bag)}
+
+
+def test_repair_out_writes_the_bag_elsewhere_and_leaves_the_original(tmp_path, erva):
+    bag = _crashed(tmp_path)
+    before = _snapshot(bag)
+    out = tmp_path / 'repaired'
+    proc = erva('bag', 'repair', bag, '--out', out, check=True)
+    assert f'{out}: rewrote the MCAP file' in proc.stdout and '.orig' not in proc.stdout
+    assert _snapshot(bag) == before                      # not touched
+    assert sorted(os.listdir(out)) == ['crashed_0.mcap', 'metadata.yaml']
+    with Reader(str(out)) as reader:                     # a reader we did not write
+        assert reader.message_count == len(list(reader.messages())) == 500
+    assert open_bag(str(out)).session['scenario'] == 'crash'
+    # A complete bag is copied with its metadata.yaml.
+    again = tmp_path / 'again'
+    assert 'copied the MCAP file' in erva('bag', 'repair', out, '--out', again,
+                                          check=True).stdout
+    assert open_bag(str(again)).message_count == 500
+
+
+def test_a_full_disk_is_one_line_and_out_gets_around_it(tmp_path, erva):
+    # The repaired file goes where a full disk is: /dev/full answers every write ENOSPC.
+    bag = _crashed(tmp_path)
+    before = _snapshot(bag)
+    os.symlink('/dev/full', os.path.join(bag, 'crashed_0.mcap.repair'))
+    proc = erva('bag', 'repair', bag)
+    assert proc.returncode == 1 and proc.stdout == ''
+    assert proc.stderr.splitlines() == [
+        f'erva bag: error: cannot write the repaired bag in {bag}: No space left on device; '
+        'give --out DIR on another disk'], proc.stderr
+    assert _snapshot(bag) == before                      # nothing lost, nothing left over
+    out = tmp_path / 'elsewhere'
+    assert 'recovered 500 messages' in erva('bag', 'repair', bag, '--out', out,
+                                            check=True).stdout
+
+
+def test_repair_out_refuses_the_bag_itself_and_a_full_directory(tmp_path, erva):
+    bag = _crashed(tmp_path)
+    busy = tmp_path / 'busy'
+    busy.mkdir()
+    (busy / 'x').write_text('x')
+    for out, message in ((bag, 'that is the bag itself'),
+                         (busy, 'exists and is not an empty directory')):
+        proc = erva('bag', 'repair', bag, '--out', out)
+        assert proc.returncode == 2 and len(proc.stderr.splitlines()) == 1, proc.stderr
+        assert message in proc.stderr
+    proc = erva('bag', 'repair', bag, '--out', tmp_path / 'o', '--no-backup')
+    assert proc.returncode == 2 and '--no-backup applies to a repair in place' in proc.stderr

@@ -40,7 +40,7 @@ def test_overrides_win_and_none_is_ignored():
     ({'cost': 'quadratic'}, "'cost' = 'quadratic' is not allowed; choose one of paper"),
     ({'u_min': 30000.0}, "'u_max' = 20000 must exceed u_min = 30000"),
     ({'alpha1': 0.0, 'alpha2': 0.0}, 'both 0'),
-    ({'horizn': 3}, "unknown parameter 'horizn'"),
+    ({'horizn': 3}, r"x.yaml: unknown parameter\(s\) horizn; did you mean 'horizon'\?$"),
     ({'long_steps': 2, 'long_step_s': 0.05}, 'whole multiple of ts'),
     ({'ts': 'fast'}, "'ts' must be a number"),
 ])

@@ -123,6 +123,9 @@ def test_sections_merge_and_other_nodes_and_the_wildcard_are_not_read(tmp_path):
     ('/**/ecu_bridge_node: {ros__parameters: {bus_retry_s: 2.0}\n', 'not valid YAML'),
     ('/**/ecu_bridge_node:\n  ros__parameters:\n    r_internal_ohm: 0.0\n'
      '    r_switch_ohm: 0.0\n', 'r_internal_ohm + r_switch_ohm'),
+    # A typo was ignored (the value kept its default); now it is named, with the key meant.
+    ('/**/ecu_bridge_node:\n  ros__parameters:\n    dutty_max: 0.9\n',
+     "hil.yaml: unknown parameter(s) dutty_max; did you mean 'duty_max'?"),
 ])
 def test_bad_files_give_one_line_naming_the_file(tmp_path, text, message):
     path = _write(tmp_path, text)
@@ -147,3 +150,25 @@ def test_noise_errors_name_the_file(tmp_path):
     with pytest.raises(ParamError) as exc:
         hs.noise_of(hs.load_estimator_section(path), path)
     assert "'r_speed' = 0.0 is out of range" in _one_line(exc)
+
+
+def test_keys_the_hil_nodes_also_declare_are_not_typos(tmp_path):
+    # The nodes declare the physical parameters and some live ones too (a node's own
+    # section may set them), and ROS reads use_sim_time.
+    path = _write(tmp_path, '/**/state_estimator_node:\n  ros__parameters:\n'
+                            '    ts: 0.01\n    realtime_priority: 0\n    c_e0: 9000.0\n'
+                            '    use_sim_time: false\n    u_max: 30000.0\n'
+                            '/**/ecu_sim:\n  ros__parameters:\n    latch: 0.002\n')
+    assert hs.load_estimator_section(path)['u_max'] == 30000.0
+    with pytest.raises(ParamError) as exc:
+        hs.load_ecu_sim_section(path)
+    assert _one_line(exc).endswith("unknown parameter(s) latch; did you mean 'latch_s'?")
+
+
+def test_erva_ecu_sim_with_a_typo_in_its_file_is_one_line_and_exit_2(tmp_path, erva):
+    path = _write(tmp_path, '/**/ecu_sim:\n  ros__parameters:\n    noise_sprung_acc: 0.1\n')
+    proc = erva('ecu-sim', '--hil-config', path, '--bus', 'virtual:x', '--duration', '0.1')
+    assert proc.returncode == 2 and proc.stdout == ''
+    assert proc.stderr.splitlines() == [
+        f"erva ecu-sim: error: {path}: unknown parameter(s) noise_sprung_acc; did you mean "
+        f"'noise_sprung_accel'?"], proc.stderr

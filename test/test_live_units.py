@@ -308,6 +308,31 @@ def test_summary_json_has_no_nan_and_text_names_the_errors():
     assert 'road      1 sample skipped (timer behind)\n' in format_summary(summary)
 
 
+def test_duration_stats_take_no_memory_per_sample():
+    # Every sample of a session counted (exactly), in memory allocated and written at
+    # construction: a long session's stats grow nothing (they kept every sample, ~32
+    # bytes each, before).  Traced, so the Python floats a deque kept would show.
+    import tracemalloc
+    from erva_ros.core.loop.timing import DurationStats, PeriodStats, EXACT_SAMPLES
+    stats, period = DurationStats(), PeriodStats(0.02)
+    samples = np.random.default_rng(3).lognormal(np.log(1e-3), 0.5, 20 * EXACT_SAMPLES)
+    for s in samples[:2 * EXACT_SAMPLES]:
+        stats.add(s)
+    tracemalloc.start()
+    try:
+        before = tracemalloc.take_snapshot()
+        for i, s in enumerate(samples[2 * EXACT_SAMPLES:]):
+            stats.add(s)
+            period.mark(i * 0.02 + s)
+        stats.summary()
+        after = tracemalloc.take_snapshot()
+    finally:
+        tracemalloc.stop()
+    grown = sum(d.size_diff for d in after.compare_to(before, 'filename') if d.size_diff > 0)
+    assert grown < 2000, grown      # 36,000 samples: a byte per sample would be 36 kB
+    assert len(stats) == 20 * EXACT_SAMPLES and len(period.jitter) == 18 * EXACT_SAMPLES - 1
+
+
 def test_duration_stats_are_exact_then_binned_for_a_long_session():
     from erva_ros.core.loop.timing import DurationStats, EXACT_SAMPLES
     from erva_ros.core.metrics import percentiles_ms
@@ -324,8 +349,7 @@ def test_duration_stats_are_exact_then_binned_for_a_long_session():
     assert got['max'] == want['max']                                     # exact
     for key in ('p50', 'p99'):                                           # every sample counts
         assert got[key] == pytest.approx(want[key], rel=0.003), key
-    assert len(stats._samples) == EXACT_SAMPLES                          # memory bounded
-    edge = DurationStats(maxlen=3)
+    edge = DurationStats(exact=3)
     for s in (0.0, 5e3, 1e-12, 0.002, 0.003):                            # out of the bins' range
         edge.add(s)
     assert edge.summary()['max'] == 5e6 and edge.summary()['samples'] == 5

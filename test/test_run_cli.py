@@ -34,6 +34,12 @@ def test_run_help_lists_the_options(erva):
     (['--nmpc', 'BINARY'], r'not a UTF-8 text file'),
     (['--live', 'BINARY'], r'not a UTF-8 text file'),
     (['--record', 'FILE/bags'], r'--record .*: cannot write bags there \(Not a directory\)'),
+    (['--params', 'FOOBAR'], r"erva_paper.yaml: unknown parameter\(s\) foo_bar; known: M_s, "),
+    (['--params', 'TYPO'], r"unknown parameter\(s\) M_S; did you mean 'M_s'\?$"),
+    (['--nmpc', 'HORIZN'], r"unknown parameter\(s\) horizn; did you mean 'horizon'\?$"),
+    (['--road-file', 'DIR'], r"road_file '.*' is a directory, not a CSV file$"),
+    (['--road-file', 'HUGE'], r"road_file '.*' is 513 MiB; the limit is 512 MiB \(about 20 "
+                              r"million rows\): cut it to the part the run drives$"),
 ])
 def test_bad_input_is_one_line_and_no_node_starts(erva, tmp_path, args, message):
     bad = tmp_path / 'live.yaml'
@@ -45,6 +51,19 @@ def test_bad_input_is_one_line_and_no_node_starts(erva, tmp_path, args, message)
     files['LATIN1'].write_bytes('time_s, höhe_m\n0, 0\n1, 0.01\n'.encode('latin-1'))
     files['NANROW'].write_text('time_s, height_m\n0, 0\n1, nan\n')
     files['FILE/bags'].write_text('a file, not a directory')
+    paper = open(os.path.join(REPO, 'config', 'erva_paper.yaml'), encoding='utf-8').read()
+    for name, text in (('FOOBAR', paper + '    foo_bar: 1.0\n'),
+                       ('TYPO', paper.replace('M_s:', 'M_S:'))):
+        files[name] = tmp_path / name / 'erva_paper.yaml'
+        files[name].parent.mkdir()
+        files[name].write_text(text)
+    files['HORIZN'] = tmp_path / 'nmpc.yaml'
+    files['HORIZN'].write_text('/**/nmpc_node:\n  ros__parameters:\n    horizn: 5\n')
+    files['DIR'] = tmp_path / 'roads'
+    files['DIR'].mkdir()
+    files['HUGE'] = tmp_path / 'huge.csv'
+    with open(files['HUGE'], 'wb') as fh:     # sparse: nothing written, 513 MiB long
+        fh.truncate(513 * 2 ** 20)
     args = [str(files[a]) if a in files else a for a in args]
     if args[0] == '--record':
         args[1] = os.path.join(args[1], 'bags')

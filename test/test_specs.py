@@ -95,6 +95,19 @@ def test_check_all_fills_defaults_and_refuses_unknown_keys():
         check_all(specs, {'z': 1}, 'src')
 
 
+def test_an_unknown_key_names_the_closest_known_one():
+    from erva_ros.core.specs import closest_key, unknown_parameters
+    known = ['speed_mps', 'seed', 'road', 'M_s', 'M_us', 'horizon']
+    assert closest_key('speeed_mps', known) == 'speed_mps'
+    assert closest_key('m_s', known) == 'M_s'                   # another case
+    assert closest_key('zzz', known) is None
+    assert str(unknown_parameters(['speeed_mps'], known, 'live.yaml', 'live parameter(s)')) == (
+        "live.yaml: unknown live parameter(s) speeed_mps; did you mean 'speed_mps'?")
+    assert str(unknown_parameters(['horizn', 'rood'], known)) == (
+        "unknown parameter(s) horizn, rood; did you mean 'horizon' for 'horizn', 'road' for "
+        "'rood'?")
+
+
 # -- defaults only in config/ ----------------------------------------------------------------
 
 def _yaml(name):

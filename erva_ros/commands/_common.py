@@ -2,6 +2,7 @@
 
 import argparse
 import os
+import sys
 from typing import Optional
 
 from erva_ros.core.errors import CLIError
@@ -79,3 +80,17 @@ def ensure_out_dir(path: Optional[str]) -> Optional[str]:
     if not os.access(path, os.W_OK):
         raise CLIError(f'output directory {path!r} is not writable')
     return path
+
+
+def compile_first(command: str, params, settings, model: str = 'erva',
+                  enabled: bool = True) -> None:
+    """Compile the NMPC of ``settings`` and the plant before ``erva COMMAND`` times anything.
+
+    One progress line per part on stderr (only when something is compiled, and none
+    unless ``enabled``: commands pass ``not args.json``); see :mod:`erva_ros.core.warmup`.
+    """
+    from erva_ros.core.warmup import ensure_compiled, nmpc_target, Target
+    log = (lambda line: print(f'erva {command}: {line}', file=sys.stderr, flush=True)) \
+        if enabled else None
+    ensure_compiled([nmpc_target(params, settings, model),
+                     Target('plant', params, model, settings.ts)], log)

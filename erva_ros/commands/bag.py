@@ -52,12 +52,16 @@ def add_arguments(parser):
                        description='Copy every readable record (all flushed chunks) of a '
                                    'bag into a new, indexed MCAP file and write '
                                    'metadata.yaml; the original file is kept as '
-                                   '<file>.orig unless --no-backup.')
+                                   '<file>.orig unless --no-backup.  --out DIR writes the '
+                                   'repaired bag there instead.')
     p.add_argument('bag', metavar='BAG', help='bag directory or .mcap file')
     p.add_argument('-s', '--storage', choices=('mcap',), default=None,
                    help='storage of the bag (only mcap; default: detected)')
     p.add_argument('--no-backup', action='store_true',
                    help='do not keep the damaged original as <file>.orig')
+    p.add_argument('--out', metavar='DIR', default=None,
+                   help='write the repaired bag to DIR (new or empty) and leave BAG as it is, '
+                        'e.g. when BAG\'s disk is full')
     add_json_option(p)
     p = sub.add_parser('bench', help='recorder throughput and added control-loop latency',
                        description='Run a 50 Hz echo control loop (state -> command '
@@ -105,6 +109,12 @@ def _add_soak(sub) -> None:
                         'publisher_history_s to see what the writers\' history buys')
     p.add_argument('--keep-bags', metavar='DIR', default=None,
                    help='keep the bags under DIR (default: deleted after each run)')
+    p.add_argument('--rss-every', type=positive_float, default=None, metavar='S',
+                   help='sample each process\'s resident memory (VmRSS) every S seconds and '
+                        'report its growth (the trace is in --json)')
+    p.add_argument('--rss-settle', type=float, default=60.0, metavar='S',
+                   help='with --rss-every: count the growth from S seconds into each run '
+                        '(start-up allocations before; default 60)')
     add_json_option(p)
 
 
@@ -245,9 +255,12 @@ def _soak(args) -> int:
         if not os.path.isfile(args.live):
             raise CLIError(f'--live {args.live}: no such file')
         run_args += ['--live', os.path.abspath(args.live)]
+    if not args.rss_settle >= 0:
+        raise CLIError(f'--rss-settle {args.rss_settle}: give 0 or more seconds')
     progress = Progress('erva bag soak: runs', args.runs, enabled=not args.json)
     result = soak.soak(args.runs, args.duration, args.busy, run_args, args.keep_bags,
-                       progress=lambda line: progress.advance(note=line))
+                       progress=lambda line: progress.advance(note=line),
+                       rss_every_s=args.rss_every or 0.0, rss_settle_s=args.rss_settle)
     progress.close()
     if args.json:
         print_json(result)
@@ -259,11 +272,31 @@ def _soak(args) -> int:
         print(f'  messages published {result["published"]}, in the bags {result["in_bags"]}, '
               f'lost {result["lost"]} ({result["runs_with_loss"]} runs with a loss)')
         print(f'  runs failed (exit status != 0): {result["runs_failed"]}')
+        if args.rss_every:
+            _print_rss(result)
         for i, r in enumerate(result['per_run'], 1):
             if r['exit_status'] != 0 or r.get('lost'):
                 print(f'  run {i}: exit {r["exit_status"]}; '
                       + '; '.join(r.get('errors') or [r.get('error', '')]))
     return 1 if result['lost'] or result['runs_failed'] else 0
+
+
+def _print_rss(result) -> None:
+    """Print each process's resident memory over the run with the largest growth."""
+    growth = result.get('rss_growth_kb') or {}
+    if not growth:
+        print('  RSS: no samples (no /proc?)')
+        return
+    print(f'  RSS (VmRSS every {result["per_run"][0]["rss"]["every_s"]:g} s; growth from '
+          f'{result["per_run"][0]["rss"]["settle_s"]:g} s into a run to its end, the '
+          f'largest of the runs):')
+    for name in sorted(growth):
+        worst = max((r['rss']['processes'][name] for r in result['per_run']
+                     if name in (r.get('rss') or {}).get('processes', {})),
+                    key=lambda p: p['growth_kb'])
+        print(f'    {name:<22} {worst["first_kb"] / 1024:8.1f} MiB at {worst["from_s"]:g} s '
+              f'-> {worst["last_kb"] / 1024:8.1f} MiB {worst["span_s"]:g} s later: '
+              f'{worst["growth_kb"] / 1024:+.2f} MiB (max {worst["max_kb"] / 1024:.1f} MiB)')
 
 
 def _size(n: int) -> str:
@@ -307,7 +340,9 @@ def _info(args) -> int:
 
 def _repair(args) -> int:
     from erva_ros.core.bag.repair import repair_bag
-    result = repair_bag(args.bag, keep_original=not args.no_backup)
+    if args.out is not None and args.no_backup:
+        raise CLIError('--no-backup applies to a repair in place; --out leaves BAG untouched')
+    result = repair_bag(args.bag, keep_original=not args.no_backup, out_dir=args.out)
     if args.json:
         print_json(result)
         return 0

@@ -7,8 +7,8 @@ import numpy as np
 from erva_ros.commands._closed_loop_options import (add_settings_options, load_settings,
                                                     seed_int, seed_list)
 from erva_ros.commands._common import (add_json_option, add_out_option, add_params_option,
-                                       ensure_out_dir, positive_float, positive_int,
-                                       print_json, realtime_priority)
+                                       compile_first, ensure_out_dir, positive_float,
+                                       positive_int, print_json, realtime_priority)
 from erva_ros.core.errors import CLIError
 from erva_ros.core.progress import Progress
 
@@ -129,6 +129,7 @@ def _main(args) -> int:
         raise CLIError(f'--controller {name} has no solver to benchmark; use no_preview, '
                        'preview or preview_long')
     settings = settings.with_(controller=name)
+    compile_first(COMMAND, params, settings, enabled=not args.json)   # before timing
     seeds = args.seeds if args.seeds is not None else [args.seed]
     samples = {}
     results = [bench_seed(args, params, settings, seed, samples) for seed in seeds]

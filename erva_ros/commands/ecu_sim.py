@@ -144,7 +144,10 @@ def _build_core(args, road):
     from erva_ros.core.hil.transport import open_bus
     from erva_ros.core.params import load_erva_params
 
-    params = load_erva_params(args.params)
+    from erva_ros.core.node_params import SCHEMAS
+    # --params may be an `erva run` session file: /** holds the nodes' shared parameters.
+    params = load_erva_params(args.params,
+                              others={k for s in SCHEMAS.values() for k in s.specs()})
     bridge = load_bridge_section(args.hil_config)
     sim = load_ecu_sim_section(args.hil_config)
     noise = SensorNoise.none() if args.noise_free else SensorNoise(

@@ -7,7 +7,7 @@ from erva_ros.commands._closed_loop_options import (add_road_options, add_settin
                                                     load_settings, make_road_from_args,
                                                     preview_model_from_args)
 from erva_ros.commands._common import (add_json_option, add_out_option, add_params_option,
-                                       ensure_out_dir, print_json)
+                                       compile_first, ensure_out_dir, print_json)
 from erva_ros.core.errors import CLIError
 
 COMMAND = 'sim'
@@ -53,6 +53,7 @@ def main(args) -> int:
     out = ensure_out_dir(args.out)
     params = load_erva_params(args.params)
     settings = load_settings(args)
+    compile_first(COMMAND, params, settings, args.model, not args.json)
     controller = make_controller(settings.controller, params, settings, kind=args.model)
     road = make_road_from_args(args, args.duration, args.seed)
     preview = preview_model_from_args(args, args.seed, settings.ts)

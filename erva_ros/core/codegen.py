@@ -3,15 +3,27 @@
 ``codegen`` settings: ``auto`` compiles when a C compiler is on PATH, ``on`` insists
 (one-line error without one), ``off`` keeps CasADi's virtual machine.  A generated
 Function is compiled once per machine and cached by the hash of its source, flags and
-CPU, so a changed model, parameter set or horizon gets its own library.
+CPU, so a changed model, parameter set or horizon gets its own library.  Each library
+is written atomically under a lock, so a killed compile leaves nothing half-written and
+the next run compiles only what is missing; ``erva compile`` (erva_ros.core.warmup)
+fills the cache for a whole configuration before any node starts.
 """
 
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from dataclasses import dataclass
+import fcntl
 import functools
+import glob
 import hashlib
 import os
 import shutil
+import signal
 import subprocess
+import sys
 import tempfile
+import threading
+from typing import Callable, List, Optional, Sequence, Tuple
 import warnings
 
 import casadi as ca
@@ -68,18 +80,32 @@ def use_codegen(setting: str) -> bool:
     return setting == 'on' or (setting == 'auto' and c_compiler() is not None)
 
 
-def compile_functions(fns):
-    """Return ``fns`` generated as C, compiled once per machine and loaded (cached by hash).
+@dataclass(frozen=True)
+class CompileJob:
+    """One generated function not in the cache yet: its name, C source and library path."""
 
-    Each function's generated source is hashed with the compiler flags, so a changed
-    model, parameter set or horizon gets its own library; the first use compiles
-    (the functions in parallel, seconds), later processes load the cached objects.
-    """
-    cache = codegen_cache_dir()
+    name: str
+    source: str
+    lib: str
+
+
+def toolchain():
+    """Return (cc or None, flags, salt): what a library's key depends on besides its source."""
     cc = c_compiler()
     flags = codegen_flags(cc) if cc is not None else CODEGEN_FLAGS
     salt = ' '.join(flags) + (_cpu_id() if flags != CODEGEN_FLAGS else '')
-    jobs, libs = [], []
+    return cc, flags, salt
+
+
+def plan_functions(fns) -> Tuple[List[str], List[CompileJob]]:
+    """Return the cached library path of each of ``fns`` and the jobs of those not cached.
+
+    A library is keyed by the hash of its generated source, the compiler flags and (with
+    NATIVE_FLAGS) the CPU, so a changed model, parameter set or horizon gets its own.
+    """
+    cache = codegen_cache_dir()
+    _, _, salt = toolchain()
+    libs, jobs = [], []
     for fn in fns:
         cg = ca.CodeGenerator(f'{fn.name()}.c', {'with_header': False})
         cg.add(fn)
@@ -88,29 +114,162 @@ def compile_functions(fns):
         lib = os.path.join(cache, f'{fn.name()}_{key}.so')
         libs.append(lib)
         if not os.path.isfile(lib):
-            jobs.append((fn.name(), source, lib))
-    if jobs:
-        if cc is None:
-            raise ParamError("parameter 'codegen' = 'on' needs a C compiler (cc or gcc) "
-                             "on PATH; set codegen: off")
-        os.makedirs(cache, exist_ok=True)
-        with tempfile.TemporaryDirectory(dir=cache) as tmp:
-            procs = []
-            for i, (name, source, lib) in enumerate(jobs):
-                src, out = os.path.join(tmp, f'{i}.c'), os.path.join(tmp, f'{i}.so')
-                with open(src, 'w', encoding='utf-8') as fh:
-                    fh.write(source)
-                procs.append((name, lib, out, subprocess.Popen(
-                    [cc, *flags, '-o', out, src, '-lm'],
-                    stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)))
-            for name, lib, out, proc in procs:
-                _, err = proc.communicate()
-                if proc.returncode != 0:
-                    first = (err.strip().splitlines() or ['unknown error'])[0]
-                    raise ParamError(f"parameter 'codegen': compiling {name} failed: {first}"
-                                     '; set codegen: off')
-                os.replace(out, lib)   # atomic: concurrent processes never load half a file
+            jobs.append(CompileJob(fn.name(), source, lib))
+    return libs, jobs
+
+
+@dataclass
+class Plan:
+    """What the functions built under :func:`collecting` load: every library, and the missing."""
+
+    libs: List[str]
+    jobs: List[CompileJob]
+
+
+#: While :func:`collecting` is active: the plan compile_functions adds to.
+_collected: Optional[Plan] = None
+
+
+@contextmanager
+def collecting():
+    """Record what :func:`compile_functions` would load and compile, without compiling.
+
+    Inside, a function not in the cache is returned as it is (CasADi's virtual machine);
+    the :class:`Plan` this yields gets every library and the jobs of the missing ones.
+    For a planning process only (erva_ros.core.warmup): builders that cache their results
+    (``functools.lru_cache``) would keep the uncompiled functions, and a second build of
+    the same configuration in that process would not call this module at all.
+    """
+    global _collected
+    outer, _collected = _collected, Plan([], [])
+    try:
+        yield _collected
+    finally:
+        _collected = outer
+
+
+def compile_functions(fns, what: str = '', note: Optional[Callable[[str], None]] = None):
+    """Return ``fns`` generated as C, compiled once per machine and loaded (cached by hash).
+
+    The first use compiles the missing ones in parallel (:func:`run_jobs`: atomic, safe
+    against other processes compiling the same function, a failure retried once), saying
+    so through ``note`` (default: a line on stderr); later processes load the libraries.
+    """
+    libs, jobs = plan_functions(fns)
+    if _collected is not None:
+        _collected.libs.extend(libs)
+        _collected.jobs.extend(jobs)
+        if jobs:
+            return list(fns)
+    elif jobs:
+        note = note or _stderr
+        note(f'compiling {what or ", ".join(j.name for j in jobs)} (first run on this '
+             f'machine; cached in {codegen_cache_dir()})')
+        run_jobs(jobs)
     return [ca.external(fn.name(), lib) for fn, lib in zip(fns, libs)]
+
+
+def _stderr(line: str) -> None:
+    print(f'erva: {line}', file=sys.stderr, flush=True)
+
+
+class CompileError(ParamError):
+    """A generated function did not compile (the compiler's own message, one line)."""
+
+
+def run_jobs(jobs: Sequence[CompileJob], workers: Optional[int] = None) -> None:
+    """Compile ``jobs`` into the cache, at most ``workers`` at a time (default: the CPUs).
+
+    Largest first.  Each library is written under a lock (in ``.locks/``, released by
+    the kernel if its holder dies) to a temporary file and renamed into place, so a
+    killed compile leaves no half-written library and another process compiling the
+    same function waits and then loads it.  A compiler killed by a signal or failing
+    without a message (seen under load) is run once more.  Every job is tried; then the
+    first failure is raised as :class:`CompileError` with the compiler's own message.
+    """
+    cc, flags, _ = toolchain()
+    if cc is None:
+        raise CompileError("parameter 'codegen' = 'on' needs a C compiler (cc or gcc) on PATH; "
+                           'set codegen: off')
+    unique = {job.lib: job for job in jobs}
+    order = sorted(unique.values(), key=lambda j: -len(j.source))
+    if not order:
+        return
+    os.makedirs(codegen_cache_dir(), exist_ok=True)
+    errors: List[str] = []
+    workers = max(1, min(workers or _cpus(), len(order)))
+    with ThreadPoolExecutor(workers) as pool:
+        for err in pool.map(lambda job: _compile_job(job, cc, flags), order):
+            if err:
+                errors.append(err)
+    if errors:
+        raise CompileError(f"parameter 'codegen': {errors[0]}; set codegen: off")
+
+
+#: The cache's subdirectory of lock files, one per library (flock: freed when a holder dies).
+LOCKS = '.locks'
+
+
+def _cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:
+        return os.cpu_count() or 1
+
+
+def _compile_job(job: CompileJob, cc: str, flags) -> str:
+    """Compile one job into its library (see :func:`run_jobs`); return '' or the error."""
+    locks = os.path.join(os.path.dirname(job.lib), LOCKS)
+    os.makedirs(locks, exist_ok=True)
+    with open(os.path.join(locks, os.path.basename(job.lib)), 'a', encoding='utf-8') as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)      # another process may be compiling it
+        if os.path.isfile(job.lib):
+            return ''
+        for stale in glob.glob(glob.escape(job.lib) + '.*.tmp*'):
+            _remove(stale)                     # left by a compile that was killed
+        tmp = f'{job.lib}.{os.getpid()}.{threading.get_ident()}.tmp'
+        src = tmp + '.c'
+        try:
+            with open(src, 'w', encoding='utf-8') as fh:
+                fh.write(job.source)
+            for attempt in (1, 2):
+                proc = subprocess.run([cc, *flags, '-o', tmp, src, '-lm'],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                      text=True, errors='replace')
+                if proc.returncode == 0:
+                    os.replace(tmp, job.lib)   # atomic: no process sees half a library
+                    return ''
+                why = _compiler_message(cc, proc.returncode, proc.stderr)
+                # Killed, or silent (seen under load): once more.  A compiler's error
+                # message would only come again.
+                if proc.returncode > 0 and proc.stderr.strip():
+                    break
+            return f'compiling {job.name} failed{" twice" if attempt == 2 else ""}: {why}'
+        finally:
+            _remove(tmp)
+            _remove(src)
+
+
+def _compiler_message(cc: str, status: int, stderr: str) -> str:
+    """Return the compiler's own reason for a failure, in one line."""
+    if status < 0:
+        try:
+            name = signal.Signals(-status).name
+        except ValueError:
+            name = f'signal {-status}'
+        return f'{os.path.basename(cc)} was killed by {name} (out of memory, or stopped?)'
+    lines = [ln.strip() for ln in stderr.splitlines() if ln.strip()]
+    errors = [ln for ln in lines if 'error' in ln.lower()] or lines
+    if not errors:
+        return f'{os.path.basename(cc)} exited with status {status} and no message'
+    return errors[0]
+
+
+def _remove(path: str) -> None:
+    try:
+        os.remove(path)
+    except FileNotFoundError:
+        pass
 
 
 def compile_for(setting: str, fns, what: str):
@@ -122,7 +281,7 @@ def compile_for(setting: str, fns, what: str):
     if not use_codegen(setting):
         return list(fns)
     try:
-        return compile_functions(fns)
+        return compile_functions(fns, what)
     except ParamError as exc:
         if setting != 'auto':
             raise
@@ -194,4 +353,6 @@ class BufferedCall:
 
 
 __all__ = ['CODEGEN_FLAGS', 'NATIVE_FLAGS', 'codegen_flags', 'codegen_cache_dir', 'c_compiler',
-           'use_codegen', 'compile_functions', 'compile_for', 'BufferedCall']
+           'use_codegen', 'toolchain', 'CompileJob', 'CompileError', 'Plan', 'plan_functions',
+           'collecting',
+           'compile_functions', 'run_jobs', 'compile_for', 'BufferedCall']

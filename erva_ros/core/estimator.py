@@ -151,17 +151,7 @@ class ExtendedKalmanFilter:
         u_now, y, mask = ca.SX.sym('u_now'), ca.SX.sym('y', 3), ca.SX.sym('mask', 3)
         p1 = a @ p @ a.T + q
         yh, hh = self._meas(xn, u_now, w1)     # the SX function: inlined
-        xk, pk, nis = xn, p1, 0
-        for i in range(3):
-            h = hh[i, :]
-            nu = y[i] - (yh[i] + h @ (xk - xn))
-            ph = pk @ h.T
-            s = h @ ph + r[i]
-            k = ph / s
-            ikh = ca.SX.eye(nx) - k @ h
-            xk = ca.if_else(mask[i], xk + k * nu, xk)
-            pk = ca.if_else(mask[i], ikh @ pk @ ikh.T + r[i] * (k @ k.T), pk)
-            nis = nis + mask[i] * nu * nu / s
+        xk, pk, nis = sequential_update(xn, p1, yh, hh, y, mask, r)
         return ca.Function('ekf_cycle', [x, p, q, r, u_mean, u_now, w0, w1, y, mask],
                            [xk, pk, nis],
                            ['x', 'P', 'Q', 'r', 'u_mean', 'u_now', 'w0', 'w1', 'y', 'mask'],
@@ -185,13 +175,7 @@ class ExtendedKalmanFilter:
         return self.x, float(nis)
 
     def _process_noise(self) -> np.ndarray:
-        ts, n = self.ts, self.noise
-        sig = [n.q_accel_s, n.q_accel_us, n.q_accel_d][:self.nx // 2]
-        q = np.zeros((self.nx, self.nx))
-        block = np.array([[ts ** 4 / 4, ts ** 3 / 2], [ts ** 3 / 2, ts ** 2]])
-        for i, s in enumerate(sig):
-            q[2 * i:2 * i + 2, 2 * i:2 * i + 2] = s ** 2 * block
-        return q
+        return acceleration_noise(self.noise, self.nx, self.ts)
 
     def reset(self, x0: Optional[np.ndarray] = None) -> None:
         """Restart from ``x0`` (default rest) with the initial covariance P0."""
@@ -264,6 +248,42 @@ class ExtendedKalmanFilter:
     def std(self) -> np.ndarray:
         """Return the standard deviations of the state estimate (sqrt of diag P)."""
         return np.sqrt(np.maximum(np.diag(self.P), 0.0))
+
+
+def sequential_update(x, p, yh, hh, y, mask, r):
+    """Return symbolic (x⁺, P⁺, NIS): the rows of y applied one by one where mask is 1.
+
+    The output is linearised once at the prior (y ≈ yh + hh·(x − x_prior)); with R
+    diagonal (variances ``r``) this equals the batch update.  Joseph form.
+    """
+    n = x.shape[0]
+    xk, pk, nis = x, p, 0
+    for i in range(y.shape[0]):
+        h = hh[i, :]
+        nu = y[i] - (yh[i] + h @ (xk - x))
+        ph = pk @ h.T
+        s = h @ ph + r[i]
+        k = ph / s
+        ikh = ca.SX.eye(n) - k @ h
+        xk = ca.if_else(mask[i], xk + k * nu, xk)
+        pk = ca.if_else(mask[i], ikh @ pk @ ikh.T + r[i] * (k @ k.T), pk)
+        nis = nis + mask[i] * nu * nu / s
+    return xk, pk, nis
+
+
+def acceleration_noise(noise: EstimatorNoise, nx: int, ts: float,
+                       size: Optional[int] = None) -> np.ndarray:
+    """Return Q of the unmodelled accelerations on the first ``nx`` states (module doc).
+
+    One piecewise-constant white acceleration per position/velocity pair over a sample;
+    ``size`` (default nx) pads Q with zeros for states of an augmented filter.
+    """
+    sig = [noise.q_accel_s, noise.q_accel_us, noise.q_accel_d][:nx // 2]
+    q = np.zeros((size or nx, size or nx))
+    block = np.array([[ts ** 4 / 4, ts ** 3 / 2], [ts ** 3 / 2, ts ** 2]])
+    for i, s in enumerate(sig):
+        q[2 * i:2 * i + 2, 2 * i:2 * i + 2] = s ** 2 * block
+    return q
 
 
 def validate_noise(values: Dict, source: str = '') -> EstimatorNoise:

@@ -155,6 +155,53 @@ def _benchmark_symbolic(p: ERVAParams):
     return x, u, w, xdot, power, energy, v24, d13, d13
 
 
+@dataclass(frozen=True)
+class SymbolicModel:
+    """The expressions of one model kind in its primitives x, u, w.
+
+    Built from symbolic parameters they depend on those symbols too (:func:`symbolic`).
+    """
+
+    x: ca.SX
+    u: ca.SX
+    w: ca.SX
+    xdot: ca.SX
+    power: ca.SX
+    energy: ca.SX
+    v_gen: ca.SX
+    position: ca.SX
+    deflection: ca.SX
+    #: What the ECU measures: [z̈_s (m/s²), z_s − z_us (m), v_gen / l (rad/s)].
+    measurements: ca.SX
+
+
+def symbolic(params: ERVAParams, kind: str = 'erva') -> SymbolicModel:
+    """Return the model's expressions for ``params``.
+
+    ``params`` may hold CasADi symbols instead of numbers (``ERVAParams(**symbols)``):
+    the same equations then depend on them, which is how the identification
+    (erva_ros/core/identify.py) differentiates the model with respect to its parameters.
+    """
+    build = _erva_symbolic if kind == 'erva' else _benchmark_symbolic
+    x, u, w, xdot, power, energy, v_gen, position, deflection = build(params)
+    return SymbolicModel(x, u, w, xdot, power, energy, v_gen, position, deflection,
+                         ca.vertcat(xdot[1], deflection, v_gen / params.l))
+
+
+def rk4(rhs, z, w0, w1, h, substeps: int):
+    """Return z after ``substeps`` RK4 steps of ``h`` of ż = rhs(z, w), w linear from w0 to w1."""
+    for i in range(substeps):
+        wa = w0 + (w1 - w0) * (i / substeps)
+        wm = w0 + (w1 - w0) * ((i + 0.5) / substeps)
+        wb = w0 + (w1 - w0) * ((i + 1) / substeps)
+        k1 = rhs(z, wa)
+        k2 = rhs(z + h / 2 * k1, wm)
+        k3 = rhs(z + h / 2 * k2, wm)
+        k4 = rhs(z + h * k3, wb)
+        z = z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return z
+
+
 class QuarterCarModel:
     """Numeric CasADi functions of one model kind, built once per parameter set.
 
@@ -167,8 +214,9 @@ class QuarterCarModel:
                 f'model kind {kind!r} unknown; choose one of {", ".join(MODEL_KINDS)}')
         self.params = params
         self.kind = kind
-        build = _erva_symbolic if kind == 'erva' else _benchmark_symbolic
-        x, u, w, xdot, power, energy, v_gen, position, deflection = build(params)
+        sym = symbolic(params, kind)
+        x, u, w, xdot, power, energy = sym.x, sym.u, sym.w, sym.xdot, sym.power, sym.energy
+        v_gen, position, deflection = sym.v_gen, sym.position, sym.deflection
         self.nx = int(x.shape[0])
         self.state_names = STATE_NAMES[kind]
         #: Symbolic primitives, for users that build bigger graphs (NMPC, estimator).
@@ -189,9 +237,8 @@ class QuarterCarModel:
         self.deflection = ca.Function('deflection', [x], [deflection], ['x'], ['deflection'])
         #: What the ECU measures (erva_ros.core.estimator.MEASUREMENTS): sprung acceleration
         #: (m/s^2), deflection (m) and generator speed v_gen / l (rad/s).
-        self.measurements = ca.Function(
-            'measurements', [x, u, w], [ca.vertcat(xdot[1], deflection, v_gen / params.l)],
-            ['x', 'u', 'w'], ['y'])
+        self.measurements = ca.Function('measurements', [x, u, w], [sym.measurements],
+                                        ['x', 'u', 'w'], ['y'])
         #: [sprung_accel, power] for many samples at once: columns are samples.
         self.outputs = ca.Function('outputs', [x, u, w], [xdot[1], power],
                                    ['x', 'u', 'w'], ['sprung_accel', 'power'])
@@ -266,16 +313,7 @@ def _rk4_step(model: QuarterCarModel, dt, substeps: int,
         xdot = model.ode(z[:nx], u, w)
         return ca.vertcat(xdot, model.power(z[:nx], u), xdot[1] ** 2)
 
-    zk = ca.vertcat(x, 0, 0)
-    for i in range(substeps):
-        wa = w0 + (w1 - w0) * (i / substeps)
-        wm = w0 + (w1 - w0) * ((i + 0.5) / substeps)
-        wb = w0 + (w1 - w0) * ((i + 1) / substeps)
-        k1 = rhs(zk, wa)
-        k2 = rhs(zk + h / 2 * k1, wm)
-        k3 = rhs(zk + h / 2 * k2, wm)
-        k4 = rhs(zk + h * k3, wb)
-        zk = zk + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    zk = rk4(rhs, ca.vertcat(x, 0, 0), w0, w1, h, substeps)
     if with_energy:
         return ca.Function(f'plant_step_{model.kind}', [x, u, w0, w1],
                            [zk[:nx], zk[nx], zk[nx + 1]], ['x', 'u', 'w0', 'w1'],

@@ -15,11 +15,11 @@ the key, the value and the allowed range.
 
 from dataclasses import dataclass, fields, replace
 import os
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Collection, Dict, List, Optional, Sequence, Tuple
 
 import yaml
 
-from erva_ros.core.specs import Number, ParamError
+from erva_ros.core.specs import Number, ParamError, unknown_parameters
 
 
 #: The one numeric spec (``Spec`` is its historical name): see :mod:`erva_ros.core.specs`.
@@ -181,10 +181,24 @@ def default_params_file() -> str:
     return shipped_config('erva_paper.yaml', 'pass --params FILE')
 
 
-def load_erva_params(path: Optional[str] = None, node_name: Optional[str] = None) -> ERVAParams:
-    """Load and validate the physical ERVA parameters from a ROS params file."""
+#: Keys ROS itself reads from a params file's sections: never an erva parameter, never a typo.
+ROS_BUILTINS = ('use_sim_time', 'qos_overrides', 'start_type_description_service')
+
+
+def load_erva_params(path: Optional[str] = None, node_name: Optional[str] = None,
+                     others: Collection[str] = ()) -> ERVAParams:
+    """Load and validate the physical ERVA parameters from a ROS params file.
+
+    A key that is neither a physical parameter, nor one of ``others`` (what else a shared
+    file may hold, e.g. the live parameters of an `erva run` session file), nor ROS's
+    own (:data:`ROS_BUILTINS`) is a one-line ParamError naming the closest known key:
+    it was silently ignored before, so a misspelt parameter kept its default.
+    """
     path = path or default_params_file()
     values = read_ros_params(path, node_name)
+    unknown = set(values) - set(ERVA_SPECS) - set(others) - set(ROS_BUILTINS)
+    if unknown:
+        raise unknown_parameters(unknown, [*ERVA_SPECS, *others], path)
     return validate_erva(values, source=path)
 
 
@@ -200,5 +214,5 @@ def paper_params() -> ERVAParams:
 
 __all__ = ['ParamError', 'Spec', 'ERVA_SPECS', 'PAPER_VALUES', 'ERVAParams',
            'validate_erva', 'WILDCARD_SECTIONS', 'node_sections', 'read_sections',
-           'read_ros_params', 'load_erva_params', 'load_section',
+           'read_ros_params', 'ROS_BUILTINS', 'load_erva_params', 'load_section',
            'default_params_file', 'paper_params', 'replace']

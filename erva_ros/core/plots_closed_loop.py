@@ -1,4 +1,4 @@
-"""Closed-loop figures: time series like paper Figs. 5-7, the Pareto plot, the results table."""
+"""Closed-loop figures: time series like paper Figs. 5-7, Pareto, the results table, tornado."""
 
 from typing import Mapping, Sequence
 
@@ -103,4 +103,43 @@ def table_figure(rows: Sequence[dict], path: str, title: str = '') -> str:
     return save(fig, path)
 
 
-__all__ = ['timeseries_figure', 'pareto_figure', 'table_figure']
+def _label(row: Mapping) -> str:
+    from erva_ros.core.sensitivity import unit
+    levels = ', '.join(f'{v["level"]:g}' for v in row['levels'])
+    return f'{row["factor"]} ({levels} {unit(row["factor"])})'
+
+
+def tornado_figure(rows: Sequence[Mapping], path: str, title: str = '') -> str:
+    """Write the tornado plot: per weighting, each factor's ΔJ % at its levels, largest on top."""
+    from erva_ros.core.identify import PARAMETERS
+    weights = []
+    for r in rows:
+        if r['weights'] not in weights:
+            weights.append(r['weights'])
+    fig, axes = subplots(1, len(weights), figsize=(6.5 * len(weights), 6), squeeze=False)
+    for ax, alpha in zip(axes[0], weights):
+        mine = sorted((r for r in rows if r['weights'] == alpha), key=lambda r: r['swing_pct'])
+        for i, r in enumerate(mine):
+            lv = [v for v in r['levels'] if v['dJ_pct'] is not None]
+            lo = min(min(v['dJ_pct'] for v in lv), 0.0)
+            hi = max(max(v['dJ_pct'] for v in lv), 0.0)
+            ax.barh(i, hi - lo, left=lo, color='tab:blue', alpha=0.35)
+            for v in lv:
+                neg = v['level'] < 0 and r['factor'] in PARAMETERS
+                ax.plot(v['dJ_pct'], i, 'v' if neg else '^',
+                        color='tab:red' if neg else 'tab:green', ms=6)
+        ax.set_yticks(range(len(mine)))
+        ax.set_yticklabels([_label(r) for r in mine], fontsize=8)
+        ax.axvline(0, color='k', lw=0.8)
+        ax.use_sticky_edges = False       # bars stick to their ends: keep a margin
+        ax.margins(x=0.05)
+        ax.set_xlabel('ΔJ, % of |J nominal| (positive: worse)')
+        ax.set_title(f'(α1, α2) = ({alpha[0]:g}, {alpha[1]:g})')
+        ax.grid(True, axis='x', alpha=0.3)
+    fig.suptitle((title + '\n' if title else '') + '▼ the model\'s parameter too low, '
+                 '▲ too high (or an input error\'s level); bar: the range over the levels',
+                 fontsize=9)
+    return save(fig, path)
+
+
+__all__ = ['timeseries_figure', 'pareto_figure', 'table_figure', 'tornado_figure']

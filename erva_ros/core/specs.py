@@ -20,8 +20,9 @@ params file (``session/run_config.py``), the offline loaders and the ROS descrip
 
 import argparse as _argparse
 from dataclasses import dataclass
+import difflib
 import math
-from typing import Any, Dict, Tuple
+from typing import Any, Dict, Iterable, Optional, Tuple
 
 
 class ParamError(ValueError):
@@ -220,6 +221,32 @@ class Texts:
         return list(value)
 
 
+def closest_key(key: str, known: Iterable[str]) -> Optional[str]:
+    """Return the known key most like ``key`` (a typo, another case), or None."""
+    by_lower = {k.lower(): k for k in sorted(known, reverse=True)}
+    close = difflib.get_close_matches(key.lower(), list(by_lower), n=1, cutoff=0.6)
+    return by_lower[close[0]] if close else None
+
+
+def unknown_parameters(unknown: Iterable[str], known: Iterable[str], source: str = '',
+                       what: str = 'parameter(s)') -> ParamError:
+    """Return the one-line ParamError of keys no table knows, with the closest known ones.
+
+    ``unknown parameter(s) speeed_mps; did you mean 'speed_mps'?`` (several: each with
+    its own); where nothing is close, the known keys are listed instead.
+    """
+    unknown, known = sorted(map(str, unknown)), sorted(set(map(str, known)))
+    close = {key: closest_key(key, known) for key in unknown}
+    found = {k: c for k, c in close.items() if c}
+    if len(unknown) == 1 and found:
+        hint = f'; did you mean {found[unknown[0]]!r}?'
+    elif found:
+        hint = '; did you mean ' + ', '.join(f'{c!r} for {k!r}' for k, c in found.items()) + '?'
+    else:
+        hint = f'; known: {", ".join(known)}'
+    return ParamError(f'{_where(source)}unknown {what} {", ".join(unknown)}{hint}')
+
+
 def check_all(specs: Dict[str, Any], values: Dict[str, Any], source: str = '',
               defaults: Dict[str, Any] = None) -> Dict[str, Any]:
     """Return ``values`` (over ``defaults``) checked by ``specs``; unknown keys: ParamError."""
@@ -227,9 +254,9 @@ def check_all(specs: Dict[str, Any], values: Dict[str, Any], source: str = '',
     out.update(values)
     unknown = sorted(set(out) - set(specs))
     if unknown:
-        raise ParamError(f'{_where(source)}unknown parameter(s) {", ".join(unknown)}; '
-                         f'known: {", ".join(sorted(specs))}')
+        raise unknown_parameters(unknown, specs, source)
     return {key: specs[key].check(key, value, source) for key, value in out.items()}
 
 
-__all__ = ['ParamError', 'Number', 'Integer', 'Choice', 'Flag', 'Text', 'Texts', 'check_all']
+__all__ = ['ParamError', 'Number', 'Integer', 'Choice', 'Flag', 'Text', 'Texts', 'closest_key',
+           'unknown_parameters', 'check_all']

@@ -20,6 +20,12 @@ road/preview   trajectory_msgs/JointTrajectory   joint [road_height]: points[k].
 damping_cmd    trajectory_msgs/JointTrajectory   joint [c_e]: points[0] = command to apply now
                                                  (Ns/m), points[k] = plan at t0 + k·Ts;
                                                  header.stamp = stamp of the state used
+road/estimate  geometry_msgs/                    the road at the tyre estimated from the ECU's
+               PoseWithCovarianceStamped         sensors (docs/road.md; not yet published):
+                                                 pose.position.x = odometry distance (m),
+                                                 .z = ŵ(t_k) (m), covariance[0] = var of x,
+                                                 covariance[14] = var of ŵ relative to the
+                                                 body (m²); stamp = t_k
 /diagnostics   diagnostic_msgs/DiagnosticArray   per-node status, counters, timings
 /clock         rosgraph_msgs/Clock               lock-step mode only
 """
@@ -34,6 +40,10 @@ GENERATOR = 'generator'
 ROAD_HEIGHT = 'road/height'
 ROAD_PREVIEW = 'road/preview'
 DAMPING_CMD = 'damping_cmd'
+#: The road estimate (issue 26).  Not in TOPIC_TYPES until a node publishes it (the
+#: recorders and their tests take every topic there as published).
+ROAD_ESTIMATE = 'road/estimate'
+ROAD_ESTIMATE_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 DIAGNOSTICS = '/diagnostics'
 CLOCK = '/clock'
 

@@ -8,14 +8,16 @@ test do with processes:
   unbuffered output, the caller's ROS_DOMAIN_ID);
 * :func:`module_argv` / :func:`node_argv` -- ``python -m <module>`` command lines, a
   node's with its namespace and params files;
-* :class:`ChildProcess` -- one started process in its own process group, asked by the
-  kernel to die with its parent, its output in a log file, captured, or discarded;
+* :class:`ChildProcess` -- one started process in its own process group, ended by the
+  kernel when its parent dies (at once; the recorder after closing its bag), its output
+  in a log file, captured, or discarded;
 * :func:`stop_processes` -- SIGINT, then SIGTERM, then SIGKILL after a grace period
   each (SIGUSR1 just before SIGKILL: a hung node writes its stacks), every process reaped.
 """
 
 import ctypes
 from dataclasses import dataclass, field
+import functools
 import os
 import signal
 import subprocess
@@ -78,11 +80,25 @@ def node_argv(node: str, namespace: str, params_files: Sequence[str] = (),
     return argv
 
 
-def _die_with_parent() -> None:
-    """Ask the kernel to SIGTERM this child when its parent dies (Linux prctl)."""
+#: Children that the kernel asks to finish when their parent dies (SIGTERM): the recorder
+#: closes its bag with everything it received.  Any other child is SIGKILLed at once: a
+#: loop node stopping cleanly would wait for acknowledgements from peers that are gone
+#: (a SCHED_FIFO plant_sim_node ran on for up to 10 s after `erva run` was killed).
+FINISH_ON_PARENT_DEATH = ('recorder_node',)
+
+
+def parent_death_signal(name: str) -> int:
+    """Return the signal child ``name`` gets when its parent dies (FINISH_ON_PARENT_DEATH)."""
+    return signal.SIGTERM if name in FINISH_ON_PARENT_DEATH else signal.SIGKILL
+
+
+def _die_with_parent(sig: int, parent: int) -> None:
+    """Ask the kernel to send ``sig`` to this child when its parent dies (Linux prctl)."""
     try:
         libc = ctypes.CDLL('libc.so.6', use_errno=True)
-        libc.prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
+        libc.prctl(1, int(sig))         # PR_SET_PDEATHSIG
+        if os.getppid() != parent:      # the parent died before the prctl: go now
+            os.kill(os.getpid(), int(sig))
     except OSError:
         pass
 
@@ -92,11 +108,13 @@ class ChildProcess:
 
     Its output goes to ``log_path`` (stdout and stderr), or is captured
     (``capture=True``: text, read while waiting, see :meth:`output`), or is discarded.
-    The kernel sends it SIGTERM when this process dies, so no child outlives its parent.
+    When this process dies the kernel ends it (:func:`parent_death_signal`, or
+    ``on_parent_death``), so no child outlives its parent.
     """
 
     def __init__(self, name: str, argv: Sequence[str], env: Optional[Mapping[str, str]] = None,
-                 log_path: Optional[str] = None, capture: bool = False):
+                 log_path: Optional[str] = None, capture: bool = False,
+                 on_parent_death: Optional[int] = None):
         self.name = name
         self.log_path = log_path
         self._log = open(log_path, 'w', encoding='utf-8') if log_path else None
@@ -107,7 +125,10 @@ class ChildProcess:
                                       stdin=subprocess.DEVNULL,
                                       env=None if env is None else dict(env),
                                       text=capture or None, start_new_session=True,
-                                      preexec_fn=_die_with_parent)
+                                      preexec_fn=functools.partial(
+                                          _die_with_parent,
+                                          on_parent_death or parent_death_signal(name),
+                                          os.getpid()))
         self.pid = self.popen.pid
         self.captured = capture
         self.stopped_by_us = False
@@ -206,5 +227,5 @@ def stop_processes(procs: Iterable[ChildProcess], grace_s: float = STOP_GRACE_S,
         p.close()
 
 
-__all__ = ['STOP_GRACE_S', 'ProcessSpec', 'child_env', 'module_argv', 'node_argv',
-           'ChildProcess', 'stop_processes']
+__all__ = ['STOP_GRACE_S', 'FINISH_ON_PARENT_DEATH', 'ProcessSpec', 'child_env', 'module_argv',
+           'node_argv', 'parent_death_signal', 'ChildProcess', 'stop_processes']

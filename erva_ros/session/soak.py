@@ -5,7 +5,9 @@ while ``busy`` processes spin (``python3 -c 'while True: pass'``, one per core b
 default) at normal priority.  After each run the bag is read back with the ``mcap``
 package's reader (not erva_ros's) and every topic's count is compared with what the
 nodes said they published (``messages.published`` of the summary); the run's own
-verdict (``recording.lost``, exit status) is kept beside it.
+verdict (``recording.lost``, exit status) is kept beside it.  With an RSS trace, each
+process's resident memory is sampled during the run (:mod:`erva_ros.session.rss`): what a
+long session grows by.
 """
 
 import json
@@ -19,6 +21,7 @@ import time
 from typing import Callable, Dict, List, Optional
 
 from erva_ros.session.processes import ChildProcess, stop_processes
+from erva_ros.session.rss import RssTrace
 
 BUSY_LOOP = 'while True: pass'
 
@@ -44,17 +47,33 @@ def stop_busy(procs: List[ChildProcess]) -> None:
     stop_processes(procs, grace_s=1.0, first=signal.SIGKILL)
 
 
-def one_run(duration_s: float, record_dir: str, run_args: List[str]) -> Dict:
-    """Run one `erva run`; return its exit status, accounting and the bag's own counts."""
+def one_run(duration_s: float, record_dir: str, run_args: List[str], rss_every_s: float = 0.0,
+            rss_settle_s: float = 60.0) -> Dict:
+    """Run one `erva run`; return its exit status, accounting and the bag's own counts.
+
+    ``rss_every_s`` > 0 also samples each process's VmRSS that often (``rss``: the trace
+    and, per process, its growth from ``rss_settle_s`` into the run; see
+    :mod:`erva_ros.session.rss`).
+    """
     argv = [sys.executable, '-m', 'erva_ros.cli', 'run', '--duration', str(duration_s),
             '--record', record_dir, '--json', *run_args]
     t0 = time.monotonic()
-    proc = subprocess.run(argv, capture_output=True, text=True)
-    out = {'exit_status': proc.returncode, 'wall_s': round(time.monotonic() - t0, 2)}
+    popen = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    trace = RssTrace(popen.pid, rss_every_s).start() if rss_every_s > 0 else None
     try:
-        s = json.loads(proc.stdout)
+        stdout, stderr = popen.communicate()
+    finally:
+        if trace is not None:
+            trace.stop()
+    out = {'exit_status': popen.returncode, 'wall_s': round(time.monotonic() - t0, 2)}
+    if trace is not None:
+        out['rss'] = {'every_s': rss_every_s, 'settle_s': rss_settle_s,
+                      'processes': trace.summary(rss_settle_s),
+                      'trace': [{'t_s': t, **kb} for t, kb in trace.samples]}
+    try:
+        s = json.loads(stdout)
     except ValueError:
-        out['error'] = (proc.stderr.strip().splitlines() or ['no summary'])[-1]
+        out['error'] = (stderr.strip().splitlines() or ['no summary'])[-1]
         return out
     ns = s['scenario']['namespace'].rstrip('/')
     published = {}
@@ -73,15 +92,20 @@ def one_run(duration_s: float, record_dir: str, run_args: List[str]) -> Dict:
 
 def soak(runs: int, duration_s: float, busy: int, run_args: List[str],
          keep_bags: Optional[str] = None,
-         progress: Callable[[str], None] = lambda line: None) -> Dict:
-    """Run ``runs`` sessions under ``busy`` loaders; return per-run results and totals."""
+         progress: Callable[[str], None] = lambda line: None,
+         rss_every_s: float = 0.0, rss_settle_s: float = 60.0) -> Dict:
+    """Run ``runs`` sessions under ``busy`` loaders; return per-run results and totals.
+
+    With ``rss_every_s`` each run has an RSS trace (:func:`one_run`), and ``rss_growth_kb``
+    is each process's largest growth over the runs.
+    """
     parent = keep_bags or tempfile.mkdtemp(prefix='erva_soak_')
     loaders = start_busy(busy)
     results = []
     t0 = time.monotonic()
     try:
         for i in range(runs):
-            r = one_run(duration_s, parent, run_args)
+            r = one_run(duration_s, parent, run_args, rss_every_s, rss_settle_s)
             results.append(r)
             progress(f'run {i + 1}/{runs}: exit {r["exit_status"]}, published '
                      f'{r.get("published")}, in the bag {r.get("in_bag")}, lost '
@@ -102,8 +126,18 @@ def soak(runs: int, duration_s: float, busy: int, run_args: List[str],
         'runs_with_loss': sum(1 for r in results if r.get('lost')),
         'runs_failed': sum(1 for r in results if r['exit_status'] != 0),
         'wall_s': round(time.monotonic() - t0, 1),
+        **({'rss_growth_kb': rss_growth(results)} if rss_every_s > 0 else {}),
         'per_run': results,
     }
 
 
-__all__ = ['bag_counts', 'soak', 'one_run', 'start_busy', 'stop_busy']
+def rss_growth(results: List[Dict]) -> Dict[str, int]:
+    """Return each process's largest RSS growth (kB) over the runs' traces."""
+    out: Dict[str, int] = {}
+    for r in results:
+        for name, p in (r.get('rss') or {}).get('processes', {}).items():
+            out[name] = max(out.get(name, p['growth_kb']), p['growth_kb'])
+    return out
+
+
+__all__ = ['bag_counts', 'soak', 'one_run', 'rss_growth', 'start_busy', 'stop_busy']

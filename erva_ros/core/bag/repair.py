@@ -6,9 +6,13 @@ was flushed is intact; repair copies all readable records (schemas, channels, se
 metadata, messages up to the last complete chunk) into a new, properly closed file in
 the same place, keeps the original as ``<file>.orig`` unless told not to, and writes
 metadata.yaml.  A bag that is complete but lacks metadata.yaml only gets the file.
+With ``out_dir`` the repaired bag is a new directory there and the original is not
+touched: the way out when its own disk is full.
 """
 
+import errno
 import os
+import shutil
 from typing import Dict, Optional
 
 from erva_ros import __version__
@@ -55,13 +59,34 @@ def _topics_and_times(scan) -> Dict:
     return {'topics': topics, 'start': start, 'end': end}
 
 
-def repair_bag(path: str, keep_original: bool = True) -> Dict:
-    """Make ``path`` a complete, indexed bag with metadata.yaml; return what was done."""
+def _out_dir(out_dir: str, bag_dir: str) -> str:
+    """Return ``out_dir`` made (empty, not the bag itself); BagError (one line) otherwise."""
+    out_dir = os.path.abspath(out_dir)
+    if os.path.realpath(out_dir) == os.path.realpath(bag_dir):
+        raise BagError(f'--out {out_dir}: that is the bag itself; leave --out out to repair '
+                       'in place')
+    if os.path.exists(out_dir) and (not os.path.isdir(out_dir) or os.listdir(out_dir)):
+        raise BagError(f'--out {out_dir}: exists and is not an empty directory')
+    try:
+        os.makedirs(out_dir, exist_ok=True)
+    except OSError as exc:
+        raise BagError(f'--out {out_dir}: cannot create it ({exc.strerror or exc})') from None
+    return out_dir
+
+
+def repair_bag(path: str, keep_original: bool = True, out_dir: Optional[str] = None) -> Dict:
+    """Make ``path`` a complete, indexed bag with metadata.yaml; return what was done.
+
+    ``out_dir``: write the repaired bag (its MCAP file, same name, and metadata.yaml) to
+    that new or empty directory instead, leaving ``path`` as it is.
+    """
     from mcap.writer import CompressionType, Writer
 
     bag_dir, mcap_path = _mcap_of(path)
+    target = bag_dir if out_dir is None else _out_dir(out_dir, bag_dir)
     scan = scan_mcap(mcap_path)
     file_name = os.path.basename(mcap_path)
+    target_file = os.path.join(target, file_name)
     info = _topics_and_times(scan)
     custom = {}
     for rec in scan.metadata:
@@ -69,18 +94,23 @@ def repair_bag(path: str, keep_original: bool = True) -> Dict:
             custom.update({k: v for k, v in rec.metadata.items()})
     meta = bag_meta.bag_metadata(file_name, info['topics'], info['start'], info['end'],
                                  custom or None)
-    result = {'bag': bag_dir, 'file': mcap_path, 'messages': len(scan.messages),
+    result = {'bag': target, 'file': target_file, 'messages': len(scan.messages),
               'topics': {t['topic_metadata']['name']: t['message_count']
                          for t in info['topics']},
               'was_complete': scan.complete, 'stopped_at': scan.stopped_at,
-              'start_ns': info['start'], 'end_ns': info['end'], 'original': None}
+              'start_ns': info['start'], 'end_ns': info['end'], 'original': None,
+              'source': bag_dir}
     if scan.complete:
-        bag_meta.write_metadata(bag_dir, meta)
-        result['action'] = 'wrote metadata.yaml (the MCAP file was complete)'
+        if out_dir is not None:
+            _write(target, lambda: shutil.copyfile(mcap_path, target_file), target_file)
+        _write(target, lambda: bag_meta.write_metadata(target, meta))
+        result['action'] = ('wrote metadata.yaml (the MCAP file was complete)' if out_dir is None
+                            else 'copied the MCAP file (it was complete), wrote metadata.yaml')
         return result
 
-    tmp = mcap_path + '.repair'
-    try:
+    tmp = target_file + '.repair'
+
+    def rewrite() -> None:
         with open(tmp, 'wb') as fh:
             out = Writer(fh, compression=CompressionType.NONE)
             header = scan.header
@@ -102,20 +132,30 @@ def repair_bag(path: str, keep_original: bool = True) -> Dict:
             out.add_metadata(ROSBAG2_RECORD,
                              {'serialized_metadata': bag_meta.dump_yaml(meta, False)})
             out.finish()
-        if keep_original:
+        if out_dir is None and keep_original:
             result['original'] = mcap_path + '.orig'
             os.replace(mcap_path, result['original'])
-        os.replace(tmp, mcap_path)
-    except OSError as exc:
-        try:
-            os.remove(tmp)
-        except OSError:
-            pass
-        raise BagError(f'cannot write the repaired bag in {bag_dir}: '
-                       f'{exc.strerror or exc}') from None
-    bag_meta.write_metadata(bag_dir, meta)
+        os.replace(tmp, target_file)
+
+    _write(target, rewrite, tmp)
+    _write(target, lambda: bag_meta.write_metadata(target, meta))
     result['action'] = 'rewrote the MCAP file with summary and indexes, wrote metadata.yaml'
     return result
+
+
+def _write(target: str, write, partial: Optional[str] = None) -> None:
+    """Run ``write``; on an OSError remove ``partial`` and raise one line (BagError)."""
+    try:
+        write()
+    except OSError as exc:
+        if partial is not None:
+            try:
+                os.remove(partial)
+            except OSError:
+                pass
+        hint = ('; give --out DIR on another disk' if exc.errno == errno.ENOSPC else '')
+        raise BagError(f'cannot write the repaired bag in {target}: '
+                       f'{exc.strerror or exc}{hint}', exit_code=1) from None
 
 
 __all__ = ['repair_bag']

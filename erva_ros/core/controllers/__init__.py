@@ -8,6 +8,7 @@ skyhook         on-off (Karnopp) skyhook on ż_s·(ż_s − ż_us), see skyhook.
 no_preview      NMPC (paper §III.A), road predicted by holding the measured height
 preview         NMPC with the road preview over the horizon (paper §IV.B)
 preview_long    NMPC with a longer, non-uniform horizon and move blocking (beyond the paper)
+excite          not a control law: a PRBS or chirp of c_e for identification (excite.py)
 ==============  ==========================================================================
 
 The clairvoyant bound (one OCP over the whole run) is not a causal controller; see
@@ -18,7 +19,7 @@ from typing import Optional
 
 from erva_ros.core.controllers.base import ControlResult, Controller, SolveFailure, STATUSES
 from erva_ros.core.controllers.settings import (CONTROLLER_NAMES, ControllerSettings,
-                                                load_controller_settings)
+                                                EXCITATION_NAMES, load_controller_settings)
 from erva_ros.core.params import ERVAParams, ParamError
 
 
@@ -28,15 +29,21 @@ def make_controller(name: Optional[str], params: ERVAParams,
     """Build the controller ``name`` (default settings.controller) for the model ``kind``."""
     settings = settings or ControllerSettings()
     name = name or settings.controller
-    if name not in CONTROLLER_NAMES:
+    if name not in CONTROLLER_NAMES + EXCITATION_NAMES:
         raise ParamError(f'unknown controller {name!r}; choose one of '
-                         f'{", ".join(CONTROLLER_NAMES)}')
+                         f'{", ".join(CONTROLLER_NAMES + EXCITATION_NAMES)}')
     common = dict(horizon=settings.horizon, ts=settings.ts, u_min=settings.u_min,
                   u_max=settings.u_max, c_e0=params.c_e0)
     # The command delay (settings.command_delay_s) is applied here, once per law.
     if name == 'passive':
         from erva_ros.core.controllers.passive import PassiveController
         return PassiveController(**common)   # constant: nothing to compensate
+    if name == 'excite':
+        from erva_ros.core.controllers.excite import ExciteController
+        return ExciteController(**common, signal=settings.excite_signal,   # open loop
+                                bit_s=settings.excite_bit_s, seed=settings.excite_seed,
+                                f0_hz=settings.excite_f0_hz, f1_hz=settings.excite_f1_hz,
+                                sweep_s=settings.excite_sweep_s)
     if name != 'skyhook':
         from erva_ros.core.controllers.nmpc import NMPCController
         # models the delay in its OCP
@@ -50,4 +57,5 @@ def make_controller(name: Optional[str], params: ERVAParams,
 
 
 __all__ = ['ControlResult', 'Controller', 'SolveFailure', 'STATUSES', 'CONTROLLER_NAMES',
+           'EXCITATION_NAMES',
            'ControllerSettings', 'load_controller_settings', 'make_controller']

@@ -14,12 +14,17 @@ stable over the whole box: it is Radau IIA collocation (L-stable), see ocp.py.
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, Dict, Mapping, Optional, Tuple
 
-from erva_ros.core.params import ERVA_SPECS, ParamError, read_ros_params
+from erva_ros.core.params import ERVA_SPECS, ParamError, read_ros_params, ROS_BUILTINS
 from erva_ros.core.node_params import COMMAND_DELAY_SPEC, TS_SPEC
-from erva_ros.core.specs import Choice, Integer, Number
+from erva_ros.core.specs import Choice, Integer, Number, unknown_parameters
 
-#: Controllers understood by make_controller (and `erva sim --controller`).
+#: Control laws understood by make_controller (and `erva sim --controller`).
 CONTROLLER_NAMES = ('passive', 'skyhook', 'no_preview', 'preview', 'preview_long')
+#: Signals that make_controller also builds, for identification: they ignore the state
+#: (erva_ros/core/controllers/excite.py), so the studies of control laws leave them out.
+EXCITATION_NAMES = ('excite',)
+#: Excitation signals of the ``excite`` controller.
+EXCITE_SIGNALS = ('prbs', 'chirp')
 #: Stage-cost variants of the NMPC (see erva_ros.core.controllers.ocp).
 COST_KINDS = ('paper', 'continuous')
 #: NMPC solvers: 'sqp' = real-time SQP (one CasADi Function), 'ipopt' = converged reference.
@@ -58,12 +63,24 @@ NUMERIC_SPECS: Dict[str, Number] = {
     'long_max_iter': Integer(1, 50, 'iterations', 'preview_long: real-time SQP: most '
                              'iterations per sample (an iteration costs 3-4x preview\'s)'),
     'terminal_weight': Number(0.0, 1e6, '-', 'preview_long: weight of the terminal energy cost'),
+    'excite_bit_s': Number(1e-3, 10.0, 's', 'excite, prbs: length of one bit (a multiple of '
+                           'ts); flat spectrum to about 0.44 / excite_bit_s Hz'),
+    'excite_seed': Integer(0, 2 ** 31 - 1, '-', 'excite, prbs: start of the sequence'),
+    'excite_f0_hz': Number(0.0, 1e3, 'Hz', 'excite, chirp: start frequency', lo_open=True),
+    'excite_f1_hz': Number(0.0, 1e3, 'Hz', 'excite, chirp: end frequency (< 1 / (2 ts))',
+                           lo_open=True),
+    'excite_sweep_s': Number(0.0, 3600.0, 's', 'excite, chirp: duration of one sweep '
+                             '(repeated)', lo_open=True),
 }
 #: Settings that must be whole numbers.
 INTEGER_KEYS = frozenset(k for k, spec in NUMERIC_SPECS.items() if isinstance(spec, Integer))
 #: String settings and their allowed values.
 CHOICE_SPECS: Dict[str, Choice] = {
-    'controller': Choice(CONTROLLER_NAMES, 'control law'),
+    'controller': Choice(CONTROLLER_NAMES + EXCITATION_NAMES,
+                         'control law, or excite (an identification signal)'),
+    'excite_signal': Choice(EXCITE_SIGNALS, 'excite: the signal driving c_e over '
+                            '[u_min, u_max]: prbs (pseudo-random binary) or chirp '
+                            '(logarithmic sweep)'),
     'cost': Choice(COST_KINDS,
                    'NMPC stage cost: paper (discrete, eq. (14)) or continuous (eq. (12))'),
     'solver': Choice(SOLVER_KINDS,
@@ -129,6 +146,12 @@ class ControllerSettings:
     terminal_weight: float = _SHIPPED['terminal_weight']
     long_cost: str = _SHIPPED['long_cost']
     codegen: str = _SHIPPED['codegen']
+    excite_signal: str = _SHIPPED['excite_signal']
+    excite_bit_s: float = _SHIPPED['excite_bit_s']
+    excite_seed: int = _SHIPPED['excite_seed']
+    excite_f0_hz: float = _SHIPPED['excite_f0_hz']
+    excite_f1_hz: float = _SHIPPED['excite_f1_hz']
+    excite_sweep_s: float = _SHIPPED['excite_sweep_s']
 
     @property
     def weights(self) -> Tuple[float, float]:
@@ -167,15 +190,12 @@ def validate_settings(values: Mapping[str, Any], source: str = '') -> Controller
     """Validate a mapping of settings (missing keys take defaults); raise ParamError."""
     where = f'{source}: ' if source else ''
     known = {f.name for f in fields(ControllerSettings)}
-    out: Dict[str, Any] = {}
-    for key, value in values.items():
-        if key in known:
-            out[key] = _check(key, value, source)
-        elif key in ERVA_SPECS or key == 'use_sim_time':
-            continue  # physical parameters or ROS built-ins sharing the file
-        else:
-            raise ParamError(f'{where}unknown parameter {key!r}; '
-                             f'known: {", ".join(sorted(known))}')
+    # Physical parameters and ROS's own may share the file; anything else is a typo.
+    unknown = set(values) - known - set(ERVA_SPECS) - set(ROS_BUILTINS)
+    if unknown:
+        raise unknown_parameters(unknown, known, source)
+    out: Dict[str, Any] = {key: _check(key, value, source)
+                           for key, value in values.items() if key in known}
     s = replace(ControllerSettings(), **out)
     if not s.u_min < s.u_max:
         raise ParamError(f'{where}parameter \'u_max\' = {s.u_max:g} must exceed '
@@ -187,6 +207,14 @@ def validate_settings(values: Mapping[str, Any], source: str = '') -> Controller
     if s.long_steps and abs(ratio - round(ratio)) > 1e-6:
         raise ParamError(f'{where}parameter \'long_step_s\' = {s.long_step_s:g} must be a whole '
                          f'multiple of ts = {s.ts:g} s')
+    ratio = s.excite_bit_s / s.ts
+    if abs(ratio - round(ratio)) > 1e-6:
+        raise ParamError(f'{where}parameter \'excite_bit_s\' = {s.excite_bit_s:g} must be a '
+                         f'whole multiple of ts = {s.ts:g} s')
+    if not s.excite_f0_hz < s.excite_f1_hz < 0.5 / s.ts:
+        raise ParamError(f'{where}parameters \'excite_f0_hz\' = {s.excite_f0_hz:g} and '
+                         f'\'excite_f1_hz\' = {s.excite_f1_hz:g} must satisfy f0 < f1 < '
+                         f'1 / (2 ts) = {0.5 / s.ts:g} Hz')
     if s.alpha1 == 0 and s.alpha2 == 0 and s.controller in ('no_preview', 'preview',
                                                             'preview_long'):
         raise ParamError(f'{where}parameters \'alpha1\' and \'alpha2\' are both 0; '
@@ -227,7 +255,8 @@ def load_controller_settings(path: Optional[str] = None,
     return s
 
 
-__all__ = ['CONTROLLER_NAMES', 'COST_KINDS', 'SOLVER_KINDS', 'ROAD_PREDICTIONS', 'NODE_NAME',
+__all__ = ['CONTROLLER_NAMES', 'EXCITATION_NAMES', 'EXCITE_SIGNALS', 'COST_KINDS',
+           'SOLVER_KINDS', 'ROAD_PREDICTIONS', 'NODE_NAME',
            'NUMERIC_SPECS', 'INTEGER_KEYS', 'CHOICE_SPECS', 'SPECS', 'DEFAULTS',
            'ControllerSettings',
            'describe', 'validate_settings', 'load_controller_settings',

@@ -9,8 +9,8 @@ WARMUP_SAMPLES = 25
 class LatencyStats(DurationStats):
     """A :class:`~erva_ros.core.loop.timing.DurationStats` ignoring ``warmup`` first samples."""
 
-    def __init__(self, warmup: int = WARMUP_SAMPLES, maxlen: int = EXACT_SAMPLES):
-        super().__init__(maxlen)
+    def __init__(self, warmup: int = WARMUP_SAMPLES, exact: int = EXACT_SAMPLES):
+        super().__init__(exact)
         self._skip = int(warmup)
 
     def add(self, seconds: float) -> None:

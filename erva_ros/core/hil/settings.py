@@ -22,8 +22,8 @@ from typing import Any, Dict, Optional
 from erva_ros.core.config import shipped_defaults
 from erva_ros.core.estimator import EstimatorNoise, NOISE_SPECS, validate_noise
 from erva_ros.core.hil.hardware import GeneratorHardware, HARDWARE_SPECS, validate_hardware
-from erva_ros.core.params import read_ros_params
-from erva_ros.core.specs import check_all, Flag, Integer, Number, Text
+from erva_ros.core.params import read_ros_params, ROS_BUILTINS
+from erva_ros.core.specs import check_all, Flag, Integer, Number, Text, unknown_parameters
 
 BRIDGE_NODE = 'ecu_bridge_node'
 ESTIMATOR_NODE = 'state_estimator_node'
@@ -103,29 +103,41 @@ def _section(path: Optional[str], node: str) -> Dict[str, Any]:
 
 
 def _validated(values: Dict[str, Any], specs: Dict[str, Any], defaults: Dict[str, Any],
-               source: str) -> Dict[str, Any]:
-    # Keys the tables do not know are ignored, as before (a node's section may hold
-    # ROS built-ins or keys of a newer version).
+               source: str, node: str) -> Dict[str, Any]:
+    """Return the section's values of ``specs`` checked; another key is a one-line error.
+
+    Other keys ``node`` declares (its schema: the physical parameters, the live loop's)
+    and ROS's own may be there; anything else is a typo, which was ignored before (the
+    value kept its default): the error names the closest known key.
+    """
+    from erva_ros.core.node_params import SCHEMAS
+    schema = SCHEMAS.get(node)
+    known = {*specs, *ROS_BUILTINS, *(schema.specs() if schema else ())}
+    unknown = set(values) - known
+    if unknown:
+        raise unknown_parameters(unknown, known - set(ROS_BUILTINS), source)
     return check_all(specs, {k: v for k, v in values.items() if k in specs}, source, defaults)
 
 
 def load_bridge_section(path: Optional[str] = None) -> Dict[str, Any]:
     """Return the validated ``ecu_bridge_node`` values of a HIL params file."""
     src = path or default_hil_file()
-    return _validated(_section(path, BRIDGE_NODE), BRIDGE_SPECS, BRIDGE_DEFAULTS, src)
+    return _validated(_section(path, BRIDGE_NODE), BRIDGE_SPECS, BRIDGE_DEFAULTS, src,
+                      BRIDGE_NODE)
 
 
 def load_ecu_sim_section(path: Optional[str] = None) -> Dict[str, Any]:
     """Return the validated ``ecu_sim`` values of a HIL params file."""
     src = path or default_hil_file()
-    return _validated(_section(path, ECU_SIM_SECTION), ECU_SIM_SPECS, ECU_SIM_DEFAULTS, src)
+    return _validated(_section(path, ECU_SIM_SECTION), ECU_SIM_SPECS, ECU_SIM_DEFAULTS, src,
+                      ECU_SIM_SECTION)
 
 
 def load_estimator_section(path: Optional[str] = None) -> Dict[str, Any]:
     """Return the validated ``state_estimator_node`` values of a HIL params file."""
     src = path or default_hil_file()
     return _validated(_section(path, ESTIMATOR_NODE), ESTIMATOR_SPECS, ESTIMATOR_DEFAULTS,
-                      src)
+                      src, ESTIMATOR_NODE)
 
 
 def hardware_of(values: Dict[str, Any], source: str = '') -> GeneratorHardware:

@@ -13,46 +13,15 @@ import numpy as np
 
 from erva_ros.core.params import ParamError
 from erva_ros.core.preview import PreviewErrorModel
-from erva_ros.core.roads import make_road, Road, RoadError
+from erva_ros.core.roads import make_road, read_road_csv, Road, RoadError
 
 
 def load_road_file(path: str) -> np.ndarray:
-    """Return the (n, 2) rows time (s), height (m) of a CSV road file; one-line errors."""
-    if not os.path.isfile(path):
-        raise ParamError(f'road_file {path!r} does not exist')
+    """Return the (n, 2) rows time (s), height (m) of a CSV road file; one-line ParamError."""
     try:
-        with open(path, 'rb') as fh:
-            raw = fh.read()
-    except OSError as exc:
-        raise ParamError(f'road_file {path!r} cannot be read ({exc.strerror or exc})') from None
-    try:
-        if b'\x00' in raw:
-            raise UnicodeDecodeError('utf-8', raw, raw.index(b'\x00'), raw.index(b'\x00') + 1,
-                                     'NUL byte')
-        lines = raw.decode('utf-8').splitlines()
-    except UnicodeDecodeError as exc:
-        raise ParamError(f'road_file {path!r} is not a UTF-8 text CSV (byte {exc.start}: '
-                         f'{exc.reason})') from None
-    rows = []
-    for lineno, line in enumerate(lines, 1):
-        text = line.split('#', 1)[0].strip()
-        if not text:
-            continue
-        cells = [c.strip() for c in text.replace(';', ',').split(',')]
-        try:
-            row = [float(cells[0]), float(cells[1])]
-        except (ValueError, IndexError):
-            if rows:  # only a header line may be non-numeric
-                raise ParamError(f'road_file {path}:{lineno}: expected "time_s, height_m",'
-                                 f' got {text[:60]!r}') from None
-            continue
-        if not np.all(np.isfinite(row)):
-            raise ParamError(f'road_file {path}:{lineno}: {text[:60]!r} is not a finite '
-                             f'"time_s, height_m" row')
-        rows.append(row)
-    if len(rows) < 2:
-        raise ParamError(f'road_file {path!r} needs at least two "time_s, height_m" rows')
-    return np.asarray(rows, dtype=float)
+        return read_road_csv(path)
+    except RoadError as exc:
+        raise ParamError(str(exc)) from None
 
 
 def build_road(cfg: Mapping[str, Any]) -> Road:

@@ -1,0 +1,24 @@
+"""A road map built from drives, and the NMPC's preview from it (docs/road.md).
+
+* :mod:`~erva_ros.core.roadmap.profile` -- road profiles on a distance grid: the high-pass
+  that removes what is not observable, profile matching (cross-correlation);
+* :mod:`~erva_ros.core.roadmap.drive`   -- a recorded drive (what the ECU measured, the
+  odometry) and its smoothed road estimate on the map grid;
+* :mod:`~erva_ros.core.roadmap.store`   -- the map: SQLite, inverse-variance fusion, incremental;
+* :mod:`~erva_ros.core.roadmap.preview` -- the preview from the map at the odometry position,
+  corrected by matching the live road estimate with the map;
+* :mod:`~erva_ros.core.roadmap.vehicle` -- the offline vehicle loop: ECU sensors, odometry,
+  estimator, preview source, NMPC, plant;
+* :mod:`~erva_ros.core.roadmap.bag_drive`, :mod:`~erva_ros.core.roadmap.cdr` -- drives from
+  recorded HIL bags (a small CDR decoder of the two message types read);
+* :mod:`~erva_ros.core.roadmap.study`   -- ``erva map-study``'s jobs.
+"""
+
+from erva_ros.core.errors import CLIError
+
+
+class MapError(CLIError):
+    """A map, a drive or an option cannot be used; the message is one line for the user."""
+
+
+__all__ = ['MapError']
