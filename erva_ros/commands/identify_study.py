@@ -7,7 +7,8 @@ import time
 from erva_ros.commands._closed_loop_options import (add_settings_options, load_settings,
                                                     non_negative_int)
 from erva_ros.commands._common import (add_json_option, add_out_option, ensure_out_dir,
-                                       positive_float, positive_int, print_json, Progress)
+                                       positive_float, positive_int, print_json)
+from erva_ros.core.progress import Progress
 from erva_ros.commands._jobs import add_jobs_options, run_jobs
 
 COMMAND = 'identify-study'

@@ -7,7 +7,8 @@ import time
 from erva_ros.commands._closed_loop_options import (add_settings_options, load_settings,
                                                     PAPER_T1_S, seed_list, weight_list)
 from erva_ros.commands._common import (add_json_option, add_out_option, add_params_option,
-                                       ensure_out_dir, positive_float, print_json, Progress)
+                                       ensure_out_dir, positive_float, print_json)
+from erva_ros.core.progress import Progress
 from erva_ros.commands._jobs import add_jobs_options, run_jobs
 from erva_ros.core.errors import CLIError
 
