@@ -1,6 +1,6 @@
 """Decode the three message types a drive's bag gives the map, from CDR bytes, without ROS.
 
-A small decoder of its own (the core ring may not import erva_ros.ros.cdr), for
+A small decoder of its own, for
 ``sensor_msgs/JointState`` (``ecu/measurements``), ``geometry_msgs/PointStamped``
 (``road/height``) and ``geometry_msgs/PoseWithCovarianceStamped`` (``road/estimate``):
 plain little-endian CDR, each primitive aligned to its size from the end of the 4-byte
