@@ -4,14 +4,19 @@ The loop's writers keep ``publisher_history_s`` (10 s) of samples for reliable r
 so a recorder stopped for seconds -- in the middle of the run or across its end --
 catches up once it runs again, and `erva run` waits for it before stopping the nodes.
 Checked by counts: every message each node published is in the bag (read with the
-mcap reader, not ours), and `erva run` says so.
+mcap reader, not ours), and `erva run` says so.  A full disk is one error line, the loop
+runs on, and the bag keeps every message written before it.
 """
 
+import json
 import re
+import subprocess
+import sys
 
 import pytest
 
-from run_helpers import bag_counts as _bag_counts, run_with_node_stopped
+from conftest import REPO, ros_env
+from run_helpers import bag_counts as _bag_counts, run_with_node_stopped, start_run
 
 pytestmark = pytest.mark.ros
 
@@ -54,3 +59,39 @@ def test_a_stall_longer_than_the_writers_history_is_reported_as_a_loss(tmp_path)
     counts = _bag_counts(s['bag'])
     for topic, c in rec['topics'].items():
         assert counts.get(topic, 0) == c['recorded'] == c['published'] - c['lost'], topic
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 256 kB tmpfs: a 4 s session's bag (~0.7 MB) fills it (root only: mount)."""
+    disk = tmp_path / 'disk'
+    disk.mkdir()
+    if subprocess.run(['mount', '-t', 'tmpfs', '-o', 'size=256k', 'tmpfs', str(disk)],
+                      capture_output=True).returncode:
+        pytest.skip('mounting a small tmpfs needs root')
+    try:
+        yield disk
+    finally:
+        subprocess.run(['umount', '-l', str(disk)], check=False)
+
+
+def test_a_full_disk_is_one_error_line_and_the_bag_keeps_what_was_written(
+        tmp_path, small_disk):
+    proc = start_run('--duration', 4, '--record', small_disk, '--json')
+    out, err = proc.communicate(timeout=240)
+    s = json.loads(out)
+    assert proc.returncode == 1 and len(s['errors']) == 1, (s['errors'], err[-2000:])
+    assert s['errors'][0].startswith('recording failed: cannot write ')
+    assert 'No space left on device' in s['errors'][0]
+    assert s['commands']['received'] == 201            # the loop ran on, to its end
+    rec = s['recording']
+    kept = {t: c['recorded'] for t, c in rec['topics'].items()}
+    assert 0 < sum(kept.values()) < sum(c['published'] for c in rec['topics'].values())
+    # Completed on another disk, the bag holds exactly what was written before the error.
+    repaired = tmp_path / 'repaired'
+    code = subprocess.run([sys.executable, '-m', 'erva_ros.cli', 'bag', 'repair', s['bag'],
+                           '--out', str(repaired)], env=ros_env(), cwd=REPO,
+                          capture_output=True, text=True)
+    assert code.returncode == 0, code.stderr
+    counts = _bag_counts(repaired)
+    assert all(counts.get(t, 0) == n for t, n in kept.items()), (counts, kept)

@@ -251,6 +251,7 @@ class RecorderReport(NodeReport):
     KIND: ClassVar[str] = 'recorder'
 
     bag_dir: str = ''
+    error: str = ''           # the first write error (disk full...): nothing written after it
     received: int = 0
     lost: int = 0
     lost_in_transport: int = 0

@@ -233,6 +233,13 @@ def check_recording(bag_dir: str, reports: Mapping[str, NodeReport], window: Tup
     except Exception as exc:    # BagError, CdrError: the file itself is the problem
         report['error'] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         return report, [f'the bag cannot be checked: {report["error"]}']
+    if recorder is not None and recorder.error:
+        # One cause, one line: the losses per topic and the missing statuses follow from it.
+        kept = sum(c['recorded'] for c in report['topics'].values())
+        report['failed'] = recorder.error
+        return report, [f'recording failed: {recorder.error}; the loop ran on, the bag keeps '
+                        f'the {kept} messages written before ("erva bag repair {bag_dir} '
+                        '--out DIR" completes it elsewhere)']
     for topic, c in report['topics'].items():
         if c['lost']:
             errors.append(f'the bag lost {c["lost"]} of {c["published"]} messages on {topic}')

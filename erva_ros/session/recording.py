@@ -104,8 +104,11 @@ class RecorderDrain:
     def caught_up(self, reports: Mapping[str, NodeReport], now: Optional[float] = None
                   ) -> bool:
         """Return True once nothing is behind, or the recorder stalled (see :attr:`gave_up`)."""
+        recorder = accounting.recorder_report(reports)
+        if recorder is not None and recorder.error:    # it writes nothing more: no wait
+            return True
         behind = accounting.recorder_behind(
-            accounting.recorder_report(reports),
+            recorder,
             accounting.published_counts(accounting.node_reports(reports)))
         if not behind:
             return True

@@ -343,7 +343,10 @@ class Supervisor:
                            'stopped_cleanly': status == 0 and (p.stopped_by_us
                                                                or name in self.ended),
                            'log': p.log_path}
-            if name not in self.dead and status != 0:
+            # A recorder whose bag failed exits 1: said once, by the recording check.
+            bag_failed = name == RECORDER and bool(getattr(
+                accounting.recorder_report(self.obs.reports), 'error', ''))
+            if name not in self.dead and status != 0 and not bag_failed:
                 self.errors.append(f'{name} did not stop cleanly (exit status {status})'
                                    + (f': {p.tail(1)}' if p.tail(1) else ''))
         if RECORDER in self.procs:
@@ -361,7 +364,8 @@ class Supervisor:
             summary['warnings'] = warnings(self.obs, summary, quality_limits())
             if self.cfg.strict:     # --strict: a run that was not real time fails
                 self.errors += [f'{w} (--strict)' for w in summary['warnings']]
-        if RECORDER in self.procs and RECORDER not in self.dead:
+        if (RECORDER in self.procs and RECORDER not in self.dead
+                and not summary['recording'].get('failed')):
             self._mark_bag_end(summary['bag'])
         summary.update({
             'scenario': {'controller': s.settings.controller,

@@ -39,7 +39,7 @@ class Recording:
     def fail(self, message: str) -> None:
         """Stop writing: the first error is the recording's."""
         if self.error is None:
-            self.error = message
+            self.error = self.report.error = message
             self.on_error(message)
 
     def add_topic(self, topic: str, type_name: str, offered, type_hash) -> None:
