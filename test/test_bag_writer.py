@@ -194,7 +194,8 @@ def test_metadata_yaml_is_version_9_as_rosbag2_writes_it(session_bag):
     assert meta['duration']['nanoseconds'] == 19 * 20_000_000
     assert meta['starting_time']['nanoseconds_since_epoch'] == T0 + 500_000
     assert meta['relative_file_paths'] == ['session_0.mcap']
-    assert meta['files'][0]['message_count'] == meta['message_count'] == 160
+    n = 20 * len(contract.TOPIC_TYPES)
+    assert meta['files'][0]['message_count'] == meta['message_count'] == n
     assert meta['compression_format'] == meta['compression_mode'] == ''
     assert meta['custom_data'] == {'scenario': 'unit'} and meta['ros_distro'] == 'jazzy'
     topic = meta['topics_with_message_count'][0]
