@@ -47,13 +47,18 @@ def _messages(k):
     cmd = JointTrajectory(joint_names=['c_e'], points=[
         JointTrajectoryPoint(positions=[1e4 + k + i]) for i in range(10)])
     cmd.header.stamp = stamp
+    prediction = JointTrajectory(joint_names=['z_s', 'sprung_accel', 'power'], points=[
+        JointTrajectoryPoint(positions=[1e-3 * i, -0.5 + k, 2.0 * i],
+                             time_from_start=Duration(nanosec=i * 20_000_000))
+        for i in range(11)])
+    prediction.header.stamp = stamp
     diag = DiagnosticArray(status=[DiagnosticStatus(
         level=DiagnosticStatus.WARN, name='nmpc_node: ünïcode', message='odd length ' * (k % 3),
         values=[KeyValue(key='solve_ms_p99', value=str(1.5 * k))])])
     diag.header.stamp = stamp
     return {'/erva/state': state, '/erva/sprung_accel': accel, '/erva/generator': gen,
             '/erva/road/height': road, '/erva/road/preview': preview,
-            '/erva/damping_cmd': cmd, '/diagnostics': diag,
+            '/erva/damping_cmd': cmd, '/erva/prediction': prediction, '/diagnostics': diag,
             '/clock': Clock(clock=stamp)}
 
 
@@ -189,7 +194,8 @@ def test_metadata_yaml_is_version_9_as_rosbag2_writes_it(session_bag):
     assert meta['duration']['nanoseconds'] == 19 * 20_000_000
     assert meta['starting_time']['nanoseconds_since_epoch'] == T0 + 500_000
     assert meta['relative_file_paths'] == ['session_0.mcap']
-    assert meta['files'][0]['message_count'] == meta['message_count'] == 160
+    n = 20 * len(contract.TOPIC_TYPES)
+    assert meta['files'][0]['message_count'] == meta['message_count'] == n
     assert meta['compression_format'] == meta['compression_mode'] == ''
     assert meta['custom_data'] == {'scenario': 'unit'} and meta['ros_distro'] == 'jazzy'
     topic = meta['topics_with_message_count'][0]

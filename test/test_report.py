@@ -51,7 +51,7 @@ def test_comfort_and_power_equal_the_closed_loops(erva, offline_session, tmp_pat
     assert report['timing']['offline'] and report['fallbacks']['total'] == 0
     assert report['session']['controller'] == 'passive'
     names = sorted(os.path.basename(f) for f in report['files'])
-    assert names == ['acceleration.png', 'damping_cmd.png', 'power.png',
+    assert names == ['acceleration.png', 'damping_cmd.png', 'power.png', 'prediction.png',
                      'road_preview.png']           # no timing.png: offline, not measured
     for f in report['files']:
         assert open(f, 'rb').read(8) == b'\x89PNG\r\n\x1a\n' and os.path.getsize(f) > 5000
@@ -122,4 +122,4 @@ def test_a_bag_without_session_topics_still_reports(erva, tmp_path):
         w.add_topic('/clock', 'rosgraph_msgs/msg/Clock')
     r = json.loads(erva('report', bag, '--json', '--out', tmp_path / 'o', check=True).stdout)
     assert r['samples']['state'] == 0 and r['comfort']['acc_rms'] is None
-    assert len(r['files']) == 4   # empty figures say what is missing
+    assert len(r['files']) == 5   # empty figures say what is missing

@@ -88,8 +88,10 @@ def test_erva_run_realtime_records_and_summarises(tmp_path, erva):
     for key in ('latency_publish_ms', 'latency_log_ms'):     # command after its sample
         lat = report['timing'][key]
         assert lat['samples'] == cmd['for_samples'] and 0 < lat['p50'] <= lat['p99'], lat
+    # nmpc_node's prediction: one per command (the monitor does not count it).
     assert {t: c['recorded'] for t, c in rec['topics'].items()} == {
-        f'/erva/{t}': n for t, n in published.items()}
+        **{f'/erva/{t}': n for t, n in published.items()},
+        '/erva/prediction': published['damping_cmd']}
 
 
 def test_killed_nmpc_plant_holds_plan_then_passive_and_run_fails(tmp_path):

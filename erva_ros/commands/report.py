@@ -18,9 +18,12 @@ Everything is computed from the bag (no parameters, no re-simulation):
   solver     solve times, deadline misses and fallbacks as the controller reports
              them on /diagnostics; late commands (> 1.5 Ts after the previous one)
              and states that never got a command, from the messages themselves
+  prediction the plan's predicted z̈_s, power and states (/erva/prediction) against
+             what the bag shows at t_k + h·Ts, h = 1, 5 and N: RMS and max error
 
---out DIR writes acceleration.png, damping_cmd.png, power.png, road_preview.png
-and, for realtime sessions, timing.png (command period and latency histograms)."""
+--out DIR writes acceleration.png, damping_cmd.png, power.png, road_preview.png,
+prediction.png (predicted vs actual z̈_s and power, 1, 5 and N steps ahead) and,
+for realtime sessions, timing.png (command period and latency histograms)."""
 
 
 def add_arguments(parser):
@@ -36,6 +39,31 @@ def _fmt(p, unit='ms'):
         return '-'
     return (f'p50 {p["p50"]:.3f} / p99 {p["p99"]:.3f} / max {p["max"]:.3f} {unit} '
             f'({p["samples"]} samples)')
+
+
+#: How the report prints each predicted signal: label, unit, scale.
+_PREDICTED = {'sprung_accel': ('z̈_s', 'm/s²', 1.0), 'power': ('P', 'W', 1.0),
+              'z_s': ('z_s', 'mm', 1e3), 'zdot_s': ('ż_s', 'mm/s', 1e3),
+              'z_us': ('z_us', 'mm', 1e3), 'zdot_us': ('ż_us', 'mm/s', 1e3),
+              'z_d': ('z_d', 'mm', 1e3), 'zdot_d': ('ż_d', 'mm/s', 1e3)}
+
+
+def prediction_lines(pred):
+    """Return the report's prediction lines (one line when the bag has none)."""
+    if pred is None:
+        return ['prediction: none in this bag (nmpc_node publishes it with '
+                'publish_prediction true)']
+    out = [f'prediction: {pred["messages"]} plans, horizon N = {pred["horizon"]}; error '
+           'predicted - actual at t_k + h·Ts, RMS / max']
+    for h, signals in pred['steps'].items():
+        cells = []
+        for name, e in signals.items():
+            label, unit, scale = _PREDICTED.get(name, (name, '', 1.0))
+            cells.append(f'{label} {e["rms"] * scale:.3g} / {e["max"] * scale:.3g} {unit}'
+                         if e['samples'] else f'{label} -')
+        n = max((e['samples'] for e in signals.values()), default=0)
+        out.append(f'  h = {int(h):>2}: ' + ', '.join(cells) + f' ({n} samples)')
+    return out
 
 
 def main(args) -> int:
@@ -91,6 +119,8 @@ def main(args) -> int:
                                            sorted(d['reported'].items())) or 'not reported'))
     print('fallbacks:       ' + (', '.join(f'{k} = {v:g}' for k, v in
                                            sorted(f['reported'].items())) or 'not reported'))
+    for line in prediction_lines(report['prediction']):
+        print(line)
     for e in report['diagnostics_errors']:
         print(f'ERROR diagnostic: {e}')
     for path in report.get('files', []):

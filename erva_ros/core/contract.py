@@ -118,6 +118,26 @@ class Command:
 
 
 @dataclass(frozen=True)
+class Predicted:
+    """``prediction``: the plan's trajectory of sample t_k at t_k + j·Ts, j = 0..N.
+
+    ``values[j]`` holds one value per name: the model's states, then z̈_s (m/s²) and the
+    harvested power (W) (core/loop/prediction.py).
+    """
+
+    stamp_ns: int
+    names: Tuple[str, ...]
+    values: np.ndarray          # (N + 1, len(names))
+    offsets_s: Tuple[float, ...] = ()
+
+    def column(self, name: str) -> np.ndarray:
+        """Return the N + 1 predicted values of ``name`` (KeyError naming the joints)."""
+        if name not in self.names:
+            raise KeyError(f'{name!r} is not predicted (joints {list(self.names)})')
+        return self.values[:, self.names.index(name)]
+
+
+@dataclass(frozen=True)
 class Status:
     """One diagnostic_msgs/DiagnosticStatus: a node's report on ``/diagnostics``."""
 
@@ -394,6 +414,26 @@ def encode_command(stamp_ns: int, plan: Sequence[float], ts_ns: int,
     return _encode_trajectory(stamp_ns, topics.DAMPING_JOINT, plan, ts_ns, delay_ns)
 
 
+def decode_prediction(data: bytes) -> Predicted:
+    """Return a ``prediction`` (MessageRejected if a point's size differs from the names')."""
+    stamp, names, points = _decode_trajectory(data)
+    values = np.empty((len(points), len(names)))
+    for k, (positions, _) in enumerate(points):
+        if len(positions) != len(names):
+            raise MessageRejected(f'points[{k}] has {len(positions)} positions for '
+                                  f'{len(names)} joints')
+        values[k] = positions
+    return Predicted(stamp, tuple(names), values, tuple(t * 1e-9 for _, t in points))
+
+
+def encode_prediction(stamp_ns: int, names: Sequence[str], values, ts_ns: int) -> bytes:
+    """Return rows ``values[j]`` (one per name) at t_k + j·Ts as a JointTrajectory."""
+    w = Writer().header(stamp_ns).strings(tuple(names)).u32(len(values))
+    for k, row in enumerate(values):
+        w.doubles(tuple(float(v) for v in row)).u32(0).u32(0).u32(0).time_ns(k * ts_ns)
+    return w.bytes()
+
+
 # -- rosgraph_msgs/Clock -------------------------------------------------------------------
 def decode_clock(data: bytes) -> int:
     """Return a /clock tick's time (ns)."""
@@ -441,6 +481,7 @@ DECODERS = {
     topics.ROAD_HEIGHT: decode_road_height,
     topics.ROAD_PREVIEW: decode_preview,
     topics.DAMPING_CMD: decode_command,
+    topics.PREDICTION: decode_prediction,
     hil_topics.TRUE_STATE: decode_state,
     hil_topics.ECU_MEASUREMENTS: lambda data: decode_measurements(data, strict=False),
     hil_topics.ECU_SPRUNG_ACCEL: decode_accel,
@@ -456,6 +497,7 @@ __all__ = ['GRID_TOL_NS', 'MEASUREMENT_LIMITS', 'NS', 's_to_ns', 'state_joint_na
            'decode_state', 'encode_state', 'decode_generator', 'encode_generator',
            'decode_measurements', 'decode_accel', 'encode_accel', 'decode_road_height',
            'encode_road_height', 'decode_preview', 'decode_command_offsets', 'encode_preview',
-           'decode_command', 'check_command_delay', 'encode_command', 'decode_clock',
+           'decode_command', 'check_command_delay', 'encode_command', 'Predicted',
+           'decode_prediction', 'encode_prediction', 'decode_clock',
            'encode_clock', 'decode_diagnostics', 'encode_diagnostics', 'DECODERS', 'CdrError',
            'MessageRejected']

@@ -72,6 +72,9 @@ def live_specs() -> Dict[str, Any]:
                                      'lock-step: wall time the plant waits for a command'),
         'state_timeout_periods': Integer(1, 1000, 'periods', 'NMPC: passive command + ERROR '
                                          'after this many periods without a state'),
+        'publish_prediction': Flag('NMPC: publish the plan\'s predicted states, chassis '
+                                   'acceleration and power on `prediction` after each '
+                                   'command'),
         'wait_for_subscribers': Integer(0, 100, '-', 'time master: subscribers each of its '
                                         'topics needs first'),
         'wait_for_reader': Text('time master: one subscriber of each of its topics must be '
@@ -251,8 +254,8 @@ SCHEMAS: Dict[str, NodeSchema] = {s.node: s for s in (
         'wait_for_subscribers', 'wait_for_reader', 'start_delay_s', 'max_stamp_lead_s',
         'max_stamp_age_s')))),
     NodeSchema('nmpc_node', ((ERVA, ()), (CONTROLLER, ()), (LIVE, _LOOP + (
-        'model', 'command_delay_s', 'state_timeout_periods', 'max_stamp_lead_s',
-        'max_stamp_age_s')))),
+        'model', 'command_delay_s', 'state_timeout_periods', 'publish_prediction',
+        'max_stamp_lead_s', 'max_stamp_age_s')))),
     NodeSchema('ecu_bridge_node', ((ERVA, ()), (LIVE, _HIL), (BRIDGE, ()))),
     NodeSchema('state_estimator_node', ((ERVA, ()), (LIVE, _HIL), (ESTIMATOR, ()),
                                         (COMMAND_LINE, ('stamp_on_road_grid',)))),

@@ -20,6 +20,11 @@ road/preview   trajectory_msgs/JointTrajectory   joint [road_height]: points[k].
 damping_cmd    trajectory_msgs/JointTrajectory   joint [c_e]: points[0] = command to apply now
                                                  (Ns/m), points[k] = plan at t0 + k·Ts;
                                                  header.stamp = stamp of the state used
+prediction     trajectory_msgs/JointTrajectory   joints [state names, sprung_accel, power]:
+                                                 points[j].positions = the plan's predicted
+                                                 x, z̈_s (m/s²), P (W) at t0 + j·Ts, j = 0..N
+                                                 (time_from_start); header.stamp = t0, as
+                                                 its damping_cmd's
 road/estimate  geometry_msgs/                    the road at the tyre estimated from the ECU's
                PoseWithCovarianceStamped         sensors (docs/road.md; not yet published):
                                                  pose.position.x = odometry distance (m),
@@ -40,6 +45,7 @@ GENERATOR = 'generator'
 ROAD_HEIGHT = 'road/height'
 ROAD_PREVIEW = 'road/preview'
 DAMPING_CMD = 'damping_cmd'
+PREDICTION = 'prediction'
 #: The road estimate (issue 26).  Not in TOPIC_TYPES until a node publishes it (the
 #: recorders and their tests take every topic there as published).
 ROAD_ESTIMATE = 'road/estimate'
@@ -70,6 +76,7 @@ TOPIC_TYPES = {
     f'{NAMESPACE}/{ROAD_HEIGHT}': 'geometry_msgs/msg/PointStamped',
     f'{NAMESPACE}/{ROAD_PREVIEW}': 'trajectory_msgs/msg/JointTrajectory',
     f'{NAMESPACE}/{DAMPING_CMD}': 'trajectory_msgs/msg/JointTrajectory',
+    f'{NAMESPACE}/{PREDICTION}': 'trajectory_msgs/msg/JointTrajectory',
     DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray',
     CLOCK: 'rosgraph_msgs/msg/Clock',
 }

@@ -6,27 +6,22 @@ A thin adapter around the controller of :func:`erva_ros.core.controllers.make_co
 counts as late, the safe command without states).  For the state x(t_k) and the preview
 stamped t_k it publishes ``damping_cmd``: points[0] = u_k, points[j] = the planned
 u_{k+j} (Ns/m), stamped t_k; u_{k+j} acts at t_{k+j} + d (``command_delay_s``, which
-the OCP models).  ``realtime``: a 1/Ts wall-clock timer in phase with the state stamps;
-``lockstep``: each state solved once its preview is there, no budget.
-Inputs are validated (:mod:`erva_ros.core.contract`): a bad one never reaches a solve.
+the OCP models).  Then, with ``publish_prediction``, ``prediction``: the states, z̈_s
+and power the plan predicts at t_k + j·Ts (core/loop/prediction.py).  ``realtime``: a
+1/Ts wall-clock timer in phase with the state stamps; ``lockstep``: each state solved
+once its preview is there, no budget.  Inputs are validated (core/contract.py).
 """
 
 import time
 
-import numpy as np
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
-from erva_ros.core import contract, topics
-from erva_ros.core.controllers import make_controller
-from erva_ros.core.controllers.settings import NUMERIC_SPECS, SPECS, validate_settings
+from erva_ros.core import topics
 from erva_ros.core.levels import ERROR, OK, WARN
-from erva_ros.core.loop.control_loop import ControlLoop, Output
+from erva_ros.core.loop.control_loop import build_loop, MessageRejected, Output
 from erva_ros.core.loop.sample_schedule import Job
 from erva_ros.core.loop.timing import next_grid_delay_ns
-from erva_ros.core.loop.validation import MessageRejected
-from erva_ros.core.model import STATE_NAMES
-from erva_ros.core.params import validate_erva, ERVA_SPECS
 from erva_ros.core.reports import NMPCReport
 from erva_ros.ros.loop_node import LoopNode
 from erva_ros.ros.runtime import run_node
@@ -39,38 +34,23 @@ class NMPCNode(LoopNode):
     REPORT = NMPCReport
 
     def configure(self) -> None:
-        p = self.p
-        self.kind = p['model']
-        self.lockstep = p['mode'] == 'lockstep'
-        settings = validate_settings({k: p[k] for k in SPECS})
-        if self.lockstep:    # simulated time: no wall-clock budget
-            settings = settings.with_(time_budget_s=NUMERIC_SPECS['time_budget_s'].hi)
-        params = validate_erva({k: p[k] for k in ERVA_SPECS})
-        controller = make_controller(settings.controller, params, settings, self.kind)
-        self.report.hardware_id = f'controller:{controller.name}'
-        self.loop = ControlLoop(controller, settings, p, self.stamp_window(self.lockstep),
-                                self.report)
-        self.loop.warm_up(len(STATE_NAMES[self.kind]))
-        self.ts_ns = self.loop.ts_ns
-        self.delay_ns = int(round(settings.command_delay_s * 1e9))   # commands act at t_k + d
+        self.lockstep = self.p['mode'] == 'lockstep'
+        self.loop = build_loop(self.p, self.stamp_window(self.lockstep), self.report)
+        self.report.hardware_id = f'controller:{self.loop.controller.name}'
         self.state_rx_ns = 0         # wall time the state being solved arrived
         self._tick_timer = self._align_timer = None
         self.pub_cmd = self.publisher(JointTrajectory, topics.DAMPING_CMD)
+        if self.loop.predictor is not None:
+            self.pub_prediction = self.publisher(JointTrajectory, topics.PREDICTION)
         # Subscribed last: a subscriber seen by the road node means the controller is built.
         self.subscribe(JointTrajectory, topics.ROAD_PREVIEW, self._on_preview)
         self.subscribe(JointState, topics.STATE, self._on_state)
-        self.status_timer(2 * settings.ts)
-        self.get_logger().info(
-            f'{controller.name} on the {self.kind} model, {p["mode"]}, Ts = {settings.ts:g} '
-            f's, d = {settings.command_delay_s:g} s, horizon {controller.horizon}, weights '
-            f'({settings.alpha1:g}, {settings.alpha2:g}), budget {settings.time_budget_s:g} s')
+        self.status_timer(2 * self.loop.ts)
+        self.get_logger().info(self.loop.describe)
 
     # -- lifecycle ---------------------------------------------------------------------
     def activate(self) -> None:
-        if self.loop.sched.first_stamp is not None:     # again, after a deactivate
-            self.loop.sched.resume()
-            self.loop.controller.reset()                # its warm start is stale
-            self.loop.cmd_period.restart()
+        self.loop.resume()
         self.status.set(OK, 'waiting for the first state')
 
     def deactivate(self) -> None:
@@ -83,8 +63,7 @@ class NMPCNode(LoopNode):
             return
         was_timed_out = sched.timed_out
         try:
-            state = contract.decode_state(data, self.kind)
-            job = sched.on_state(state.stamp_ns, state.x, self.now_ns())
+            stamp_ns, job = self.loop.on_state(data, self.now_ns())
         except MessageRejected as exc:
             self.reject(topics.STATE, str(exc))
             return
@@ -94,7 +73,7 @@ class NMPCNode(LoopNode):
             self.get_logger().info('states are back: controller running again')
         if not self.lockstep and self._tick_timer is None and self._align_timer is None:
             # The 1/Ts tick timer in phase with the state stamps (ticks at t_k + m·Ts).
-            delay = next_grid_delay_ns(time.time_ns(), state.stamp_ns, self.ts_ns)
+            delay = next_grid_delay_ns(time.time_ns(), stamp_ns, self.loop.ts_ns)
             self._align_timer = self.create_timer(delay * 1e-9, self._start_ticks)
         if job is not None:
             self._run(job)
@@ -103,8 +82,7 @@ class NMPCNode(LoopNode):
 
     def _on_preview(self, data: bytes, rx_ns: int) -> None:
         try:
-            preview = contract.decode_preview(data, self.ts_ns, self.loop.n_preview)
-            job = self.loop.sched.on_preview(preview.stamp_ns, preview.heights, self.now_ns())
+            job = self.loop.on_preview(data, self.now_ns())
         except MessageRejected as exc:
             self.reject(topics.ROAD_PREVIEW, str(exc))
             return
@@ -125,23 +103,24 @@ class NMPCNode(LoopNode):
         if job is not None:
             self._run(job)
         if safe is not None:
-            if self.loop.new_outage():
-                self.get_logger().error(f'no state for {self.p["state_timeout_periods"]} '
-                                        f'periods: publishing the passive command '
-                                        f'{self.loop.controller.c_e0:g} Ns/m')
-            plan, text = self.loop.safe()
-            self.pub_cmd.publish(contract.encode_command(safe, plan, self.ts_ns, self.delay_ns))
+            outage = self.loop.new_outage()
+            if outage:
+                self.get_logger().error(outage)
+            plan, text = self.loop.safe(safe)
+            self.pub_cmd.publish(self.loop.command(safe, plan))
             self.status.set(ERROR, text)
 
     # -- solving -----------------------------------------------------------------------
     def _run(self, job: Job) -> None:
-        """Solve one sample and publish its command with the plan."""
+        """Solve one sample, publish its command with the plan, then its prediction."""
         out: Output = self.loop.solve(job)
-        self.pub_cmd.publish(contract.encode_command(out.stamp_ns, np.asarray(out.plan),
-                                                     self.ts_ns, self.delay_ns))
+        self.pub_cmd.publish(self.loop.command(out.stamp_ns, out.plan))
         change = self.loop.published(out, time.time_ns(), self.state_rx_ns)
         if change is not None:
             self.status.set(*change)
+        prediction = self.loop.prediction(job, out)     # off the command's path
+        if prediction is not None:
+            self.pub_prediction.publish(prediction)
         if self.loop.sched.finished:
             self._finish()
         self.status.after_sample()

@@ -20,6 +20,9 @@ time axis is the header stamp t_k of each message, relative to the first state.
   deadline misses and fallbacks as the controller reports them on /diagnostics (its
   last typed report).  Commands more than 1.5·Ts after their predecessor are counted as
   late, states that never got a command as unanswered.
+* Prediction (``prediction``, when nmpc_node published it): each plan's predicted z̈_s,
+  power and states against what the bag then shows at t_k + h·Ts, h = 1, 5 and N
+  (:func:`erva_ros.core.loop.prediction.prediction_errors`): RMS and max of the error.
 
 Every message is decoded by the contract's one decoder per family
 (:mod:`erva_ros.core.contract`): a report needs no ROS install.
@@ -76,6 +79,10 @@ class SessionData:
     #: Every report on /diagnostics, by log time: (log_ns, report).
     reports: List[Tuple[int, NodeReport]] = field(default_factory=list)
     model: str = 'erva'      # the state's model kind (its joints): erva or benchmark
+    #: ``prediction``: stamps t_k, joint names, tables (N + 1 rows, one column per name).
+    prediction_stamp_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    prediction_names: Tuple[str, ...] = ()
+    predictions: List[np.ndarray] = field(default_factory=list)
 
     @property
     def t0_ns(self) -> int:
@@ -129,9 +136,10 @@ def load_session(bag: Bag, namespace: Optional[str] = None) -> SessionData:
     ns = namespace or guess_namespace(bag)
     topic = {name: _topic(name, ns) for name in (
         contract.STATE, contract.SPRUNG_ACCEL, contract.GENERATOR, contract.ROAD_HEIGHT,
-        contract.ROAD_PREVIEW, contract.DAMPING_CMD)}
+        contract.ROAD_PREVIEW, contract.DAMPING_CMD, contract.PREDICTION)}
     rows: Dict[str, list] = {name: [] for name in topic}
     plans, previews, preview_dt, preview_stamps = [], [], [], []
+    predicted: List[wire.Predicted] = []
     reports: List[Tuple[int, NodeReport]] = []
     joints = None
     by_topic = {v: k for k, v in topic.items()}
@@ -152,6 +160,9 @@ def load_session(bag: Bag, namespace: Optional[str] = None) -> SessionData:
                 preview_stamps.append(r.stamp_ns)
                 previews.append(r.heights)
                 preview_dt.append(np.array(wire.decode_command_offsets(m.data)))
+                continue
+            elif name == contract.PREDICTION:
+                predicted.append(wire.decode_prediction(m.data))
                 continue
             elif name == contract.DAMPING_CMD:
                 r = wire.decode_command(m.data)
@@ -175,7 +186,10 @@ def load_session(bag: Bag, namespace: Optional[str] = None) -> SessionData:
                        _series(rows[contract.ROAD_HEIGHT], 2),
                        _series(rows[contract.DAMPING_CMD], 1),
                        plans, np.asarray(preview_stamps, dtype=np.int64), previews, preview_dt,
-                       reports, model)
+                       reports, model,
+                       np.asarray([p.stamp_ns for p in predicted], dtype=np.int64),
+                       predicted[0].names if predicted else (),
+                       [p.values for p in predicted])
 
 
 def last_reports(data: SessionData) -> Dict[str, NodeReport]:
@@ -241,7 +255,7 @@ def compute_report(data: SessionData) -> Dict:
         'duration_s': duration,
         'samples': {'state': data.state.n, 'sprung_accel': n, 'generator': data.generator.n,
                     'road_height': data.road.n, 'road_preview': len(data.previews),
-                    'damping_cmd': data.cmd.n},
+                    'damping_cmd': data.cmd.n, 'prediction': len(data.predictions)},
         'comfort': {'acc_2norm': metrics['acc_2norm'], 'acc_rms': metrics['acc_rms']},
         'power': {'power_w': metrics['power_w'], 'harvested_j': harvested_j,
                   'source': source,
@@ -249,6 +263,7 @@ def compute_report(data: SessionData) -> Dict:
                   if power_samples.size else math.nan},
     }
     report['timing'] = timing_report(data, ts)
+    report['prediction'] = prediction_report(data, ts)
     deadline = {f'{k}/deadline_misses': float(r.deadline_misses)
                 for k, r in controllers.items()}
     fallbacks = {f'{k}/controller_fallback_{which}': float(
@@ -319,11 +334,42 @@ def timing_report(data: SessionData, ts: Optional[float]) -> Dict:
     return out
 
 
+def actual_signals(data: SessionData) -> Dict[str, Tuple[np.ndarray, np.ndarray]]:
+    """Return what happened, by prediction joint name: (stamps ns, values)."""
+    from erva_ros.core.loop.prediction import OUTPUT_NAMES
+    from erva_ros.core.model import STATE_NAMES
+    out = {}
+    if data.accel.n:
+        out[OUTPUT_NAMES[0]] = (data.accel.stamp_ns, data.accel.values[:, 0])
+    if data.generator.n:
+        out[OUTPUT_NAMES[1]] = (data.generator.stamp_ns,
+                                data.generator.values[:, 1] * data.generator.values[:, 2])
+    if data.state.n:
+        xs = np.array([data.x(i) for i in range(data.state.n)])
+        for j, name in enumerate(STATE_NAMES[data.model]):
+            out[name] = (data.state.stamp_ns, xs[:, j])
+    return {k: v for k, v in out.items() if k in data.prediction_names}
+
+
+def prediction_report(data: SessionData, ts: Optional[float]) -> Optional[Dict]:
+    """Return the prediction errors at 1, 5 and N steps ahead (None: no prediction)."""
+    from erva_ros.core.loop.prediction import prediction_errors
+    if not data.predictions or not ts:
+        return None
+    ts_ns = int(round(ts * 1e9))
+    errors = prediction_errors(data.prediction_stamp_ns.tolist(), data.predictions,
+                               data.prediction_names, ts_ns, actual_signals(data))
+    return {'messages': len(data.predictions),
+            'horizon': min(len(t) for t in data.predictions) - 1,
+            'names': list(data.prediction_names),
+            'steps': {str(h): e for h, e in errors.items()}}
+
+
 def write_plots(data: SessionData, out_dir: str, timing: bool = True) -> List[str]:
     """Write the report's PNG figures into ``out_dir`` (timing.png if ``timing``)."""
     from erva_ros.core.bag import report_plots
-    return report_plots.write_all(data, out_dir, timing)
+    return report_plots.write_all(data, out_dir, timing, actual_signals(data))
 
 
 __all__ = ['SessionData', 'Series', 'load_session', 'compute_report', 'write_plots',
-           'guess_namespace', 'last_reports']
+           'guess_namespace', 'last_reports', 'actual_signals', 'prediction_report']

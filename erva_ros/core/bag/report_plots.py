@@ -28,8 +28,12 @@ def _empty(ax, what: str) -> None:
             transform=ax.transAxes, color='grey')
 
 
-def write_all(data, out_dir: str, timing: bool = True) -> List[str]:
-    """Write acceleration, damping command, power, road/preview (and timing) PNGs."""
+def write_all(data, out_dir: str, timing: bool = True, actual=None) -> List[str]:
+    """Write acceleration, damping command, power, road/preview, prediction (and timing) PNGs.
+
+    ``actual``: what happened by prediction joint name, (stamps ns, values)
+    (session/bag_report.py actual_signals).
+    """
     t0 = data.t0_ns
     title = os.path.basename(os.path.normpath(data.bag.bag_dir or data.bag.mcap_path))
     paths = []
@@ -99,6 +103,9 @@ def write_all(data, out_dir: str, timing: bool = True) -> List[str]:
     ax.grid(True, alpha=0.3)
     paths.append(_save(fig, os.path.join(out_dir, 'road_preview.png')))
 
+    paths.append(_prediction(data, actual or {}, t0, title,
+                             os.path.join(out_dir, 'prediction.png')))
+
     if timing and data.cmd.n > 2:
         fig, (ax1, ax2) = subplots(1, 2, figsize=(9, 3.2))
         d = np.diff(np.sort(data.cmd.pub_ns)) * 1e-6
@@ -110,6 +117,36 @@ def write_all(data, out_dir: str, timing: bool = True) -> List[str]:
         ax2.set(xlabel='state stamp → command publish (ms)', title='state → command latency')
         paths.append(_save(fig, os.path.join(out_dir, 'timing.png')))
     return paths
+
+
+def _prediction(data, actual, t0: int, title: str, path: str) -> str:
+    """Predicted vs actual z̈_s and power: each plan's value h steps ahead at t_k + h·Ts."""
+    from erva_ros.core.loop.prediction import prediction_steps
+    fig, axes = subplots(2, 1, figsize=(8, 5.6), sharex=True)
+    n = len(data.predictions)
+    steps = prediction_steps(min((len(t) for t in data.predictions), default=1) - 1)
+    ts_ns = (int(np.median(np.diff(data.prediction_stamp_ns))) if n > 1 else 0)
+    for ax, name, label in zip(axes, ('sprung_accel', 'power'),
+                               ('chassis acceleration z̈_s (m/s²)', 'harvested power P (W)')):
+        if name in actual:
+            stamps, values = actual[name]
+            ax.plot((np.asarray(stamps) - t0) * 1e-9, values, color='k', lw=1.2,
+                    label='actual')
+        if n and name in data.prediction_names:
+            col = data.prediction_names.index(name)
+            for h in steps:
+                t = (data.prediction_stamp_ns + h * ts_ns - t0) * 1e-9
+                v = [table[h, col] for table in data.predictions]
+                ax.plot(t, v, lw=0.9, alpha=0.8, label=f'predicted {h} step'
+                        + ('s' if h > 1 else '') + ' ahead')
+            ax.legend(loc='upper right', fontsize=8)
+        else:
+            _empty(ax, 'prediction')
+        ax.set(ylabel=label)
+        ax.grid(True, alpha=0.3)
+    axes[0].set_title(f'{title}: the plans\' prediction vs what happened')
+    axes[1].set_xlabel('time (s)')
+    return _save(fig, path)
 
 
 __all__ = ['write_all']

@@ -5,7 +5,10 @@ the :class:`~erva_ros.core.loop.sample_schedule.SampleScheduler` inside decides 
 sample to solve when, :meth:`ControlLoop.solve` runs the controller and
 :meth:`ControlLoop.published` counts what went out (late solves, deadline misses) and
 returns the status the node should show.  Timings and counters go into the node's typed
-report (:class:`~erva_ros.core.reports.NMPCReport`).  No ROS inside.
+report (:class:`~erva_ros.core.reports.NMPCReport`).  :meth:`ControlLoop.command` and
+:meth:`ControlLoop.prediction` return the bytes of ``damping_cmd`` and of its companion
+``prediction`` (core/loop/prediction.py), which the node publishes after the command.
+No ROS inside.
 """
 
 from dataclasses import dataclass
@@ -14,7 +17,10 @@ from typing import Any, Mapping, Optional, Tuple
 
 import numpy as np
 
+from erva_ros.core import contract
 from erva_ros.core.levels import ERROR, OK, WARN
+from erva_ros.core.loop.prediction import PlanPredictor
+from erva_ros.core.loop.validation import MessageRejected  # noqa: F401 (raised by on_*)
 from erva_ros.core.loop.sample_schedule import Job, SampleScheduler
 from erva_ros.core.loop.timing import DurationStats, PeriodStats
 from erva_ros.core.loop.validation import StampWindow
@@ -38,15 +44,46 @@ class Output:
     solve_s: float
 
 
+def build_loop(p: Mapping[str, Any], window: StampWindow, report: NMPCReport) -> 'ControlLoop':
+    """Return nmpc_node's loop from its parameters ``p`` (controller, model, predictor)."""
+    from erva_ros.core.controllers import make_controller
+    from erva_ros.core.controllers.settings import NUMERIC_SPECS, SPECS, validate_settings
+    from erva_ros.core.model import get_model
+    from erva_ros.core.params import ERVA_SPECS, validate_erva
+    settings = validate_settings({k: p[k] for k in SPECS})
+    if p['mode'] == 'lockstep':    # simulated time: no wall-clock budget
+        settings = settings.with_(time_budget_s=NUMERIC_SPECS['time_budget_s'].hi)
+    params = validate_erva({k: p[k] for k in ERVA_SPECS})
+    controller = make_controller(settings.controller, params, settings, p['model'])
+    model = get_model(params, p['model'])
+    loop = ControlLoop(controller, settings, p, window, report,
+                       model if p['publish_prediction'] else None)
+    loop.warm_up(model.nx)
+    loop.describe = (
+        f'{controller.name} on the {p["model"]} model, {p["mode"]}, Ts = {settings.ts:g} '
+        f's, d = {settings.command_delay_s:g} s, horizon {controller.horizon}, weights '
+        f'({settings.alpha1:g}, {settings.alpha2:g}), budget {settings.time_budget_s:g} s'
+        + (', publishing the prediction' if loop.predictor else ''))
+    return loop
+
+
 class ControlLoop:
     """Schedule, solve and count the NMPC's samples (see the module doc)."""
 
     def __init__(self, controller, settings, cfg: Mapping[str, Any], window: StampWindow,
-                 report: NMPCReport):
+                 report: NMPCReport, model=None):
         self.controller = controller
         self.ts = settings.ts
         self.ts_ns = int(round(settings.ts * NS))
+        self.delay_ns = int(round(settings.command_delay_s * NS))   # commands act at t_k + d
+        #: The plan's trajectory on ``model`` after each command (None: not published).
+        self.predictor = None if model is None else PlanPredictor(
+            model, settings.ts, controller.horizon, settings.command_delay_s,
+            controller.c_e0, settings.codegen)
+        self.predict_time = DurationStats()
         self.lockstep = cfg['mode'] == 'lockstep'
+        self.kind = cfg['model']
+        self.describe = ''                  # what the node logs at start (build_loop)
         self.n_preview = controller.horizon + 1
         self.passive_plan = np.full(controller.horizon, controller.c_e0)
         self.sched = SampleScheduler(
@@ -72,6 +109,24 @@ class ControlLoop:
         self.controller.compute(np.zeros(n_states), np.zeros(self.n_preview), 0.0)
         self.controller.reset()
 
+    def resume(self) -> None:
+        """Start again after a deactivate (nothing to do before the first state)."""
+        if self.sched.first_stamp is not None:
+            self.sched.resume()
+            self.controller.reset()                # its warm start is stale
+            self.cmd_period.restart()
+
+    # -- inputs (MessageRejected: a bad one never reaches a solve) ------------------------
+    def on_state(self, data: bytes, now_ns: int) -> Tuple[int, Optional[Job]]:
+        """Take a ``state`` message; return its stamp and the job to solve now, if any."""
+        state = contract.decode_state(data, self.kind)
+        return state.stamp_ns, self.sched.on_state(state.stamp_ns, state.x, now_ns)
+
+    def on_preview(self, data: bytes, now_ns: int) -> Optional[Job]:
+        """Take a ``road/preview`` message; return the job to solve now, if any."""
+        preview = contract.decode_preview(data, self.ts_ns, self.n_preview)
+        return self.sched.on_preview(preview.stamp_ns, preview.heights, now_ns)
+
     # -- the sample's solve ------------------------------------------------------------
     def solve(self, job: Job) -> Output:
         """Run the controller on ``job`` (no preview: the passive plan)."""
@@ -81,6 +136,28 @@ class ControlLoop:
         res = self.controller.compute(job.x, job.preview, t)
         self.report.solves += 1
         return Output(job.stamp_ns, res.plan, res.status, res.solve_time_s)
+
+    def command(self, stamp_ns: int, plan) -> bytes:
+        """Return the ``damping_cmd`` of ``plan`` for ``stamp_ns`` (plan[j] at t_k + d + j·Ts)."""
+        return contract.encode_command(stamp_ns, np.asarray(plan), self.ts_ns, self.delay_ns)
+
+    def prediction(self, job: Job, out: Output) -> Optional[bytes]:
+        """Return the ``prediction`` of a published command (None: none to publish).
+
+        Every command is recorded (the damping it leaves acting); without a predictor or
+        a preview (the road ahead unknown) nothing is predicted.
+        """
+        if self.predictor is None:
+            return None
+        if job.preview is None:
+            self.predictor.commanded(out.stamp_ns, out.plan)
+            return None
+        t0 = time.perf_counter()
+        p = self.predictor.sample(out.stamp_ns, job.x, out.plan, job.preview)
+        data = contract.encode_prediction(out.stamp_ns, self.predictor.names, p.table(),
+                                          self.ts_ns)
+        self.predict_time.add(time.perf_counter() - t0)
+        return data
 
     def published(self, out: Output, pub_ns: int, state_rx_ns: int
                   ) -> Optional[Tuple[int, str]]:
@@ -109,19 +186,22 @@ class ControlLoop:
             return OK, 'running'
         return None
 
-    def safe(self) -> Tuple[np.ndarray, str]:
-        """Count a safe passive command; return its plan and the ERROR status text."""
+    def safe(self, stamp_ns: int) -> Tuple[np.ndarray, str]:
+        """Count a safe passive command for ``stamp_ns``; return its plan and ERROR text."""
         self.report.safe_commands += 1
+        if self.predictor is not None:
+            self.predictor.commanded(stamp_ns, self.passive_plan)
         return self.passive_plan, (f'no state for more than {self.timeout_periods} periods: '
                                    'passive command')
 
-    def new_outage(self) -> bool:
-        """Return True once per state outage (to log it once)."""
+    def new_outage(self) -> Optional[str]:
+        """Return the text to log once per state outage (None: already logged)."""
         n = self.sched.count['state_timeouts']
         if n > self.outages_logged:
             self.outages_logged = n
-            return True
-        return False
+            return (f'no state for {self.timeout_periods} periods: publishing the passive '
+                    f'command {self.controller.c_e0:g} Ns/m')
+        return None
 
     def tick(self, wall_ns: int) -> None:
         """Record a real-time tick at wall time ``wall_ns`` (its period and phase)."""
@@ -152,4 +232,5 @@ class ControlLoop:
         r.tick_phase_ms = Timing.of(self.tick_phase.summary())
 
 
-__all__ = ['WARN_HOLD_S', 'SCHEDULER_COUNTS', 'Output', 'ControlLoop', 'ERROR']
+__all__ = ['WARN_HOLD_S', 'SCHEDULER_COUNTS', 'Output', 'build_loop', 'ControlLoop',
+           'ERROR', 'MessageRejected']
