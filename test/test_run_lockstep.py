@@ -117,3 +117,5 @@ def test_realtime_equals_lockstep_equals_erva_sim_at_a_command_delay(tmp_path):
         np.testing.assert_allclose(tr['u'], off.u, rtol=1e-9, atol=1e-6, err_msg=mode)
         np.testing.assert_allclose(tr['sprung_accel'], off.sprung_accel, rtol=0, atol=1e-9,
                                    err_msg=mode)
+        # The power at t_k is the damping acting then: the command before, until t_k + d.
+        np.testing.assert_allclose(tr['power'], off.power, rtol=1e-9, atol=1e-12, err_msg=mode)

@@ -89,7 +89,7 @@ class PlantSimNode(LoopNode):
                 self.status.set(*s.decision)
             self._publish_state(s.t_k + self.loop.ts_ns, s.x_next)
             self.pub_accel.publish(contract.encode_accel(s.t_k, s.sprung_accel))
-            self.pub_gen.publish(contract.encode_generator(s.t_k, *s.generator, s.u_k))
+            self.pub_gen.publish(contract.encode_generator(s.t_k, *s.generator, s.u_at_t_k))
         if self.loop.finished:
             self.status.set(OK, f'finished: {self.loop.k} steps, '
                             f'{self.loop.plant.harvested_j:.4g} J harvested')

@@ -9,7 +9,7 @@
 import os
 import tempfile
 import time
-from typing import Callable, Dict, List, Mapping, Optional
+from typing import Any, Callable, Dict, List, Mapping, Optional
 
 from erva_ros.core import topics
 from erva_ros.core.errors import CLIError
@@ -31,10 +31,16 @@ RECORDER_PRIORITY_BELOW = 10
 PROCESS = 'recorder_node'
 
 
-def record_topics(hil: bool) -> List[str]:
-    """Return the topics a session records (and serves): the contract, plus the HIL topics."""
+def record_topics(hil: bool, live: Optional[Mapping[str, Any]] = None) -> List[str]:
+    """Return the topics a session records (and serves): the contract, plus the HIL topics.
+
+    ``live`` (the session's live parameters): without ``publish_prediction`` nobody
+    writes ``prediction``, and the start would wait for its writer.
+    """
     from erva_ros.core.node_params import SCHEMAS
     out = list(SCHEMAS['recorder'].defaults()['topics'])
+    if live is not None and not live.get('publish_prediction', True):
+        out.remove(topics.PREDICTION)
     if hil:
         from erva_ros.core.hil.topics import RECORD_TOPICS
         out += RECORD_TOPICS
@@ -70,7 +76,7 @@ def start_recorder(session: Session, namespace: str, bag_parent: str, env: Dict[
     """Start recorder_node on a new bag under ``bag_parent``; its ``bag_dir`` and ``topics``."""
     from erva_ros.core.bag import session as bag_session
     bag_dir = bag_session.new_bag_dir(bag_parent, session.scenario)
-    record = record_topics(session.hil)
+    record = record_topics(session.hil, session.live)
     loop_priority = session.live['realtime_priority'] if session.realtime else 0
     argv = module_argv('erva_ros.nodes.recorder_node', *bag_session.recorder_ros_args(
         bag_dir, session_description(session), topics=record, namespace=namespace,

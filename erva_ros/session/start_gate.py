@@ -10,7 +10,7 @@ the whole loop (:meth:`StartGate.graph_ready`).
 """
 
 import time
-from typing import Callable, Dict, List, Sequence
+from typing import Callable, Dict, List, Optional, Sequence
 
 from erva_ros.core import topics
 from erva_ros.session import accounting, hil_summary
@@ -22,7 +22,8 @@ class StartGate:
     """What the session waits for before the loop runs (see the module doc)."""
 
     def __init__(self, monitor, obs, namespace: str, node_names: Sequence[str], hil: bool,
-                 recording: bool, foxglove: bool, extra_readers: Sequence[Sequence[str]] = ()):
+                 recording: bool, foxglove: bool, extra_readers: Sequence[Sequence[str]] = (),
+                 recorded: Optional[List[str]] = None):
         self.monitor = monitor
         self.obs = obs
         self.namespace = namespace
@@ -34,11 +35,11 @@ class StartGate:
         # The user's readers (`--extra-readers`) count on the time master's topics: the
         # loop's own readers must still all be matched, not stood in for by one of them.
         observers = [obs.watched, *extra_readers]
+        record = record_topics(hil) if recorded is None else list(recorded)
         if foxglove:
-            observers.append(record_topics(hil))   # the server serves what is recorded
+            observers.append(record)   # the server serves what is recorded
         self.record_writers: Dict[str, int] = {}
         if recording:
-            record = record_topics(hil)
             observers.append(record)
             self.record_writers = record_writers(
                 record, namespace, len(self.node_names) + 1 + (1 if foxglove else 0))

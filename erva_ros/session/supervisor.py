@@ -22,7 +22,7 @@ from erva_ros.session import accounting, hil_summary
 from erva_ros.core.reports import FoxgloveReport, RecorderReport
 from erva_ros.session.accounting import check_recording
 from erva_ros.session.recording import (PROCESS as RECORDER, RECORDER_PRIORITY_BELOW,
-                                        RecorderDrain, start_recorder)
+                                        record_topics, RecorderDrain, start_recorder)
 from erva_ros.session.processes import (ChildProcess, child_env, node_argv, STOP_GRACE_S,
                                         stop_processes)
 from erva_ros.session.run_config import (ACTIVATION_ORDER, HIL_NODES, HIL_PROCESSES, NODES,
@@ -83,7 +83,8 @@ class Supervisor:
                                             gate=gate))
         self.gate = StartGate(self.monitor, self.obs, cfg.namespace, self.node_names,
                               session.hil, recording, bool(cfg.foxglove),
-                              [topics.time_master_topics(session.realtime)] * cfg.extra_readers)
+                              [topics.time_master_topics(session.realtime)] * cfg.extra_readers,
+                              record_topics(session.hil, session.live))
         self.drain = RecorderDrain()
         # The managed nodes, in activation order (run_config.ACTIVATION_ORDER).
         from erva_ros.ros.lifecycle import LifecycleDriver
