@@ -5,17 +5,19 @@
 1. validates every value in-process first and writes the session's params file
    (:func:`erva_ros.session.session_file.prepare_session`), so a bad option fails with
    one line before any process starts;
-2. starts an in-process monitor node (:class:`~erva_ros.ros.monitor.Monitor`), the
+2. compiles what the nodes will load and the cache lacks, one line per part
+   (:mod:`erva_ros.session.warmup`): no node's start-up timeout is spent compiling;
+3. starts an in-process monitor node (:class:`~erva_ros.ros.monitor.Monitor`), the
    recorder (when recording, :mod:`erva_ros.session.recording`), nmpc_node,
    plant_sim_node and road_preview_node, each as ``python -m erva_ros.nodes.<name>
    --ros-args -r __ns:=<ns> --params-file F`` in its own process group (and with a
    parent-death signal, so no node outlives `erva run`; :mod:`erva_ros.session.processes`);
-3. waits until the graph is connected (:mod:`erva_ros.session.start_gate`), runs the
+4. waits until the graph is connected (:mod:`erva_ros.session.start_gate`), runs the
    scenario until every node reports it finished (or a node dies, or SIGINT/SIGTERM
    arrives), lets the last diagnostics arrive, then stops the nodes with SIGINT
    (SIGTERM, SIGKILL after a grace period) and the recorder last, so the bag is
    finished (:class:`~erva_ros.session.supervisor.Supervisor`);
-4. returns the summary (comfort and power, command rate, jitter and latency,
+5. returns the summary (comfort and power, command rate, jitter and latency,
    solve times, deadline misses, fallbacks, dropped and rejected messages).
 
 With ``ecu='virtual'`` (hardware-in-the-loop, real time only) the processes of
@@ -38,6 +40,7 @@ from erva_ros.session.run_config import RunConfig
 from erva_ros.session.session_file import prepare_session, Session
 from erva_ros.session.session_dirs import FAILED_NOTE
 from erva_ros.session.supervisor import Supervisor
+from erva_ros.session.warmup import warm_session
 
 
 @dataclass
@@ -58,6 +61,11 @@ def run_session(cfg: RunConfig, log: Callable[[str], None] = lambda s: None) -> 
     session = prepare_session(cfg, recording)
     if recording:
         check_record_dir(cfg.record_dir)
+    try:    # before any node starts: no start-up timeout is spent compiling
+        warm_session(session, log)
+    except Exception:
+        shutil.rmtree(session.directory, ignore_errors=True)
+        raise
     sup = Supervisor(cfg, session, recording, log)
     handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     for sig in handlers:   # Ctrl-C / SIGTERM: stop the nodes cleanly, then summarise
