@@ -65,8 +65,8 @@ def test_the_report_prints_the_errors_one_step_ahead_exact(session, erva, tmp_pa
     assert pred['horizon'] == 10 and sorted(pred['steps'], key=int) == ['1', '5', '10']
     one = pred['steps']['1']
     # States x(t_0..t_50) and z̈_s(t_0..t_49) recorded; plans at t_0..t_50.
-    for name in ('z_s', 'zdot_s', 'z_us', 'zdot_us', 'z_d', 'zdot_d', 'sprung_accel'):
-        assert one[name]['samples'] == (49 if name == 'sprung_accel' else 50), name
+    for name in ('z_s', 'zdot_s', 'z_us', 'zdot_us', 'z_d', 'zdot_d', 'sprung_accel', 'power'):
+        assert one[name]['samples'] == (49 if name in ('sprung_accel', 'power') else 50), name
         assert one[name]['max'] <= 1e-9, (name, one[name])
     far = pred['steps']['10']
     assert far['sprung_accel']['samples'] == 40 and far['sprung_accel']['max'] > 1e-6
@@ -75,6 +75,17 @@ def test_the_report_prints_the_errors_one_step_ahead_exact(session, erva, tmp_pa
     assert 'prediction: 51 plans, horizon N = 10' in text
     assert [line.split(':')[0].strip() for line in text.splitlines()
             if line.startswith('  h = ')] == ['h =  1', 'h =  5', 'h = 10']
+
+
+def test_without_prediction_the_session_records_the_rest(tmp_path):
+    live = tmp_path / 'live.yaml'
+    live.write_text('/**:\n  ros__parameters:\n    publish_prediction: false\n')
+    proc = start_run('--mode', 'lockstep', '--duration', 0.4, '--live', live,
+                     '--record', tmp_path / 'bags', '--json')
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err[-3000:]
+    msgs = _decoded(json.loads(out)['bag'], ['/erva/damping_cmd', '/erva/prediction'])
+    assert len(msgs['/erva/damping_cmd']) == 21 and msgs['/erva/prediction'] == []
 
 
 def test_a_bag_without_prediction_says_so_in_one_line(erva):
