@@ -75,6 +75,18 @@ def _cpu_id() -> str:
         return platform.machine() + platform.processor()
 
 
+def library_flags(source: str):
+    """Return the compiler flags of the solver libraries that generated ``source`` calls.
+
+    CasADi's ``daqp`` QP (the NMPC's box QP) generates calls into DAQP, whose headers
+    and static library ship in the casadi wheel: compile against those.
+    """
+    if '#include <daqp/api.h>' not in source:
+        return []
+    base = os.path.dirname(ca.__file__)
+    return ['-I', os.path.join(base, 'include'), os.path.join(base, 'libdaqpstat.a')]
+
+
 def use_codegen(setting: str) -> bool:
     """Return whether ``codegen`` = setting compiles: 'on', or 'auto' with a C compiler."""
     return setting == 'on' or (setting == 'auto' and c_compiler() is not None)
@@ -233,7 +245,8 @@ def _compile_job(job: CompileJob, cc: str, flags) -> str:
             with open(src, 'w', encoding='utf-8') as fh:
                 fh.write(job.source)
             for attempt in (1, 2):
-                proc = subprocess.run([cc, *flags, '-o', tmp, src, '-lm'],
+                proc = subprocess.run([cc, *flags, '-o', tmp, src, *library_flags(job.source),
+                                       '-lm'],
                                       stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                       text=True, errors='replace')
                 if proc.returncode == 0:
@@ -353,6 +366,6 @@ class BufferedCall:
 
 
 __all__ = ['CODEGEN_FLAGS', 'NATIVE_FLAGS', 'codegen_flags', 'codegen_cache_dir', 'c_compiler',
-           'use_codegen', 'toolchain', 'CompileJob', 'CompileError', 'Plan', 'plan_functions',
-           'collecting',
+           'library_flags', 'use_codegen', 'toolchain', 'CompileJob', 'CompileError', 'Plan',
+           'plan_functions', 'collecting',
            'compile_functions', 'run_jobs', 'compile_for', 'BufferedCall']
