@@ -31,8 +31,9 @@ import numpy as np
 
 from erva_ros.core.params import ParamError
 
-#: C compiler flags of ``codegen`` (-O2 measured no faster than -O1, and compiles 6x slower).
-CODEGEN_FLAGS = ('-O1', '-shared', '-fPIC')
+#: C compiler flags of ``codegen``.  -O3: the NMPC solver's per-interval kernels run as
+#: loops, which the optimiser speeds up (docs/nmpc.md); compiling it takes ~10 s.
+CODEGEN_FLAGS = ('-O3', '-shared', '-fPIC')
 #: Added when the compiler accepts them: this CPU's instruction set made the NMPC solve
 #: 5-8 % faster (docs/nmpc.md); without contraction to fused multiply-adds the results
 #: are bit for bit those of CODEGEN_FLAGS.  A library is then keyed to the CPU as well.
