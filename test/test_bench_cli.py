@@ -67,8 +67,8 @@ def test_bench_repeat_gives_the_spread_and_the_same_loop(erva):
     runs = res['runs']
     assert [(r['seed'], r['repeat']) for r in runs] == [(0, 0), (3, 0), (0, 1), (3, 1)]
     # the loop counts, it never reads the clock: a repetition is the same loop
-    assert [r['closed_loop_cost'] for r in runs[:2]] == [r['closed_loop_cost']
-                                                        for r in runs[2:]]
+    costs = [r['closed_loop_cost'] for r in runs]
+    assert costs[:2] == costs[2:]
     summary = res['summary']
     assert summary['seeds'] == [0, 3] and summary['repeat'] == 2
     for key in ('p50', 'p99', 'max'):
