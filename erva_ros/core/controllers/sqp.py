@@ -27,10 +27,11 @@ Each iteration, at the current point z:
    its factorisation: a simulation with the NLP's own integrator), and accepted by
    Armijo's rule on the ℓ1 merit f + ρ·‖g‖₁ of the very NLP that IPOPT solves, over
    t = 1, ½, ¼, ⅛; a step is evaluated only if the longer one failed (short-circuit
-   conditionals).  Candidates judged by an RK4 rollout instead (the solver this one
-   replaces) are a different model: for bang-bang plans its quadrature of the cost was
-   off by up to 50 %, and its gradient disagreed with the NLP's, so steps were
-   rejected or misjudged.
+   conditionals).  After a full step that gained more than EXTRAPOLATION_RATIO times
+   the QP's prediction, t = 2, 4 in turn while each lowers the merit further.
+   Candidates judged by an RK4 rollout instead (the solver before these) are a
+   different model: for bang-bang plans its quadrature of the cost was off by up to
+   50 %, and its gradient disagreed with the NLP's.
 5. *Stop* when an iteration is predicted to gain less than ``tol``·|f(start)| or no
    step decreases the merit, else after ``max_iter`` iterations.  Counts, never the
    wall clock, end a solve: offline results do not depend on the machine's load.
@@ -45,7 +46,8 @@ With ``codegen`` its two pieces are compiled to C as wholes, the starts and one
 iteration (QP model, box QP, line search, stop test): the solver calls the iteration
 ``max_iter`` times, and it returns its input unchanged once done.  Compiled whole, no
 matrix operation runs in CasADi's virtual machine, and the pieces do not depend on
-``max_iter`` or ``tol`` (docs/nmpc.md measures both changes).
+``max_iter`` or ``tol``.  Each per-interval piece is one kernel called as a loop
+(``mapaccum``), so the C code holds one copy of it (docs/nmpc.md).
 """
 
 from functools import lru_cache
