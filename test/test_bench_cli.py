@@ -57,3 +57,26 @@ def test_bench_several_seeds_one_line_each(erva):
                           (['--seeds', '1', '--seed', '2'], 'either --seed or --seeds')]:
         bad = erva('bench', *args)
         assert bad.returncode == 2 and message in bad.stderr.strip().splitlines()[-1]
+
+
+def test_bench_repeat_gives_the_spread_and_the_same_loop(erva):
+    proc = erva('bench', '--steps', 20, '--seeds', '0,3', '--repeat', 2, '--no-reference',
+                '--json')
+    assert proc.returncode == 0, proc.stderr
+    res = json.loads(proc.stdout)
+    runs = res['runs']
+    assert [(r['seed'], r['repeat']) for r in runs] == [(0, 0), (3, 0), (0, 1), (3, 1)]
+    # the loop counts, it never reads the clock: a repetition is the same loop
+    costs = [r['closed_loop_cost'] for r in runs]
+    assert costs[:2] == costs[2:]
+    summary = res['summary']
+    assert summary['seeds'] == [0, 3] and summary['repeat'] == 2
+    for key in ('p50', 'p99', 'max'):
+        low, high = summary['solve_ms'][key]
+        assert low == min(r['solve_ms'][key] for r in runs) <= high
+    assert all(len(r['load_avg']['start']) == 3 and r['load_avg']['cpus'] >= 1 for r in runs)
+    text = erva('bench', '--steps', 20, '--repeat', 3, '--no-reference', check=True).stdout
+    assert '3 runs of 20 samples: solve p50' in text and 'load average (1 min)' in text
+    bad = erva('bench', '--live', '--repeat', 2)
+    assert bad.returncode == 2
+    assert '--repeat applies to the offline bench' in bad.stderr.strip().splitlines()[-1]

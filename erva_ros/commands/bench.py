@@ -1,5 +1,6 @@
 """``erva bench``: NMPC solve times, suboptimality and real-time factor in the offline loop."""
 
+import os
 import platform
 
 import numpy as np
@@ -19,7 +20,8 @@ Runs --steps closed-loop samples (default 2000 = 40 s) of the paper road with th
 chosen controller and solver (default: preview, the real-time sqp), then the same
 with the converged IPOPT reference, and reports:
 
-  solve_ms           p50 / p99 / max of controller.compute() wall time (ms)
+  solve_ms           p50 / p99 / max of controller.compute() wall time (ms), over
+                     `samples` solves
   late               solves slower than time_budget_s (their own plan is still used)
   suboptimality_pct  100·(J − J_ref)/|J_ref|, J = the NMPC stage cost summed along the
                      closed loop on the same road (J_ref: the closed loop with IPOPT);
@@ -30,6 +32,12 @@ with the converged IPOPT reference, and reports:
                      (from three starts, one being the real-time solution): 100·(f − f_ref)
                      /|f_ref| >= 0, p50 / p99 / max / mean
   realtime_factor    simulated time / wall time of the offline closed loop
+  load_avg           /proc/loadavg (1, 5, 15 min) before and after the run, and the
+                     CPU count: solve times depend on what else the machine runs
+
+--seeds S1,S2,.. runs one closed loop per seed; --repeat K runs the whole set K times
+in turn (seed order, then again), so the spread of the solve times over repetitions
+shows what the machine's load does to them (docs/nmpc.md's table is such a run).
 
 --live measures the same in the running ROS 2 system instead (erva_ros.session).
 --live --foxglove-ab N compares N alternating pairs of live runs without and with
@@ -45,6 +53,9 @@ def add_arguments(parser):
     parser.add_argument('--seeds', type=seed_list, default=None, metavar='S1,S2,..',
                         help='several paper-road seeds: one line each (real-time vs IPOPT) '
                              'and the mean, instead of --seed')
+    parser.add_argument('--repeat', type=positive_int, default=1, metavar='K',
+                        help='run the seed (or --seeds) K times in turn, one line each and '
+                             'the spread of the solve times (default 1)')
     parser.add_argument('--no-reference', action='store_true',
                         help='skip the IPOPT reference runs (suboptimality_pct and '
                              'step_gap_pct are null)')
@@ -105,6 +116,8 @@ def _main(args) -> int:
         return run_foxglove_ab(args)
     if args.live and args.out:
         raise CLIError('--out writes the offline solve-time CDF; it cannot go with --live')
+    if args.live and args.repeat != 1:
+        raise CLIError('--repeat applies to the offline bench; --live measures one run')
     if args.live:
         try:
             from erva_ros.session.benchmark import run_live_bench
@@ -132,7 +145,8 @@ def _main(args) -> int:
     compile_first(COMMAND, params, settings, enabled=not args.json)   # before timing
     seeds = args.seeds if args.seeds is not None else [args.seed]
     samples = {}
-    results = [bench_seed(args, params, settings, seed, samples) for seed in seeds]
+    results = [dict(bench_seed(args, params, settings, seed, samples), repeat=r)
+               for r in range(args.repeat) for seed in seeds]
     if out:
         _write_cdf(out, settings, seeds, samples, results)
     if len(results) > 1:
@@ -146,7 +160,8 @@ def _main(args) -> int:
               f'paper road, alpha = ({settings.alpha1:g}, {settings.alpha2:g}), '
               f'{result["cost"]} cost')
         print(f'  solve time   p50 {sm["p50"]:.3f} ms, p99 {sm["p99"]:.3f} ms, '
-              f'max {sm["max"]:.3f} ms; late {result["late"]}')
+              f'max {sm["max"]:.3f} ms over {result["samples"]} samples; late '
+              f'{result["late"]}')
         line = f'  closed-loop cost {result["closed_loop_cost"]:.6g}'
         if 'reference' in result:
             line += (f' vs IPOPT {result["reference"]["closed_loop_cost"]:.6g} '
@@ -160,19 +175,27 @@ def _main(args) -> int:
         print(f'  SQP iterations per sample: mean {result["iterations_mean"]:.2f} '
               f'(max_iter {result["max_iter"]})')
         print(f'  real-time factor {result["realtime_factor"]:.1f}x')
+        print(f'  {_load_line([result])}')
         for f in result.get('files', []):
             print(f'wrote {f}')
     return 0
 
 
+def _load_line(results) -> str:
+    """Return the load average line of one or more runs."""
+    ones = [v for r in results for v in (r['load_avg']['start'][0], r['load_avg']['end'][0])]
+    return (f'load average (1 min) {min(ones):.2f}-{max(ones):.2f} on '
+            f'{results[0]["load_avg"]["cpus"]} CPUs (figures depend on it)')
+
+
 def _write_cdf(out, settings, seeds, samples, results) -> None:
     """Write the solve-time CDF of every seed's runs against the budget (``--out``)."""
-    import os
     from erva_ros.core.plots import solve_time_cdf_figure
+    runs = f' x {len(results) // len(seeds)} repetitions' if len(results) > len(seeds) else ''
     path = solve_time_cdf_figure(
         {label: np.concatenate(v) for label, v in samples.items()},
         settings.time_budget_s * 1e3, os.path.join(out, 'solve_time_cdf.png'),
-        f'{settings.controller}, {results[0]["samples"]} samples x {len(seeds)} seed(s), '
+        f'{settings.controller}, {results[0]["samples"]} samples x {len(seeds)} seed(s){runs}, '
         f'paper road; {platform.machine()}, load {os.getloadavg()[0]:.1f}',
         period_ms=settings.ts * 1e3)
     for r in results:
@@ -205,7 +228,9 @@ def bench_seed(args, params, settings, seed: int, samples=None) -> dict:
             samples.setdefault(f'{name} / {s.solver}', []).append(r.solve_time_s * 1e3)
         return ctrl, r
 
+    load_start = _loadavg()
     ctrl, main_run = run(settings, record=settings.solver != 'ipopt')
+    load_end = _loadavg()
     m = main_run.metrics
     cost = closed_loop_cost(main_run, settings.alpha1, settings.alpha2, cost_kind)
     result = {
@@ -222,6 +247,7 @@ def bench_seed(args, params, settings, seed: int, samples=None) -> dict:
         'power_w': m['power_w'],
         'machine': f'{platform.machine()}, {platform.python_implementation()} '
                    f'{platform.python_version()}',
+        'load_avg': {'start': load_start, 'end': load_end, 'cpus': os.cpu_count()},
     }
     if not args.no_reference and settings.solver != 'ipopt':
         problems = ctrl.recorded_problems[::args.audit_every]
@@ -256,12 +282,33 @@ def bench_seed(args, params, settings, seed: int, samples=None) -> dict:
     return result
 
 
+def _loadavg():
+    """Return the 1, 5 and 15 min load averages (None where the OS has none)."""
+    try:
+        return [round(v, 2) for v in os.getloadavg()]
+    except OSError:
+        return [None] * 3
+
+
+def _spread(results, get) -> list:
+    """Return [min, max] of a figure over the runs."""
+    values = [get(r) for r in results]
+    return [float(min(values)), float(max(values))]
+
+
 def _print_seeds(args, results) -> int:
-    """Print one line per seed (real-time vs IPOPT) and the mean; or the JSON list."""
-    subs = [r['suboptimality_pct'] for r in results if r['suboptimality_pct'] is not None]
-    summary = {'seeds': [r['seed'] for r in results],
+    """Print one line per run (seed, repetition: real-time vs IPOPT), the spread; or JSON."""
+    first = results[:len(results) // args.repeat]        # one run per seed
+    subs = [r['suboptimality_pct'] for r in first if r['suboptimality_pct'] is not None]
+    summary = {'seeds': [r['seed'] for r in first], 'repeat': args.repeat,
                'suboptimality_pct_mean': float(np.mean(subs)) if subs else None,
-               'suboptimality_pct_max': float(np.max(subs)) if subs else None}
+               'suboptimality_pct_max': float(np.max(subs)) if subs else None,
+               'solve_ms': {k: _spread(results, lambda r, k=k: r['solve_ms'][k])
+                            for k in ('p50', 'p99', 'max')},
+               'realtime_factor': _spread(results, lambda r: r['realtime_factor']),
+               'late': sum(r['late'] for r in results),
+               'load_avg_1min': _spread(results, lambda r: max(
+                   r['load_avg']['start'][0] or 0, r['load_avg']['end'][0] or 0))}
     if args.json:
         print_json({'runs': results, 'summary': summary})
         return 0
@@ -269,22 +316,30 @@ def _print_seeds(args, results) -> int:
     print(f'{r0["controller"]} / {r0["solver"]}: {r0["samples"]} samples per seed on the paper '
           f'road, alpha = ({r0["weights"][0]:g}, {r0["weights"][1]:g}), {r0["cost"]} cost')
     print('| seed | closed-loop cost | IPOPT | vs IPOPT | acc 2-norm | acc RMS cont. | '
-          'power (W) | IPOPT acc 2-norm / cont. / power | solve p50 / p99 ms | iter. |')
-    print('|---|---|---|---|---|---|---|---|---|---|')
+          'power (W) | IPOPT acc 2-norm / cont. / power | solve p50 / p99 / max ms | '
+          'RT factor | iter. |')
+    print('|---|---|---|---|---|---|---|---|---|---|---|')
     for r in results:
         ref = r.get('reference')
         sub = r['suboptimality_pct']
+        sm = r['solve_ms']
         print(f'| {r["seed"]} | {r["closed_loop_cost"]:.5g} | '
               f'{ref["closed_loop_cost"]:.5g} | {sub:+.2f} % | ' if ref else
               f'| {r["seed"]} | {r["closed_loop_cost"]:.5g} | - | - | ', end='')
         print(f'{r["acc_2norm"]:.3f} | {r["acc_rms_continuous"]:.4f} | {r["power_w"]:.3f} | '
               + (f'{ref["acc_2norm"]:.3f} / {ref["acc_rms_continuous"]:.4f} / '
                  f'{ref["power_w"]:.3f}' if ref else '-')
-              + f' | {r["solve_ms"]["p50"]:.3f} / {r["solve_ms"]["p99"]:.3f} | '
-                f'{r["iterations_mean"]:.2f} |')
+              + f' | {sm["p50"]:.3f} / {sm["p99"]:.3f} / {sm["max"]:.2f} | '
+                f'{r["realtime_factor"]:.1f}x | {r["iterations_mean"]:.2f} |')
     if subs:
         print(f'mean vs IPOPT {summary["suboptimality_pct_mean"]:+.2f} %, worst '
               f'{summary["suboptimality_pct_max"]:+.2f} % (negative = better)')
+    sp = summary['solve_ms']
+    print(f'{len(results)} runs of {r0["samples"]} samples: solve p50 {sp["p50"][0]:.3f}-'
+          f'{sp["p50"][1]:.3f} ms, p99 {sp["p99"][0]:.3f}-{sp["p99"][1]:.3f} ms, max '
+          f'{sp["max"][0]:.2f}-{sp["max"][1]:.2f} ms, real-time factor '
+          f'{summary["realtime_factor"][0]:.1f}-{summary["realtime_factor"][1]:.1f}x, '
+          f'late {summary["late"]}; {_load_line(results)}')
     for f in results[0].get('files', []):
         print(f'wrote {f}')
     return 0

@@ -109,11 +109,14 @@ def simulate_closed_loop(params: ERVAParams, controller: Controller, road: Road,
         status.append(res.status)
         if plans is not None:
             plans[k] = res.plan
+        # the road at t_{k+1} = (k + 1)·Ts, the next sample's instant as the live loop
+        # stamps it (t_k + Ts can differ from it in the last bit)
+        w_next = road.height((k + 1) * ts)
         if delay:
-            plant.step_delayed(acting, res.damping_cmd, delay, w_k, road.height(t_k + ts))
+            plant.step_delayed(acting, res.damping_cmd, delay, w_k, w_next)
             acting = res.damping_cmd
         else:
-            plant.step(res.damping_cmd, w_k, road.height(t_k + ts))
+            plant.step(res.damping_cmd, w_k, w_next)
         if progress is not None:
             progress(k + 1, n)
     wall = time.perf_counter() - wall0

@@ -31,8 +31,9 @@ import numpy as np
 
 from erva_ros.core.params import ParamError
 
-#: C compiler flags of ``codegen`` (-O2 measured no faster than -O1, and compiles 6x slower).
-CODEGEN_FLAGS = ('-O1', '-shared', '-fPIC')
+#: C compiler flags of ``codegen``.  -O3: the NMPC solver's per-interval kernels run as
+#: loops, which the optimiser speeds up (docs/nmpc.md); compiling it takes ~10 s.
+CODEGEN_FLAGS = ('-O3', '-shared', '-fPIC')
 #: Added when the compiler accepts them: this CPU's instruction set made the NMPC solve
 #: 5-8 % faster (docs/nmpc.md); without contraction to fused multiply-adds the results
 #: are bit for bit those of CODEGEN_FLAGS.  A library is then keyed to the CPU as well.
@@ -73,6 +74,18 @@ def _cpu_id() -> str:
     except OSError:
         import platform
         return platform.machine() + platform.processor()
+
+
+def library_flags(source: str):
+    """Return the compiler flags of the solver libraries that generated ``source`` calls.
+
+    CasADi's ``daqp`` QP (the NMPC's box QP) generates calls into DAQP, whose headers
+    and static library ship in the casadi wheel: compile against those.
+    """
+    if '#include <daqp/api.h>' not in source:
+        return []
+    base = os.path.dirname(ca.__file__)
+    return ['-I', os.path.join(base, 'include'), os.path.join(base, 'libdaqpstat.a')]
 
 
 def use_codegen(setting: str) -> bool:
@@ -233,7 +246,8 @@ def _compile_job(job: CompileJob, cc: str, flags) -> str:
             with open(src, 'w', encoding='utf-8') as fh:
                 fh.write(job.source)
             for attempt in (1, 2):
-                proc = subprocess.run([cc, *flags, '-o', tmp, src, '-lm'],
+                proc = subprocess.run([cc, *flags, '-o', tmp, src, *library_flags(job.source),
+                                       '-lm'],
                                       stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                       text=True, errors='replace')
                 if proc.returncode == 0:
@@ -353,6 +367,6 @@ class BufferedCall:
 
 
 __all__ = ['CODEGEN_FLAGS', 'NATIVE_FLAGS', 'codegen_flags', 'codegen_cache_dir', 'c_compiler',
-           'use_codegen', 'toolchain', 'CompileJob', 'CompileError', 'Plan', 'plan_functions',
-           'collecting',
+           'library_flags', 'use_codegen', 'toolchain', 'CompileJob', 'CompileError', 'Plan',
+           'plan_functions', 'collecting',
            'compile_functions', 'run_jobs', 'compile_for', 'BufferedCall']

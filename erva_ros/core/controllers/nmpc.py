@@ -91,8 +91,11 @@ class NMPCController(Controller):
         super().__init__(self.ocp.horizon, s.ts, s.u_min, s.u_max, params.c_e0, budget)
         self._block_start = np.cumsum((0,) + self.blocks[:-1])
         self._sprung_accel = BufferedCall(self.model.sprung_accel)
-        self._u_alt = np.full(len(self.blocks), self.c_e0 / U_SCALE)
-        self.last_prediction = None
+        # Per-sample arrays filled in place (the solve itself takes well under a ms).
+        self._p = self.ocp.params(np.zeros(self.ocp.horizon + 1),
+                                  (s.alpha1, s.alpha2), s.command_delay_s, self.c_e0)
+        self._u_alt = np.empty((len(self.blocks), N_ALTERNATIVES))
+        self._u_alt[:, 0] = self.c_e0 / U_SCALE
         #: Set to a list to keep every real-time solve (:class:`RecordedProblem`), to be
         #: judged by :meth:`reference_gap`.
         self.recorded_problems = None
@@ -163,7 +166,8 @@ class NMPCController(Controller):
         first sample's jerk term reacts to u_0 at once, so its optimum often sits at
         a bound.
         """
-        alt = np.column_stack([self._u_alt, u_guess, u_guess])
+        alt = self._u_alt
+        alt[:, 1] = alt[:, 2] = u_guess
         alt[0, 1], alt[0, 2] = self.u_max / U_SCALE, self.u_min / U_SCALE
         return alt
 
@@ -171,8 +175,11 @@ class NMPCController(Controller):
         self._pending = (x.copy(), float(preview[0]))
         w = self.road_prediction(preview)
         a_prev = self._a_prev(x, float(preview[0]))
-        p = self.ocp.params(w, (self.settings.alpha1, self.settings.alpha2),
-                            self.command_delay_s, self._acting)
+        p = self._p
+        p[:w.size] = w
+        p[w.size:w.size + 2] = self.settings.alpha1, self.settings.alpha2
+        if self.ocp.delayed:
+            p[-2:] = self.command_delay_s, self._acting / U_SCALE
         u_guess = self._guess_plan()[self._block_start] / U_SCALE
         u_alt = self._alternatives(u_guess)
         try:
@@ -183,23 +190,22 @@ class NMPCController(Controller):
         u_blocks, z = np.asarray(u_blocks).ravel(), np.asarray(z).ravel()
         cost, iterations = float(cost), int(iterations)
         if self.recorded_problems is not None and self.settings.solver == 'sqp':
-            self.recorded_problems.append(RecordedProblem(x.copy(), a_prev, u_guess, u_alt, p,
+            self.recorded_problems.append(RecordedProblem(x.copy(), a_prev, u_guess,
+                                                          u_alt.copy(), p.copy(),
                                                           u_blocks.copy(), cost))
         if not (np.all(np.isfinite(u_blocks)) and math.isfinite(cost)):
             self._warm = None
             raise SolveFailure(f'{self.settings.solver}: non-finite solution')
         plan = np.repeat(np.clip(u_blocks * U_SCALE, self.u_min, self.u_max), self.blocks)
         self._warm = plan
-        nodes = self.ocp.nodes(z)
         if self.ocp.delayed:
             # x_a(k−1) of the next solve: its previous node is this solve's first one,
             # t_k + d, where u_k starts acting.
             w_d = np.interp(self.command_delay_s, [0.0, self.ts], w[:2])
-            self._prev_sample = (nodes[0], float(plan[0]), float(w_d))
+            self._prev_sample = (self.ocp.nodes(z)[0], float(plan[0]), float(w_d))
         else:
             self._prev_sample = (x.copy(), float(plan[0]), float(preview[0]))
         self._pending = None
-        self.last_prediction = {'x_nodes': nodes, 'cost': cost, 'iterations': iterations}
         return plan, iterations
 
     def reference_gap(self, problem: RecordedProblem) -> float:
