@@ -1,7 +1,7 @@
 """Drives for the road-map tests: simulated offline, written as HIL session bags.
 
 The bags have the layout of an `erva run --ecu virtual` recording where the map reads
-it: ``/erva/ecu/measurements`` (the bridge's JointState, encoded by erva_ros.ros.cdr) and
+it: ``/erva/ecu/measurements`` (the bridge's JointState, encoded by erva_ros.core.contract) and
 ``/erva/road/height`` (PointStamped, rclpy's serialisation), stamped on the Ts grid, and
 the session record with the live parameters (road, seed, speed, ts).
 """
@@ -37,9 +37,9 @@ def drive(rt, sensor_seed, seconds=5.0, speed=20.0, odometry=OdometryError(), st
 
 def write_bag(path, run, road_seed=0, speed=20.0, drop=()):
     """Write ``run`` as a HIL session bag at ``path``; cycles in ``drop`` are left out."""
+    from erva_ros.core.contract import JointStateEncoder
     from erva_ros.ros.bag_messages import serialize
-    from erva_ros.ros.cdr import JointStateEncoder
-    from erva_ros.ros.msgs import road_height_msg
+    from ros_msgs import road_height_msg
 
     live = {'road': 'paper', 'seed': road_seed, 'speed_mps': speed, 'ts': TS, 'road_file': '',
             'road_class': 'C'}

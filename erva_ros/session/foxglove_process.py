@@ -66,7 +66,8 @@ def start_process(cfg, session, env: Dict[str, str], log: Callable[[str], None],
     :func:`check_address`), after stopping it.
     """
     host, port = fg.parse_address(cfg.foxglove)
-    argv = server_argv(host, port, cfg.namespace, record_topics(session.hil), description,
+    record = record_topics(session.hil, session.road_estimated)
+    argv = server_argv(host, port, cfg.namespace, record, description,
                        use_sim_time=not session.realtime, session_id=session.session_id)
     argv += clock_remap(cfg.namespace)
     proc = ChildProcess(PROCESS, argv, env, os.path.join(session.directory, f'{PROCESS}.log'))

@@ -31,13 +31,18 @@ RECORDER_PRIORITY_BELOW = 10
 PROCESS = 'recorder_node'
 
 
-def record_topics(hil: bool) -> List[str]:
-    """Return the topics a session records (and serves): the contract, plus the HIL topics."""
+def record_topics(hil: bool, road_estimated: bool = False) -> List[str]:
+    """Return the topics a session records (and serves): the contract, plus the HIL topics.
+
+    ``road_estimated`` (``--preview map:FILE``): also the road estimate and the alignment.
+    """
     from erva_ros.core.node_params import SCHEMAS
     out = list(SCHEMAS['recorder'].defaults()['topics'])
     if hil:
         from erva_ros.core.hil.topics import RECORD_TOPICS
         out += RECORD_TOPICS
+    if road_estimated:
+        out += [topics.ROAD_ESTIMATE, topics.ROAD_ALIGNMENT]
     return out
 
 
@@ -70,7 +75,7 @@ def start_recorder(session: Session, namespace: str, bag_parent: str, env: Dict[
     """Start recorder_node on a new bag under ``bag_parent``; its ``bag_dir`` and ``topics``."""
     from erva_ros.core.bag import session as bag_session
     bag_dir = bag_session.new_bag_dir(bag_parent, session.scenario)
-    record = record_topics(session.hil)
+    record = record_topics(session.hil, session.road_estimated)
     loop_priority = session.live['realtime_priority'] if session.realtime else 0
     argv = module_argv('erva_ros.nodes.recorder_node', *bag_session.recorder_ros_args(
         bag_dir, session_description(session), topics=record, namespace=namespace,
