@@ -91,7 +91,7 @@ def _nodes(context, paper, nmpc, live, overrides):
     actions = list(nodes.values())
     if LaunchConfiguration('autostart').perform(context).lower() in ('true', '1'):
         mode = LaunchConfiguration('mode').perform(context)
-        actions += bring_up(nodes, ACTIVATION_ORDER[mode])
+        actions += bring_up(nodes, [n for n in ACTIVATION_ORDER[mode] if n in nodes])
     return actions
 
 

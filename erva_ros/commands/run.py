@@ -1,5 +1,6 @@
 """``erva run``: the live system -- plant, road-preview and NMPC nodes over ROS 2, one scenario."""
 
+import argparse
 import os
 import shlex
 import sys
@@ -119,6 +120,14 @@ def add_arguments(parser):
                              'HIL topics are recorded and the summary adds a hil block '
                              '(bridge drops and timeouts, latencies, estimation error); '
                              'real time only')
+    parser.add_argument('--preview', metavar='map:FILE', default=None, type=_preview,
+                        help='with --ecu virtual: the vehicle\'s own road -- the estimator '
+                             'estimates the road at the tyre from the ECU\'s sensors '
+                             '(road/estimate, with odometry) and the NMPC\'s preview comes '
+                             'from the road map FILE (erva map build), aligned by profile '
+                             'matching (road/alignment); the map is checked first: it must '
+                             'be of this road, seed and speed and cover the drive (default: '
+                             'the scenario road\'s own preview; docs/road.md)')
     parser.add_argument('--foxglove', nargs='?', const=FOXGLOVE_DEFAULT, default=None,
                         metavar='[HOST:]PORT',
                         help='serve the session live to Foxglove on this address '
@@ -148,6 +157,14 @@ def add_arguments(parser):
     add_json_option(parser)
 
 
+def _preview(text: str) -> str:
+    """Parse ``map:FILE`` into FILE (argparse type)."""
+    kind, _, path = text.partition(':')
+    if kind != 'map' or not path:
+        raise argparse.ArgumentTypeError(f'{text!r}: expected map:FILE')
+    return path
+
+
 def run_config(args, record_dir=None):
     """Return the RunConfig of parsed scenario options."""
     from erva_ros.session.run_config import RunConfig
@@ -170,7 +187,8 @@ def run_config(args, record_dir=None):
                      foxglove=getattr(args, 'foxglove', None),
                      extra_readers=getattr(args, 'extra_readers', 0),
                      force=getattr(args, 'force', False),
-                     strict=getattr(args, 'strict', False))
+                     strict=getattr(args, 'strict', False),
+                     preview_map=getattr(args, 'preview', None))
 
 
 def _ecu_prefix(args) -> tuple:

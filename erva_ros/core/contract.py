@@ -85,6 +85,30 @@ class RoadHeight:
 
 
 @dataclass(frozen=True)
+class RoadEstimate:
+    """``road/estimate``: odometry distance (m), ŵ(t_k) (m) and their variances (m²).
+
+    ``var_w`` is that of ŵ relative to the body (the absolute height is not observable).
+    """
+
+    stamp_ns: int
+    distance_m: float
+    height_m: float
+    var_distance: float
+    var_w: float
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """``road/alignment``: offset δ (m) of the map position, its std (m), last correlation."""
+
+    stamp_ns: int
+    offset_m: float
+    offset_std_m: float
+    correlation: float
+
+
+@dataclass(frozen=True)
 class Preview:
     """``road/preview``: w(t_k + j·Ts), j = 0..N (m)."""
 
@@ -322,6 +346,48 @@ def encode_road_height(stamp_ns: int, distance_m: float, height_m: float) -> byt
             .doubles((float(distance_m), 0.0, float(height_m)), fixed=True).bytes())
 
 
+# -- geometry_msgs/PoseWithCovarianceStamped: road/estimate; PointStamped: road/alignment --
+def decode_road_estimate(data: bytes, strict: bool = False) -> RoadEstimate:
+    """Return a ``road/estimate``; ``strict``: finite, not absurd, variances >= 0."""
+    r = Reader(data)
+    stamp = r.header()
+    x, _, z = r.doubles(3)
+    r.doubles(4)                        # orientation
+    cov = r.doubles(36)
+    if strict:
+        check_values('pose.position.x', [x], 'distance')
+        check_values('pose.position.z', [z], 'road_height')
+        if not (math.isfinite(cov[0]) and math.isfinite(cov[14])
+                and cov[0] >= 0 and cov[14] >= 0):
+            raise MessageRejected('road/estimate: a variance is negative or not finite')
+    return RoadEstimate(stamp, x, z, cov[0], cov[14])
+
+
+def encode_road_estimate(stamp_ns: int, distance_m: float, height_m: float,
+                         var_distance: float, var_w: float) -> bytes:
+    """Return a PoseWithCovarianceStamped: position (distance, 0, ŵ), cov[0], cov[14]."""
+    cov = [0.0] * 36
+    cov[0], cov[14] = float(var_distance), float(var_w)
+    return (Writer().header(stamp_ns)
+            .doubles((float(distance_m), 0.0, float(height_m)), fixed=True)
+            .doubles((0.0, 0.0, 0.0, 1.0), fixed=True).doubles(cov, fixed=True).bytes())
+
+
+def decode_alignment(data: bytes) -> Alignment:
+    """Return a ``road/alignment`` (point.x offset, .y its std, .z correlation)."""
+    r = Reader(data)
+    stamp = r.header()
+    return Alignment(stamp, *r.doubles(3))
+
+
+def encode_alignment(stamp_ns: int, offset_m: float, offset_std_m: float,
+                     correlation: float) -> bytes:
+    """Return a geometry_msgs/PointStamped: point = (δ, σ_δ, correlation)."""
+    return (Writer().header(stamp_ns)
+            .doubles((float(offset_m), float(offset_std_m), float(correlation)), fixed=True)
+            .bytes())
+
+
 # -- trajectory_msgs/JointTrajectory -------------------------------------------------------
 def _decode_trajectory(data: bytes):
     """Return (stamp, joint_names, [(positions, time_from_start ns), ...])."""
@@ -482,6 +548,8 @@ DECODERS = {
     topics.ROAD_PREVIEW: decode_preview,
     topics.DAMPING_CMD: decode_command,
     topics.PREDICTION: decode_prediction,
+    topics.ROAD_ESTIMATE: decode_road_estimate,
+    topics.ROAD_ALIGNMENT: decode_alignment,
     hil_topics.TRUE_STATE: decode_state,
     hil_topics.ECU_MEASUREMENTS: lambda data: decode_measurements(data, strict=False),
     hil_topics.ECU_SPRUNG_ACCEL: decode_accel,
@@ -492,12 +560,14 @@ DECODERS = {
 
 
 __all__ = ['GRID_TOL_NS', 'MEASUREMENT_LIMITS', 'NS', 's_to_ns', 'state_joint_names', 'State',
-           'Accel', 'Generator', 'RoadHeight', 'Preview', 'Command', 'Status', 'Measurements',
+           'Accel', 'Generator', 'RoadHeight', 'RoadEstimate', 'Alignment', 'Preview', 'Command',
+           'Status', 'Measurements',
            'Joints', 'decode_joints', 'JointStateEncoder', 'MEASUREMENTS_ENCODER',
            'decode_state', 'encode_state', 'decode_generator', 'encode_generator',
            'decode_measurements', 'decode_accel', 'encode_accel', 'decode_road_height',
-           'encode_road_height', 'decode_preview', 'decode_command_offsets', 'encode_preview',
-           'decode_command', 'check_command_delay', 'encode_command', 'Predicted',
-           'decode_prediction', 'encode_prediction', 'decode_clock',
+           'encode_road_height', 'decode_road_estimate', 'encode_road_estimate',
+           'decode_alignment', 'encode_alignment', 'decode_preview', 'decode_command_offsets',
+           'encode_preview', 'decode_command', 'check_command_delay', 'encode_command',
+           'Predicted', 'decode_prediction', 'encode_prediction', 'decode_clock',
            'encode_clock', 'decode_diagnostics', 'encode_diagnostics', 'DECODERS', 'CdrError',
            'MessageRejected']

@@ -128,6 +128,41 @@ FOXGLOVE_SPECS: Dict[str, Any] = {
 }
 
 
+#: The vehicle's own road (config/road.yaml): the estimator's road and odometry.
+ROAD_AT_TYRE = ('truth', 'estimated')
+ROAD_ESTIMATE_SPECS: Dict[str, Any] = {
+    'road_at_tyre': Choice(ROAD_AT_TYRE, 'the road at the tyre: truth (road/height, the '
+                           'simulator\'s) or estimated (RoadEKF on the ECU\'s sensors, '
+                           'published on road/estimate with the odometry)'),
+    'road_sigma_m': Number(0.0, 10.0, 'm', 'estimated road: random-walk std of w per sample '
+                           '(1 m: no prior, the unknown-input limit)', lo_open=True),
+    'odometry_bias_m': Number(-1e4, 1e4, 'm', 'odometry: position error at the start'),
+    'odometry_scale': Number(-0.5, 0.5, '-', 'odometry: relative speed error (0.005: reads '
+                             '0.5 % fast)'),
+    'odometry_speed_noise_mps': Number(0.0, 10.0, 'm/s', 'odometry: white noise std on each '
+                                       'speed sample'),
+    'odometry_seed': Integer(0, 2 ** 31 - 1, '-', 'odometry: seed of the speed noise'),
+}
+#: The preview from a map (config/road.yaml): road_preview_node with source map.
+PREVIEW_SOURCES = ('road', 'map')
+MAP_PREVIEW_SPECS: Dict[str, Any] = {
+    'source': Choice(PREVIEW_SOURCES, 'preview source: road (the scenario\'s road, with the '
+                     'preview error model) or map (map_file at the road/estimate position, '
+                     'aligned by profile matching)'),
+    'map_file': Text('road map file (erva map build); needed with source map'),
+    'map_weighting': Choice(('none', 'variance'), 'map preview: each point as the map has it '
+                            '(none) or shrunk by its variance'),
+    'map_window_m': Number(0.0, 1000.0, 'm', 'map preview: the live road estimate is matched '
+                           'with the map over this many metres', lo_open=True),
+    'map_search_m': Number(0.0, 1000.0, 'm', 'map preview: search +- this around the odometry '
+                           'position until a match', lo_open=True),
+    'map_min_correlation': Number(-1.0, 1.0, '-', 'map preview: a match below this '
+                                  'correlation is refused (counted)'),
+    'map_speed_window_s': Number(0.0, 60.0, 's', 'map preview: the speed is the odometry\'s '
+                                 'slope over this window', lo_open=True),
+}
+
+
 #: What `erva run` judges a real-time session by (config/session.yaml ``erva_run``).
 QUALITY_SPECS: Dict[str, Any] = {
     'max_deadline_misses': Integer(0, 10**9, '-', 'deadline misses allowed (commands later '
@@ -197,11 +232,15 @@ COMMAND_LINE = Group('', 'command line')
 RECORDER = Group('session.yaml', 'recorder')
 FOXGLOVE = Group('session.yaml', 'foxglove_server')
 QUALITY = Group('session.yaml', 'erva_run')
+ROAD_ESTIMATE = Group('road.yaml', 'state_estimator_node')
+MAP_PREVIEW = Group('road.yaml', 'road_preview_node')
 _GROUP_SPECS = {ERVA: _erva_specs, LIVE: lambda _: live_specs(), CONTROLLER: _controller_specs,
                 BRIDGE: _hil('BRIDGE_SPECS'), ESTIMATOR: _hil('ESTIMATOR_SPECS'),
                 ECU_SIM: _hil('ECU_SIM_SPECS'), COMMAND_LINE: _hil('COMMAND_LINE_SPECS'),
                 RECORDER: lambda _: RECORDER_SPECS, QUALITY: lambda _: QUALITY_SPECS,
-                FOXGLOVE: lambda _: FOXGLOVE_SPECS}
+                FOXGLOVE: lambda _: FOXGLOVE_SPECS,
+                ROAD_ESTIMATE: lambda _: ROAD_ESTIMATE_SPECS,
+                MAP_PREVIEW: lambda _: MAP_PREVIEW_SPECS}
 
 
 @dataclass(frozen=True)
@@ -248,7 +287,8 @@ SCHEMAS: Dict[str, NodeSchema] = {s.node: s for s in (
     NodeSchema('road_preview_node', ((LIVE, _LOOP + (
         'road', 'road_file', 'seed', 'road_class', 'speed_mps', 'bump_height_m',
         'bump_length_m', 'bump_start_s', 'preview_steps', 'preview_noise', 'preview_snr_db',
-        'preview_delay_s', 'wait_for_subscribers', 'wait_for_reader', 'start_delay_s')),)),
+        'preview_delay_s', 'wait_for_subscribers', 'wait_for_reader', 'start_delay_s')),
+        (MAP_PREVIEW, ()))),
     NodeSchema('plant_sim_node', ((ERVA, ()), (LIVE, _LOOP + (
         'model', 'command_delay_s', 'command_timeout_s', 'lockstep_timeout_s',
         'wait_for_subscribers', 'wait_for_reader', 'start_delay_s', 'max_stamp_lead_s',
@@ -257,7 +297,8 @@ SCHEMAS: Dict[str, NodeSchema] = {s.node: s for s in (
         'model', 'command_delay_s', 'state_timeout_periods', 'publish_prediction',
         'max_stamp_lead_s', 'max_stamp_age_s')))),
     NodeSchema('ecu_bridge_node', ((ERVA, ()), (LIVE, _HIL), (BRIDGE, ()))),
-    NodeSchema('state_estimator_node', ((ERVA, ()), (LIVE, _HIL), (ESTIMATOR, ()),
+    NodeSchema('state_estimator_node', ((ERVA, ()), (LIVE, _HIL + ('speed_mps',)),
+                                        (ESTIMATOR, ()), (ROAD_ESTIMATE, ()),
                                         (COMMAND_LINE, ('stamp_on_road_grid',)))),
     NodeSchema('recorder', ((LIVE, ('session_id',)), (RECORDER, ()))),
     NodeSchema('foxglove_server', ((LIVE, ('session_id',)), (FOXGLOVE, ()))),
@@ -325,6 +366,8 @@ def argparse_kwargs(name: str, help: str = '', node: Optional[str] = None) -> Di
 
 __all__ = ['MAX_PRIORITY', 'MODES', 'TS_SPEC', 'live_specs', 'RECORDER_SPECS', 'FOXGLOVE_SPECS',
            'Group', 'ERVA', 'LIVE', 'CONTROLLER', 'BRIDGE', 'ESTIMATOR', 'ECU_SIM', 'RECORDER',
-           'FOXGLOVE', 'QUALITY', 'QUALITY_SPECS', 'NodeSchema', 'SCHEMAS', 'LOOP_NODES',
+           'FOXGLOVE', 'QUALITY', 'ROAD_ESTIMATE', 'MAP_PREVIEW', 'ROAD_ESTIMATE_SPECS',
+           'MAP_PREVIEW_SPECS', 'ROAD_AT_TYRE', 'PREVIEW_SOURCES', 'QUALITY_SPECS', 'NodeSchema',
+           'SCHEMAS', 'LOOP_NODES',
            'session_sections', 'LAUNCH_ARGUMENTS', 'launch_arguments', 'spec_of',
            'argparse_kwargs']

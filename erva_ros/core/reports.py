@@ -167,6 +167,24 @@ class RoadReport(NodeReport):
     preview_points: int = 0
     preview_error: str = ''
     rejected_clock: int = 0
+    # source map (MapPreviewCounts): what the map preview did, per sample and point
+    source: str = 'road'
+    map_file: str = ''
+    map_samples: int = 0
+    map_points: int = 0
+    map_fallback_points: int = 0        # points that got the no-preview prediction
+    map_fallback_samples: int = 0
+    map_beyond_end_points: int = 0
+    map_before_start_points: int = 0
+    map_gap_points: int = 0
+    map_unmatched_points: int = 0
+    map_alignments: int = 0
+    map_alignments_refused: int = 0
+    map_unaligned_samples: int = 0
+    map_offset_m: float = math.nan
+    map_offset_std_m: float = math.nan
+    map_correlation: float = math.nan
+    rejected_estimate: int = 0
 
 
 @dataclass
@@ -297,6 +315,10 @@ class EstimatorReport(NodeReport):
     road_waits: int = 0
     road_extrapolated: int = 0
     before_road: int = 0
+    road_at_tyre: str = 'truth'
+    road_estimates: int = 0             # road/estimate published (road_at_tyre estimated)
+    distance_m: float = math.nan        # odometry distance of the last estimate
+    road_std_m: float = math.nan        # std of ŵ relative to the body, last estimate
     nis_mean: float = math.nan
     std: Dict[str, float] = keyed('std_', float)
     latency_ms: Timing = field(default_factory=Timing)

@@ -26,11 +26,18 @@ prediction     trajectory_msgs/JointTrajectory   joints [state names, sprung_acc
                                                  (time_from_start); header.stamp = t0, as
                                                  its damping_cmd's
 road/estimate  geometry_msgs/                    the road at the tyre estimated from the ECU's
-               PoseWithCovarianceStamped         sensors (docs/road.md; not yet published):
-                                                 pose.position.x = odometry distance (m),
-                                                 .z = ŵ(t_k) (m), covariance[0] = var of x,
+               PoseWithCovarianceStamped         sensors (state_estimator_node, road_at_tyre
+                                                 estimated): pose.position.x = odometry
+                                                 distance (m), .z = ŵ(t_k) (m),
+                                                 covariance[0] = var of x (m²),
                                                  covariance[14] = var of ŵ relative to the
                                                  body (m²); stamp = t_k
+road/alignment geometry_msgs/PointStamped        the map preview's position correction
+                                                 (road_preview_node, source map): point.x =
+                                                 offset δ (m; position = odometry + δ),
+                                                 point.y = its std σ_δ (m), point.z =
+                                                 correlation of the last match (NaN: none
+                                                 yet); stamp = t_k of the preview
 /diagnostics   diagnostic_msgs/DiagnosticArray   per-node status, counters, timings
 /clock         rosgraph_msgs/Clock               lock-step mode only
 """
@@ -46,9 +53,11 @@ ROAD_HEIGHT = 'road/height'
 ROAD_PREVIEW = 'road/preview'
 DAMPING_CMD = 'damping_cmd'
 PREDICTION = 'prediction'
-#: The road estimate (issue 26).  Not in TOPIC_TYPES until a node publishes it (the
-#: recorders and their tests take every topic there as published).
+#: The vehicle's own road (docs/road.md): published only by a session that estimates the
+#: road (``--preview map:FILE``), so in MAP_TOPIC_TYPES, not TOPIC_TYPES (the recorders
+#: and their tests take every topic there as published).
 ROAD_ESTIMATE = 'road/estimate'
+ROAD_ALIGNMENT = 'road/alignment'
 ROAD_ESTIMATE_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 DIAGNOSTICS = '/diagnostics'
 CLOCK = '/clock'
@@ -80,14 +89,20 @@ TOPIC_TYPES = {
     DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray',
     CLOCK: 'rosgraph_msgs/msg/Clock',
 }
+#: The topics of a session with the vehicle's own road and a map preview.
+MAP_TOPIC_TYPES = {
+    f'{NAMESPACE}/{ROAD_ESTIMATE}': ROAD_ESTIMATE_TYPE,
+    f'{NAMESPACE}/{ROAD_ALIGNMENT}': 'geometry_msgs/msg/PointStamped',
+}
 
 
 def type_of(name: str, namespace: str = NAMESPACE):
     """Return the ROS type name of a contract topic (relative or absolute name), or None."""
     from erva_ros.core.hil.topics import TOPIC_TYPES as HIL_TYPES
     full = name if name.startswith('/') else f'{NAMESPACE}/{name}'
-    if not name.startswith('/') or full in TOPIC_TYPES or full in HIL_TYPES:
-        return TOPIC_TYPES.get(full) or HIL_TYPES.get(full)
+    if not name.startswith('/') or full in TOPIC_TYPES or full in HIL_TYPES \
+            or full in MAP_TOPIC_TYPES:
+        return TOPIC_TYPES.get(full) or HIL_TYPES.get(full) or MAP_TOPIC_TYPES.get(full)
     # An absolute name in another namespace: the contract's type of the same relative name.
     prefix = namespace.rstrip('/') + '/'
     if name.startswith(prefix):

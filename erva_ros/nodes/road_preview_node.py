@@ -12,11 +12,17 @@ Modes: ``realtime`` -- a wall-clock timer at 1/Ts, started once both topics have
 :mod:`erva_ros.ros.time_master`) plus ``start_delay_s`` once active; it is the time
 base of the live run (deactivated, it skips the samples meanwhile, counted).
 ``lockstep`` -- one sample per ``/clock`` message from the plant.
+
+``source`` ``map`` (docs/road.md): ``road/height`` stays the simulated world's road (for
+the ECU simulator only), and the preview comes from ``map_file`` instead
+(:class:`erva_ros.core.road_loop.MapPreviewLoop`): one per ``road/estimate``, stamped as
+it, at the odometry position corrected by profile matching; ``road/alignment`` carries
+the correction.  Fallbacks (off the map, gaps, no match) are counted in the report.
 """
 
 import time
 
-from geometry_msgs.msg import PointStamped
+from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from rosgraph_msgs.msg import Clock as ClockMsg
 from trajectory_msgs.msg import JointTrajectory
 
@@ -25,6 +31,7 @@ from erva_ros.core.levels import OK
 from erva_ros.core.loop.road_source import RoadSample, RoadSource
 from erva_ros.core.loop.validation import MessageRejected
 from erva_ros.core.reports import RoadReport
+from erva_ros.core.road_loop import MapPreviewLoop
 from erva_ros.ros.loop_node import LoopNode
 from erva_ros.ros.runtime import run_node
 from erva_ros.ros.time_master import readers_ready, Settling
@@ -45,16 +52,21 @@ class RoadPreviewNode(LoopNode):
         if self.p['mode'] == 'lockstep':
             # Subscribed before the publishers exist: the plant waits for them to appear.
             self.subscribe(ClockMsg, topics.CLOCK, self._on_clock)
+        self.map = MapPreviewLoop(self.p, self.report) if self.p['source'] == 'map' else None
         self.pub_preview = self.publisher(JointTrajectory, topics.ROAD_PREVIEW)
         self.pub_height = self.publisher(PointStamped, topics.ROAD_HEIGHT)
+        if self.map is not None:
+            self.pub_alignment = self.publisher(PointStamped, topics.ROAD_ALIGNMENT)
+            self.subscribe(PoseWithCovarianceStamped, topics.ROAD_ESTIMATE, self._on_estimate)
         self.status_timer(2 * self.source.ts)
         if self.p['mode'] == 'realtime':
             self._start_timer = self.timer(0.01, self._on_start_timer, clock=self.steady)
         model = self.source.error_model
         self.get_logger().info(
             f'road {self.source.road.name}, {self.source.n_samples} samples of '
-            f'{self.source.ts:g} s, preview {self.p["preview_steps"]} steps, error model '
-            f'{"perfect" if model.is_perfect else model}')
+            f'{self.source.ts:g} s, preview {self.p["preview_steps"]} steps from '
+            + (f'the map {self.p["map_file"]}' if self.map else
+               f'the road, error model {"perfect" if model.is_perfect else model}'))
 
     def activate(self) -> None:
         if self.p['mode'] == 'lockstep':
@@ -65,8 +77,9 @@ class RoadPreviewNode(LoopNode):
     def _publish(self, s: RoadSample) -> None:
         self.pub_height.publish(contract.encode_road_height(s.stamp_ns, s.distance_m,
                                                             s.height_m))
-        self.pub_preview.publish(contract.encode_preview(s.stamp_ns, s.preview,
-                                                         self.source.ts_ns))
+        if self.map is None:
+            self.pub_preview.publish(contract.encode_preview(s.stamp_ns, s.preview,
+                                                             self.source.ts_ns))
         if self.source.finished:
             self._finish()
         self.status.after_sample()
@@ -76,6 +89,19 @@ class RoadPreviewNode(LoopNode):
             self._sample_timer.cancel()
         self._finished = True
         self.status.set(OK, f'finished: {self.report.samples_published} samples published')
+
+    def _on_estimate(self, data: bytes, rx_ns: int) -> None:
+        try:
+            est = contract.decode_road_estimate(data, strict=True)
+            res = self.map.on_estimate(est)
+        except MessageRejected as exc:
+            self.reject(topics.ROAD_ESTIMATE, str(exc))
+            self.report.rejected_estimate = self.rejected(topics.ROAD_ESTIMATE)
+            return
+        self.pub_preview.publish(contract.encode_preview(est.stamp_ns, res.heights,
+                                                         self.source.ts_ns))
+        self.pub_alignment.publish(contract.encode_alignment(
+            est.stamp_ns, res.offset_m, res.offset_std_m, res.correlation))
 
     # -- realtime ----------------------------------------------------------------------
     def _on_start_timer(self) -> None:

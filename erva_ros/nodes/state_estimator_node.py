@@ -2,27 +2,24 @@
 
 A thin adapter around :class:`erva_ros.core.loop.estimator_loop.EstimatorLoop` (an EKF on
 the shared model, paper eq. (11)): one ``ecu/measurements`` message per ECU cycle from
-ecu_bridge_node, plus ``road/height`` (the road at the tyre, buffered and interpolated),
-give one estimate on ``state``, stamped with the cycle's instant (on the road's grid with
-``stamp_on_road_grid``, which `erva run --ecu virtual` sets).  A malformed message, an
-absurd value or a NaN that is not a whole frame's is rejected and counted
-(:func:`erva_ros.core.contract.decode_measurements`), never reaching the filter.
+ecu_bridge_node and, with ``road_at_tyre`` ``truth``, ``road/height`` (buffered,
+interpolated) give one estimate on ``state`` stamped with the cycle's instant (on the
+road's grid with ``stamp_on_road_grid``).  With ``estimated`` (docs/road.md) no road is
+read: the RoadEKF estimates it (:mod:`erva_ros.core.road_loop`), each cycle stamped on the
+grid of the first, and ``road/estimate`` carries ŵ(t_k) and the odometry distance.
+A malformed or absurd message is rejected and counted, never reaching the filter.
 
-``ecu/measurements`` is on the loop's critical path: it is taken by its own thread
-straight from its wait set (:class:`~erva_ros.ros.rt_subscription.RealtimeSubscription`,
-subscriber node ``state_estimator_node_rt``), and 4 ms before the next cycle is due that
-thread runs the cycle's computation once on scratch copies, so the real one finds the
-CPU caches warm.  The ECU samples and sends at t_k as the road node publishes w(t_k),
-which the prediction needs: a cycle whose road sample is not there yet waits for it up
-to Ts/4 (``road_waits``; ``road_extrapolated`` if in vain); before the first road sample
-there is no grid, and such a cycle is not published if the wait is in vain
-(``before_road``).
+``ecu/measurements`` is taken by its own thread straight from its wait set
+(:class:`~erva_ros.ros.rt_subscription.RealtimeSubscription`), which 4 ms before the next
+cycle runs the cycle's computation on scratch copies (warm caches).  On the road grid a
+cycle whose road sample is not there yet waits for it up to Ts/4 (``road_waits``).
+A managed node (:class:`~erva_ros.ros.loop_node.LoopNode`): configure builds the filter.
 """
 
 import threading
 import time
 
-from geometry_msgs.msg import PointStamped
+from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from sensor_msgs.msg import JointState
 
 from erva_ros.core import contract, topics
@@ -33,6 +30,7 @@ from erva_ros.core.levels import OK, WARN
 from erva_ros.core.loop.estimator_loop import EstimatorLoop, ROAD_WAIT_PERIODS
 from erva_ros.core.params import ERVA_SPECS, validate_erva
 from erva_ros.core.reports import EstimatorReport
+from erva_ros.core.road_loop import road_estimator_loop
 from erva_ros.ros import qos as ros_qos
 from erva_ros.ros.loop_node import LoopNode
 from erva_ros.ros.rt_subscription import RealtimeSubscription
@@ -43,39 +41,54 @@ WARM_LEAD_S = 0.004
 
 
 class StateEstimatorNode(LoopNode):
-    """Estimate the quarter car's state from the ECU's measurements with an EKF."""
+    """Estimate the quarter car's state (and with road_at_tyre estimated the road) with an EKF."""
 
     NAME = 'state_estimator_node'
     REPORT = EstimatorReport
+    meas_sub = None
 
-    def __init__(self):
-        super().__init__(self.NAME)
+    def configure(self) -> None:
         p = self.p
         self.kind = p['model']
         params = validate_erva({k: p[k] for k in ERVA_SPECS})
-        ekf = ExtendedKalmanFilter(params, self.kind, p['ts'], noise_of(p), u_max=p['u_max'])
-        self.report.hardware_id = f'ekf:{self.kind}'
-        self.loop = EstimatorLoop(ekf, p['ts'], params.c_e0, p['max_gap_periods'],
-                                  p['stamp_on_road_grid'], self.report)
+        self.estimated = p['road_at_tyre'] == 'estimated'
+        if self.estimated:          # the road is a state: no road topic is read
+            self.loop = road_estimator_loop(params, p, noise_of(p), self.report)
+            self.pub_road = self.publisher(PoseWithCovarianceStamped, topics.ROAD_ESTIMATE)
+        else:
+            ekf = ExtendedKalmanFilter(params, self.kind, p['ts'], noise_of(p),
+                                       u_max=p['u_max'])
+            self.loop = EstimatorLoop(ekf, p['ts'], params.c_e0, p['max_gap_periods'],
+                                      p['stamp_on_road_grid'], self.report)
+            self.subscribe(PointStamped, topics.ROAD_HEIGHT, self._on_road)
+        self.report.hardware_id = f'{"road_ekf" if self.estimated else "ekf"}:{self.kind}'
         self.pub_state = self.publisher(JointState, topics.STATE)
         # The road (executor thread) and the measurements (their own thread) share the
         # filter's inputs and counters: one lock (re-entrant: a cycle may publish a status).
         self.lock = threading.RLock()
         self.road_arrived = threading.Condition(self.lock)
-        self.report.level, self.report.message = WARN, 'waiting for ECU measurements'
         self._estimating = False
         self.meas_sub = RealtimeSubscription(self, JointState, hil_topics.ECU_MEASUREMENTS,
                                              ros_qos.control_qos(), self._on_measurements,
                                              idle=self._warm, raw=True)
+        self._built.append((self._drop_meas_sub, self.meas_sub))
         self.warm_after_s = max(p['ts'] - WARM_LEAD_S, 0.5 * p['ts'])
-        self.subscribe(PointStamped, topics.ROAD_HEIGHT, self._on_road)
         self.status_timer()
         self.get_logger().info(
-            f'EKF on the {self.kind} model, Ts = {p["ts"]:g} s, {ekf.substeps} RK4 '
-            f'sub-steps (stable to c_e = {p["u_max"]:g} Ns/m), noise {noise_of(p)}')
+            f'{type(self.loop.ekf).__name__} on the {self.kind} model, road at the tyre '
+            f'{p["road_at_tyre"]}, Ts = {p["ts"]:g} s, noise {noise_of(p)}')
 
-    def started(self) -> None:
-        self.meas_sub.start()
+    def activate(self) -> None:
+        if not self.meas_sub.alive:
+            self.meas_sub.start()
+        self.status.set(WARN, 'waiting for ECU measurements')
+
+    def deactivate(self) -> None:
+        self.status.set(WARN, 'inactive: no state is published')
+
+    def _drop_meas_sub(self, sub) -> None:
+        self.meas_sub = None
+        sub.destroy()
 
     def _on_road(self, data: bytes, rx_ns: int) -> None:
         with self.lock:
@@ -89,6 +102,8 @@ class StateEstimatorNode(LoopNode):
 
     def _on_measurements(self, data: bytes, info) -> None:
         t0 = time.perf_counter()
+        if not self.active:
+            return
         with self.lock:
             try:
                 m = contract.decode_measurements(data)
@@ -108,6 +123,9 @@ class StateEstimatorNode(LoopNode):
                 self._wait_for_road(lambda: loop.road_at(stamp))
             x = loop.step(stamp, m)
             self.pub_state.publish(contract.encode_state(stamp, x, self.kind))
+            if self.estimated:
+                self.pub_road.publish(contract.encode_road_estimate(stamp,
+                                                                    *loop.road_message()))
             if not self._estimating:
                 self._estimating = True
                 self.status.set(OK, 'estimating')
@@ -136,7 +154,8 @@ class StateEstimatorNode(LoopNode):
 
     def destroy_node(self):
         try:
-            self.meas_sub.destroy()
+            if self.meas_sub is not None:
+                self.meas_sub.destroy()
         finally:
             super().destroy_node()
 

@@ -35,12 +35,17 @@ LOOP_SUBSCRIBERS = {
 }
 
 
-def hil_loop_subscribers() -> Dict[str, int]:
-    """Return LOOP_SUBSCRIBERS of the HIL loop (the ECU simulator, bridge and estimator)."""
+def hil_loop_subscribers(road_estimated: bool = False) -> Dict[str, int]:
+    """Return LOOP_SUBSCRIBERS of the HIL loop (the ECU simulator, bridge and estimator).
+
+    ``road_estimated``: the estimator reads no road; the map preview its road/estimate.
+    """
     from erva_ros.core.hil import topics as hil
+    road = {topics.ROAD_ESTIMATE: 1, topics.ROAD_ALIGNMENT: 0} if road_estimated else {}
     return {
+        **road,
         topics.STATE: 1,            # nmpc_node (from the estimator)
-        topics.ROAD_HEIGHT: 2,      # the ECU simulator and the estimator
+        topics.ROAD_HEIGHT: 1 if road_estimated else 2,   # the ECU simulator, the estimator
         topics.ROAD_PREVIEW: 1,     # nmpc_node
         topics.DAMPING_CMD: 1,      # ecu_bridge_node
         topics.SPRUNG_ACCEL: 0,     # the ECU simulator's ground truth

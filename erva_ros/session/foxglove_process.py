@@ -16,7 +16,7 @@ from erva_ros.core.topics import clock_remap
 from erva_ros.core.errors import CLIError
 from erva_ros.ros import foxglove_server as fg
 from erva_ros.session.processes import ChildProcess, node_argv, stop_processes
-from erva_ros.session.recording import record_topics
+from erva_ros.session.recording import session_topics
 
 #: The process name in `erva run`'s summary and logs.
 PROCESS = 'foxglove_server'
@@ -66,9 +66,8 @@ def start_process(cfg, session, env: Dict[str, str], log: Callable[[str], None],
     :func:`check_address`), after stopping it.
     """
     host, port = fg.parse_address(cfg.foxglove)
-    argv = server_argv(host, port, cfg.namespace, record_topics(session.hil, session.live),
-                       description, use_sim_time=not session.realtime,
-                       session_id=session.session_id)
+    argv = server_argv(host, port, cfg.namespace, session_topics(session), description,
+                       use_sim_time=not session.realtime, session_id=session.session_id)
     argv += clock_remap(cfg.namespace)
     proc = ChildProcess(PROCESS, argv, env, os.path.join(session.directory, f'{PROCESS}.log'))
     deadline = time.monotonic() + START_TIMEOUT_S

@@ -145,9 +145,21 @@ def plant(obs) -> Dict[str, Any]:
     return {**_fields(r, PLANT_COUNTERS), **_timings(r, PLANT_TIMINGS)}
 
 
+#: The map preview's counts in the summary (RoadReport, without the ``map_`` prefix).
+MAP_COUNTS = ('samples', 'points', 'fallback_points', 'fallback_samples', 'beyond_end_points',
+              'before_start_points', 'gap_points', 'unmatched_points', 'alignments',
+              'alignments_refused', 'unaligned_samples', 'offset_m', 'offset_std_m',
+              'correlation')
+
+
 def road(obs) -> Dict[str, Any]:
-    """Return the road node's samples: published, and skipped by a real-time timer behind."""
-    return _fields(obs.report('road_preview_node'), ('samples_published', 'samples_skipped'))
+    """Return the road node's samples (published, skipped), and the map preview's counts."""
+    r = obs.report('road_preview_node')
+    out = _fields(r, ('samples_published', 'samples_skipped'))
+    if r is not None and r.source == 'map':
+        out['map'] = {k: getattr(r, f'map_{k}') for k in MAP_COUNTS}
+        out['map']['file'] = r.map_file
+    return out
 
 
 def rejected(obs, plant_block: Dict[str, Any]) -> Dict[str, Optional[int]]:

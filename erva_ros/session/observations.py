@@ -177,10 +177,14 @@ class Observations:
                     topics.SPRUNG_ACCEL: count('plant_sim_node', 'steps'),
                     topics.GENERATOR: count('plant_sim_node', 'steps')}
         road = count('road_preview_node', 'samples_published')
+        road_node = self.reports.get('road_preview_node')
+        # a map preview goes out per road estimate, not per road sample
+        preview = (count('road_preview_node', 'map_samples')
+                   if getattr(road_node, 'source', '') == 'map' else road)
         nmpc = self.reports.get('nmpc_node')
         cmds = None if nmpc is None or (final_only and not nmpc.final) else (
             nmpc.commands + nmpc.safe_commands)
-        return {**loop, topics.ROAD_HEIGHT: road, topics.ROAD_PREVIEW: road,
+        return {**loop, topics.ROAD_HEIGHT: road, topics.ROAD_PREVIEW: preview,
                 topics.DAMPING_CMD: cmds}
 
     def dropped(self, published: Dict[str, Optional[int]]) -> Dict[str, Optional[int]]:

@@ -74,6 +74,12 @@ def node_argv(node: str, namespace: str, params_files: Sequence[str] = (),
     argv = module_argv(f'erva_ros.nodes.{node}', '--ros-args', '-r', f'__ns:={namespace}')
     for path in params_files:
         argv += ['--params-file', path]
+    return argv + ros_params(parameters)
+
+
+def ros_params(parameters: Optional[Mapping[str, object]]) -> List[str]:
+    """Return ``-p name:=value`` arguments (booleans written as YAML true/false)."""
+    argv: List[str] = []
     for name, value in (parameters or {}).items():
         text = ('true' if value else 'false') if isinstance(value, bool) else str(value)
         argv += ['-p', f'{name}:={text}']
@@ -228,4 +234,4 @@ def stop_processes(procs: Iterable[ChildProcess], grace_s: float = STOP_GRACE_S,
 
 
 __all__ = ['STOP_GRACE_S', 'FINISH_ON_PARENT_DEATH', 'ProcessSpec', 'child_env', 'module_argv',
-           'node_argv', 'parent_death_signal', 'ChildProcess', 'stop_processes']
+           'node_argv', 'ros_params', 'parent_death_signal', 'ChildProcess', 'stop_processes']

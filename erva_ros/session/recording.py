@@ -9,7 +9,7 @@
 import os
 import tempfile
 import time
-from typing import Any, Callable, Dict, List, Mapping, Optional
+from typing import Callable, Dict, List, Mapping, Optional
 
 from erva_ros.core import topics
 from erva_ros.core.errors import CLIError
@@ -31,20 +31,30 @@ RECORDER_PRIORITY_BELOW = 10
 PROCESS = 'recorder_node'
 
 
-def record_topics(hil: bool, live: Optional[Mapping[str, Any]] = None) -> List[str]:
+def record_topics(hil: bool, road_estimated: bool = False, prediction: bool = True
+                  ) -> List[str]:
     """Return the topics a session records (and serves): the contract, plus the HIL topics.
 
-    ``live`` (the session's live parameters): without ``publish_prediction`` nobody
-    writes ``prediction``, and the start would wait for its writer.
+    ``road_estimated`` (``--preview map:FILE``): also the road estimate and the alignment.
+    Without ``prediction`` (``publish_prediction`` false) nobody writes ``prediction``,
+    and the start would wait for its writer.
     """
     from erva_ros.core.node_params import SCHEMAS
     out = list(SCHEMAS['recorder'].defaults()['topics'])
-    if live is not None and not live.get('publish_prediction', True):
+    if not prediction:
         out.remove(topics.PREDICTION)
     if hil:
         from erva_ros.core.hil.topics import RECORD_TOPICS
         out += RECORD_TOPICS
+    if road_estimated:
+        out += [topics.ROAD_ESTIMATE, topics.ROAD_ALIGNMENT]
     return out
+
+
+def session_topics(session: Session) -> List[str]:
+    """Return the topics ``session`` records and serves (:func:`record_topics`)."""
+    return record_topics(session.hil, session.road_estimated,
+                         session.live['publish_prediction'])
 
 
 def recorder_available() -> bool:
@@ -76,7 +86,7 @@ def start_recorder(session: Session, namespace: str, bag_parent: str, env: Dict[
     """Start recorder_node on a new bag under ``bag_parent``; its ``bag_dir`` and ``topics``."""
     from erva_ros.core.bag import session as bag_session
     bag_dir = bag_session.new_bag_dir(bag_parent, session.scenario)
-    record = record_topics(session.hil, session.live)
+    record = session_topics(session)
     loop_priority = session.live['realtime_priority'] if session.realtime else 0
     argv = module_argv('erva_ros.nodes.recorder_node', *bag_session.recorder_ros_args(
         bag_dir, session_description(session), topics=record, namespace=namespace,
@@ -143,6 +153,6 @@ def record_writers(record: List[str], namespace: str, n_diagnostics: int) -> Dic
 
 
 __all__ = ['RECORDER_STALL_S', 'RECORDER_STATUS_S', 'RECORDER_PRIORITY_BELOW',
-           'PROCESS', 'record_topics', 'recorder_available',
+           'PROCESS', 'record_topics', 'session_topics', 'recorder_available',
            'check_record_dir', 'start_recorder',
            'RecorderDrain', 'record_writers']

@@ -64,6 +64,16 @@ def _actuation_lines(act: Dict[str, Any]):
     return lines
 
 
+def _map_line(m: Dict[str, Any]) -> str:
+    """Return the summary line of the map preview (docs/road.md)."""
+    return (f'  map       {m["samples"]} previews, {m["fallback_points"]} of {m["points"]} '
+            f'points no-preview (before start {m["before_start_points"]}, beyond end '
+            f'{m["beyond_end_points"]}, gap {m["gap_points"]}, unmatched '
+            f'{m["unmatched_points"]}); {m["alignments"]} alignments, '
+            f'{m["alignments_refused"]} refused, offset '
+            + ('none' if m['offset_m'] is None else f'{m["offset_m"]:+.3f} m'))
+
+
 def format_summary(s: Dict[str, Any]) -> str:
     """Return the human-readable summary of one run."""
     sc = s['scenario']
@@ -122,6 +132,8 @@ def format_summary(s: Dict[str, Any]) -> str:
             f', {gaps} gap{"" if gaps == 1 else "s"} bridged by the plant'
         lines.append(f'  road      {skipped} sample{"" if skipped == 1 else "s"} skipped '
                      f'(timer behind){bridged}')
+    if (s.get('road') or {}).get('map'):
+        lines.append(_map_line(s['road']['map']))
     lines.append(f'  messages  dropped {msg["dropped_total"]}, rejected {msg["rejected_total"]}')
     if s.get("scheduling"):     # what realtime_priority got each node (ros/realtime.py)
         kinds = sorted(set(s['scheduling'].values()))

@@ -18,7 +18,8 @@ HIL_NODES = ('nmpc_node', *HIL_PROCESSES, 'road_preview_node')
 #: Managed (lifecycle) nodes `erva run` configures, then activates in this order: the
 #: controller first, the time master (the road in real time, the plant in lock-step)
 #: last, so nothing is published before every node that takes it acts on it.
-ACTIVATION_ORDER = {'realtime': ('nmpc_node', 'plant_sim_node', 'road_preview_node'),
+ACTIVATION_ORDER = {'realtime': ('nmpc_node', 'state_estimator_node', 'plant_sim_node',
+                                 'road_preview_node'),
                     'lockstep': ('nmpc_node', 'road_preview_node', 'plant_sim_node')}
 #: The `erva run` option of a live parameter, where its name differs.
 OPTION_OF = {'duration_s': 'duration', 'preview_snr_db': 'preview_snr',
@@ -57,6 +58,8 @@ class RunConfig:
     extra_readers: int = 0                 # the user's own readers the start waits for
     force: bool = False                    # start even if another session runs here
     strict: bool = False                   # real-time warnings fail the run (exit 1)
+    preview_map: Optional[str] = None      # --preview map:FILE: the road estimated, the
+    #                                        preview from this map (needs --ecu)
 
 
 def ensure_ecu_available(ecu: str) -> None:

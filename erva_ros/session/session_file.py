@@ -71,6 +71,7 @@ class Session:
     params_file: str
     scenario: str
     ecu: str = 'none'
+    preview_map: str = ''           # the map of --preview map:FILE ('' : the road's preview)
 
     @property
     def session_id(self) -> str:
@@ -81,6 +82,11 @@ class Session:
     def hil(self) -> bool:
         """Return True for the hardware-in-the-loop loop (--ecu virtual)."""
         return self.ecu != 'none'
+
+    @property
+    def road_estimated(self) -> bool:
+        """Return True when the estimator estimates the road and the preview is the map's."""
+        return bool(self.preview_map)
 
     @property
     def realtime(self) -> bool:
@@ -136,15 +142,22 @@ def live_values(cfg: RunConfig, settings, recording: bool) -> Dict[str, Any]:
     return live
 
 
-def session_params(erva: Dict[str, float], settings, live: Dict[str, Any]) -> Dict[str, Any]:
+def session_params(erva: Dict[str, float], settings, live: Dict[str, Any],
+                   preview_map: str = '') -> Dict[str, Any]:
     """Return the session params file's content: ``/**`` shared, ``/**/<node>`` per node.
 
     Which section each value goes to comes from the nodes' schemas
-    (:func:`erva_ros.core.node_params.session_sections`).
+    (:func:`erva_ros.core.node_params.session_sections`).  With ``preview_map`` the road
+    node previews from it and the estimator estimates the road (config/road.yaml).
     """
     own = {k: v for k, v in settings.as_dict().items() if k not in ('ts', 'command_delay_s')}
     values = {**live, **erva, **own}
     doc = session_sections(values)
+    if preview_map:
+        doc['/**/road_preview_node']['ros__parameters'].update(source='map',
+                                                               map_file=preview_map)
+        doc['/**/state_estimator_node'] = {'ros__parameters': {
+            'road_at_tyre': 'estimated', 'speed_mps': live['speed_mps']}}
     if live['mode'] == 'lockstep':
         doc['/**']['ros__parameters']['use_sim_time'] = True
     return doc
@@ -163,6 +176,7 @@ def prepare_session(cfg: RunConfig, recording: bool) -> Session:
     overrides.update(cfg.settings_overrides)
     settings = load_controller_settings(cfg.nmpc_file, overrides)
     live = live_values(cfg, settings, recording)
+    preview_map = _preview_map(cfg, live)
     if cfg.session_dir is None:
         remove_stale_session_dirs()
     directory = cfg.session_dir or tempfile.mkdtemp(prefix=f'{SESSION_DIR_PREFIX}{os.getpid()}_')
@@ -171,8 +185,25 @@ def prepare_session(cfg: RunConfig, recording: bool) -> Session:
     path = os.path.join(directory, PARAMS_FILE)
     with open(path, 'w', encoding='utf-8') as fh:
         fh.write('# Effective parameters of an `erva run` session (ROS 2 params file).\n')
-        yaml.safe_dump(session_params(erva.as_dict(), settings, live), fh, sort_keys=False)
-    return Session(erva.as_dict(), settings, live, directory, path, scenario, cfg.ecu)
+        yaml.safe_dump(session_params(erva.as_dict(), settings, live, preview_map), fh,
+                       sort_keys=False)
+    return Session(erva.as_dict(), settings, live, directory, path, scenario, cfg.ecu,
+                   preview_map)
+
+
+def _preview_map(cfg: RunConfig, live: Dict[str, Any]) -> str:
+    """Return the checked map of ``--preview map:FILE`` ('' without); CLIError (one line)."""
+    if not cfg.preview_map:
+        return ''
+    if cfg.ecu == 'none':
+        raise CLIError('--preview map:FILE needs --ecu virtual (the road is estimated from '
+                       'the ECU\'s sensors)')
+    from erva_ros.core.road_loop import check_session_map
+    from erva_ros.core.roadmap import MapError
+    try:
+        return check_session_map(cfg.preview_map, live)
+    except MapError as exc:
+        raise CLIError(f'--preview map: {exc}') from None
 
 
 def session_description(session: Session) -> Dict[str, str]:
@@ -185,6 +216,7 @@ def session_description(session: Session) -> Dict[str, str]:
         controller=session.settings.controller,
         extra={'mode': session.live['mode'], 'model': session.live['model'],
                'duration_s': session.live['duration_s'], 'ecu': session.ecu,
+               'preview': f'map:{session.preview_map}' if session.preview_map else 'road',
                'params_file': session.params_file, 'session_id': session.session_id})
 
 

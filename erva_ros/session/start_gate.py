@@ -10,7 +10,7 @@ the whole loop (:meth:`StartGate.graph_ready`).
 """
 
 import time
-from typing import Callable, Dict, List, Optional, Sequence
+from typing import Callable, Dict, List, Sequence
 
 from erva_ros.core import topics
 from erva_ros.session import accounting, hil_summary
@@ -23,7 +23,7 @@ class StartGate:
 
     def __init__(self, monitor, obs, namespace: str, node_names: Sequence[str], hil: bool,
                  recording: bool, foxglove: bool, extra_readers: Sequence[Sequence[str]] = (),
-                 recorded: Optional[List[str]] = None):
+                 road_estimated: bool = False, prediction: bool = True):
         self.monitor = monitor
         self.obs = obs
         self.namespace = namespace
@@ -31,11 +31,13 @@ class StartGate:
         self.hil, self.recording = hil, recording
         #: What is still missing, for the user (the newest check).
         self.unmatched: List[str] = []
-        loop = accounting.hil_loop_subscribers() if hil else dict(accounting.LOOP_SUBSCRIBERS)
+        self.road_estimated = road_estimated
+        loop = (accounting.hil_loop_subscribers(road_estimated) if hil
+                else dict(accounting.LOOP_SUBSCRIBERS))
         # The user's readers (`--extra-readers`) count on the time master's topics: the
         # loop's own readers must still all be matched, not stood in for by one of them.
         observers = [obs.watched, *extra_readers]
-        record = record_topics(hil) if recorded is None else list(recorded)
+        record = record_topics(hil, road_estimated, prediction)
         if foxglove:
             observers.append(record)   # the server serves what is recorded
         self.record_writers: Dict[str, int] = {}
@@ -93,6 +95,8 @@ class StartGate:
         ecu = (hil_topics.ECU_DAMPING_APPLIED, hil_topics.ECU_SPRUNG_ACCEL,
                hil_topics.ECU_SUSPENSION, hil_topics.ECU_GENERATOR)
         subs = {topics.ROAD_HEIGHT: 2 + rec,      # ECU, estimator (the monitor comes last)
+                # estimated road: the ECU and the monitor; the map preview its estimate
+                **({topics.ROAD_ESTIMATE: 1 + rec} if self.road_estimated else {}),
                 topics.DAMPING_CMD: 2 + rec,      # bridge, monitor
                 topics.STATE: 2 + rec,            # nmpc, monitor
                 hil_topics.TRUE_STATE: 1 + rec,   # monitor

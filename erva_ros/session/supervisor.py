@@ -22,9 +22,9 @@ from erva_ros.session import accounting, hil_summary
 from erva_ros.core.reports import FoxgloveReport, RecorderReport
 from erva_ros.session.accounting import check_recording
 from erva_ros.session.recording import (PROCESS as RECORDER, RECORDER_PRIORITY_BELOW,
-                                        record_topics, RecorderDrain, start_recorder)
-from erva_ros.session.processes import (ChildProcess, child_env, node_argv, STOP_GRACE_S,
-                                        stop_processes)
+                                        RecorderDrain, start_recorder)
+from erva_ros.session.processes import (ChildProcess, child_env, node_argv, ros_params,
+                                        STOP_GRACE_S, stop_processes)
 from erva_ros.session.run_config import (ACTIVATION_ORDER, HIL_NODES, HIL_PROCESSES, NODES,
                                          RunConfig)
 from erva_ros.session.session_file import Session, session_description
@@ -84,7 +84,8 @@ class Supervisor:
         self.gate = StartGate(self.monitor, self.obs, cfg.namespace, self.node_names,
                               session.hil, recording, bool(cfg.foxglove),
                               [topics.time_master_topics(session.realtime)] * cfg.extra_readers,
-                              record_topics(session.hil, session.live))
+                              road_estimated=session.road_estimated,
+                              prediction=session.live['publish_prediction'])
         self.drain = RecorderDrain()
         # The managed nodes, in activation order (run_config.ACTIVATION_ORDER).
         from erva_ros.ros.lifecycle import LifecycleDriver
@@ -127,9 +128,10 @@ class Supervisor:
                 realtime_priority=live['realtime_priority'], prefix=self.cfg.ecu_prefix)}
         for name in self.node_names:
             spec = hil.get(name)
-            argv = spec.argv if spec else node_argv(
+            managed = {'autostart': False} if name in self.managed else None
+            argv = spec.argv + ros_params(managed) if spec else node_argv(
                 name, self.cfg.namespace, [self.session.params_file],
-                {'autostart': False} if name in self.managed else None)
+                managed)
             if not self.session.realtime:   # lock-step: the session's own /clock
                 argv += topics.clock_remap(self.cfg.namespace)
             self.procs[name] = ChildProcess(name, argv, spec.env if spec else env,

@@ -9,8 +9,8 @@
   corrected by matching the live road estimate with the map;
 * :mod:`~erva_ros.core.roadmap.vehicle` -- the offline vehicle loop: ECU sensors, odometry,
   estimator, preview source, NMPC, plant;
-* :mod:`~erva_ros.core.roadmap.bag_drive`, :mod:`~erva_ros.core.roadmap.cdr` -- drives from
-  recorded HIL bags (a small CDR decoder of the two message types read);
+* :mod:`~erva_ros.core.roadmap.bag_drive` -- drives from
+  recorded HIL bags (decoded by erva_ros.core.contract);
 * :mod:`~erva_ros.core.roadmap.study`   -- ``erva map-study``'s jobs.
 """
 

@@ -1,6 +1,6 @@
 """A drive from a recorded HIL session bag: the ECU's measurements and the distance travelled.
 
-Read with :mod:`erva_ros.core.bag.reader`, decoded by :mod:`erva_ros.core.roadmap.cdr`:
+Read with :mod:`erva_ros.core.bag.reader`, decoded by :mod:`erva_ros.core.contract`:
 
 * ``<ns>/ecu/measurements`` (sensor_msgs/JointState, erva_ros/core/hil/topics.py): per ECU
   cycle the damping applied and its cycle mean, z̈_s, the deflection, φ̇ and κ·i;
@@ -19,16 +19,14 @@ from typing import Dict, Mapping, Optional
 
 import numpy as np
 
-from erva_ros.core import topics as contract
+from erva_ros.core import contract, topics
 from erva_ros.core.bag import BagError
 from erva_ros.core.bag.reader import open_bag
 from erva_ros.core.hil import topics as hil_topics
 from erva_ros.core.roadmap import MapError
-from erva_ros.core.roadmap.cdr import (CdrFormatError, joint_state, point_stamped,
-                                       pose_with_covariance_stamped)
 from erva_ros.core.roadmap.drive import DriveRecord
 
-ROAD_ESTIMATE = contract.ROAD_ESTIMATE
+ROAD_ESTIMATE = topics.ROAD_ESTIMATE
 _MEAS_ROWS = ('sprung_accel', 'suspension', 'generator_speed', 'f_gen')
 
 
@@ -73,7 +71,7 @@ def _session_live(session: Dict[str, str]) -> Optional[Dict]:
 
 def _topic(bag, name: str) -> Optional[str]:
     """Return the bag's topic for contract ``name``: /erva/<name>, else the one ending so."""
-    full = f'{contract.NAMESPACE}/{name}'
+    full = f'{topics.NAMESPACE}/{name}'
     if full in bag.topics:
         return full
     ends = [t for t in bag.topics if t.endswith('/' + name)]
@@ -87,9 +85,9 @@ def read_bag_drive(path: str, ts: Optional[float] = None) -> BagDrive:
     if meas_topic is None:
         raise MapError(f'{path}: no {hil_topics.ECU_MEASUREMENTS} topic: not a HIL session '
                        f'(record one with erva run --ecu virtual)')
-    dist_topic = _topic(bag, ROAD_ESTIMATE) or _topic(bag, contract.ROAD_HEIGHT)
+    dist_topic = _topic(bag, ROAD_ESTIMATE) or _topic(bag, topics.ROAD_HEIGHT)
     if dist_topic is None:
-        raise MapError(f'{path}: neither {ROAD_ESTIMATE} nor {contract.ROAD_HEIGHT}: no '
+        raise MapError(f'{path}: neither {ROAD_ESTIMATE} nor {topics.ROAD_HEIGHT}: no '
                        'distance along the route')
     live = _session_live(bag.session)
     if ts is None:
@@ -102,21 +100,20 @@ def read_bag_drive(path: str, ts: Optional[float] = None) -> BagDrive:
         for m in bag.messages([meas_topic, dist_topic]):
             try:
                 if m.topic == meas_topic:
-                    stamp, names, pos = joint_state(m.data)
-                    if tuple(names) != hil_topics.MEASUREMENT_NAMES or len(pos) != len(names):
+                    j = contract.decode_joints(m.data)
+                    names = hil_topics.MEASUREMENT_NAMES
+                    if j.names != names or len(j.position) != len(names):
                         malformed += 1
                         continue
-                    stamps.append(stamp)
-                    rows.append(pos)
-                elif dist_topic.endswith(ROAD_ESTIMATE):
-                    stamp, p, _ = pose_with_covariance_stamped(m.data)
-                    dist_t.append(stamp)
-                    dist_s.append(p[0])
+                    stamps.append(j.stamp_ns)
+                    rows.append(j.position)
                 else:
-                    stamp, p = point_stamped(m.data)
-                    dist_t.append(stamp)
-                    dist_s.append(p[0])
-            except CdrFormatError:
+                    decode = (contract.decode_road_estimate if dist_topic.endswith(ROAD_ESTIMATE)
+                              else contract.decode_road_height)
+                    d = decode(m.data)
+                    dist_t.append(d.stamp_ns)
+                    dist_s.append(d.distance_m)
+            except contract.CdrError:
                 malformed += 1
     except BagError:
         raise
