@@ -63,7 +63,7 @@ def test_a_stall_longer_than_the_writers_history_is_reported_as_a_loss(tmp_path)
 
 @pytest.fixture
 def small_disk(tmp_path):
-    """A 256 kB tmpfs: a 4 s session's bag (~0.7 MB) fills it (root only: mount)."""
+    """Mount a 256 kB tmpfs, which a 4 s session's bag (~0.7 MB) fills (root only)."""
     disk = tmp_path / 'disk'
     disk.mkdir()
     if subprocess.run(['mount', '-t', 'tmpfs', '-o', 'size=256k', 'tmpfs', str(disk)],
