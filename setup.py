@@ -45,7 +45,7 @@ setup(
             'ros-jazzy-rosgraph-msgs',
             'ros-jazzy-builtin-interfaces',
             'ros-jazzy-ament-index-python',
-            'ros-jazzy-rosidl-parser',    # ros/cdr.py: message definitions
+            'ros-jazzy-rosidl-parser',    # ros/bag_messages.py: message definitions
             'ros-jazzy-lifecycle-msgs',   # managed nodes (ros/lifecycle.py)
         ],
         'hil': ['python-can', 'cantools'],

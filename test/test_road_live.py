@@ -5,7 +5,8 @@
   ``road/estimate`` of the same stamp (odometry distance + Ts·speed per cycle), reading no
   road topic; deactivated it stops.
 * `erva run --ecu virtual --preview map:MAP` on a map built here from a simulated drive:
-  the previews come from the map (one per road estimate, same stamps), road/estimate and
+  on the live graph no loop node reads the true road or state; the previews come from the
+  map (one per road estimate, same stamps), road/estimate and
   road/alignment are recorded (read back with the ``mcap`` reader), the summary has the
   map preview's counts.
 * A missing, corrupt, other-route or too-short map: exit 2, one line, nothing started.
@@ -27,6 +28,7 @@ from erva_ros.ros.lifecycle import LifecycleDriver
 from erva_ros.ros.qos import control_qos
 from live_harness import cleaned_up, Harness, REPO, ros_env, start_node, stop_node, TS_NS
 import road_helpers as rh
+from run_helpers import start_run, wait_connected
 from test_lifecycle import _transition
 
 SPEED = 20.0
@@ -105,18 +107,58 @@ def _run(*args):
                           timeout=600)
 
 
+#: The loop's nodes: with the map preview none of them may read the true road or state.
+LOOP_NODES = {'nmpc_node', 'state_estimator_node', 'ecu_bridge_node', 'road_preview_node',
+              'plant_sim_node'}
+
+
+def _readers(ns, names):
+    """Return {topic: names of the nodes subscribed to it} as the live graph shows them.
+
+    A node of its own (no publisher, no subscription) asks the graph until the simulated
+    ECU's reader of the true road is seen, then once more a second later.
+    """
+    import time
+    import rclpy
+    ctx = rclpy.Context()
+    rclpy.init(args=[], context=ctx)
+    node = rclpy.create_node('test_graph_watch', context=ctx)
+    try:
+        def readers():
+            return {t: {i.node_name for i in node.get_subscriptions_info_by_topic(f'{ns}/{t}')}
+                    for t in names}
+        end = time.monotonic() + 30.0
+        while 'ecu_sim' not in readers()[names[0]] and time.monotonic() < end:
+            time.sleep(0.1)
+        time.sleep(1.0)
+        return readers()
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+
+
 def test_erva_run_previews_from_the_map_and_records_the_road(road_map, tmp_path):
-    r = _run('--ecu', 'virtual', '--preview', f'map:{road_map}', '--duration', 6,
-             '--namespace', '/erva_t_road_run', '--record', tmp_path, '--json')
-    assert r.returncode == 0, r.stderr[-3000:]
-    s = json.loads(r.stdout)
+    ns = '/erva_t_road_run'
+    proc = start_run('--ecu', 'virtual', '--preview', f'map:{road_map}', '--duration', 6,
+                     '--namespace', ns, '--record', tmp_path, '--json')
+    try:
+        wait_connected(proc)
+        graph = _readers(ns, (topics.ROAD_HEIGHT, hil_topics.TRUE_STATE))
+        out, err = proc.communicate(timeout=600)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err[-3000:]
+    # The true road and state reach the simulated ECU and the session's observers only.
+    assert 'ecu_sim' in graph[topics.ROAD_HEIGHT], graph
+    assert not any(names & LOOP_NODES for names in graph.values()), graph
+    s = json.loads(out)
     m = s['road']['map']
     est = s['hil']['estimator']
     assert m['samples'] == est['updates'] > 250            # one preview per road estimate
     assert m['points'] == m['samples'] * 11
     assert m['alignments'] >= 1 and m['fallback_points'] < m['points']
     assert s['messages']['dropped_total'] == 0
-    ns = '/erva_t_road_run'
     counts, stamps = {}, {}
     with open(os.path.join(s['bag'], os.listdir(s['bag'])[0]) if os.path.isdir(s['bag'])
               else s['bag'], 'rb') as fh:
