@@ -1,7 +1,9 @@
 """ecu_bridge_node: the NMPC's damping command onto the vehicle CAN bus, the ECU's sensors back.
 
 A thin adapter around :class:`erva_ros.core.hil.bridge.BridgeCore`: ``damping_cmd`` →
-clamped, converted to a PWM duty and sent at once in an E2E-protected frame; a Ts/4
+clamped, converted to a PWM duty and sent at once in an E2E-protected frame naming its
+cycle (with the loop's ``command_delay_s`` d > 0 the ECU applies it at t_k + d, and the
+plan goes out with it; a command made for another d is refused and counted); a Ts/4
 watchdog keeps the frames at Ts, follows the plan while a command is late and sends the
 safe passive c_e0 (ERROR) after ``command_timeout_periods`` (a command already that old
 on arrival is refused as stale).  ECU frames → ``ecu/*`` topics as they arrive, and each
@@ -49,6 +51,7 @@ class EcuBridgeNode(LoopNode):
         self.params = validate_erva({k: p[k] for k in ERVA_SPECS})
         self.core = BridgeCore.from_parameters(p, self.params.c_e0)
         self.hw, ts = self.core.hw, p['ts']
+        self.delay_ns = int(round(p['command_delay_s'] * 1e9))
         name = self.report.node
         self.report.node, self.report.hardware_id = f'{name}: command', p['bus']
         self.reports = (self.report,
@@ -82,7 +85,8 @@ class EcuBridgeNode(LoopNode):
         self.get_logger().info(
             f'bus {p["bus"]}, Ts = {ts:g} s, c_e in [{lo:.0f}, {hi:.0f}] Ns/m, safe c_e0 = '
             f'{self.params.c_e0:g} Ns/m (duty {self.hw.duty_from_c_e(self.params.c_e0):.3f}), '
-            f'timeout {p["command_timeout_periods"]} periods')
+            f'timeout {p["command_timeout_periods"]} periods, commands act at t_k + d = '
+            f'{p["command_delay_s"]:g} s')
 
     def started(self) -> None:
         self._reader.start()
@@ -99,11 +103,18 @@ class EcuBridgeNode(LoopNode):
             self.report.messages_rejected += 1
             self.core.watchdog.reject()
             return
+        try:   # the ECU applies it at t_k + d: the d the OCP planned with must be ours
+            contract.check_command_delay(cmd, self.delay_ns)
+        except contract.MessageRejected as exc:
+            self.core.watchdog.reject(wrong_delay=True)
+            self.reject(topics.DAMPING_CMD, str(exc))
+            return
         rx = info['received_timestamp']
         # The stamp is the sample the command was computed for (synchronised clocks
-        # across hosts, docs/hil.md): a command delivered late is refused, not applied.
+        # across hosts, docs/hil.md): a command delivered late is refused, not applied;
+        # its cycle (CMD_CYCLE) tells the ECU when it acts.
         result = self.core.submit(cmd.plan, offsets=cmd.offsets_s,
-                                  age_s=(rx - cmd.stamp_ns) * 1e-9)
+                                  age_s=(rx - cmd.stamp_ns) * 1e-9, stamp_ns=cmd.stamp_ns)
         if result in ('sent', 'clamped'):
             done = time.time_ns()
             self.lat['ros_to_can'].add((done - rx) * 1e-9)
