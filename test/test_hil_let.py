@@ -271,3 +271,50 @@ def test_bridge_and_ecu_follow_the_plants_late_rule_cycle_by_cycle(codec):
         ecu.close()
         bridge.close()
         reader.shutdown()
+
+
+def test_the_hil_bench_prints_arrival_p999_late_commands_and_actuation_jitter():
+    from erva_ros.session.benchmark import bench_result, format_bench
+
+    def t(p50, p99, mx, n):
+        return {'p50': p50, 'p99': p99, 'max': mx, 'samples': n}
+
+    act = {'command_delay_ms': 10.0, 'late': 3, 'late_pct': 0.1,
+           'arrival_ms': t(6.1, 8.2, 11.5, 3000), 'smallest_delay_ms': 9.5,
+           'actuation_jitter_ms': t(0.05, 0.12, 0.4, 3000)}
+    summary = {'commands': {'actuation': act, 'rate_hz': 50.0},
+               'nmpc': {}, 'scenario': {'ts': TS, 'controller': 'preview', 'duration_s': 60.0},
+               'hil': {}, 'plant': {'arrival_p999_ms': 9.43, 'cmd_jitter_ms': t(1, 2, 3, 9)},
+               'metrics': {'samples': 3000}, 'messages': {'dropped_total': 0,
+                                                          'rejected_total': 0},
+               'errors': []}
+    r = bench_result(summary, busy=2)
+    text = format_bench(r)
+    assert r['actuation']['arrival_p999_ms'] == 9.43
+    assert ('sample -> command at the ECU p50 6.100  p99 8.200  p99.9 9.430  max 11.500 ms  '
+            '(3000 samples)') in text
+    assert 'late 3 (0.1 %); smallest d with 99.9 % on time: 9.5 ms' in text
+    assert 'actuation - (t_k + d)       p50 0.050  p99 0.120  max 0.400 ms  (3000' in text
+    assert '2 busy processes' in text and 'load average' in text
+
+
+def test_the_hil_bench_at_d_0_has_no_late_rule_and_no_actuation_target():
+    from erva_ros.session.benchmark import bench_result, format_bench
+
+    arrival = {'p50': 5.4, 'p99': 7.9, 'max': 12.8, 'samples': 2998}
+    act = {'command_delay_ms': 0.0, 'late': 0, 'late_pct': 0.0, 'arrival_ms': arrival,
+           'smallest_delay_ms': 10.3, 'actuation_jitter_ms': None}
+    summary = {'commands': {'actuation': act, 'rate_hz': 50.0},
+               'nmpc': {'deadline_misses': 0},
+               'scenario': {'ts': TS, 'controller': 'preview', 'duration_s': 60.0},
+               'hil': {}, 'plant': {'arrival_p999_ms': 10.27, 'cmd_jitter_ms': arrival},
+               'metrics': {'samples': 3000}, 'messages': {'dropped_total': 0,
+                                                          'rejected_total': 0},
+               'errors': []}
+    r = bench_result(summary)
+    text = format_bench(r)
+    assert r['actuation']['late'] is None
+    assert not {'late_commands_pct', 'actuation_jitter_p99_ms'} & set(r['targets'])
+    assert 'commands act at arrival (d = 0: no fixed instant, no late rule); smallest d ' \
+           'with 99.9 % on time: 10.3 ms' in text
+    assert 'p99.9 10.270' in text and 'actuation' not in text

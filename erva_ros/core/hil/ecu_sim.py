@@ -429,19 +429,22 @@ class EcuSimCore:
         self._check_inbox()
         self._latch_plan()
 
-    def actuate(self, now: Callable[[], float] = time.time) -> float:
-        """Take this cycle's actuation instant t_k + d: read what arrived; return the lateness.
+    def collect(self) -> None:
+        """Read and check the frames received so far (ahead of the actuation instant)."""
+        self._read()
+        self._check_inbox()
 
-        The software ECU's PWM update: it reads and checks the frames received by now
-        and records how late it got there, ``now() − (t_k + d)`` (s) in
-        :attr:`actuation`.  The physics applies exactly at t_k + d (on the latch grid)
-        whatever this lateness, from the frames' receive times.
+    def actuate(self, now: Callable[[], float] = time.time) -> float:
+        """Take this cycle's actuation instant t_k + d; return (and record) its lateness.
+
+        The software ECU's PWM update, called when its timer fires: ``now() − (t_k + d)``
+        (s) goes to :attr:`actuation` -- the actuation jitter.  The physics applies
+        exactly at t_k + d (on the latch grid) whatever this lateness, from the frames'
+        receive times.
         """
         at = self.act_due
         if at is None:
             return math.nan
-        self._read()
-        self._check_inbox()
         self._acted = self.k
         lag = now() - at
         self.actuation.add(lag)
@@ -539,8 +542,10 @@ class EcuSimCore:
         return ','.join(f'{k}:{mode}:{c_e:.0f}' for k, mode, c_e in self.mode_log)
 
 
-#: The last part of the wait for an actuation instant is a plain sleep: ``wait`` may be
-#: busy with a callback when the instant comes.
+#: The wait for an actuation instant: ``wait`` (which may be busy with a callback) until
+#: this long before it, then the frames are read, then a plain sleep: a software timer.
+#: (A busy wait for the last 0.2 ms had a longer tail among the loop's other real-time
+#: processes: p99 0.30-0.43 ms against 0.06-0.08 ms, two alternating 10 s runs each.)
 ACT_GUARD_S = 0.0005
 
 
@@ -583,6 +588,8 @@ def run_realtime(core: EcuSimCore, duration_s: float = 0.0,
             if delay > ACT_GUARD_S:
                 wait(delay - ACT_GUARD_S)
                 continue                         # woke (maybe early): look again
+            core.collect()
+            delay = act - time.time()
             if delay > 0:
                 time.sleep(delay)
             core.actuate()
