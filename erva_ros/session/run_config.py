@@ -16,10 +16,11 @@ NODES = ('nmpc_node', 'plant_sim_node', 'road_preview_node')
 HIL_PROCESSES = ('ecu_sim', 'ecu_bridge_node', 'state_estimator_node')
 HIL_NODES = ('nmpc_node', *HIL_PROCESSES, 'road_preview_node')
 #: Managed (lifecycle) nodes `erva run` configures, then activates in this order: the
-#: controller first, the time master (the road in real time, the plant in lock-step)
-#: last, so nothing is published before every node that takes it acts on it.
-ACTIVATION_ORDER = {'realtime': ('nmpc_node', 'state_estimator_node', 'plant_sim_node',
-                                 'road_preview_node'),
+#: controller first, then (--ecu) the estimator and the CAN bridge, the time master (the
+#: road in real time, the plant in lock-step) last, so nothing is published before every
+#: node that takes it acts on it.
+ACTIVATION_ORDER = {'realtime': ('nmpc_node', 'state_estimator_node', 'ecu_bridge_node',
+                                 'plant_sim_node', 'road_preview_node'),
                     'lockstep': ('nmpc_node', 'road_preview_node', 'plant_sim_node')}
 #: The `erva run` option of a live parameter, where its name differs.
 OPTION_OF = {'duration_s': 'duration', 'preview_snr_db': 'preview_snr',
