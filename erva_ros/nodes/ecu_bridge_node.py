@@ -47,7 +47,7 @@ class EcuBridgeNode(LoopNode):
 
     def __init__(self):
         super().__init__()
-        # A bus or DBC file that cannot be used stops the node at start-up with one
+        # A bus, DBC file or trace that cannot be used stops the node at start-up with one
         # line (as a value out of range), managed or not.
         BridgeCore.from_parameters(self.p, 0.0).close()
         # One name for its statuses in every state (the bag check looks for each name).

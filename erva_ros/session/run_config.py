@@ -56,6 +56,7 @@ class RunConfig:
     ecu: str = 'none'                      # 'virtual': the HIL loop (simulated ECU, CAN)
     foxglove: Optional[str] = None         # [HOST:]PORT: serve the session to Foxglove
     ecu_prefix: tuple = ()                 # argv prefix of the HIL processes (--ecu-prefix)
+    can_log: str = ''                      # the bridge's CAN trace, FILE.blf|.asc ('' none)
     extra_readers: int = 0                 # the user's own readers the start waits for
     force: bool = False                    # start even if another session runs here
     strict: bool = False                   # real-time warnings fail the run (exit 1)

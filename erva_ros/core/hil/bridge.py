@@ -92,7 +92,9 @@ class BridgeCore:
         self.link = BusLink(bus_factory, config.bus_retry_s, config.send_timeout_s)
         self.watchdog = CommandWatchdog(codec, hardware, config.period_s,
                                         config.command_timeout_s, self.c_e_safe,
-                                        self.link.send, config.command_delay_s)
+                                        self._send, config.command_delay_s)
+        #: Where every frame sent and read goes too (can_trace.CanTrace), if anywhere.
+        self.trace = None
         self.cycles = CycleAssembler(config.period_s)
         self.heartbeat = EcuHeartbeat(config.sensor_timeout_s)
         self._rx = E2EReceiver(codec, ECU_KINDS, config.sensor_timeout_s,
@@ -105,11 +107,15 @@ class BridgeCore:
     def from_parameters(cls, p: Mapping[str, Any], c_e0: float) -> 'BridgeCore':
         """Return the bridge of ecu_bridge_node's parameters (config/hil.yaml; ts, bus).
 
-        ParamError (one line) for a bus spec or a DBC file that cannot be used.
+        ParamError (one line) for a bus spec, a DBC file or a CAN trace path
+        (``can_log``) that cannot be used.
         """
+        from erva_ros.core.hil.can_trace import check_path
         from erva_ros.core.hil.settings import hardware_of
         from erva_ros.core.hil.transport import open_bus, parse_spec
         from erva_ros.core.params import ParamError
+        if p.get('can_log'):
+            check_path(p['can_log'])
         try:
             parse_spec(p['bus'])
             codec = EcuCodec(p['dbc_file'] or None)
@@ -147,6 +153,12 @@ class BridgeCore:
     def close(self) -> None:
         """Shut the bus down (node shutdown)."""
         self.link.close()
+
+    def _send(self, msg: can.Message) -> bool:
+        ok = self.link.send(msg)
+        if ok and self.trace is not None:
+            self.trace.sent(msg)
+        return ok
 
     # ------------------------------------------------------------ ROS → CAN
     @property
@@ -203,6 +215,8 @@ class BridgeCore:
             return None
         if msg is None:
             return None
+        if self.trace is not None:
+            self.trace.received(msg)
         now = self._clock()
         kind, status, payload = self._rx.accept(msg, now)
         if payload is None:

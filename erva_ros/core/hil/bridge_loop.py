@@ -5,7 +5,8 @@ cycles), :class:`~erva_ros.core.hil.messages.EcuMessages` and the bridge's laten
 figures.  The node hands it its publish functions and drives it: :meth:`take_command`
 for each ``damping_cmd`` (in the subscription's thread), :meth:`start` the CAN thread
 (ECU frames → messages as they arrive, the watchdog every Ts/4), :meth:`fill` before
-each status.
+each status.  With ``can_log`` every raw frame also goes to a CAN trace
+(:mod:`erva_ros.core.hil.can_trace`), finished by :meth:`close`.
 
 :attr:`BridgeLoop.active` follows the node's lifecycle state.  While it is false no
 command is taken and **nothing goes out on CAN** (no watchdog, no safe frame): the ECU
@@ -20,6 +21,7 @@ from typing import Callable, Dict, Iterable, List, Optional, Tuple
 
 from erva_ros.core import contract
 from erva_ros.core.hil.bridge import BridgeCore, EcuCycle, SensorFrame
+from erva_ros.core.hil.can_trace import CanTrace
 from erva_ros.core.hil.latency import LatencyStats
 from erva_ros.core.hil.messages import EcuMessages
 from erva_ros.core.levels import ERROR
@@ -43,6 +45,8 @@ class BridgeLoop:
                  on_change: Callable[[], None] = lambda: None):
         self.p = p
         self.core = BridgeCore.from_parameters(p, params.c_e0)
+        if p.get('can_log'):                # every raw frame, both directions
+            self.core.trace = CanTrace(p['can_log'])
         self.hw = self.core.hw
         self.delay_ns = int(round(p['command_delay_s'] * 1e9))
         self.messages = EcuMessages(self.hw, params.l)
@@ -101,6 +105,8 @@ class BridgeLoop:
         if self._thread.is_alive():
             self._thread.join(timeout=1.0)
         self.core.close()
+        if self.core.trace is not None:     # after the bus: nothing more comes
+            self.core.trace.close()
 
     def _run(self) -> None:
         """Publish each ECU frame as it arrives; run the watchdog every Ts/4."""
