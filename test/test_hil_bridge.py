@@ -159,7 +159,7 @@ def test_stale_command_sends_safe_passive_and_raises_error(codec, channel):
         frames, rx = _drain(ecu_bus, codec)
         sent = [(p.mode, round(p.c_e)) for _, _, p in frames]
         assert sent == [(CommandMode.SAFE_PASSIVE, C_E0), (CommandMode.CONTROLLED, 12000),
-                        (CommandMode.CONTROLLED, 13000), (CommandMode.SAFE_PASSIVE, C_E0),
+                        (CommandMode.PLANNED, 13000), (CommandMode.SAFE_PASSIVE, C_E0),
                         (CommandMode.SAFE_PASSIVE, C_E0), (CommandMode.CONTROLLED, 11000)]
         assert all(status.accepted for _, status, _ in frames)   # counters in sequence
         duty0 = frames[0][2].duty

@@ -484,6 +484,9 @@ def _node(name, *ros_args, timeout=60):
     ('ecu_bridge_node', 'bus:=can0', "bus 'can0': expected socketcan:IFACE"),
     ('ecu_bridge_node', 'duty_max:=1.5', "'duty_max' = 1.5 is out of range"),
     ('ecu_bridge_node', 'command_timeout_periods:=0', "'command_timeout_periods' = 0"),
+    ('ecu_bridge_node', 'can_log:=/nonexistent/bus.blf',
+     "can_log '/nonexistent/bus.blf': directory /nonexistent does not exist"),
+    ('ecu_bridge_node', 'can_log:=bus.txt', "can_log 'bus.txt': the file must end in .blf"),
     ('state_estimator_node', 'r_speed:=0.0', "'r_speed' = 0.0 is out of range"),
 ])
 def test_bad_parameters_stop_the_node_with_one_line(name, arg, message):

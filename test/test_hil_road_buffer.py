@@ -109,8 +109,11 @@ def test_known_road_height_between_and_on_the_grid():
     known.anchor(ORIGIN, 0.0)
     t10 = (ORIGIN + 10 * TS_NS) * 1e-9
     assert known.height(t10) == road.height(0.2)             # on the grid: exact
-    # (epoch seconds as floats are 0.2 us coarse: on the grid within 1e-6 of a period)
+    # Epoch seconds as floats are 0.24 us coarse, and sums of them a few ulps off: on the
+    # grid within GRID_SNAP of a period (2 us at Ts = 20 ms), the exact sample.
     assert known.height(t10 + 1e-8) == road.height(0.2)
+    assert known.height(t10 + 5e-7) == road.height(0.2)       # two ulps late
+    assert known.height(t10 - 5e-7) == road.height(0.2)
     w10, w11 = road.height(0.2), road.height(0.22)
     assert known.height(t10 + 0.005) == pytest.approx(w10 + 0.25 * (w11 - w10), abs=1e-8)
     assert known.height(t10 + 0.015) == pytest.approx(w10 + 0.75 * (w11 - w10), abs=1e-8)

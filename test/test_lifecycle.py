@@ -109,26 +109,31 @@ def test_nmpc_node_acts_only_while_active(tmp_path):
         assert stop_node(proc) == 0
 
 
-def test_erva_run_brings_nodes_up_in_order_and_a_deactivated_controller_is_replaced():
+def _run_deactivating(args, nodes):
+    """Run ``erva run ARGS``, deactivating ``nodes`` in turn; return (summary, bring-up line).
+
+    Each node is deactivated mid-run for 25 samples, then active again for 50.
+    """
     watch = SampleWatch()
-    proc = start_run('--duration', 6, '--no-record', '--json', '--controller', 'skyhook')
+    proc = start_run(*args, '--no-record', '--json')
     try:
         lines = []
         wait_connected(proc, lines=lines)
-        driver = LifecycleDriver(watch.node, ['nmpc_node'], '/erva')
+        driver = LifecycleDriver(watch.node, list(nodes), '/erva')
         watch.spin_until(driver.ready, lambda: 'no lifecycle service', proc=proc)
 
-        def transition(name):
-            driver.request('nmpc_node', name)
+        def transition(node, name):
+            driver.request(node, name)
             got = []
-            watch.spin_until(lambda: got.append(driver.result('nmpc_node')) or got[-1],
-                             lambda: f'nmpc_node did not {name}', proc=proc)
+            watch.spin_until(lambda: got.append(driver.result(node)) or got[-1],
+                             lambda: f'{node} did not {name}', proc=proc)
 
         watch.wait(50, proc=proc)
-        transition('deactivate')
-        start = watch.samples
-        watch.wait(start + 25, proc=proc)            # 0.5 s without a command
-        transition('activate')
+        for node in nodes:
+            transition(node, 'deactivate')
+            watch.wait(watch.samples + 25, proc=proc)        # 0.5 s without a command
+            transition(node, 'activate')
+            watch.wait(watch.samples + 50, proc=proc)        # 1 s of control
         out, err = proc.communicate(timeout=240)
     finally:
         watch.close()
@@ -136,11 +141,56 @@ def test_erva_run_brings_nodes_up_in_order_and_a_deactivated_controller_is_repla
             proc.kill()
     assert proc.returncode == 0, err[-2000:]
     bring_up = [line for line in lines if 'activating them in this order' in line]
-    assert len(bring_up) == 1 and 'nmpc_node, plant_sim_node, road_preview_node' in bring_up[0]
-    s = json.loads(out)
+    assert len(bring_up) == 1
+    return json.loads(out), bring_up[0]
+
+
+def test_erva_run_brings_nodes_up_in_order_and_a_deactivated_controller_is_replaced():
+    s, bring_up = _run_deactivating(('--duration', 6, '--controller', 'skyhook'),
+                                    ['nmpc_node'])
+    assert 'nmpc_node, plant_sim_node, road_preview_node' in bring_up
     plant = s['plant']
     # The plan of the last command served its horizon, then passive damping; then the
     # commands acted again.
     assert plant['u_from_plan'] >= 1 and plant['u_from_passive'] >= 10
     assert plant['u_from_command'] >= 100
     assert s['nmpc']['commands'] < s['plant']['steps']
+
+
+def _episodes(mode_changes):
+    """Return the ECU's passive episodes: the modes from each leaving CONTROLLED to the next."""
+    modes = [item.split(':')[1] for item in mode_changes.split(',') if item]
+    episodes, current = [], None
+    for mode in modes:
+        if mode == 'CONTROLLED':
+            if current:
+                episodes.append(current)
+            current = []
+        elif current is not None:
+            current.append(mode)
+    return episodes, current
+
+
+def test_erva_run_ecu_brings_the_bridge_up_and_the_ecu_goes_passive_without_commands():
+    # HIL with d = 10 ms (the ECU applies each cycle's frame at t_k + d; the bridge sends
+    # the plan ahead).  The controller deactivated: the ECU lives on the plan, then goes
+    # passive (SAFE_TIMEOUT: the plan ran out, or SAFE_REQUESTED: the bridge's safe
+    # command); the bridge deactivated: it sends nothing at all, and the ECU's own rule
+    # (the plan ran out) makes it passive.  Each time, re-activated, CONTROLLED again.
+    s, bring_up = _run_deactivating(('--ecu', 'virtual', '--duration', 10, '--controller',
+                                     'skyhook', '--command-delay', 0.01),
+                                    ['nmpc_node', 'ecu_bridge_node'])
+    assert ('nmpc_node, state_estimator_node, ecu_bridge_node, road_preview_node'
+            in bring_up)
+    ecu = s['hil']['ecu']
+    episodes, last = _episodes(ecu['mode_changes'])
+    assert len(episodes) >= 2 and last == [], ecu['mode_changes']   # controlled at the end
+    assert all(e and set(e) <= {'SAFE_TIMEOUT', 'SAFE_REQUESTED'} for e in episodes), episodes
+    # The bridge's episode (the last one): nothing came, the plan ran out first.
+    assert episodes[-1][0] == 'SAFE_TIMEOUT', episodes
+    assert ecu['command_timeouts'] >= 1 and ecu['mode_changes_unlogged'] == 0
+    assert ecu['command_timeouts'] == sum(e.count('SAFE_TIMEOUT') for e in episodes)
+    # Each cycle's damping: its command, an earlier command's plan, or passive c_e0.
+    plant = s['plant']
+    assert plant['u_from_plan'] >= 2 and plant['u_from_passive'] >= 20
+    assert plant['u_from_command'] >= 100

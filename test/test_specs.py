@@ -153,6 +153,7 @@ def test_the_tables_defaults_are_the_config_files():
     assert hs.ECU_SIM_DEFAULTS == hil['/**/ecu_sim']['ros__parameters']
     bridge = dict(hs.BRIDGE_DEFAULTS)
     assert bridge.pop('bus') == hs.COMMAND_LINE_DEFAULTS['bus']
+    assert bridge.pop('can_log') == hs.COMMAND_LINE_DEFAULTS['can_log']
     assert bridge == hil['/**/ecu_bridge_node']['ros__parameters']
     assert shipped_defaults('live.yaml') is not shipped_defaults('live.yaml')   # copies
 

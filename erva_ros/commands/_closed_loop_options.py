@@ -171,3 +171,29 @@ def preview_model_from_args(args, seed: int, ts: float):
 __all__ = ['add_settings_options', 'add_road_options', 'load_settings',
            'make_road_from_args', 'preview_model_from_args', 'weights', 'weight_list',
            'non_negative_int', 'seed_int', 'seed_list', 'PAPER_T1_S']
+
+
+def add_can_log_option(parser: argparse.ArgumentParser) -> None:
+    """Add ``--can-log FILE`` (`erva run --ecu virtual`: the bridge's CAN trace)."""
+    parser.add_argument('--can-log', metavar='FILE', default=None,
+                        help='with --ecu virtual: write every raw CAN frame of the bridge, '
+                             'both directions, to FILE.blf or FILE.asc (python-can writers; '
+                             'timestamps in epoch seconds, the clock of the bag\'s receive '
+                             'stamps); finished when the bridge stops')
+
+
+def can_log_path(args) -> str:
+    """Return --can-log as an absolute path ('' if not given); CLIError if unusable."""
+    import os
+    from erva_ros.core.hil.can_trace import check_path
+    from erva_ros.core.params import ParamError
+    path = getattr(args, 'can_log', None)
+    if path is None:
+        return ''
+    if getattr(args, 'ecu', 'none') == 'none':
+        raise CLIError('--can-log needs --ecu virtual (it traces the bridge\'s CAN bus)')
+    try:
+        check_path(path, '--can-log')
+    except ParamError as exc:
+        raise CLIError(str(exc)) from None
+    return os.path.abspath(path)

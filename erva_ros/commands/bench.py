@@ -39,7 +39,10 @@ with the converged IPOPT reference, and reports:
 in turn (seed order, then again), so the spread of the solve times over repetitions
 shows what the machine's load does to them (docs/nmpc.md's table is such a run).
 
---live measures the same in the running ROS 2 system instead (erva_ros.session).
+--live measures the same in the running ROS 2 system instead (erva_ros.session);
+--live --ecu virtual in the hardware-in-the-loop loop (simulated ECU on a CAN bus,
+bridge, estimator), where the ECU also measures when each command really acts:
+its actuation instant − (t_k + d) next to the commands' arrival (--command-delay d).
 --live --foxglove-ab N compares N alternating pairs of live runs without and with
 `erva run --foxglove` and a connected viewer (erva_ros.session.foxglove_bench)."""
 
@@ -75,6 +78,10 @@ def add_arguments(parser):
                         default=None, metavar='P',
                         help='--live only: SCHED_FIFO priority of the nodes, 0 = normal '
                              'scheduling (default: the live file, config/live.yaml)')
+    parser.add_argument('--ecu', choices=('none', 'virtual'), default='none',
+                        help='--live only: virtual = the hardware-in-the-loop loop (as `erva '
+                             'run --ecu virtual`): the simulated ECU applies the commands and '
+                             'measures its actuation jitter (default none: plant_sim_node)')
     parser.add_argument('--busy', type=int, default=0, metavar='K',
                         help='load the machine with K busy-looping processes while measuring '
                              '(e.g. one per core: what does the result owe to a quiet '
@@ -114,6 +121,9 @@ def _main(args) -> int:
         check_address('127.0.0.1:0')   # foxglove-sdk installed
         from erva_ros.session.foxglove_bench import run_foxglove_ab
         return run_foxglove_ab(args)
+    if args.ecu != 'none' and (not args.live or args.foxglove_ab is not None):
+        raise CLIError('--ecu virtual benchmarks the live HIL loop: it needs --live (and '
+                       'cannot go with --foxglove-ab)')
     if args.live and args.out:
         raise CLIError('--out writes the offline solve-time CDF; it cannot go with --live')
     if args.live and args.repeat != 1:

@@ -16,9 +16,11 @@ Plays the vehicle side of the HIL loop (erva_ros/core/hil/ecu_sim.py) with a rea
 timing: at every sample instant it samples the sensors and sends the chassis,
 generator and status frames of config/erva_ecu.dbc at once; the quarter car
 (erva_ros.core.plant.PlantSimulator) is integrated ahead, with the ERVA_CMD frames
-(E2E-checked, duty clamped to the hardware range) latched within latch_s of their
-arrival, and the passive c_e0 after command_timeout_periods without a valid
-command (the bridge's rule).
+(E2E-checked, duty clamped to the hardware range) applied at their cycle's instant
+t_k + d (the loop's command delay d, --command-delay; a frame received after it is
+late: counted, never applied), or with d = 0 latched within latch_s of their arrival;
+the passive c_e0 at once on a safe frame and after command_timeout_periods without a
+valid command (the bridge's rule).
 
 Bus (--bus): socketcan:IFACE, udp:LOCAL_PORT:PEER_PORT (loopback only, the peer is
 ecu_bridge_node with the ports swapped) or virtual:NAME (same process only, useless
@@ -75,6 +77,11 @@ def add_arguments(parser):
                         default=0, metavar='P',
                         help='SCHED_FIFO priority of the ECU loop once it runs, 0 = normal '
                              'scheduling (default; needs CAP_SYS_NICE, else a warning)')
+    parser.add_argument('--command-delay', type=live_type('command_delay_s'), default=None,
+                        metavar='S',
+                        help='command delay d: a command frame for cycle k acts at t_k + d '
+                             '(s, < Ts; 0 = at its arrival; default: the --params session '
+                             'file\'s command_delay_s, else config/live.yaml\'s)')
     parser.add_argument('--noise-free', action='store_true',
                         help='sensors without noise (the DBC quantisation remains)')
     add_json_option(parser)
@@ -136,7 +143,7 @@ def _check_args(args) -> None:
         raise CLIError(str(exc)) from None
 
 
-def _build_core(args, road):
+def _build_core(args, road, delay_s: float):
     """Return the EcuSimCore of the options (hardware and noise from the HIL file)."""
     from erva_ros.core.hil.codec import EcuCodec
     from erva_ros.core.hil.ecu_sim import EcuSimConfig, EcuSimCore, SensorNoise
@@ -156,7 +163,8 @@ def _build_core(args, road):
     try:
         cfg = EcuSimConfig(period_s=args.ts, latch_s=sim['latch_s'],
                            command_timeout_s=bridge['command_timeout_periods'] * args.ts,
-                           c_e_safe=params.c_e0, max_delta_counter=bridge['max_delta_counter'])
+                           c_e_safe=params.c_e0, max_delta_counter=bridge['max_delta_counter'],
+                           command_delay_s=delay_s)
         return EcuSimCore(params, hardware_of(bridge), EcuCodec(bridge['dbc_file'] or None),
                           lambda: open_bus(args.bus), road, cfg, noise, args.model)
     except (ValueError, FileNotFoundError) as exc:
@@ -165,18 +173,20 @@ def _build_core(args, road):
 
 def _run(args, core, ros, stop) -> list:
     """Run the ECU loop until --duration or a stop; return its samples (cycle 0 first)."""
+    from erva_ros.core.hil.codec import cycle_of
     from erva_ros.core.hil.ecu_sim import run_realtime
     samples = []
     on_cycle = samples.append if ros is None else (
         lambda s: (samples.append(s), ros.publish(core, s)))
     if ros is None:
-        print(f'erva ecu-sim: {args.bus}, Ts = {args.ts:g} s, road {args.road}',
-              file=sys.stderr, flush=True)
+        print(f'erva ecu-sim: {args.bus}, Ts = {args.ts:g} s, road {args.road}, '
+              f'd = {core.cfg.command_delay_s:g} s', file=sys.stderr, flush=True)
     should_stop = lambda: bool(stop)        # noqa: E731
     if args.road in GRID_ROADS:             # cycles on the road's grid
+        t0_ns = ros.start_time_ns(args.ts)
         run_realtime(core, args.duration, on_cycle, should_stop, wait=ros.spin_for,
-                     t0=ros.start_time(args.ts), ahead=args.road == 'session',
-                     until_road=ros.wait_road_sample)
+                     t0=t0_ns * 1e-9, cycle0=cycle_of(t0_ns, core.ts_ns),
+                     ahead=args.road == 'session', until_road=ros.wait_road_sample)
     else:
         run_realtime(core, args.duration, on_cycle, should_stop,
                      wait=None if ros is None else ros.spin_for)
@@ -213,13 +223,21 @@ def _summary(args, core, samples) -> dict:
     result['duration_s'] = n * args.ts
     result['mode_changes'] = core.mode_changes()
     t0 = core.t0 or 0.0
-    lags = {'sample_to_can': [s.sent_at - t0 - s.t for s in samples if s.sent_at is not None],
-            'sample_to_applied': [s.command_latched - t0 - s.t + args.ts for s in samples
-                                  if s.command_latched is not None]}
+    lags = {'sample_to_can': percentiles_ms([s.sent_at - t0 - s.t for s in samples
+                                             if s.sent_at is not None]),
+            'sample_to_applied': percentiles_ms([s.command_latched - t0 - s.t + args.ts
+                                                 for s in samples
+                                                 if s.command_latched is not None]),
+            # t_k -> its command frame received, and the actuation instant's lateness
+            'sample_to_command': core.arrival.summary(),
+            'actuation': core.actuation.summary()}
     # None, not NaN, where nothing was measured (no command came): valid JSON.
     result['latency_ms'] = {k: {key: (v if math.isfinite(v) else None)
-                                for key, v in percentiles_ms(lag).items()}
+                                for key, v in lag.items()}
                             for k, lag in lags.items()}
+    result['command_delay_s'] = core.cfg.command_delay_s
+    p999 = core.arrival.quantile(0.999)
+    result['arrival_p999_ms'] = p999 * 1e3 if math.isfinite(p999) else None
     return result
 
 
@@ -230,11 +248,22 @@ def _print(args, result) -> None:
     print(f'  commands applied {result["commands_applied"]}, rejected: {rejects}; '
           f'duty out of range {result["duty_out_of_range"]}, timeouts '
           f'{result["command_timeouts"]}, overruns {result["overruns"]}')
+    if result['command_delay_s'] > 0:
+        act, arr = result['latency_ms']['actuation'], result['latency_ms']['sample_to_command']
+        print(f'  commands act at t_k + d = {result["command_delay_s"] * 1e3:g} ms: late '
+              f'{result["late_commands"]}; sample -> command p50 / p99 / max '
+              f'{_ms(arr)}; actuation - (t_k + d) {_ms(act)}')
     if n > 0:
         print(f'  chassis acceleration RMS {result["acc_rms"]:.4g} m/s^2, harvested power '
               f'{result["power_w"]:.4g} W')
     if result['bus_error']:
         print(f'  bus: {result["bus_error"]}')
+
+
+def _ms(stats) -> str:
+    if not stats.get('samples'):
+        return 'n/a'
+    return f'{stats["p50"]:.3f} / {stats["p99"]:.3f} / {stats["max"]:.3f} ms'
 
 
 def _session_value(path, key: str):
@@ -255,6 +284,11 @@ def main(args) -> int:
     from erva_ros.core.hil.settings import hardware_of, load_bridge_section
 
     _check_args(args)
+    # One d for the loop: the session's (erva run), unless given here.
+    delay = (args.command_delay if args.command_delay is not None
+             else _session_value(args.params, 'command_delay_s'))
+    if not delay < args.ts:
+        raise CLIError(f'command delay d = {delay:g} s must be below Ts = {args.ts:g} s')
     use_ros = args.ros or args.road in GRID_ROADS
     known = _session_road(args.params, args.ts) if args.road == 'session' else None
     stop = []
@@ -272,7 +306,7 @@ def main(args) -> int:
                                                                'publisher_history_s'),
                             session_id=_session_value(args.params, 'session_id'))
         core = _build_core(args, _road_function(args) if ros is None or args.road not in
-                           GRID_ROADS else ros.road_height)
+                           GRID_ROADS else ros.road_height, delay)
         _realtime(args, ros)
         # Built before the wait (the plant's CasADi set-up takes longer than a period), so
         # the ECU starts on the road's first sample; the bus opens after it (no backlog).

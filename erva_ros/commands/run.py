@@ -5,7 +5,8 @@ import os
 import shlex
 import sys
 
-from erva_ros.commands._closed_loop_options import non_negative_int
+from erva_ros.commands._closed_loop_options import (add_can_log_option, can_log_path,
+                                                    non_negative_int)
 from erva_ros.commands._common import (add_json_option, add_params_option, live_type,
                                        positive_float, print_json, realtime_priority)
 from erva_ros.core import topics
@@ -140,6 +141,7 @@ def add_arguments(parser):
                              'does), e.g. "ip netns exec NS" or "taskset -c 1"; it must exec '
                              'the command (signals stop it) and see the same files; DDS '
                              'settings come from the environment (docs/hil.md)')
+    add_can_log_option(parser)
     parser.add_argument('--strict', action='store_true',
                         help='fail the run (exit 1) when it was not real time: deadline '
                              'misses, state timeouts, skipped road samples or command pauses '
@@ -184,6 +186,7 @@ def run_config(args, record_dir=None):
                      duration_s=args.duration, params_file=args.params, nmpc_file=args.nmpc,
                      live_file=args.live, record_dir=record_dir, namespace=args.namespace,
                      live_overrides=live, ecu=args.ecu, ecu_prefix=_ecu_prefix(args),
+                     can_log=can_log_path(args),
                      foxglove=getattr(args, 'foxglove', None),
                      extra_readers=getattr(args, 'extra_readers', 0),
                      force=getattr(args, 'force', False),

@@ -296,7 +296,8 @@ SCHEMAS: Dict[str, NodeSchema] = {s.node: s for s in (
     NodeSchema('nmpc_node', ((ERVA, ()), (CONTROLLER, ()), (LIVE, _LOOP + (
         'model', 'command_delay_s', 'state_timeout_periods', 'publish_prediction',
         'max_stamp_lead_s', 'max_stamp_age_s')))),
-    NodeSchema('ecu_bridge_node', ((ERVA, ()), (LIVE, _HIL), (BRIDGE, ()))),
+    NodeSchema('ecu_bridge_node', ((ERVA, ()), (LIVE, _HIL + ('command_delay_s',)),
+                                   (BRIDGE, ()))),
     NodeSchema('state_estimator_node', ((ERVA, ()), (LIVE, _HIL + ('speed_mps',)),
                                         (ESTIMATOR, ()), (ROAD_ESTIMATE, ()),
                                         (COMMAND_LINE, ('stamp_on_road_grid',)))),

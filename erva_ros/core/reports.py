@@ -337,6 +337,7 @@ class BridgeCommandReport(NodeReport):
     commands_rejected: int = 0
     commands_stale: int = 0
     commands_clamped: int = 0
+    commands_wrong_delay: int = 0     # acting at another d than the loop's (also rejected)
     command_timeouts: int = 0
     frames_sent: int = 0
     safe_frames_sent: int = 0
@@ -419,6 +420,14 @@ class EcuSimReport(NodeReport):
     cycles_skipped: int = 0
     recomputed: int = 0
     mode_changes_unlogged: int = 0
+    # Logical execution time (d > 0): each command acts at its cycle's t_k + d
+    command_delay_ms: float = 0.0
+    late_commands: int = 0            # CONTROLLED frames received after their instant
+    late_plan_frames: int = 0
+    first_late_cycle: int = -1        # the cycle k of the first late command (-1: none)
+    u_from_command: int = 0           # at each t_k + d: the cycle's command,
+    u_from_plan: int = 0              # an earlier command's plan,
+    u_from_passive: int = 0           # or passive c_e0
     mode_changes: str = ''
     harvested_j: float = 0.0
     acc_rms_continuous: float = math.nan
@@ -428,6 +437,12 @@ class EcuSimReport(NodeReport):
     rx: Dict[str, int] = keyed('rx_')
     sample_to_can_ms: Timing = field(default_factory=Timing)
     sample_to_applied_ms: Timing = field(default_factory=Timing)
+    # t_k -> its command frame received; the smallest d with 99.9 % on time; the frames'
+    # period |Δt − Ts|; the actuation instant's lateness (taken − (t_k + d))
+    command_arrival_ms: Timing = field(default_factory=Timing)
+    arrival_p999_ms: float = math.nan
+    cmd_jitter_ms: Timing = field(default_factory=Timing)
+    actuation_jitter_ms: Timing = field(default_factory=Timing)
 
 
 #: Every report type by its KIND.

@@ -11,14 +11,16 @@ process (single-threaded), subscribes ``road/height`` and publishes
   published, and ``finished: true`` when a run with a duration ends).
 
 With the road from ROS, the ECU's cycles fall on the road's sample grid (see
-:meth:`EcuSimRos.start_time`) and the ground truth is stamped with exactly those
+:meth:`EcuSimRos.start_time_ns`) and the ground truth is stamped with exactly those
 instants, as plant_sim_node stamps its samples.  With a road known ahead
 (:class:`~erva_ros.core.hil.road_buffer.KnownRoad`, the session's road) the messages only
 place the grid and are checked against it (``road_mismatches``); the ECU then never
 waits for them.  The status also reports the ECU's share of the loop's latency:
 ``sample_to_can_ms`` (sample instant t_k → its sensor frames sent) and
-``sample_to_applied_ms`` (t_k → the first command of the cycle applied), and its mode
-changes (``mode_changes``: ``cycle:MODE:c_e``).
+``sample_to_applied_ms`` (t_k → the first command of the cycle applied), its mode
+changes (``mode_changes``: ``cycle:MODE:c_e``) and, with a command delay d > 0, the
+timing model's figures: late commands, t_k → command received, the actuation instant's
+lateness (erva_ros/core/hil/ecu_sim.py).
 """
 
 import time
@@ -113,8 +115,8 @@ class EcuSimRos:
             self.executor.spin_once(timeout_sec=0.05)
         return len(self.road) > 0
 
-    def start_time(self, ts: float) -> float:
-        """Return the ECU's t0 (epoch s): the newest instant of the road's sample grid.
+    def start_time_ns(self, ts: float) -> int:
+        """Return the ECU's t0 (epoch ns): the newest instant of the road's sample grid.
 
         The road node publishes w(t_k) at t_k = t_first + k·Ts.  Cycles on the same
         grid make the state of t_k (estimated from this ECU's sensors) meet the preview
@@ -125,7 +127,7 @@ class EcuSimRos:
         now = time.time_ns()
         t0 = now - (now - self.first_road_ns) % ts_ns
         self._grid = (t0, ts_ns)
-        return t0 / NS
+        return t0
 
     def spin_for(self, seconds: float) -> None:
         """Serve ROS callbacks for ``seconds`` (the ECU loop's wait between cycles)."""
@@ -209,6 +211,12 @@ class EcuSimRos:
             r.start_lag_ms = round(self.start_lag_s * 1e3, 3)
         r.sample_to_can_ms = Timing.of(self.lag_can.summary())
         r.sample_to_applied_ms = Timing.of(self.lag_applied.summary())
+        r.command_delay_ms = core.cfg.command_delay_s * 1e3
+        r.first_late_cycle = -1 if core.first_late_cycle is None else core.first_late_cycle
+        r.command_arrival_ms = Timing.of(core.arrival.summary())
+        r.arrival_p999_ms = core.arrival.quantile(0.999) * 1e3
+        r.cmd_jitter_ms = Timing.of(core.command_period.jitter.summary())
+        r.actuation_jitter_ms = Timing.of(core.actuation.summary())
         if self.known_road is not None:
             r.road_checked = self.known_road.checked
             r.road_mismatches = self.known_road.mismatches

@@ -12,19 +12,26 @@ max and the sample count:
   sample-to-command, from the sample time t_k (the road sample's stamp), which adds
   the road -> plant message and the plant's step (ms);
 * solve time of the controller (ms), deadline misses, dropped and rejected messages;
+* the timing model: each command acts at t_k + d; its arrival where it acts (t_k ->
+  received), the late ones, the smallest d with 99.9 % on time and, in the HIL loop
+  (``--ecu virtual``: the ECU, not a plant node, applies the commands), the actuation
+  jitter the simulated ECU measures (actual instant − (t_k + d));
 
-and checks them against :data:`erva_ros.session.report.TARGETS`.  The machine is named
+and checks them against :data:`erva_ros.session.report.TARGETS` (and, in the HIL loop,
+:data:`HIL_TARGETS`).  The machine is named
 with its core count and load average, since the figures depend on what else runs.
 """
 
 import os
 import platform
 import sys
-from typing import Any, Dict, List
+from typing import Any, Dict, List, Optional
 
 from erva_ros.session.report import jsonable, TARGETS
 
 DEFAULT_DURATION_S = 60.0
+#: The HIL loop's own target: the ECU acts at t_k + d within this (p99, issue 25).
+HIL_TARGETS = {'actuation_jitter_p99_ms': 0.2}
 
 
 def _run_config(args):
@@ -38,7 +45,11 @@ def _run_config(args):
     live = {} if priority is None else {'realtime_priority': priority}
     if getattr(args, 'command_delay', None) is not None:
         live['command_delay_s'] = args.command_delay
-    return RunConfig(controller=getattr(args, 'controller', None),
+    ecu = getattr(args, 'ecu', 'none') or 'none'
+    if ecu != 'none':
+        from erva_ros.session.run_config import ensure_ecu_available
+        ensure_ecu_available(ecu)
+    return RunConfig(ecu=ecu, controller=getattr(args, 'controller', None),
                      alpha1=alpha[0] if alpha else None, alpha2=alpha[1] if alpha else None,
                      seed=getattr(args, 'seed', None), mode='realtime',
                      duration_s=getattr(args, 'duration', None) or DEFAULT_DURATION_S,
@@ -53,9 +64,20 @@ def bench_result(summary: Dict[str, Any], busy: int = 0) -> Dict[str, Any]:
     cmd = summary['commands']
     nm = summary['nmpc']
     sc = summary['scenario']
-    jitter = cmd.get('period_jitter_ms', {})
-    latency = cmd.get('state_to_command_ms', {})
-    act = cmd.get('actuation', {})
+    hil = 'hil' in summary
+    # Where the commands are used: the plant node, or in the HIL loop the ECU (period
+    # jitter of the frames it received) and the monitor (state -> command).
+    jitter = (summary['plant'].get('cmd_jitter_ms', {}) if hil
+              else cmd.get('period_jitter_ms', {}))
+    latency = (cmd.get('monitor', {}).get('state_to_command_ms', {}) if hil
+               else cmd.get('state_to_command_ms', {}))
+    # (p99.9 of the arrival: where the commands act, the plant or the ECU)
+    act = dict(cmd.get('actuation', {}),
+               arrival_p999_ms=summary['plant'].get('arrival_p999_ms'))
+    # The ECU at d = 0 applies each frame when it arrives: no instant to be late for.
+    at_arrival = hil and not (act.get('command_delay_ms') or 0) > 0
+    if at_arrival:
+        act.update(late=None, late_pct=None)
     measured = {
         'command_rate_hz': cmd.get('rate_hz'),
         'period_jitter_p99_ms': jitter.get('p99'),
@@ -76,9 +98,20 @@ def bench_result(summary: Dict[str, Any], busy: int = 0) -> Dict[str, Any]:
         'late_commands_pct': (measured['late_commands_pct'] is not None
                               and measured['late_commands_pct'] < TARGETS['late_commands_pct']),
     }
+    targets = dict(TARGETS)
+    if at_arrival:
+        del targets['late_commands_pct'], measured['late_commands_pct']
+        del met['late_commands_pct']
+    elif hil:
+        actuation_p99 = (act.get('actuation_jitter_ms') or {}).get('p99')
+        measured['actuation_jitter_p99_ms'] = actuation_p99
+        met['actuation_jitter_p99_ms'] = _le(actuation_p99,
+                                             HIL_TARGETS['actuation_jitter_p99_ms'])
+        targets.update(HIL_TARGETS)
     load = os.getloadavg() if hasattr(os, 'getloadavg') else (float('nan'),) * 3
     return {
-        'mode': 'live', 'controller': sc['controller'], 'duration_s': sc['duration_s'],
+        'mode': 'live', 'loop': 'hil' if hil else 'full state',
+        'controller': sc['controller'], 'duration_s': sc['duration_s'],
         'ts': sc['ts'], 'samples': summary['metrics'].get('samples', 0),
         'comfort': {k: summary['metrics'].get(k) for k in ('acc_2norm', 'acc_rms', 'power_w')},
         'command_rate_hz': measured['command_rate_hz'],
@@ -97,8 +130,8 @@ def bench_result(summary: Dict[str, Any], busy: int = 0) -> Dict[str, Any]:
                          for k in ('command', 'plan', 'passive')},
         'dropped_messages': measured['dropped_messages'],
         'rejected_messages': summary['messages']['rejected_total'],
-        'targets': {k: {'target': TARGETS[k], 'measured': measured[k], 'met': bool(met[k])}
-                    for k in TARGETS},
+        'targets': {k: {'target': targets[k], 'measured': measured[k], 'met': bool(met[k])}
+                    for k in targets},
         'all_targets_met': all(met.values()),
         'machine': {'cpus': os.cpu_count(), 'load_avg_1_5_15': [round(v, 2) for v in load],
                     'python': platform.python_version(), 'platform': platform.platform()},
@@ -111,32 +144,42 @@ def _le(value, limit) -> bool:
     return value is not None and value == value and value <= limit
 
 
-def _fmt(stats) -> str:
+def _fmt(stats, p999: Optional[float] = None) -> str:
     if not stats or not stats.get('samples'):
         return 'n/a'
-    return (f'p50 {stats["p50"]:.3f}  p99 {stats["p99"]:.3f}  max {stats["max"]:.3f} ms  '
+    tail = '' if p999 is None or p999 != p999 else f'  p99.9 {p999:.3f}'
+    return (f'p50 {stats["p50"]:.3f}  p99 {stats["p99"]:.3f}{tail}  max {stats["max"]:.3f} ms  '
             f'({stats["samples"]} samples)')
 
 
-def _actuation(act: Dict[str, Any]) -> List[str]:
+def _actuation(act: Dict[str, Any], where: str) -> List[str]:
     """Return the timing model's lines: d, late commands, arrival, the d they needed."""
     if not act or act.get('command_delay_ms') is None:
         return []
     need = act.get('smallest_delay_ms')
     jitter = act.get('actuation_jitter_ms')
+    pct = act.get('late_pct')
+    need = 'n/a' if need is None else f'{need:g} ms'
+    arrival = (f'    sample -> command {where:<10} '
+               + _fmt(act['arrival_ms'], act.get('arrival_p999_ms')))
+    if act['late'] is None:      # the ECU at d = 0
+        return ['  commands act at arrival (d = 0: no fixed instant, no late rule); smallest '
+                f'd with 99.9 % on time: {need}', arrival]
     return [f'  commands act at t_k + d = {act["command_delay_ms"]:g} ms: late {act["late"]} '
-            f'({act["late_pct"]:.3g} %); smallest d with 99.9 % on time: '
-            + ('n/a' if need is None else f'{need:g} ms'),
-            f'    sample -> command at the plant  {_fmt(act["arrival_ms"])}',
-            '    actuation - (t_k + d)           '
+            + ('' if pct is None else f'({pct:.3g} %)') + f'; smallest d with 99.9 % on '
+            f'time: {need}', arrival,
+            '    actuation - (t_k + d)       '
             + (_fmt(jitter) if jitter else '0 (simulated actuator: exact)')]
 
 
 def format_bench(r: Dict[str, Any]) -> str:
     """Return the human-readable benchmark report."""
     rate = r['command_rate_hz']
+    hil = r.get('loop') == 'hil'
+    where = 'at the ECU' if hil else 'at the plant'
     lines = [
-        f'erva bench --live: {r["controller"]}, {r["duration_s"]:g} s realtime at '
+        f'erva bench --live{" --ecu virtual" if hil else ""}: {r["controller"]}, '
+        f'{r["duration_s"]:g} s realtime at '
         f'Ts = {r["ts"]:g} s, {r["machine"]["cpus"]} CPUs, load average '
         f'{r["machine"]["load_avg_1_5_15"][0]:.2f}'
         + (f', {r["busy_processes"]} busy processes' if r['busy_processes'] else '')
@@ -145,13 +188,14 @@ def format_bench(r: Dict[str, Any]) -> str:
         f'{r["comfort"]["power_w"]:.4g} W' if r['comfort']['acc_2norm'] is not None else
         '  comfort                 n/a',
         f'  command rate            {rate:.3f} Hz' if rate else '  command rate            n/a',
-        f'  period jitter at plant  {_fmt(r["period_jitter_ms"])}',
+        f'  period jitter {where:<10} {_fmt(r["period_jitter_ms"])}',
         f'    as published (NMPC)   {_fmt(r["nmpc_publish_jitter_ms"])}',
         f'    at a 2nd subscriber   {_fmt(r["monitor"].get("period_jitter_ms"))}',
-        f'  state -> command        {_fmt(r["state_to_command_ms"])}',
+        f'  state -> command        {_fmt(r["state_to_command_ms"])}'
+        + (' (at the monitor)' if hil else ''),
         f'    at a 2nd subscriber   {_fmt(r["monitor"].get("state_to_command_ms"))}',
         f'  sample -> command       {_fmt(r["sample_to_command_ms"])}',
-        *_actuation(r['actuation']),
+        *_actuation(r['actuation'], where),
         f'  solve                   {_fmt(r["solve_ms"])}',
         f'  deadline misses {r["deadline_misses"]}, missed samples {r["missed_samples"]}, '
         f'dropped {r["dropped_messages"]}, rejected {r["rejected_messages"]}',
@@ -183,4 +227,4 @@ def run_live_bench(args) -> int:
     return result.exit_code
 
 
-__all__ = ['DEFAULT_DURATION_S', 'bench_result', 'format_bench', 'run_live_bench']
+__all__ = ['DEFAULT_DURATION_S', 'HIL_TARGETS', 'bench_result', 'format_bench', 'run_live_bench']

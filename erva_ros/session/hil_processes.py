@@ -28,7 +28,7 @@ def hil_process_specs(params_file: str, namespace: str = topics.NAMESPACE,
                       road: str = 'session', wait_road_s: float = 60.0,
                       stamp_on_road_grid: bool = False,
                       realtime_priority: int = DEFAULT_PRIORITY,
-                      prefix: Sequence[str] = ()) -> List[ProcessSpec]:
+                      prefix: Sequence[str] = (), can_log: str = '') -> List[ProcessSpec]:
     """Return the HIL processes for a session (see the module docstring).
 
     ``params_file`` is the session's ROS params file (physical parameters in ``/**``,
@@ -41,7 +41,8 @@ def hil_process_specs(params_file: str, namespace: str = topics.NAMESPACE,
     the ECU's road: ``session`` (the road of ``params_file``, an `erva run` session file,
     known ahead on the grid of road/height) or ``ros`` (the heights as they arrive).
     ``prefix`` is put before each argv (e.g. ``ip netns exec NS``, ``taskset -c 1``): it
-    must exec the command, so that signals reach it.
+    must exec the command, so that signals reach it.  ``can_log`` is the bridge's CAN
+    trace (FILE.blf or FILE.asc; '' none).
     ``stamp_on_road_grid`` stamps the estimates with the road's sample instants, which the
     NMPC needs to pair a state with its preview (`erva run`).  ``realtime_priority`` is
     the SCHED_FIFO priority of all three once started (0: normal scheduling).
@@ -59,7 +60,8 @@ def hil_process_specs(params_file: str, namespace: str = topics.NAMESPACE,
                       '--duration', repr(float(duration_s)), '--json',
                       '--realtime-priority', str(int(realtime_priority)))
     bridge = node_argv('ecu_bridge_node', namespace, files,
-                       {'bus': f'udp:{bridge_port}:{ecu_port}', **priority})
+                       {'bus': f'udp:{bridge_port}:{ecu_port}', **priority,
+                        **({'can_log': can_log} if can_log else {})})
     estimator = node_argv('state_estimator_node', namespace, files,
                           {**({'stamp_on_road_grid': True} if stamp_on_road_grid else {}),
                            **priority})

@@ -65,15 +65,35 @@ def published(report: Reports, final_only: bool = False) -> Dict[str, Optional[i
             topics.GENERATOR: samples, hil_topics.TRUE_STATE: samples}
 
 
-def plant_equivalents(report: Reports) -> Dict[str, Optional[int]]:
+#: The ECU's figures of the timing model under the plant's names (monitor_figures.actuation).
+TIMING_EQUIVALENTS = ('command_delay_ms', 'late_commands', 'arrival_p999_ms', 'u_from_command',
+                      'u_from_plan', 'u_from_passive')
+TIMING_STATS = ('command_arrival_ms', 'cmd_jitter_ms', 'actuation_jitter_ms')
+
+
+def plant_equivalents(report: Reports) -> Dict[str, Any]:
     """Return the plant figures that have a HIL equivalent; the others are left out.
 
-    steps = the ECU's integrated cycles; rejected_damping_cmd = malformed commands the
-    bridge refused.  The plant's per-step command / plan / passive counts have none:
-    the bridge counts frames, also before the run and after it (module doc).
+    steps = the ECU's integrated cycles; rejected_damping_cmd = commands the bridge
+    refused (malformed, or made for another command delay).  The timing model's figures
+    are the ECU's, where the commands act: its d, the late commands, t_k → command frame
+    received (and its p99.9), the frames' period jitter, and the actuation instant's
+    lateness (actual − (t_k + d), measured by the software ECU; none with d = 0, where
+    a frame acts when it arrives); with d > 0 also where each cycle's damping came from
+    (the cycle's command, an earlier plan, passive), decided at t_k + d as in the plant.
     """
-    return {'steps': _get(report(ECU), 'cycles'),
-            'rejected_damping_cmd': _get(report(BRIDGE_COMMAND), 'commands_rejected')}
+    from erva_ros.session.monitor_figures import stats
+    ecu = report(ECU)
+    out: Dict[str, Any] = {'steps': _get(ecu, 'cycles'),
+                           'rejected_damping_cmd': _get(report(BRIDGE_COMMAND),
+                                                        'commands_rejected')}
+    if ecu is not None:
+        out.update({k: getattr(ecu, k) for k in TIMING_EQUIVALENTS})
+        out.update({k: stats(getattr(ecu, k)) for k in TIMING_STATS})
+        if not ecu.command_delay_ms > 0:     # at arrival: no fixed instant, no source
+            for k in ('u_from_command', 'u_from_plan', 'u_from_passive'):
+                out[k] = None
+    return out
 
 
 def hil_block(report: Reports, estimates: Dict[int, np.ndarray],
@@ -93,7 +113,8 @@ def hil_block(report: Reports, estimates: Dict[int, np.ndarray],
     bridge['command_timeouts'] = total if end_ns is None else _timeouts_before(events, end_ns)
     bridge['command_timeouts_total'] = total
     bridge.update({k: _get(cmd, k) for k in (
-        'commands_received', 'commands_rejected', 'commands_clamped', 'plan_frames_sent')})
+        'commands_received', 'commands_rejected', 'commands_clamped', 'commands_wrong_delay',
+        'plan_frames_sent')})
     bridge['bus_errors'] = _sum(bus, ('send_errors', 'bus_losses', 'bus_open_failures'))
     bridge['reconnects'] = _get(bus, 'reconnects')
     bridge['incomplete_cycles'] = _get(link, 'incomplete_cycles')
@@ -103,7 +124,8 @@ def hil_block(report: Reports, estimates: Dict[int, np.ndarray],
                                sum(rx.get(n, 0) for n in names) for k, names in DROPS.items()}
     ecu_out.update({k: _get(ecu, k) for k in (
         'cycles', 'commands_applied', 'command_timeouts', 'duty_out_of_range', 'overruns',
-        'cycles_skipped', 'recomputed', 'mode_changes_unlogged')})
+        'cycles_skipped', 'recomputed', 'mode_changes_unlogged', 'late_commands',
+        'late_plan_frames', 'first_late_cycle')})
     ecu_out['bus_errors'] = _sum(ecu, ('send_errors', 'bus_losses'))
     ecu_out['mode'] = _get(ecu, 'ecu_mode')
     ecu_out['mode_changes'] = _get(ecu, 'mode_changes')

@@ -16,10 +16,11 @@ NODES = ('nmpc_node', 'plant_sim_node', 'road_preview_node')
 HIL_PROCESSES = ('ecu_sim', 'ecu_bridge_node', 'state_estimator_node')
 HIL_NODES = ('nmpc_node', *HIL_PROCESSES, 'road_preview_node')
 #: Managed (lifecycle) nodes `erva run` configures, then activates in this order: the
-#: controller first, the time master (the road in real time, the plant in lock-step)
-#: last, so nothing is published before every node that takes it acts on it.
-ACTIVATION_ORDER = {'realtime': ('nmpc_node', 'state_estimator_node', 'plant_sim_node',
-                                 'road_preview_node'),
+#: controller first, then (--ecu) the estimator and the CAN bridge, the time master (the
+#: road in real time, the plant in lock-step) last, so nothing is published before every
+#: node that takes it acts on it.
+ACTIVATION_ORDER = {'realtime': ('nmpc_node', 'state_estimator_node', 'ecu_bridge_node',
+                                 'plant_sim_node', 'road_preview_node'),
                     'lockstep': ('nmpc_node', 'road_preview_node', 'plant_sim_node')}
 #: The `erva run` option of a live parameter, where its name differs.
 OPTION_OF = {'duration_s': 'duration', 'preview_snr_db': 'preview_snr',
@@ -55,6 +56,7 @@ class RunConfig:
     ecu: str = 'none'                      # 'virtual': the HIL loop (simulated ECU, CAN)
     foxglove: Optional[str] = None         # [HOST:]PORT: serve the session to Foxglove
     ecu_prefix: tuple = ()                 # argv prefix of the HIL processes (--ecu-prefix)
+    can_log: str = ''                      # the bridge's CAN trace, FILE.blf|.asc ('' none)
     extra_readers: int = 0                 # the user's own readers the start waits for
     force: bool = False                    # start even if another session runs here
     strict: bool = False                   # real-time warnings fail the run (exit 1)

@@ -125,7 +125,8 @@ class Supervisor:
             hil = {spec.name: spec for spec in hil_process_specs(
                 self.session.params_file, self.cfg.namespace, live['duration_s'],
                 model=live['model'], ts=live['ts'], env=env, stamp_on_road_grid=True,
-                realtime_priority=live['realtime_priority'], prefix=self.cfg.ecu_prefix)}
+                realtime_priority=live['realtime_priority'], prefix=self.cfg.ecu_prefix,
+                can_log=self.cfg.can_log)}
         for name in self.node_names:
             spec = hil.get(name)
             managed = {'autostart': False} if name in self.managed else None

@@ -53,6 +53,7 @@ class BridgeConfig:
     bus_retry_s: float = 0.5          # s between attempts to re-open a lost bus
     max_delta_counter: int = 1        # alive-counter step accepted (1: no frame may be lost)
     send_timeout_s: float = 0.005     # s a send may block (full TX queue)
+    command_delay_s: float = 0.0      # d: the ECU applies a command for t_k at t_k + d
 
 
 class CounterView(MutableMapping):
@@ -91,7 +92,9 @@ class BridgeCore:
         self.link = BusLink(bus_factory, config.bus_retry_s, config.send_timeout_s)
         self.watchdog = CommandWatchdog(codec, hardware, config.period_s,
                                         config.command_timeout_s, self.c_e_safe,
-                                        self.link.send)
+                                        self._send, config.command_delay_s)
+        #: Where every frame sent and read goes too (can_trace.CanTrace), if anywhere.
+        self.trace = None
         self.cycles = CycleAssembler(config.period_s)
         self.heartbeat = EcuHeartbeat(config.sensor_timeout_s)
         self._rx = E2EReceiver(codec, ECU_KINDS, config.sensor_timeout_s,
@@ -104,11 +107,15 @@ class BridgeCore:
     def from_parameters(cls, p: Mapping[str, Any], c_e0: float) -> 'BridgeCore':
         """Return the bridge of ecu_bridge_node's parameters (config/hil.yaml; ts, bus).
 
-        ParamError (one line) for a bus spec or a DBC file that cannot be used.
+        ParamError (one line) for a bus spec, a DBC file or a CAN trace path
+        (``can_log``) that cannot be used.
         """
+        from erva_ros.core.hil.can_trace import check_path
         from erva_ros.core.hil.settings import hardware_of
         from erva_ros.core.hil.transport import open_bus, parse_spec
         from erva_ros.core.params import ParamError
+        if p.get('can_log'):
+            check_path(p['can_log'])
         try:
             parse_spec(p['bus'])
             codec = EcuCodec(p['dbc_file'] or None)
@@ -118,7 +125,8 @@ class BridgeCore:
         return cls(codec, hardware_of(p), BridgeConfig(
             period_s=ts, command_timeout_s=p['command_timeout_periods'] * ts,
             sensor_timeout_s=p['sensor_timeout_periods'] * ts, c_e_safe=c_e0,
-            bus_retry_s=p['bus_retry_s'], max_delta_counter=p['max_delta_counter']),
+            bus_retry_s=p['bus_retry_s'], max_delta_counter=p['max_delta_counter'],
+            command_delay_s=p['command_delay_s']),
             lambda: open_bus(p['bus']))
 
     def _now(self, now: Optional[float]) -> float:
@@ -146,6 +154,12 @@ class BridgeCore:
         """Shut the bus down (node shutdown)."""
         self.link.close()
 
+    def _send(self, msg: can.Message) -> bool:
+        ok = self.link.send(msg)
+        if ok and self.trace is not None:
+            self.trace.sent(msg)
+        return ok
+
     # ------------------------------------------------------------ ROS → CAN
     @property
     def command_state(self) -> str:
@@ -163,9 +177,9 @@ class BridgeCore:
 
     def submit(self, plan: Sequence[float], now: Optional[float] = None,
                offsets: Optional[Sequence[float]] = None,
-               age_s: Optional[float] = None) -> str:
+               age_s: Optional[float] = None, stamp_ns: Optional[int] = None) -> str:
         """Take a new damping plan and send plan[0] at once (:meth:`CommandWatchdog.submit`)."""
-        return self.watchdog.submit(plan, self._now(now), offsets, age_s)
+        return self.watchdog.submit(plan, self._now(now), offsets, age_s, stamp_ns)
 
     def command_age(self, now: Optional[float] = None) -> float:
         """Return the time since the last accepted command (s; inf before the first)."""
@@ -201,6 +215,8 @@ class BridgeCore:
             return None
         if msg is None:
             return None
+        if self.trace is not None:
+            self.trace.received(msg)
         now = self._clock()
         kind, status, payload = self._rx.accept(msg, now)
         if payload is None:

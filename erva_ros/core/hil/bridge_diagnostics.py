@@ -29,7 +29,8 @@ def command_status(watchdog: CommandWatchdog, counts: Mapping[str, int],
                    report: BridgeCommandReport) -> BridgeCommandReport:
     """Fill the command link's report: forwarding, waiting (WARN) or timed out (ERROR)."""
     _set(report, counts, ('commands_received', 'commands_rejected', 'commands_stale',
-                          'commands_clamped', 'command_timeouts', 'frames_sent',
+                          'commands_clamped', 'commands_wrong_delay', 'command_timeouts',
+                          'frames_sent',
                           'safe_frames_sent', 'plan_frames_sent', 'frames_not_sent'))
     worst = watchdog.timeouts_worst
     report.timeout_plan_frames_max = int(worst['plan_frames'])

@@ -5,7 +5,7 @@ Four messages, 8 bytes each, E2E-protected (:mod:`erva_ros.core.hil.e2e`):
 =====  ===================  ======  ===========================================================
 ID     name                 sender  content (SI units)
 =====  ===================  ======  ===========================================================
-0x100  ERVA_CMD             bridge  mode, PWM duty D, c_e the duty stands for (Ns/m)
+0x100  ERVA_CMD             bridge  mode, PWM duty D, c_e the duty stands for (Ns/m), cycle
 0x200  ERVA_ECU_STATUS      ECU     ECU mode, applied and cycle-mean c_e (Ns/m), ECU counters
 0x201  ERVA_SENS_CHASSIS    ECU     sprung acceleration z̈_s (m/s²), deflection z_s − z_us (m)
 0x202  ERVA_SENS_GENERATOR  ECU     rotor speed φ̇ (rad/s), current (A), back-emf (V)
@@ -15,6 +15,10 @@ The ECU sends its three messages once per cycle, status first (it also has the l
 ID, so it wins arbitration when the three are queued together): a receiver learns the
 damping of the cycle before its measurements.  The E2E Data IDs are the DBC
 attribute ``E2E_DataID``.
+
+A command frame names the cycle it is for (CMD_CYCLE = k mod 256, :func:`cycle_of`):
+with a command delay d > 0 the ECU applies it at t_k + d on its own clock, not when it
+arrives (docs/hil.md, "the real-ECU contract").
 """
 
 from dataclasses import dataclass
@@ -39,8 +43,9 @@ class Kind(enum.Enum):
 class CommandMode(enum.IntEnum):
     """CMD_MODE: why the bridge sends this duty."""
 
-    SAFE_PASSIVE = 0
-    CONTROLLED = 1
+    SAFE_PASSIVE = 0     # acts at once
+    CONTROLLED = 1       # the NMPC's command for cycle CMD_CYCLE
+    PLANNED = 2          # an earlier command's plan for cycle CMD_CYCLE
 
 
 class EcuMode(enum.IntEnum):
@@ -53,6 +58,21 @@ class EcuMode(enum.IntEnum):
     FAULT = 4
 
 
+#: CMD_CYCLE counts the cycles modulo this.
+CYCLE_MODULO = 256
+
+
+def cycle_of(stamp_ns: int, ts_ns: int) -> int:
+    """Return the cycle number k of a sample instant: t_k = k·Ts (epoch ns), nearest k."""
+    return (int(stamp_ns) + int(ts_ns) // 2) // int(ts_ns)
+
+
+def unwrap_cycle(cycle: int, near: int) -> int:
+    """Return the cycle number ≡ ``cycle`` (mod CYCLE_MODULO) nearest to ``near``."""
+    half = CYCLE_MODULO // 2
+    return near + (int(cycle) - near + half) % CYCLE_MODULO - half
+
+
 @dataclass
 class Command:
     """Damping command frame (bridge → ECU)."""
@@ -60,6 +80,7 @@ class Command:
     duty: float          # PWM duty of the load switch, 0..1
     c_e: float           # Ns/m the duty was computed for
     mode: CommandMode
+    cycle: int = 0       # the cycle it is for, k mod CYCLE_MODULO (0: SAFE_PASSIVE)
 
 
 @dataclass
@@ -98,7 +119,8 @@ def default_dbc_path() -> str:
 
 # Signal names of each message's payload, E2E signals excluded (DBC order).
 _FIELDS = {
-    Kind.COMMAND: {'mode': 'CMD_MODE', 'duty': 'CMD_DUTY', 'c_e': 'CMD_CE'},
+    Kind.COMMAND: {'mode': 'CMD_MODE', 'duty': 'CMD_DUTY', 'c_e': 'CMD_CE',
+                   'cycle': 'CMD_CYCLE'},
     Kind.CHASSIS: {'sprung_accel': 'SPRUNG_ACCEL', 'deflection': 'SUSP_DEFLECTION'},
     Kind.GENERATOR: {'speed': 'GEN_SPEED', 'current': 'GEN_CURRENT', 'voltage': 'GEN_VOLTAGE'},
     Kind.STATUS: {'mode': 'ECU_MODE', 'c_e_applied': 'CE_APPLIED', 'c_e_mean': 'CE_MEAN',
@@ -171,8 +193,10 @@ class EcuCodec:
         raw = self.messages[kind].decode(bytes(data), decode_choices=False, scaling=True)
         values = {attr: raw[sig] for attr, sig in _FIELDS[kind].items()}
         if kind is Kind.COMMAND:
-            values['mode'] = CommandMode(int(values['mode'])) if int(values['mode']) in (
-                0, 1) else CommandMode.SAFE_PASSIVE
+            m = int(values['mode'])
+            values['mode'] = (CommandMode(m) if m in CommandMode._value2member_map_
+                              else CommandMode.SAFE_PASSIVE)
+            values['cycle'] = int(values['cycle'])
         elif kind is Kind.STATUS:
             m = int(values['mode'])
             values['mode'] = EcuMode(m) if m in EcuMode._value2member_map_ else EcuMode.FAULT

@@ -13,6 +13,10 @@ import math
 from typing import Callable, Deque, Dict, Optional, Tuple
 
 
+#: A time within this fraction of a period of a sample instant is that instant.
+GRID_SNAP = 1e-4
+
+
 class RoadBuffer:
     """The last ``size`` road samples (t in s, w in m), interpolated on request."""
 
@@ -112,7 +116,9 @@ class KnownRoad:
         x = (t * 1e9 - self._origin()) / self.ts_ns
         k = math.floor(x)
         frac = x - k
-        if frac < 1e-6 or frac > 1 - 1e-6:      # on the grid (epoch floats: 0.2 us coarse)
+        # On the grid: within 2 us of it at Ts = 20 ms (epoch seconds as floats are
+        # 0.24 us coarse, and sums of them a few ulps off), the exact sample.
+        if frac < GRID_SNAP or frac > 1 - GRID_SNAP:
             return self.sample(int(round(x)))
         w0, w1 = self.sample(k), self.sample(k + 1)
         return w0 + (w1 - w0) * frac

@@ -34,6 +34,8 @@ BRIDGE_SPECS: Dict[str, Any] = {
     'bus': Text('CAN bus: socketcan:IFACE (vehicle), udp:LOCAL_PORT:PEER_PORT (loopback to '
                 '`erva ecu-sim`) or virtual:NAME (in-process)'),
     'dbc_file': Text('DBC file of the ECU messages (empty: the shipped config/erva_ecu.dbc)'),
+    'can_log': Text('CAN trace of the bridge\'s bus, both directions: FILE.blf or FILE.asc '
+                    '(python-can writers, epoch-second timestamps); empty: none'),
     'command_timeout_periods': Integer(1, 1000, 'periods', 'no fresh damping command for '
                                        'this many periods -> safe passive command + ERROR'),
     'sensor_timeout_periods': Integer(1, 1000, 'periods', 'no valid ECU frame for this many '
@@ -72,15 +74,17 @@ def _shipped(node: str, specs: Dict[str, Any]) -> Dict[str, Any]:
 
 #: Parameters set on the command line only: rcl lets a /**/<node> key of a params file win
 #: over ``-p name:=value``, so they have no key in config/hil.yaml and their defaults are here.
-COMMAND_LINE_DEFAULTS: Dict[str, Any] = {'bus': 'socketcan:can0', 'stamp_on_road_grid': False}
+COMMAND_LINE_DEFAULTS: Dict[str, Any] = {'bus': 'socketcan:can0', 'can_log': '',
+                                         'stamp_on_road_grid': False}
 #: estimator node: stamp each cycle on the road grid (`erva run --ecu virtual` sets it).
 ROAD_GRID_SPEC = Flag('stamp each ECU cycle with the road sample instant in [-Ts/4, 3Ts/4) '
                       'around its CAN receive time (an ECU sampling on the road grid and '
                       'sending at once)')
 #: The parameters of COMMAND_LINE_DEFAULTS that are in no other table.
 COMMAND_LINE_SPECS: Dict[str, Any] = {'stamp_on_road_grid': ROAD_GRID_SPEC}
-#: Defaults: the shipped config/hil.yaml (and the bus, above).
+#: Defaults: the shipped config/hil.yaml (and the bus and CAN trace, above).
 BRIDGE_DEFAULTS: Dict[str, Any] = {'bus': COMMAND_LINE_DEFAULTS['bus'],
+                                   'can_log': COMMAND_LINE_DEFAULTS['can_log'],
                                    **_shipped(BRIDGE_NODE, BRIDGE_SPECS)}
 ESTIMATOR_DEFAULTS: Dict[str, Any] = _shipped(ESTIMATOR_NODE, ESTIMATOR_SPECS)
 ECU_SIM_DEFAULTS: Dict[str, Any] = _shipped(ECU_SIM_SECTION, ECU_SIM_SPECS)
