@@ -29,7 +29,8 @@ from conftest import REPO
 SIM = ['sim', '--controller', 'preview', '--alpha', '1,0.01', '--seed', '4', '--duration', '1',
        '--preview-snr', '15']
 RUN = ['run', '--controller', 'preview', '--alpha1', '1', '--alpha2', '0.01', '--seed', '4',
-       '--duration', '1', '--preview-snr', '15', '--mode', 'lockstep', '--no-record']
+       '--duration', '1', '--preview-snr', '15', '--mode', 'lockstep', '--no-record',
+       '--command-delay', '0']    # the paper's loop; the shipped d: the test below
 
 
 def _settings_file(tmp_path):
