@@ -215,7 +215,7 @@ def test_the_check_finds_what_is_missing():
     bad = ['erva_ros/core/modle.py', 'core/loops/', 'ros/runtimes', 'config/*.yml',
            'session/recording.record_topic', 'test/test_model.py::test_nothing',
            'erva_ros.core.controllers.make_controler', 'live/realtime.py', 'test_ring.py',
-           'NOTES.md', 'bags/sample/sampel_0.mcap', '`test_flake9`']
+           'NOTE.md', 'bags/sample/sampel_0.mcap', '`test_flake9`']
     for name in bad:
         missing, _ = problems([('docs/x.md', 1, f'see {name} here')])
         assert len(missing) == 1, (name, missing)
