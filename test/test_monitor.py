@@ -177,7 +177,7 @@ def test_events_are_capped():
     for i in range(monitor_figures.MAX_EVENTS + 5):
         _status(obs, NMPCReport(node='nmpc_node', level=WARN if i % 2 else OK,
                                 message=f'flap {i}'), T0 + i)
-    assert len(obs.events) == monitor_figures.MAX_EVENTS + 5
+    assert len(obs.events) == monitor_figures.MAX_EVENTS      # the store keeps no more
     assert len(monitor_figures.events(obs)) == monitor_figures.MAX_EVENTS
 
 

@@ -68,8 +68,8 @@ def test_another_sessions_messages_in_a_bag_are_named(tmp_path):
     assert not any('s3' in w for w in warnings)
 
 
-def _observations(cmd_delays_ms, skipped=0, timeouts=0, misses=0):
-    obs = Observations(window_ns=(T0, T0 + 10 ** 12))
+def _observations(cmd_delays_ms, skipped=0, timeouts=0, misses=0, gap_s=None):
+    obs = Observations(window_ns=(T0, T0 + 10 ** 12), command_gap_s=gap_s)
     for k, delay in enumerate(cmd_delays_ms):
         stamp = T0 + k * TS_NS
         obs.add(topics.STATE, stamp + 10 ** 6,
@@ -77,7 +77,6 @@ def _observations(cmd_delays_ms, skipped=0, timeouts=0, misses=0):
         obs.add(topics.ROAD_HEIGHT, stamp, serialize_message(msgs.road_height_msg(stamp, 0, 0)))
         obs.add(topics.DAMPING_CMD, stamp + int(delay * 1e6),
                 serialize_message(msgs.damping_msg(stamp, [1e4] * 10, TS_NS)))
-    obs._decode()
     summary = {'nmpc': {'deadline_misses': misses, 'state_timeouts': timeouts},
                'road': {'samples_skipped': skipped}}
     return obs, summary
@@ -102,6 +101,10 @@ def test_the_verdict_names_each_shortfall_with_its_worst_instance():
     # Thresholds come from config/session.yaml, and can be raised.
     looser = verdict.quality_limits({'max_deadline_misses': 1, 'max_state_timeouts': 1,
                                      'max_skipped_road_samples': 2, 'max_command_gap_s': 0.2})
+    # The monitor counts the pauses over the threshold as they come.
+    with pytest.raises(ValueError, match='max_command_gap_s'):
+        verdict.warnings(obs, summary, looser)
+    obs, summary = _observations(delays, skipped=2, timeouts=1, misses=1, gap_s=0.2)
     assert verdict.warnings(obs, summary, looser) == []
     with pytest.raises(Exception, match="max_command_gap_s"):
         verdict.quality_limits({'max_command_gap_s': -1.0})

@@ -15,13 +15,13 @@ include that tail; ``command_timeouts`` counts only the timeouts that began befo
 the ECU finished (``command_timeouts_total`` all of them).
 """
 
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, Optional
 
 import numpy as np
 
 from erva_ros.core import topics
-from erva_ros.core.levels import ERROR
 from erva_ros.core.reports import NodeReport
+from erva_ros.session.monitor_stats import PairedError
 
 ECU = 'ecu_sim'
 ESTIMATOR = 'state_estimator_node'
@@ -96,21 +96,20 @@ def plant_equivalents(report: Reports) -> Dict[str, Any]:
     return out
 
 
-def hil_block(report: Reports, estimates: Dict[int, np.ndarray],
-              truth: Dict[int, np.ndarray], events: List[Tuple[int, str, int, str]],
-              end_ns: Optional[int]) -> Dict[str, Any]:
+def hil_block(report: Reports, error: PairedError,
+              timeouts_before_end: Optional[int]) -> Dict[str, Any]:
     """Return the summary's ``hil`` block (see the module doc).
 
-    ``estimates`` and ``truth`` map sample stamps (ns) to states; ``events`` are the
-    monitor's status changes (rx_ns, name, level, message) and ``end_ns`` the arrival of
-    the ECU's `finished` report (None: it did not finish).
+    ``error`` holds the estimates against the ECU's truth (by stamp);
+    ``timeouts_before_end`` counts the bridge's command status turning ERROR before the
+    ECU's `finished` report arrived (None: it did not finish).
     """
     from erva_ros.session.monitor_figures import stats
     cmd, bus, link = report(BRIDGE_COMMAND), report(BRIDGE_BUS), report(BRIDGE_ECU)
     ecu, est = report(ECU), report(ESTIMATOR)
     bridge: Dict[str, Any] = {f'dropped_{k}': _sum(bus, names) for k, names in DROPS.items()}
     total = _get(cmd, 'command_timeouts')
-    bridge['command_timeouts'] = total if end_ns is None else _timeouts_before(events, end_ns)
+    bridge['command_timeouts'] = total if timeouts_before_end is None else timeouts_before_end
     bridge['command_timeouts_total'] = total
     bridge.update({k: _get(cmd, k) for k in (
         'commands_received', 'commands_rejected', 'commands_clamped', 'commands_wrong_delay',
@@ -138,7 +137,7 @@ def hil_block(report: Reports, estimates: Dict[int, np.ndarray],
         'updates', 'incomplete', 'gaps', 'restarts', 'late_or_repeated', 'rejected',
         'no_road', 'road_waits', 'road_extrapolated', 'before_road')}
     estimator['nis_mean'] = _get(est, 'nis_mean')
-    estimator['error'] = estimation_error(estimates, truth)
+    estimator['error'] = estimation_error(error)
     return {'bridge': bridge, 'ecu': ecu_out, 'estimator': estimator,
             'latency_ms': {'bridge_ros_to_can': stats(_get(cmd, 'ros_to_can_ms')),
                            'bridge_can_to_ros': stats(_get(link, 'can_to_ros_ms')),
@@ -148,35 +147,21 @@ def hil_block(report: Reports, estimates: Dict[int, np.ndarray],
                          for stage, (name, timing) in CHAIN.items()}}
 
 
-def estimation_error(estimates: Dict[int, np.ndarray], truth: Dict[int, np.ndarray],
-                     warmup: int = WARMUP) -> Dict[str, Any]:
+def estimation_error(error: PairedError) -> Dict[str, Any]:
     """Return the RMS of estimate - truth per state over the samples both have.
 
     Both are stamped with the ECU's sample instants (estimator on the road grid), so
-    they pair by stamp; the first ``warmup`` samples are left out.
+    they pair by stamp; the first ``WARMUP`` pairs are left out (``error.warmup``).
     """
     from erva_ros.core.model import STATE_NAMES
-    stamps = sorted(set(estimates) & set(truth))[warmup:]
-    if not stamps:
+    n = error.matched
+    if not n:
         return {'matched': 0}
-    err = np.array([estimates[s] - truth[s] for s in stamps])
-    true = np.array([truth[s] for s in stamps])
-    names = STATE_NAMES['erva' if err.shape[1] == 6 else 'benchmark']
-    rms = np.sqrt(np.mean(err ** 2, axis=0))
-    scale = np.sqrt(np.mean(true ** 2, axis=0))
-    return {'matched': len(stamps), 'rms': dict(zip(names, rms.tolist())),
+    names = STATE_NAMES['erva' if error.err2.shape[0] == 6 else 'benchmark']
+    rms = np.sqrt(error.err2 / n)
+    scale = np.sqrt(error.true2 / n)
+    return {'matched': n, 'rms': dict(zip(names, rms.tolist())),
             'relative_rms': dict(zip(names, (rms / np.where(scale > 0, scale, np.nan)).tolist()))}
-
-
-def _timeouts_before(events: List[Tuple[int, str, int, str]], end_ns: int) -> int:
-    """Return how often the bridge's command status turned ERROR (a timeout) before end_ns."""
-    count, was_error = 0, False
-    for rx, name, level, _ in events:
-        if name == BRIDGE_COMMAND:
-            if level == ERROR and not was_error and rx < end_ns:
-                count += 1
-            was_error = level == ERROR
-    return count
 
 
 def _sum(report: Optional[NodeReport], names) -> Optional[int]:

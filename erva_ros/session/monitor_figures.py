@@ -1,19 +1,18 @@
 """The figures of an `erva run` summary, each built by one small function from the monitor's store.
 
-``obs`` is an :class:`~erva_ros.session.observations.Observations` (decoded): its
-per-sample tables (states, accelerations, power, commands) and each node's newest typed
-report.
+``obs`` is an :class:`~erva_ros.session.observations.Observations`: its streaming
+figures of the data (``obs.streams``, :class:`~erva_ros.session.monitor_stats.SessionStreams`)
+and each node's newest typed report.
 :func:`summary` puts the blocks together: ``metrics``, ``commands``, ``nmpc``,
-``scheduling``, ``plant``, ``road`` (and ``hil``), ``events`` and ``messages``.
+``scheduling``, ``plant``, ``road`` (and ``hil``), ``events``, ``messages`` and
+``trajectory`` (the samples of the trajectory kept).
 """
 
 import math
 from typing import Any, Dict, Optional
 
-import numpy as np
-
 from erva_ros.core.levels import LEVEL_NAMES
-from erva_ros.core.metrics import comfort_power, percentiles_ms
+from erva_ros.core.metrics import comfort_power
 from erva_ros.core.reports import Timing
 from erva_ros.session import hil_summary
 
@@ -58,19 +57,36 @@ def metrics(obs, ts: float, n_steps: int) -> Dict[str, Any]:
     HIL mode); the real-time factor is simulated time over the wall time between the
     first and the last state's arrival.
     """
-    accel = [obs.accel[s] for s in sorted(obs.accel)][:n_steps]
+    st = obs.streams
+    n = min(st.accels, n_steps)
     plant = obs.report(hil_summary.ECU if obs.hil else 'plant_sim_node')
     harvested = float('nan') if plant is None else plant.harvested_j
-    out = comfort_power(accel, harvested, len(accel) * ts) if accel else {}
+    accel = st.first_accels(n)
+    if not n:
+        out = {}
+    elif accel is not None:      # within the trajectory: the very samples
+        out = comfort_power(accel, harvested, n * ts)
+    else:
+        out = comfort_from_sum(st.comfort_sum_squares(n), n, harvested, n * ts)
     # Between the samples too (the plant's own integral): the sampled measure sees the
     # instants where commands switch, and a delayed actuator moves the switch (docs/nmpc.md).
     out.update({'acc_rms_continuous': float('nan') if plant is None
-                else plant.acc_rms_continuous, 'harvested_j': harvested,
-                'samples': len(accel)})
-    if len(obs.state_rx) > 1:
-        rx = sorted(obs.state_rx.values())
-        span = (rx[-1] - rx[0]) * 1e-9
-        out['realtime_factor'] = (len(rx) - 1) * ts / span if span > 0 else None
+                else plant.acc_rms_continuous, 'harvested_j': harvested, 'samples': n})
+    rx = st.state_rx
+    if rx.count > 1:
+        span = (rx.last - rx.first) * 1e-9
+        out['realtime_factor'] = (rx.count - 1) * ts / span if span > 0 else None
+    return out
+
+
+def comfort_from_sum(sum_squares: Optional[float], n: int, harvested_j: float,
+                     duration_s: float) -> Dict[str, float]:
+    """Return :func:`~erva_ros.core.metrics.comfort_power`'s figures from Σ a² of n samples."""
+    if sum_squares is None:
+        raise ValueError(f'the comfort of {n} samples: the monitor summed a different '
+                         'number (Observations n_steps)')
+    out = comfort_power([], harvested_j, duration_s)
+    out.update({'acc_2norm': math.sqrt(sum_squares), 'acc_rms': math.sqrt(sum_squares / n)})
     return out
 
 
@@ -81,25 +97,21 @@ def commands(obs, ts: float, realtime: bool) -> Dict[str, Any]:
     plant (its report; the HIL loop has no plant node), and also as this observer, one
     more subscriber, receives them.  Sample-to-command runs from the sample time t_k.
     """
-    cmds = obs.commands
+    c = obs.streams.commands
     # Commands for samples the plant published a state of: not the safe commands of an
     # outage, except those stamped on a sample whose state the plant sent later (a
     # stalled road or plant bridged): such a sample is also among nmpc's missed_samples.
-    scheduled = [c for c in cmds if c[0] in obs.states]
-    out: Dict[str, Any] = {'received': len(cmds), 'for_samples': len(scheduled)}
-    if not (realtime and len(scheduled) > 1):
+    out: Dict[str, Any] = {'received': c.received, 'for_samples': c.for_samples}
+    if not (realtime and c.for_samples > 1):
         return out
-    rx = np.array([c[1] for c in scheduled], dtype=float) * 1e-9
-    out['rate_hz'] = float((len(rx) - 1) / (rx[-1] - rx[0]))
+    out['rate_hz'] = float((c.for_samples - 1) / (c.last_rx_s - c.first_rx_s))
     if not obs.hil:
         plant = obs.report('plant_sim_node')
         out['period_jitter_ms'] = stats(plant and plant.cmd_jitter_ms)
         out['state_to_command_ms'] = stats(plant and plant.loop_latency_ms)
-    out['sample_to_command_ms'] = percentiles_ms([(c[1] - c[0]) * 1e-9 for c in scheduled])
-    out['monitor'] = {
-        'period_jitter_ms': percentiles_ms(np.abs(np.diff(rx) - ts)),
-        'state_to_command_ms': percentiles_ms(
-            [(c[1] - obs.state_rx[c[0]]) * 1e-9 for c in scheduled])}
+    out['sample_to_command_ms'] = c.sample_to_command.summary()
+    out['monitor'] = {'period_jitter_ms': c.jitter.jitter.summary(),
+                      'state_to_command_ms': c.state_to_command.summary()}
     return out
 
 
@@ -181,7 +193,7 @@ def rejected(obs, plant_block: Dict[str, Any]) -> Dict[str, Optional[int]]:
 
 def events(obs):
     """Return the nodes' status changes (the first MAX_EVENTS), t_s from the first state."""
-    t0 = min(obs.state_rx.values()) if obs.state_rx else 0
+    t0 = obs.streams.state_rx.first or 0
     return [{'t_s': round((rx - t0) * 1e-9, 3), 'node': node,
              'level': LEVEL_NAMES.get(level, str(level)), 'message': text}
             for rx, node, level, text in obs.events[:MAX_EVENTS]]
@@ -199,6 +211,16 @@ def messages(obs, rejected_block: Dict[str, Optional[int]]) -> Dict[str, Any]:
             'rejected_total': sum(v for v in rejected_block.values() if v)}
 
 
+def trajectory(obs) -> Dict[str, Any]:
+    """Return the samples of the trajectory kept, of those received, and the cap.
+
+    A session longer than the cap (Observations ``trajectory_cap``) keeps its first part.
+    """
+    st = obs.streams
+    return {'samples': st.trajectory.rows, 'of': st.accels, 'cap': st.trajectory.cap,
+            'complete': st.trajectory.rows == st.accels}
+
+
 def summary(obs, ts: float, n_steps: int, realtime: bool) -> Dict[str, Any]:
     """Return the run's figures for a run of ``n_steps`` periods ``ts`` (see module doc)."""
     out: Dict[str, Any] = {'metrics': metrics(obs, ts, n_steps),
@@ -206,14 +228,17 @@ def summary(obs, ts: float, n_steps: int, realtime: bool) -> Dict[str, Any]:
                            'nmpc': nmpc(obs), 'scheduling': scheduling(obs),
                            'plant': plant(obs), 'road': road(obs)}
     if obs.hil:
-        out['hil'] = hil_summary.hil_block(obs.report, obs.states, obs.truth, obs.events,
-                                           obs.finished_rx.get(hil_summary.ECU))
+        finished = hil_summary.ECU in obs.finished_rx
+        out['hil'] = hil_summary.hil_block(obs.report, obs.streams.error,
+                                           obs.bridge_timeouts if finished else None)
     if realtime:
         out['commands']['actuation'] = actuation(out['plant'], out['commands']['for_samples'])
     out['events'] = events(obs)
     out['messages'] = messages(obs, rejected(obs, out['plant']))
+    out['trajectory'] = trajectory(obs)
     return out
 
 
 __all__ = ['MAX_EVENTS', 'stats', 'metrics', 'commands', 'actuation', 'nmpc', 'scheduling',
-           'plant', 'road', 'rejected', 'events', 'messages', 'summary']
+           'plant', 'road', 'rejected', 'events', 'messages', 'trajectory',
+           'comfort_from_sum', 'summary']

@@ -1,16 +1,20 @@
 """What a session's observer received, and what the session makes of it: no ROS inside.
 
 The monitor node of `erva run` (:class:`erva_ros.ros.monitor.Monitor`) hands every
-message it takes to an :class:`Observations` store: the data topics as CDR bytes with
-their arrival time (decoded only for the summary, by the contract's one decoder per
-message family, :mod:`erva_ros.core.contract`), and ``/diagnostics`` as the nodes' typed
-reports (:mod:`erva_ros.core.reports`).
+message it takes to an :class:`Observations` store.  A data message is decoded as it
+arrives (by the contract's one decoder per message family, :mod:`erva_ros.core.contract`)
+and folded into the session's streaming figures
+(:class:`erva_ros.session.monitor_stats.SessionStreams`): the store's memory does not grow
+with the session's length.  ``/diagnostics`` gives the nodes' typed reports
+(:mod:`erva_ros.core.reports`).
 
 Only the session's own messages count.  A status belongs to the session when its node
 is in the session's namespace and carries the session's id; anything else on
 ``/diagnostics`` (another session on the same domain, another program) is counted as
-foreign and otherwise ignored.  A data message stamped outside the session's span, or a
-second message of one stamp on a topic, is foreign too.
+foreign and otherwise ignored.  A data message stamped outside the session's span is
+foreign too, and so is one stamped not newer than the newest of its topic: each topic
+has one writer in the loop, which delivers in order (the NMPC's safe commands may repeat
+a stamp: commands are only checked against the span).
 
 From the store come the figures of the summary (:mod:`erva_ros.session.monitor_figures`),
 what each node says it published and whether all of it arrived.
@@ -22,32 +26,41 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from erva_ros.core import contract, topics
+from erva_ros.core.levels import ERROR
 from erva_ros.core.reports import NodeReport, report_from_status
 from erva_ros.session import hil_summary
+from erva_ros.session.monitor_figures import MAX_EVENTS
+from erva_ros.session.monitor_stats import SessionStreams, TRAJECTORY_CAP
 
 
 class Observations:
-    """A session's observations: raw data by arrival, typed reports, and the figures.
+    """A session's observations: streaming figures of its data, typed reports, and the summary.
 
     ``window_ns`` is the span of the session's sample stamps (None: from this store's
-    creation until now, in wall time: a realtime session); ``namespace`` and ``session``
-    (its id, '' for any) say which statuses are the session's.
+    creation until each message's arrival, in wall time: a realtime session);
+    ``namespace`` and ``session`` (its id, '' for any) say which statuses are the
+    session's.  ``ts`` is the loop's period and ``n_steps`` the session's samples (None:
+    the live defaults' Ts, and all samples); ``command_gap_s`` the command pause the
+    verdict reports (None: config/session.yaml's); ``trajectory_cap`` the samples of the
+    trajectory kept (the first ones).
     """
 
     def __init__(self, hil: bool = False, window_ns: Optional[Tuple[int, int]] = None,
-                 namespace: str = topics.NAMESPACE, session: str = ''):
+                 namespace: str = topics.NAMESPACE, session: str = '',
+                 ts: Optional[float] = None, n_steps: Optional[int] = None,
+                 command_gap_s: Optional[float] = None,
+                 trajectory_cap: int = TRAJECTORY_CAP):
         self.window_ns = window_ns or (time.time_ns(), None)
         self.hil = hil
         self.namespace = namespace.rstrip('/')
         self.session = session
         self.topics = [topics.STATE, topics.SPRUNG_ACCEL, topics.GENERATOR,
                        topics.ROAD_HEIGHT, topics.ROAD_PREVIEW, topics.DAMPING_CMD]
+        from erva_ros.core.hil.topics import TRUE_STATE
         if hil:
-            from erva_ros.core.hil.topics import TRUE_STATE
             self.topics.append(TRUE_STATE)
         #: Every topic observed (relative names, as in topics.py).
         self.watched = (*self.topics, topics.DIAGNOSTICS)
-        self.raw: Dict[str, List[Tuple[int, bytes]]] = {t: [] for t in self.topics}
         self.received = {t: 0 for t in self.watched}
         self.foreign = {t: 0 for t in self.topics}
         #: Statuses on /diagnostics that are not the session's (other sessions, programs).
@@ -57,24 +70,65 @@ class Observations:
         #: The newest report of each of the session's nodes, by its name in the namespace.
         self.reports: Dict[str, NodeReport] = {}
         self.report_rx: Dict[str, int] = {}
-        self.events: List[Tuple[int, str, int, str]] = []   # (rx_ns, node, level, message)
+        #: The first MAX_EVENTS status changes: (rx_ns, node, level, message).
+        self.events: List[Tuple[int, str, int, str]] = []
         self.finished_rx: Dict[str, int] = {}    # node -> arrival of its first `finished`
-        self._decoded = -1
-        # Decoded by _decode(): by sample stamp (ns).
-        self.states: Dict[int, np.ndarray] = {}
-        self.state_rx: Dict[int, int] = {}
-        self.accel: Dict[int, float] = {}
-        self.power: Dict[int, float] = {}
-        self.heights: Dict[int, float] = {}
-        self.previews: Dict[int, np.ndarray] = {}
-        self.commands: List[Tuple[int, int, np.ndarray]] = []   # (stamp, rx_ns, plan)
-        self.truth: Dict[int, np.ndarray] = {}                  # HIL: the ECU's true state
+        #: HIL: the bridge's command timeouts that began before the ECU finished.
+        self.bridge_timeouts = 0
+        self._bridge_error = False
+        from erva_ros.core.node_params import LIVE
+        live = LIVE.defaults()
+        ts = live['ts'] if ts is None else ts
+        # A realtime sample is stamped at its instant, before it is sent; the loop's
+        # nodes accept a lead this small (clocks of several hosts), and so does this.
+        self._lead_ns = int(live['max_stamp_lead_s'] * 1e9)
+        if command_gap_s is None:
+            from erva_ros.session.verdict import quality_limits
+            command_gap_s = quality_limits()['max_command_gap_s']
+        #: The session's data, folded as it arrives.
+        self.streams = SessionStreams(ts, n_steps, command_gap_s, trajectory_cap,
+                                      hil_summary.WARMUP)
+        self._newest: Dict[str, int] = {}       # topic -> newest stamp taken
+        self._true_state = TRUE_STATE if hil else None
 
     # -- input -------------------------------------------------------------------------
     def add(self, topic: str, rx_ns: int, data: bytes) -> None:
-        """Keep a data topic's serialized message, received at ``rx_ns``."""
-        self.raw[topic].append((rx_ns, data))
+        """Take a data message received at ``rx_ns`` (CDR): the session's, or foreign."""
         self.received[topic] += 1
+        try:
+            row = contract.DECODERS[topic](data)
+        except contract.MessageRejected:
+            self.foreign[topic] += 1
+            return
+        stamp = row.stamp_ns
+        lo, hi = self.window_ns
+        if not lo <= stamp <= (time.time_ns() + self._lead_ns if hi is None else hi):
+            self.foreign[topic] += 1
+            return
+        if topic != topics.DAMPING_CMD:
+            newest = self._newest.get(topic)
+            if newest is not None and stamp <= newest:
+                self.foreign[topic] += 1
+                return
+            self._newest[topic] = stamp
+        self._take(topic, rx_ns, row)
+
+    def _take(self, topic: str, rx_ns: int, row) -> None:
+        """Fold one of the session's messages (a decoded row) into its figures."""
+        s = self.streams
+        if topic == topics.STATE:
+            s.add_state(row.stamp_ns, rx_ns, row.x)
+        elif topic == topics.SPRUNG_ACCEL:
+            s.add_accel(row.stamp_ns, row.sprung_accel)
+        elif topic == topics.GENERATOR:
+            s.add_power(row.stamp_ns, row.power)
+        elif topic == topics.ROAD_HEIGHT:
+            s.add_height(row.stamp_ns, row.height_m)
+        elif topic == topics.DAMPING_CMD:
+            s.add_command(row.stamp_ns, rx_ns, float(row.plan[0]))
+        elif topic == self._true_state:
+            s.add_truth(row.stamp_ns, row.x)
+        # road/preview: counted and checked, no figure of its own.
 
     def add_diagnostics(self, data: bytes, rx_ns: int) -> None:
         """Keep each of the session's statuses in a DiagnosticArray: newest, and changes."""
@@ -93,8 +147,16 @@ class Observations:
                     self.other_sessions[name] = report.session
                 continue
             old = self.reports.get(name)
-            if old is None or (old.level, old.message) != (report.level, report.message):
+            if (old is None or (old.level, old.message) != (report.level, report.message)) \
+                    and len(self.events) < MAX_EVENTS:
                 self.events.append((rx_ns, name, report.level, report.message))
+            if name == hil_summary.BRIDGE_COMMAND:
+                # A timeout begins as the status turns ERROR; those after the ECU
+                # finished are the bridge's expected tail (hil_summary module doc).
+                error = report.level == ERROR
+                if error and not self._bridge_error and hil_summary.ECU not in self.finished_rx:
+                    self.bridge_timeouts += 1
+                self._bridge_error = error
             self.reports[name] = report
             self.report_rx[name] = rx_ns
             if report.finished:
@@ -111,51 +173,6 @@ class Observations:
     def report(self, name: str) -> Optional[NodeReport]:
         """Return the newest report of node ``name`` (None if none arrived)."""
         return self.reports.get(name)
-
-    def _in_window(self, stamp: int) -> bool:
-        lo, hi = self.window_ns
-        # A realtime session's samples are all in the past when they are decoded.
-        return lo <= stamp <= (time.time_ns() if hi is None else hi)
-
-    def _decode(self) -> None:
-        """Decode what arrived since the last call into the per-sample tables."""
-        total = sum(len(v) for v in self.raw.values())
-        if total == self._decoded:
-            return
-        self._decoded = total
-        foreign = {t: 0 for t in self.topics}
-
-        def each(topic):
-            seen = set()
-            decode = contract.DECODERS[topic]
-            for rx, data in self.raw[topic]:
-                try:
-                    row = decode(data)
-                except contract.MessageRejected:
-                    foreign[topic] += 1
-                    continue
-                # The loop publishes each stamp once per topic, inside the session
-                # (the NMPC's safe commands may repeat a stamp: kept, as commands).
-                if not self._in_window(row.stamp_ns) or (row.stamp_ns in seen
-                                                         and topic != topics.DAMPING_CMD):
-                    foreign[topic] += 1
-                    continue
-                seen.add(row.stamp_ns)
-                yield rx, row
-
-        self.states.clear()
-        self.state_rx.clear()
-        for rx, row in each(topics.STATE):
-            self.states[row.stamp_ns], self.state_rx[row.stamp_ns] = row.x, rx
-        if self.hil:
-            from erva_ros.core.hil.topics import TRUE_STATE
-            self.truth = {row.stamp_ns: row.x for _, row in each(TRUE_STATE)}
-        self.accel = {r.stamp_ns: r.sprung_accel for _, r in each(topics.SPRUNG_ACCEL)}
-        self.power = {r.stamp_ns: r.power for _, r in each(topics.GENERATOR)}
-        self.heights = {r.stamp_ns: r.height_m for _, r in each(topics.ROAD_HEIGHT)}
-        self.previews = {r.stamp_ns: r.heights for _, r in each(topics.ROAD_PREVIEW)}
-        self.commands = [(r.stamp_ns, rx, r.plan) for rx, r in each(topics.DAMPING_CMD)]
-        self.foreign = foreign
 
     # -- what the session makes of it --------------------------------------------------
     def published(self, final_only: bool = False) -> Dict[str, Optional[int]]:
@@ -189,7 +206,6 @@ class Observations:
 
     def dropped(self, published: Dict[str, Optional[int]]) -> Dict[str, Optional[int]]:
         """Return, per topic, the messages published but not received here."""
-        self._decode()
         return {t: (max(0, n - self.received[t] + self.foreign.get(t, 0))
                     if n is not None else None)
                 for t, n in published.items()}
@@ -201,28 +217,22 @@ class Observations:
                 and not any(self.dropped(published).values()))
 
     def trajectory(self, n_steps: Optional[int] = None) -> Dict[str, np.ndarray]:
-        """Return the time series by sample (t from the first state, x, u, w, accel, power)."""
-        self._decode()
-        stamps = sorted(self.accel)
-        if n_steps is not None:
-            stamps = stamps[:n_steps]
-        t0 = min(self.states) if self.states else 0
-        cmd: Dict[int, float] = {}
-        for stamp, _, plan in self.commands:
-            cmd.setdefault(stamp, plan[0])
-        return {
-            't': np.array([(s - t0) * 1e-9 for s in stamps]),
-            'x': np.array([self.states.get(s, np.full(6, np.nan)) for s in stamps]),
-            'u': np.array([cmd.get(s, np.nan) for s in stamps]),
-            'w': np.array([self.heights.get(s, np.nan) for s in stamps]),
-            'sprung_accel': np.array([self.accel[s] for s in stamps]),
-            'power': np.array([self.power.get(s, np.nan) for s in stamps]),
-        }
+        """Return the time series by sample (t from the first state, x, u, w, accel, power).
+
+        Its first ``trajectory_cap`` samples at most (the summary's ``trajectory``).
+        """
+        return self.streams.sampled(n_steps)
 
     def summary(self, ts: float, n_steps: int, realtime: bool) -> Dict[str, Any]:
-        """Return the run's figures for a run of ``n_steps`` periods ``ts``."""
+        """Return the run's figures for a run of ``n_steps`` periods ``ts``.
+
+        Commands still waiting for their sample's state count as not for a sample.
+        """
         from erva_ros.session import monitor_figures
-        self._decode()
+        if ts != self.streams.ts:
+            raise ValueError(f'the summary is for ts = {ts} s, the observations were '
+                             f'folded with ts = {self.streams.ts} s')
+        self.streams.settle()
         return monitor_figures.summary(self, ts, n_steps, realtime)
 
 

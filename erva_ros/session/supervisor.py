@@ -78,7 +78,8 @@ class Supervisor:
         # time master starts only once that subscription is matched too.
         gate = (topics.ROAD_PREVIEW,) if session.realtime else (topics.STATE,)
         self.obs = Observations(session.hil, session.sim_window_ns, cfg.namespace,
-                                session.session_id)
+                                session.session_id, ts=session.live['ts'],
+                                n_steps=session.n_steps)
         self.monitor = self.ros.add(Monitor(self.obs, cfg.namespace, context=self.ros.context,
                                             gate=gate))
         self.gate = StartGate(self.monitor, self.obs, cfg.namespace, self.node_names,
