@@ -290,3 +290,31 @@ def test_memory_does_not_grow_with_the_session():
     assert s['messages']['foreign'][STATE] == s['messages']['foreign'][CMD] == 110
     assert s['hil']['estimator']['error']['matched'] == 110_000 - WARMUP
     assert grown < 256 * 1024, f'the store grew by {grown} bytes over 100,000 samples'
+
+
+def test_estimates_on_their_own_grid_pair_with_the_truth_within_a_quarter_period():
+    # With the road estimated the estimator stamps each ECU cycle on its receive grid,
+    # 0.5 ms after the ECU's instant: the error is still over every cycle, and the same.
+    from erva_ros.session.monitor_stats import SessionStreams
+    rng = np.random.default_rng(3)
+    truth = rng.normal(size=(60, 6))
+    est = truth + rng.normal(scale=0.01, size=truth.shape)
+    errors = {}
+    for offset in (0, 500_000):
+        s = SessionStreams(0.02)
+        for k in range(60):
+            t = 1_000_000_000 + k * 20_000_000
+            if k % 2:       # either may come first
+                s.add_truth(t, truth[k])
+                s.add_state(t + offset, t + offset + 1000, est[k])
+            else:
+                s.add_state(t + offset, t + offset + 1000, est[k])
+                s.add_truth(t, truth[k])
+        errors[offset] = (s.error.matched, s.error.err2.copy())
+    assert errors[0][0] == errors[500_000][0] == 60
+    np.testing.assert_array_equal(errors[0][1], errors[500_000][1])
+    # A quarter period off is another cycle's: not paired.
+    s = SessionStreams(0.02)
+    s.add_state(1_000_000_000 + 5_000_001, 1_000_000_000, est[0])
+    s.add_truth(1_000_000_000, truth[0])
+    assert s.error.matched == 0

@@ -156,6 +156,7 @@ def test_erva_run_previews_from_the_map_and_records_the_road(road_map, tmp_path)
     m = s['road']['map']
     est = s['hil']['estimator']
     assert m['samples'] == est['updates'] > 250            # one preview per road estimate
+    assert est['error']['matched'] > 250       # estimates on their own grid, paired by cycle
     assert m['points'] == m['samples'] * 11
     assert m['alignments'] >= 1 and m['fallback_points'] < m['points']
     assert s['messages']['dropped_total'] == 0

@@ -51,6 +51,23 @@ class Recent(OrderedDict):
             self.popitem(last=False)
 
 
+def near(recent: Recent, stamp: int, tol_ns: int, look: int = 8):
+    """Return the entry of ``stamp``, else of a recent stamp within ``tol_ns`` of it (None).
+
+    An estimator without the road's grid (the road estimated) stamps each ECU cycle on
+    its own receive grid, a fraction of a period after the ECU's instant.
+    """
+    hit = recent.get(stamp)
+    if hit is not None or tol_ns <= 0:
+        return hit
+    for i, key in enumerate(reversed(recent)):
+        if abs(key - stamp) <= tol_ns:
+            return recent[key]
+        if i >= look:
+            break
+    return None
+
+
 class Worst:
     """The largest value (s) of a series and when it was (ns): the first of equal ones.
 
@@ -233,6 +250,7 @@ class SessionStreams:
         self.accels = 0
         self.commands = Commands(ts, pause_s)
         self.error = PairedError(warmup)
+        self._pair_ns = int(round(self.ts * 1e9 / 4))   # an estimate's cycle: within Ts/4
         self.state_size: Optional[int] = None
         self.trajectory = Trajectory(cap if n_steps is None else min(cap, n_steps))
         self._states = Recent()         # stamp -> (rx, x)
@@ -257,7 +275,7 @@ class SessionStreams:
         row = self._row(stamp)
         if row is not None:
             self.trajectory.x[row, :len(x)] = x
-        truth = self._truth.get(stamp)
+        truth = near(self._truth, stamp, self._pair_ns)
         if truth is not None:
             self.error.add(x, truth)
         self._resolve()
@@ -265,7 +283,7 @@ class SessionStreams:
     def add_truth(self, stamp: int, x: np.ndarray) -> None:
         """Take the ECU's true state of sample ``stamp`` (HIL)."""
         self._truth.put(stamp, x)
-        state = self._states.get(stamp)
+        state = near(self._states, stamp, self._pair_ns)
         if state is not None:
             self.error.add(state[1], x)
 
@@ -364,4 +382,4 @@ class SessionStreams:
 
 
 __all__ = ['WINDOW', 'MAX_PENDING', 'TRAJECTORY_CAP', 'Recent', 'Worst', 'Gaps', 'Span',
-           'SumSquares', 'PairedError', 'Commands', 'Trajectory', 'SessionStreams']
+           'SumSquares', 'near', 'PairedError', 'Commands', 'Trajectory', 'SessionStreams']
