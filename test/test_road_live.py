@@ -174,6 +174,18 @@ def test_erva_run_previews_from_the_map_and_records_the_road(road_map, tmp_path)
     assert stamps[f'{ns}/{topics.ROAD_PREVIEW}'] == stamps[f'{ns}/{topics.ROAD_ESTIMATE}'] \
         == stamps[f'{ns}/{topics.ROAD_ALIGNMENT}']
     assert 'map' in _run_text(s)
+    # Reported, replayed and a map drive like any other session.
+    bag = s['bag']
+    rep = subprocess.run([sys.executable, '-m', 'erva_ros.cli', 'report', bag, '--json'],
+                         capture_output=True, text=True, env=ros_env(), cwd=REPO, timeout=300)
+    assert rep.returncode == 0, rep.stderr[-2000:]
+    assert json.loads(rep.stdout)['samples']['damping_cmd'] == counts[f'{ns}/damping_cmd']
+    play = subprocess.run([sys.executable, '-m', 'erva_ros.cli', 'replay', bag, '--rate', '4',
+                           '--json'], capture_output=True, text=True, env=ros_env(),
+                          cwd=REPO, timeout=300)
+    assert play.returncode == 0, play.stderr[-2000:]
+    assert json.loads(play.stdout)['total'] == sum(counts.values())
+    _map_build([bag], str(tmp_path / 'next.map'))
 
 
 def _run_text(summary):
