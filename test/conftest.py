@@ -102,3 +102,15 @@ def compiled_functions():
         import warnings
         warnings.warn(f'erva compile failed ({proc.returncode}): '
                       f'{(proc.stderr or proc.stdout).strip()[-500:]}')
+
+
+def shipped_delay_s() -> float:
+    """Return the shipped command delay d (config/live.yaml), which `erva run` applies."""
+    from erva_ros.core.node_params import LIVE
+    return float(LIVE.defaults()['command_delay_s'])
+
+
+def sim_delay_args():
+    """Return `erva sim`'s options for `erva run`'s default loop: d acts and is modelled."""
+    d = repr(shipped_delay_s())
+    return ['--actuation-delay', d, '--command-delay', d]

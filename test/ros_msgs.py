@@ -7,7 +7,7 @@ in integer nanoseconds; parsers return ``(stamp_ns, values)`` and raise
 :class:`~erva_ros.core.loop.validation.MessageRejected` for anything malformed.
 """
 
-from typing import Sequence, Tuple
+from typing import Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -95,13 +95,13 @@ def road_height_msg(stamp_ns: int, distance_m: float, height_m: float) -> PointS
     return msg
 
 
-def _trajectory(stamp_ns: int, joint: str, values: Sequence[float], ts_ns: int
-                ) -> JointTrajectory:
+def _trajectory(stamp_ns: int, joint: str, values: Sequence[float], ts_ns: int,
+                offset_ns: int = 0) -> JointTrajectory:
     msg = JointTrajectory()
     msg.header.stamp = ns_to_time(stamp_ns)
     msg.joint_names = [joint]
     msg.points = [JointTrajectoryPoint(positions=[float(v)],
-                                       time_from_start=ns_to_duration(k * ts_ns))
+                                       time_from_start=ns_to_duration(offset_ns + k * ts_ns))
                   for k, v in enumerate(np.asarray(values, dtype=float).ravel())]
     return msg
 
@@ -111,9 +111,16 @@ def preview_msg(stamp_ns: int, heights: Sequence[float], ts_ns: int) -> JointTra
     return _trajectory(stamp_ns, topics.ROAD_JOINT, heights, ts_ns)
 
 
-def damping_msg(stamp_ns: int, plan: Sequence[float], ts_ns: int) -> JointTrajectory:
-    """Return the damping command (points[0], Ns/m) and its plan (points[k] at t0 + k·Ts)."""
-    return _trajectory(stamp_ns, topics.DAMPING_JOINT, plan, ts_ns)
+def damping_msg(stamp_ns: int, plan: Sequence[float], ts_ns: int,
+                delay_ns: Optional[int] = None) -> JointTrajectory:
+    """Return the damping command and its plan: points[k] (Ns/m) at d + k·Ts.
+
+    ``delay_ns`` is d (default: the shipped ``command_delay_s``, as the nodes expect).
+    """
+    if delay_ns is None:
+        from conftest import shipped_delay_s
+        delay_ns = int(round(shipped_delay_s() * 1e9))
+    return _trajectory(stamp_ns, topics.DAMPING_JOINT, plan, ts_ns, delay_ns)
 
 
 def clock_msg(stamp_ns: int) -> Clock:

@@ -13,6 +13,8 @@ def test_bench_json_shape(erva):
     assert (res['solver'], res['controller'], res['samples']) == ('sqp', 'preview', 30)
     assert set(res['solve_ms']) == {'p50', 'p99', 'max'}
     assert 0 < res['solve_ms']['p50'] <= res['solve_ms']['p99'] <= res['solve_ms']['max']
+    cpu = res['solve_cpu_ms']
+    assert set(cpu) == {'p50', 'p99', 'max'} and 0 < cpu['p50'] <= cpu['p99'] <= cpu['max']
     assert isinstance(res['late'], int)
     assert isinstance(res['suboptimality_pct'], float)
     assert res['reference']['solver'] == 'ipopt'
@@ -77,6 +79,7 @@ def test_bench_repeat_gives_the_spread_and_the_same_loop(erva):
     assert all(len(r['load_avg']['start']) == 3 and r['load_avg']['cpus'] >= 1 for r in runs)
     text = erva('bench', '--steps', 20, '--repeat', 3, '--no-reference', check=True).stdout
     assert '3 runs of 20 samples: solve p50' in text and 'load average (1 min)' in text
+    assert 'solve CPU time (the solving thread alone): p50' in text
     bad = erva('bench', '--live', '--repeat', 2)
     assert bad.returncode == 2
     assert '--repeat applies to the offline bench' in bad.stderr.strip().splitlines()[-1]

@@ -47,6 +47,7 @@ def test_metrics_and_costs():
     m = run.metrics
     assert run.t.size == 50 and run.duration_s == pytest.approx(1.0)
     assert set(m['solve_ms']) == {'p50', 'p99', 'max', 'samples'}
+    assert run.solve_cpu_s.shape == (50,) and m['solve_cpu_ms']['samples'] == 50
     assert m['fallbacks'] == {'fallback_plan': 0, 'fallback_passive': 0, 'failures': 0,
                               'nan_rejections': 0, 'late': 0}
     assert m['realtime_factor'] > 0       # its value depends on the machine and its load

@@ -85,6 +85,7 @@ def test_can_trace_holds_every_frame_both_ways_as_the_bag_has_them(tmp_path, suf
     bag = _bag(s['bag'], topics)
     # ECU -> bridge: each frame one message of each of its topics, in order, same values.
     first = {}                               # cycle stamp -> earliest frame time
+    received = []                            # (cycle stamp, frame time)
     for fid, names in ECU_TOPICS.items():
         got = [f for f in rx if f.arbitration_id == fid]
         for topic in names:
@@ -93,12 +94,18 @@ def test_can_trace_holds_every_frame_both_ways_as_the_bag_has_them(tmp_path, suf
             want = _signals(db.decode_message(fid, bytes(f.data)))
             if want is not None:
                 assert _topic_values(names[0], msg) == pytest.approx(want, rel=1e-12)
-            t = stamp_ns * 1e-9
-            assert t - tol <= f.timestamp <= t + TS / 2 + tol      # within its cycle
+            assert f.timestamp >= stamp_ns * 1e-9 - tol            # not before its cycle
             assert log_ns * 1e-9 >= f.timestamp - tol              # recorded after it
             first[stamp_ns] = min(first.get(stamp_ns, float('inf')), f.timestamp)
+            received.append((stamp_ns, f.timestamp))
     # A cycle's stamp is the receive time of its first frame: the trace's clock.
     assert all(abs(t - stamp * 1e-9) <= tol for stamp, t in first.items())
+    # ... and its frames come before the next cycle's (the ECU sends a cycle's frames in
+    # turn on one bus; how long after the first they come depends on the load: a stalled
+    # ECU process once spread a cycle over 198 ms).
+    stamps = sorted(first)
+    after = dict(zip(stamps, stamps[1:]))
+    assert all(t <= first[after[stamp]] + tol for stamp, t in received if stamp in after)
 
     # Bridge -> ECU: every CONTROLLED frame is a damping_cmd of the bag, in order (the
     # refused ones have none), of its cycle, with its first value (clamped, 2 Ns/m LSB).

@@ -6,12 +6,13 @@ import os
 import numpy as np
 import pytest
 import rclpy
+from rclpy.serialization import serialize_message
 import yaml
 
 from erva_ros.core import topics
 import ros_msgs as msgs
 from erva_ros.core.loop.command_hold import CommandHold
-from erva_ros.core.contract import decode_diagnostics
+from erva_ros.core.contract import decode_command, decode_diagnostics
 from erva_ros.core.levels import ERROR
 from erva_ros.core.loop.status import StatusReporter
 from erva_ros.core.node_params import LIVE, NodeSchema
@@ -43,13 +44,16 @@ def test_state_round_trip_keeps_every_bit_and_the_stamp():
     assert np.array_equal(msgs.parse_state(bench, 'benchmark')[1], X[:4])
 
 
-def test_trajectories_round_trip_on_the_ts_grid():
+@pytest.mark.parametrize('delay_ns', [0, 15_000_000])
+def test_trajectories_round_trip_on_the_ts_grid(delay_ns):
+    # plan[k] acts at d + k·Ts after its sample (d = 0: the paper's loop; 15 ms: shipped).
     plan = np.array([1e4, 2e4, 0.0, 5e3])
-    msg = msgs.damping_msg(5 * TS_NS, plan, TS_NS)
+    msg = msgs.damping_msg(5 * TS_NS, plan, TS_NS, delay_ns)
     assert msg.joint_names == [topics.DAMPING_JOINT]
-    assert msgs.time_to_ns(msg.points[3].time_from_start) == 3 * TS_NS
+    assert msgs.time_to_ns(msg.points[3].time_from_start) == delay_ns + 3 * TS_NS
     stamp, got = msgs.parse_damping(msg, TS_NS)
     assert stamp == 5 * TS_NS and np.array_equal(got, plan)
+    assert decode_command(serialize_message(msg), TS_NS).delay_ns == delay_ns
     heights = np.linspace(-1e-3, 1e-3, 11)
     stamp, got = msgs.parse_preview(msgs.preview_msg(0, heights, TS_NS), TS_NS, 11)
     assert stamp == 0 and np.array_equal(got, heights)

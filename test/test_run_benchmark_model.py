@@ -14,7 +14,7 @@ import pytest
 from erva_ros.core.model import get_model
 from erva_ros.core.params import load_erva_params
 
-from conftest import REPO
+from conftest import REPO, shipped_delay_s
 
 pytestmark = pytest.mark.ros
 
@@ -63,10 +63,15 @@ def test_the_bag_holds_the_benchmark_state_and_its_generator(session):
     assert len(gen) == STEPS
     # The generator topic is the model's generator of the recorded state and command
     # (for the linear benchmark: the suspension deflection and its rate).
-    model = get_model(load_erva_params(os.path.join(REPO, 'config', 'erva_paper.yaml')),
-                      'benchmark')
+    params = load_erva_params(os.path.join(REPO, 'config', 'erva_paper.yaml'))
+    model = get_model(params, 'benchmark')
+    # The damping acting at t_k itself: u_k with d = 0; with d > 0 (shipped) u_k acts from
+    # t_k + d, so at t_k the one before acts (passive c_e0 at t_0).
+    stamps = sorted(u)
+    acting = (dict(zip(stamps, [params.c_e0] + [u[s] for s in stamps[:-1]]))
+              if shipped_delay_s() > 0 else u)
     for stamp, m in gen:
-        position, v_gen, power = (float(v) for v in model.generator(x[stamp], u[stamp]))
+        position, v_gen, power = (float(v) for v in model.generator(x[stamp], acting[stamp]))
         assert m.position[0] == pytest.approx(position, rel=1e-12, abs=1e-15)
         assert m.velocity[0] == pytest.approx(v_gen, rel=1e-12, abs=1e-15)
         assert m.effort[0] * m.velocity[0] == pytest.approx(power, rel=1e-9, abs=1e-12)

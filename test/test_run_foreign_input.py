@@ -14,7 +14,7 @@ import time
 
 import pytest
 
-from conftest import REPO, ros_env
+from conftest import REPO, ros_env, sim_delay_args
 from erva_ros.ros import qos as ros_qos
 from run_helpers import SampleWatch
 
@@ -72,7 +72,7 @@ def test_lockstep_a_future_stamped_foreign_state_changes_nothing(erva):
     assert s['messages']['foreign']['state'] == 1
     assert s['nmpc']['missed_samples'] == 0 and s['commands']['for_samples'] == 151
     # The loop is exactly the offline one: the foreign state left no trace.
-    sim = json.loads(erva('sim', '--duration', 3, '--json', check=True).stdout)
+    sim = json.loads(erva('sim', '--duration', 3, *sim_delay_args(), '--json', check=True).stdout)
     assert s['metrics']['acc_2norm'] == pytest.approx(sim['acc_2norm'], rel=1e-9)
     assert s['metrics']['power_w'] == pytest.approx(sim['power_w'], rel=1e-6)
 

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from conftest import fifo_permitted
+from conftest import fifo_permitted, sim_delay_args
 from run_helpers import bag_counts, run_with_node_stopped, SampleWatch, start_run as _start
 from run_helpers import wait_connected as _wait_connected
 
@@ -49,7 +49,8 @@ def test_erva_run_realtime_records_and_summarises(tmp_path, erva):
     if plant['u_from_command'] == 100 and s['nmpc']['missed_samples'] == 0:
         # Every command in time (the usual case): the real-time loop is the offline one
         # (a late solve publishes its own plan, so lateness alone changes nothing).
-        sim = json.loads(erva('sim', '--duration', 2, '--json', check=True).stdout)
+        sim = json.loads(erva('sim', '--duration', 2, *sim_delay_args(), '--json',
+                              check=True).stdout)
         assert s['metrics']['acc_2norm'] == pytest.approx(sim['acc_2norm'], rel=1e-9)
         assert s['metrics']['power_w'] == pytest.approx(sim['power_w'], rel=1e-6)
     assert s['nmpc']['solve_ms']['samples'] == cmd['for_samples']

@@ -15,6 +15,7 @@ import re
 
 import pytest
 
+from conftest import sim_delay_args
 from run_helpers import bag_counts, SampleWatch, start_run
 
 
@@ -77,7 +78,7 @@ def test_two_lockstep_sessions_keep_their_own_clocks(tmp_path, erva):
     # is still the offline closed loop, to the last digit.
     runs = [start_run('--mode', 'lockstep', '--namespace', ns, '--duration', 2, '--record',
                       tmp_path / ns.strip('/'), '--json') for ns in ('/a', '/b')]
-    sim = json.loads(erva('sim', '--duration', 2, '--json', check=True).stdout)
+    sim = json.loads(erva('sim', '--duration', 2, *sim_delay_args(), '--json', check=True).stdout)
     for proc in runs:
         code, out, err = _finish(proc)
         assert code == 0, err[-2000:]

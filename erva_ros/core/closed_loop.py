@@ -5,7 +5,9 @@ Per-step semantics (the live lock-step mode reproduces them exactly):
     plant = PlantSimulator(params, kind, ts)
     for k in range(n):  t_k = k·Ts,  w_k = road.height(t_k)
         preview = error_model(road.preview(t_k, N, Ts))      # or the perfect preview
+        cpu0 = time.thread_time_ns()
         res = controller.compute(plant.x, preview, t_k)
+        solve_cpu[k] = (time.thread_time_ns() - cpu0) * 1e-9
         s = plant.sample(res.damping_cmd, w_k)             # z̈_s(t_k), P(t_k) with u_k
         plant.step(res.damping_cmd, w_k, road.height(t_k + Ts))
     metrics = comfort_power(accels, plant.harvested_j, n·Ts)
@@ -53,6 +55,9 @@ class ClosedLoopResult:
     x_final: Optional[np.ndarray] = None  # state at t_n
     accel_sq_int: float = float('nan')    # m²/s³, ∫ z̈_s² dt over the run (plant, exact)
     metrics: Dict = field(default_factory=dict)
+    # s, the thread's CPU time in compute() per step: the wall time minus the slices other
+    # tasks took on a shared core (a loaded machine's wall time says more about the load)
+    solve_cpu_s: Optional[np.ndarray] = None
 
     @property
     def duration_s(self) -> float:
@@ -84,6 +89,7 @@ def simulate_closed_loop(params: ERVAParams, controller: Controller, road: Road,
     acc = np.empty(n)
     pw = np.empty(n)
     solve = np.empty(n)
+    solve_cpu = np.empty(n)
     iters = np.zeros(n, dtype=int)
     status: List[str] = []
     plans = np.empty((n, big_n)) if keep_plans else None
@@ -98,7 +104,9 @@ def simulate_closed_loop(params: ERVAParams, controller: Controller, road: Road,
         preview = road.preview(t_k, big_n, ts)
         if preview_model is not None:
             preview = preview_model.apply(preview, t_k)
+        cpu0 = time.thread_time_ns()
         res = controller.compute(plant.x, preview, t_k)
+        solve_cpu[k] = (time.thread_time_ns() - cpu0) * 1e-9
         s = plant.sample(acting if delay else res.damping_cmd, w_k)
         xs[k] = s.x
         u[k] = res.damping_cmd
@@ -122,7 +130,8 @@ def simulate_closed_loop(params: ERVAParams, controller: Controller, road: Road,
     wall = time.perf_counter() - wall0
     result = ClosedLoopResult(controller.name, road.name, ts, t, xs, u, w, acc, pw,
                               plant.harvested_j, solve, iters, status, controller.counters,
-                              wall, plans, plant.x.copy(), plant.accel_sq_int)
+                              wall, plans, plant.x.copy(), plant.accel_sq_int,
+                              solve_cpu_s=solve_cpu)
     result.metrics = closed_loop_metrics(result)
     return result
 
@@ -135,6 +144,8 @@ def closed_loop_metrics(r: ClosedLoopResult) -> Dict:
     m['acc_rms_continuous'] = (float(np.sqrt(r.accel_sq_int / r.duration_s))
                                if np.isfinite(r.accel_sq_int) else None)
     m['solve_ms'] = percentiles_ms(r.solve_time_s)
+    if r.solve_cpu_s is not None:
+        m['solve_cpu_ms'] = percentiles_ms(r.solve_cpu_s)
     m['iterations_mean'] = float(np.mean(r.iterations)) if r.iterations.size else 0.0
     m['fallbacks'] = {k: int(r.counters.get(k, 0))
                       for k in ('fallback_plan', 'fallback_passive', 'failures',

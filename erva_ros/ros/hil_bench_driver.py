@@ -44,6 +44,9 @@ class HilBenchDriver:
 
         self.node = Node('bench_hil_driver', namespace=namespace, context=context)
         self.road, self.law, self.params = road, law, params
+        # The loop's command delay, as the bridge's params give it: commands say when they act.
+        from erva_ros.core.node_params import LIVE
+        self.delay_ns = int(round(LIVE.defaults()['command_delay_s'] * 1e9))
         qos = ros_qos.control_qos()
         self.pub_road = self.node.create_publisher(PointStamped, topics.ROAD_HEIGHT, qos)
         self.pub_cmd = self.node.create_publisher(JointTrajectory, topics.DAMPING_CMD, qos)
@@ -100,7 +103,8 @@ class HilBenchDriver:
             u = 20000.0 if x[1] * (x[1] - x[3]) > 0 else 0.0
         else:
             u = self.params.c_e0
-        self.pub_cmd.publish(contract.encode_command(stamp, [u] * 10, 20_000_000))
+        self.pub_cmd.publish(contract.encode_command(stamp, [u] * 10, 20_000_000,
+                                                     self.delay_ns))
         self.states += 1
         self.est[stamp] = x
         if self.states > self.WARMUP:
