@@ -313,7 +313,15 @@ def _info(args) -> int:
     if args.json:
         print_json(info)
         return 0
-    rows = [('Files', info['file']), ('Bag size', _size(info['size_bytes'])),
+    files = info['files']
+    names = [os.path.basename(f['path']) for f in files]
+    if len(files) > 1:    # a split bag: each file's share
+        names = [f'{n}  ({f["message_count"]} messages, {f["duration_s"]:.3f} s'
+                 f'{"" if f["complete"] else ", not closed properly"})'
+                 for n, f in zip(names, files)]
+        names.insert(0, f'{len(files)} files')
+    rows = [('Files', ('\n' + ' ' * 19).join(names)),
+            ('Bag size', _size(info['size_bytes'])),
             ('Storage id', f'mcap (profile {info["profile"]}, {info["library"]})'),
             ('ROS Distro', info['ros_distro'] or '-'),
             ('Duration', f'{info["duration_s"]:.9f}s'),
@@ -353,8 +361,8 @@ def _repair(args) -> int:
     print(f'recovered {result["messages"]} messages on {len(result["topics"])} topics{span}')
     if result['stopped_at']:
         print(f'the damaged file ended with: {result["stopped_at"]}')
-    if result['original']:
-        print(f'original kept as {result["original"]}')
+    for original in result['originals']:
+        print(f'original kept as {original}')
     return 0
 
 
