@@ -35,6 +35,8 @@ from erva_ros.ros.bag_messages import message_class
 from erva_ros.ros.loop_node import LoopNode
 from erva_ros.ros.runtime import run_node
 
+#: How the bag is split: stored in each file's session record.
+SPLIT_PARAMETERS = ('max_bag_duration_s', 'max_bag_size_bytes')
 DISCOVERY_PERIOD_S = 0.1   # rosbag2's default topic polling interval
 #: Reader history of every recorded topic: a stall of the recorder (seconds of 50 Hz topics)
 #: must not overflow it.
@@ -60,7 +62,7 @@ class RecorderNode(LoopNode):
         self._subs: Dict[str, object] = {}
         self._pending: Dict[str, Optional[str]] = {}   # topic -> type (None: from the graph)
         session = recorder_session(p['session_metadata'], self.get_fully_qualified_name(),
-                                   self.bag_dir)
+                                   self.bag_dir, {k: p[k] for k in SPLIT_PARAMETERS})
         self.bag = Recording(p, session, self.report, self._failed)
         if self.bag.ok:
             self.status.set(OK, f'recording to {self.bag_dir}')

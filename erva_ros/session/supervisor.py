@@ -118,7 +118,8 @@ class Supervisor:
                 self.cfg, self.session, env, self.log, session_description(self.session))
         if self.recording:
             self.procs[RECORDER] = start_recorder(
-                self.session, self.cfg.namespace, self.cfg.record_dir, env, self.log)
+                self.session, self.cfg.namespace, self.cfg.record_dir, env, self.log,
+                self.cfg.recorder_overrides)
         hil = {}
         if self.session.hil:
             from erva_ros.session.hil_processes import hil_process_specs

@@ -27,7 +27,9 @@ class Recording:
             self.writer = BagWriter(p['bag_dir'], chunk_size=p['chunk_size'],
                                     compression=p['compression'],
                                     flush_period_s=p['flush_period_s'], fsync=p['fsync'],
-                                    session=session, custom_data=session)
+                                    session=session, custom_data=session,
+                                    max_bag_duration_s=p['max_bag_duration_s'],
+                                    max_bag_size_bytes=p['max_bag_size_bytes'])
         except BagError as exc:
             self.fail(str(exc))
 
