@@ -6,7 +6,10 @@ with rosbag2 Jazzy's times: log time = reception time (node time under
 ``use_sim_time``), publish time = the publisher's ``source_timestamp``.  A topic's
 channel is created when its first publisher is discovered (or its first message
 arrives), with the QoS its publishers offer and their type hash, as ``ros2 bag record``
-does.  Parameters: config/session.yaml (``bag_dir`` is required).  The loop's
+does.  The bag is split into ``<bag>_<i>.mcap`` files every ``max_bag_duration_s`` (300 s)
+or ``max_bag_size_bytes``, as ``ros2 bag record --max-bag-duration/--max-bag-size``: the
+writer's memory stays bounded in a session of any length (docs/recording.md).
+Parameters: config/session.yaml (``bag_dir`` is required).  The loop's
 publishers keep ``publisher_history_s`` of samples and each subscription here
 ``RECORDER_DEPTH``: a recorder stalled for seconds still gets everything.
 

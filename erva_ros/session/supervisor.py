@@ -405,7 +405,7 @@ class Supervisor:
             self.errors.append(error)
 
     def _check_recording(self) -> Dict[str, Any]:
-        """Compare the bag file with what every node published; add an error per loss."""
+        """Compare the bag with what every node published; add an error per loss."""
         # Stamps outside `erva run`'s lifetime (realtime), or the simulated span
         # (lock-step), are not the loop's.
         window = self.session.sim_window_ns or (self.t_start_ns, time.time_ns())
