@@ -336,16 +336,17 @@ class Bag:
                                        key=lambda m: m.log_time_ns)
 
     def _overlapping(self) -> List[List[BagFile]]:
-        """Return the files in runs whose time spans overlap (each run is merged)."""
+        """Return the files with messages in runs whose time spans overlap (merged)."""
         groups: List[List[BagFile]] = []
         end = None
         for f in self.files:
-            if groups and f.message_count and end is not None and f.start_ns <= end:
+            if not f.message_count:
+                continue
+            if groups and f.start_ns <= end:
                 groups[-1].append(f)
             else:
                 groups.append([f])
-            if f.message_count:
-                end = f.end_ns if end is None else max(end, f.end_ns)
+            end = f.end_ns if end is None else max(end, f.end_ns)
         return groups
 
     # -- summary ---------------------------------------------------------------------------
