@@ -105,7 +105,7 @@ def _scalar(value) -> str:
     return json.dumps(text, ensure_ascii=False)  # a JSON string is a YAML double-quoted one
 
 
-@functools.lru_cache(maxsize=1024)   # the same names and QoS texts at every split
+@functools.lru_cache(maxsize=256)   # the same names and QoS texts at every split
 def _looks_typed(text: str) -> bool:
     """Return True if YAML would read the plain ``text`` as something other than a string."""
     import yaml
