@@ -126,19 +126,20 @@ def run_with_node_stopped(node, tmp_path, duration, stop_after_s, stop_for_s, *a
 
 
 def bag_counts(bag_dir, decode=False):
-    """Return the messages per topic of a bag, read with the mcap package (not erva_ros)."""
+    """Return the messages per topic of a bag (all its files), read with the mcap package."""
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
     mcaps = [f for f in os.listdir(bag_dir) if f.endswith('.mcap')]
-    assert len(mcaps) == 1, os.listdir(bag_dir)
+    assert mcaps, os.listdir(bag_dir)
     counts = {}
-    with open(os.path.join(bag_dir, mcaps[0]), 'rb') as fh:
-        if decode:
-            reader = make_reader(fh, decoder_factories=[DecoderFactory()])
-            for _, channel, _, decoded in reader.iter_decoded_messages():
-                counts[channel.topic] = counts.get(channel.topic, 0) + 1
-                assert decoded is not None
-        else:
-            for _, channel, _ in make_reader(fh).iter_messages():
-                counts[channel.topic] = counts.get(channel.topic, 0) + 1
+    for name in mcaps:
+        with open(os.path.join(bag_dir, name), 'rb') as fh:
+            if decode:
+                reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+                for _, channel, _, decoded in reader.iter_decoded_messages():
+                    counts[channel.topic] = counts.get(channel.topic, 0) + 1
+                    assert decoded is not None
+            else:
+                for _, channel, _ in make_reader(fh).iter_messages():
+                    counts[channel.topic] = counts.get(channel.topic, 0) + 1
     return counts

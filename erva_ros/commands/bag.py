@@ -134,6 +134,7 @@ def _add_rosbag2_verbs(sub) -> None:
 
 
 def _add_record(sub) -> None:
+    from erva_ros.commands.run import add_bag_split_arguments
     from erva_ros.session.bag_record import STORAGE_KEYS
     p = sub.add_parser('record', help='record a running graph, as ros2 bag record',
                        description='Record topics of the running ROS graph into a new bag '
@@ -177,6 +178,7 @@ def _add_record(sub) -> None:
                         f'{", ".join(STORAGE_KEYS)})')
     p.add_argument('--duration', type=positive_float, default=None, metavar='S',
                    help='stop after S seconds (default: at Ctrl-C)')
+    add_bag_split_arguments(p, short=True)
     p.add_argument('--discovery-wait', type=positive_float, default=2.0, metavar='S',
                    help='-a, -e: look at the graph this long before choosing (default 2)')
     add_json_option(p)
@@ -198,6 +200,7 @@ def _record(args) -> int:
     import signal
     import sys
 
+    from erva_ros.commands.run import bag_split_parameters
     from erva_ros.core import topics as contract
     from erva_ros.core.bag.session import new_bag_dir
     from erva_ros.session import bag_record
@@ -214,7 +217,8 @@ def _record(args) -> int:
         all_topics=args.all_topics, regex=args.regex, exclude_topics=args.exclude_topics,
         exclude_regex=args.exclude_regex, include_hidden=args.include_hidden_topics,
         node_name=args.node_name, use_sim_time=args.use_sim_time, custom_data=custom,
-        storage=bag_record.storage_parameters(args.storage_config_file),
+        storage={**bag_record.storage_parameters(args.storage_config_file),
+                 **bag_split_parameters(args)},
         duration_s=args.duration, discovery_s=args.discovery_wait,
         command=' '.join(shlex.quote(a) for a in ['erva', 'bag', *sys.argv[2:]]))
     if args.output is None:
@@ -313,7 +317,15 @@ def _info(args) -> int:
     if args.json:
         print_json(info)
         return 0
-    rows = [('Files', info['file']), ('Bag size', _size(info['size_bytes'])),
+    files = info['files']
+    names = [os.path.basename(f['path']) for f in files]
+    if len(files) > 1:    # a split bag: each file's share
+        names = [f'{n}  ({f["message_count"]} messages, {f["duration_s"]:.3f} s'
+                 f'{"" if f["complete"] else ", not closed properly"})'
+                 for n, f in zip(names, files)]
+        names.insert(0, f'{len(files)} files')
+    rows = [('Files', ('\n' + ' ' * 19).join(names)),
+            ('Bag size', _size(info['size_bytes'])),
             ('Storage id', f'mcap (profile {info["profile"]}, {info["library"]})'),
             ('ROS Distro', info['ros_distro'] or '-'),
             ('Duration', f'{info["duration_s"]:.9f}s'),
@@ -353,8 +365,8 @@ def _repair(args) -> int:
     print(f'recovered {result["messages"]} messages on {len(result["topics"])} topics{span}')
     if result['stopped_at']:
         print(f'the damaged file ended with: {result["stopped_at"]}')
-    if result['original']:
-        print(f'original kept as {result["original"]}')
+    for original in result['originals']:
+        print(f'original kept as {original}')
     return 0
 
 

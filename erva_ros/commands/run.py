@@ -10,6 +10,7 @@ from erva_ros.commands._closed_loop_options import (add_can_log_option, can_log_
 from erva_ros.commands._common import (add_json_option, add_params_option, live_type,
                                        positive_float, print_json, realtime_priority)
 from erva_ros.core import topics
+from erva_ros.core.bag.writer import MIN_SPLIT_SIZE
 from erva_ros.core.errors import CLIError
 
 COMMAND = 'run'
@@ -111,6 +112,7 @@ def add_arguments(parser):
                      help='record the session to a bag under DIR/<UTC time>_<road>/ '
                           '(default: bags)')
     rec.add_argument('--no-record', action='store_true', help='do not record the session')
+    add_bag_split_arguments(parser)
     parser.add_argument('--ecu', choices=('none', 'virtual'), default='none',
                         help='none (default): plant_sim_node closes the loop; virtual: '
                              'hardware-in-the-loop -- the commands go through '
@@ -159,6 +161,41 @@ def add_arguments(parser):
     add_json_option(parser)
 
 
+def add_bag_split_arguments(parser, short: bool = False) -> None:
+    """Add --max-bag-duration and --max-bag-size (``short``: also -d and -b, as ros2 bag's)."""
+    split = parser.add_argument_group(
+        'bag splitting', 'as ros2 bag record: the bag becomes <bag>_0.mcap, <bag>_1.mcap, ... '
+        '(each complete, all listed in metadata.yaml, read as one bag by every erva command); '
+        'the recorder holds a file\'s index in memory until the file is finished')
+    from erva_ros.core.node_params import argparse_kwargs
+    split.add_argument(*(['-d'] if short else []), '--max-bag-duration', default=None,
+                       metavar='S', **argparse_kwargs(
+                           'max_bag_duration_s', 'start the next file once a message is S '
+                           'seconds later than the file\'s first; 0 = one file (default: '
+                           'config/session.yaml, 300)'))
+    split.add_argument(*(['-b'] if short else []), '--max-bag-size', type=_bag_size,
+                       default=None, metavar='BYTES',
+                       help='start the next file once this one holds BYTES; 0 = no limit '
+                            f'(default), else at least {MIN_SPLIT_SIZE}')
+
+
+def bag_split_parameters(args) -> dict:
+    """Return the recorder parameters of --max-bag-duration/--max-bag-size that were given."""
+    given = (('max_bag_duration_s', getattr(args, 'max_bag_duration', None)),
+             ('max_bag_size_bytes', getattr(args, 'max_bag_size', None)))
+    return {name: value for name, value in given if value is not None}
+
+
+def _bag_size(text: str) -> int:
+    """Parse --max-bag-size: 0 or at least MIN_SPLIT_SIZE bytes (argparse type)."""
+    from erva_ros.core.node_params import spec_of
+    size = spec_of('max_bag_size_bytes', 'recorder').parse(text)
+    if 0 < size < MIN_SPLIT_SIZE:
+        raise argparse.ArgumentTypeError(f'{text!r}: 0 (no limit) or at least '
+                                         f'{MIN_SPLIT_SIZE} bytes')
+    return size
+
+
 def _preview(text: str) -> str:
     """Parse ``map:FILE`` into FILE (argparse type)."""
     kind, _, path = text.partition(':')
@@ -190,6 +227,7 @@ def run_config(args, record_dir=None):
                      foxglove=getattr(args, 'foxglove', None),
                      extra_readers=getattr(args, 'extra_readers', 0),
                      force=getattr(args, 'force', False),
+                     recorder_overrides=bag_split_parameters(args),
                      strict=getattr(args, 'strict', False),
                      preview_map=getattr(args, 'preview', None))
 

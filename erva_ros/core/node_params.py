@@ -107,6 +107,13 @@ RECORDER_SPECS: Dict[str, Any] = {
     'flush_period_s': Number(0.01, 60.0, 's', 'close the chunk and hand it to the OS at least '
                              'this often: at most this much is lost if the process is killed'),
     'compression': Choice(('none', 'zstd', 'lz4'), 'MCAP chunk compression'),
+    'max_bag_duration_s': Number(0.0, 366 * 86400.0, 's', 'split the bag: start the next '
+                                 '<bag>_<i>.mcap file once a message is this much later than '
+                                 'the file\'s first (log time), as ros2 bag record '
+                                 '--max-bag-duration; 0 = no limit'),
+    'max_bag_size_bytes': Integer(0, 2 ** 53, 'B', 'split the bag: start the next file once '
+                                  'this one holds this many bytes, as ros2 bag record '
+                                  '--max-bag-size; 0 = no limit, else at least 1024'),
     'fsync': Flag('also fsync the file at every flush (survives power loss)'),
     'diagnostics_period_s': Number(0.1, 60.0, 's', 'period of the recorder status on '
                                    '/diagnostics'),

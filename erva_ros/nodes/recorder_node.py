@@ -6,7 +6,10 @@ with rosbag2 Jazzy's times: log time = reception time (node time under
 ``use_sim_time``), publish time = the publisher's ``source_timestamp``.  A topic's
 channel is created when its first publisher is discovered (or its first message
 arrives), with the QoS its publishers offer and their type hash, as ``ros2 bag record``
-does.  Parameters: config/session.yaml (``bag_dir`` is required).  The loop's
+does.  The bag is split into ``<bag>_<i>.mcap`` files every ``max_bag_duration_s`` (300 s)
+or ``max_bag_size_bytes``, as ``ros2 bag record --max-bag-duration/--max-bag-size``: the
+writer's memory stays bounded in a session of any length (docs/recording.md).
+Parameters: config/session.yaml (``bag_dir`` is required).  The loop's
 publishers keep ``publisher_history_s`` of samples and each subscription here
 ``RECORDER_DEPTH``: a recorder stalled for seconds still gets everything.
 
@@ -35,6 +38,8 @@ from erva_ros.ros.bag_messages import message_class
 from erva_ros.ros.loop_node import LoopNode
 from erva_ros.ros.runtime import run_node
 
+#: How the bag is split: stored in each file's session record.
+SPLIT_PARAMETERS = ('max_bag_duration_s', 'max_bag_size_bytes')
 DISCOVERY_PERIOD_S = 0.1   # rosbag2's default topic polling interval
 #: Reader history of every recorded topic: a stall of the recorder (seconds of 50 Hz topics)
 #: must not overflow it.
@@ -60,7 +65,7 @@ class RecorderNode(LoopNode):
         self._subs: Dict[str, object] = {}
         self._pending: Dict[str, Optional[str]] = {}   # topic -> type (None: from the graph)
         session = recorder_session(p['session_metadata'], self.get_fully_qualified_name(),
-                                   self.bag_dir)
+                                   self.bag_dir, {k: p[k] for k in SPLIT_PARAMETERS})
         self.bag = Recording(p, session, self.report, self._failed)
         if self.bag.ok:
             self.status.set(OK, f'recording to {self.bag_dir}')

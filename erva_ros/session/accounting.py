@@ -155,7 +155,7 @@ def recorder_behind(recorder: Optional[RecorderReport], published: Mapping[str, 
 def check_bag(bag_path: str, published: Mapping[str, Optional[int]],
               status_seqs: Mapping[str, int], window_ns: Optional[Tuple[int, int]] = None,
               session: str = '') -> Dict:
-    """Compare the bag file with what was published; return the per-topic accounting.
+    """Compare the bag (all its files) with what was published; return the per-topic accounting.
 
     ``published`` maps topics to the nodes' final counts (None: unknown, the node's
     final report is missing); ``status_seqs`` maps each node's status name to the highest

@@ -3,7 +3,8 @@
 recorder_node runs as its own process (:mod:`erva_ros.session.processes`), driven by its
 parameters only: the bag directory, the topics, the session metadata (``--custom-data``),
 the MCAP chunk size and compression (``--storage-config-file``, rosbag2_storage_mcap's
-keys), ``use_sim_time``.  The topics, as ``ros2 bag record`` chooses them (rosbag2 Jazzy):
+keys), the split (``-d/--max-bag-duration``, ``-b/--max-bag-size``), ``use_sim_time``.
+The topics, as ``ros2 bag record`` chooses them (rosbag2 Jazzy):
 
 * ``--topics`` are recorded whenever they appear (the recorder subscribes to a topic of
   the erva contract at once and to any other once the graph shows its type);

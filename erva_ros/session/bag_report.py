@@ -176,7 +176,7 @@ def load_session(bag: Bag, namespace: Optional[str] = None) -> SessionData:
                                     contract.ROAD_HEIGHT: lambda: [r.distance_m, r.height_m]
                                     }[name]())
         except wire.MessageRejected as exc:
-            raise BagError(f'{bag.mcap_path}: a {m.type} message on {m.topic} at '
+            raise BagError(f'{bag.path}: a {m.type} message on {m.topic} at '
                            f'{m.log_time_ns} ns does not decode ({exc})') from None
         rows[name].append((row[0], m.log_time_ns, m.publish_time_ns, row[1]))
     model = 'benchmark' if joints == wire.state_joint_names('benchmark') else 'erva'

@@ -82,8 +82,12 @@ def check_record_dir(parent: str) -> None:
 
 
 def start_recorder(session: Session, namespace: str, bag_parent: str, env: Dict[str, str],
-                   log: Callable[[str], None]) -> ChildProcess:
-    """Start recorder_node on a new bag under ``bag_parent``; its ``bag_dir`` and ``topics``."""
+                   log: Callable[[str], None], parameters: Optional[Mapping] = None
+                   ) -> ChildProcess:
+    """Start recorder_node on a new bag under ``bag_parent``; its ``bag_dir`` and ``topics``.
+
+    ``parameters``: recorder parameters of the command line (how the bag is split).
+    """
     from erva_ros.core.bag import session as bag_session
     bag_dir = bag_session.new_bag_dir(bag_parent, session.scenario)
     record = session_topics(session)
@@ -94,7 +98,7 @@ def start_recorder(session: Session, namespace: str, bag_parent: str, env: Dict[
         parameters={'diagnostics_period_s': RECORDER_STATUS_S,
                     'session_id': session.session_id,
                     'realtime_priority': max(0, loop_priority - RECORDER_PRIORITY_BELOW)
-                    if loop_priority > 1 else 0}))
+                    if loop_priority > 1 else 0, **(parameters or {})}))
     argv += topics.clock_remap(namespace)
     proc = ChildProcess(PROCESS, argv, env, os.path.join(session.directory, f'{PROCESS}.log'))
     proc.bag_dir = bag_dir

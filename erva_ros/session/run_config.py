@@ -52,6 +52,7 @@ class RunConfig:
     startup_timeout_s: float = STARTUP_TIMEOUT_S
     live_overrides: Dict[str, Any] = field(default_factory=dict)
     settings_overrides: Dict[str, Any] = field(default_factory=dict)
+    recorder_overrides: Dict[str, Any] = field(default_factory=dict)  # recorder_node params
     session_dir: Optional[str] = None      # where the params file and node logs go
     ecu: str = 'none'                      # 'virtual': the HIL loop (simulated ECU, CAN)
     foxglove: Optional[str] = None         # [HOST:]PORT: serve the session to Foxglove

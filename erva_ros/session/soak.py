@@ -27,13 +27,17 @@ BUSY_LOOP = 'while True: pass'
 
 
 def bag_counts(bag_dir: str) -> Dict[str, int]:
-    """Return the messages per topic of a bag's MCAP file (mcap's reader, no decoding)."""
+    """Return the messages per topic of a bag's MCAP files (mcap's reader, no decoding).
+
+    Every ``.mcap`` file of the directory counts: a split bag's, whether metadata.yaml
+    lists them or not.
+    """
     from mcap.reader import make_reader
-    (name,) = [f for f in os.listdir(bag_dir) if f.endswith('.mcap')]
     counts: Dict[str, int] = {}
-    with open(os.path.join(bag_dir, name), 'rb') as fh:
-        for _, channel, _ in make_reader(fh).iter_messages():
-            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+    for name in sorted(f for f in os.listdir(bag_dir) if f.endswith('.mcap')):
+        with open(os.path.join(bag_dir, name), 'rb') as fh:
+            for _, channel, _ in make_reader(fh).iter_messages():
+                counts[channel.topic] = counts.get(channel.topic, 0) + 1
     return counts
 
 
@@ -81,7 +85,9 @@ def one_run(duration_s: float, record_dir: str, run_args: List[str], rss_every_s
         published[topic] = c['published']
     counts = bag_counts(s['bag']) if s.get('bag') else {}
     lost = {t: n - counts.get(t, 0) for t, n in published.items() if counts.get(t, 0) < n}
-    out.update({'ok': s['ok'], 'errors': s['errors'], 'bag': s.get('bag'),
+    files = (sum(1 for f in os.listdir(s['bag']) if f.endswith('.mcap'))
+             if s.get('bag') else 0)
+    out.update({'ok': s['ok'], 'errors': s['errors'], 'bag': s.get('bag'), 'bag_files': files,
                 'published': sum(published.values()),
                 'in_bag': sum(counts.get(t, 0) for t in published),
                 'lost': sum(lost.values()), 'lost_by_topic': lost,

@@ -118,7 +118,8 @@ class Supervisor:
                 self.cfg, self.session, env, self.log, session_description(self.session))
         if self.recording:
             self.procs[RECORDER] = start_recorder(
-                self.session, self.cfg.namespace, self.cfg.record_dir, env, self.log)
+                self.session, self.cfg.namespace, self.cfg.record_dir, env, self.log,
+                self.cfg.recorder_overrides)
         hil = {}
         if self.session.hil:
             from erva_ros.session.hil_processes import hil_process_specs
@@ -404,7 +405,7 @@ class Supervisor:
             self.errors.append(error)
 
     def _check_recording(self) -> Dict[str, Any]:
-        """Compare the bag file with what every node published; add an error per loss."""
+        """Compare the bag with what every node published; add an error per loss."""
         # Stamps outside `erva run`'s lifetime (realtime), or the simulated span
         # (lock-step), are not the loop's.
         window = self.session.sim_window_ns or (self.t_start_ns, time.time_ns())

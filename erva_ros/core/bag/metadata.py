@@ -14,8 +14,8 @@ Fields, in rosbag2's order (``rosbag2_storage/yaml.hpp``, ``BagMetadata``)::
                                                #   type_description_hash}, message_count}]
       compression_format: ""                   # rosbag2 file/message compression: none
       compression_mode: ""
-      relative_file_paths: [<bag>_0.mcap]
-      files: [{path, starting_time, duration, message_count}]
+      relative_file_paths: [<bag>_0.mcap, <bag>_1.mcap, ...]   # a split bag: several
+      files: [{path, starting_time, duration, message_count}]   # one per file, in order
       custom_data: ~                           # or a map of strings
       ros_distro: jazzy
 
@@ -25,6 +25,7 @@ mapping, without the root key, is stored in the MCAP file as the ``rosbag2`` met
 record (``serialized_metadata``), as the rosbag2 MCAP storage plugin does on close.
 """
 
+import functools
 import json
 import os
 import re
@@ -49,13 +50,25 @@ def topic_entry(name: str, type_name: str, offered_qos: Sequence[Dict], type_has
             'message_count': int(count)}
 
 
-def bag_metadata(file_name: str, topics: Sequence[Dict], start_ns: Optional[int],
-                 end_ns: Optional[int], custom_data: Optional[Mapping[str, str]] = None
-                 ) -> Dict:
-    """Return the BagMetadata mapping of a one-file MCAP bag (times: log time, ns)."""
-    count = sum(int(t['message_count']) for t in topics)
+def file_entry(path: str, start_ns: Optional[int], end_ns: Optional[int], count: int) -> Dict:
+    """Return one ``files`` entry: a file's first log time, its span and its messages."""
     start = int(start_ns) if count and start_ns is not None else 0
     duration = max(0, int(end_ns) - start) if count and end_ns is not None else 0
+    return {'path': path, 'starting_time': {'nanoseconds_since_epoch': start},
+            'duration': {'nanoseconds': duration}, 'message_count': int(count)}
+
+
+def bag_metadata(files: Sequence[Dict], topics: Sequence[Dict],
+                 custom_data: Optional[Mapping[str, str]] = None) -> Dict:
+    """Return the BagMetadata mapping of an MCAP bag of ``files`` (:func:`file_entry`, in order).
+
+    The bag's start and duration span its files' (times: log time, ns), as rosbag2's.
+    """
+    count = sum(int(t['message_count']) for t in topics)
+    spans = [(f['starting_time']['nanoseconds_since_epoch'], f['duration']['nanoseconds'])
+             for f in files if f['message_count']]
+    start = min(s for s, _ in spans) if spans else 0
+    duration = max(s + d for s, d in spans) - start if spans else 0
     custom = {str(k): str(v) for k, v in sorted((custom_data or {}).items())} or None
     return {
         'version': BAG_FORMAT_VERSION,
@@ -66,11 +79,8 @@ def bag_metadata(file_name: str, topics: Sequence[Dict], start_ns: Optional[int]
         'topics_with_message_count': list(topics),
         'compression_format': '',
         'compression_mode': '',
-        'relative_file_paths': [file_name],
-        'files': [{'path': file_name,
-                   'starting_time': {'nanoseconds_since_epoch': start},
-                   'duration': {'nanoseconds': duration},
-                   'message_count': count}],
+        'relative_file_paths': [f['path'] for f in files],
+        'files': list(files),
         'custom_data': custom,
         'ros_distro': ROS_DISTRO,
     }
@@ -95,6 +105,7 @@ def _scalar(value) -> str:
     return json.dumps(text, ensure_ascii=False)  # a JSON string is a YAML double-quoted one
 
 
+@functools.lru_cache(maxsize=256)   # the same names and QoS texts at every split
 def _looks_typed(text: str) -> bool:
     """Return True if YAML would read the plain ``text`` as something other than a string."""
     import yaml
@@ -191,5 +202,5 @@ def read_metadata(bag_dir: str) -> Dict:
     return meta
 
 
-__all__ = ['bag_metadata', 'topic_entry', 'dump_yaml', 'write_metadata', 'read_metadata',
-           'METADATA_FILE', 'BAG_FORMAT_VERSION']
+__all__ = ['bag_metadata', 'file_entry', 'topic_entry', 'dump_yaml', 'write_metadata',
+           'read_metadata', 'METADATA_FILE', 'BAG_FORMAT_VERSION']

@@ -1,15 +1,20 @@
-"""Read a bag: a rosbag2 directory (metadata.yaml + one .mcap file) or a bare .mcap file.
+"""Read a bag: a rosbag2 directory (metadata.yaml + its .mcap files) or a bare .mcap file.
 
-A properly closed file is read through its summary and indexes (messages in log-time
-order).  A file whose writer died (no summary, possibly a torn last chunk) is scanned
-record by record up to the first incomplete or damaged record; everything before it
-is usable, and :attr:`Bag.complete` is False (``erva bag repair`` makes it whole).
+A bag split into ``<bag>_0.mcap``, ``<bag>_1.mcap``, ... (``max_bag_duration_s``,
+``max_bag_size_bytes``) is read as one: its topics, counts and times over all files,
+its messages file after file in log-time order.  A properly closed file is read
+through its summary and indexes.  A file whose writer died (no summary, possibly a
+torn last chunk) is scanned record by record up to the first incomplete or damaged
+record; everything before it is usable, and :attr:`Bag.complete` is False (``erva bag
+repair`` makes it whole).
 Every problem surfaces as one :class:`~erva_ros.core.bag.BagError` line.
 """
 
 from dataclasses import dataclass, field
 import datetime
+import heapq
 import os
+import re
 from typing import Dict, Iterable, Iterator, List, Optional, Tuple
 
 from erva_ros.core.bag import BagError
@@ -91,29 +96,64 @@ def scan_mcap(path: str) -> ScanResult:
     return out
 
 
-def resolve_bag_path(path: str) -> Tuple[Optional[str], str, Optional[Dict]]:
-    """Return (bag directory or None, .mcap path, metadata.yaml mapping or None)."""
+_NUMBERED = re.compile(r'(.+)_(\d+)\.mcap')
+
+
+def _numbered(names: Iterable[str]) -> List[Tuple[str, int, str]]:
+    """Return the ``<prefix>_<i>.mcap`` names of ``names`` as (prefix, i, name), in order."""
+    out = []
+    for name in names:
+        m = _NUMBERED.fullmatch(name)
+        if m:
+            out.append((m.group(1), int(m.group(2)), name))
+    return sorted(out)
+
+
+def dir_files(path: str) -> List[str]:
+    """Return the .mcap files of bag directory ``path`` without metadata.yaml, in order.
+
+    Its one .mcap file, or its ``<bag>_<i>.mcap`` files by number; else a BagError.
+    """
+    names = [f for f in os.listdir(path) if f.endswith('.mcap')]
+    if not names:
+        raise BagError(f'{path}: not a bag directory (no metadata.yaml, no .mcap file)')
+    numbered = _numbered(names)
+    if len(names) == 1:
+        return [os.path.join(path, names[0])]
+    if len(numbered) != len(names) or len({p for p, _, _ in numbered}) != 1:
+        raise BagError(f'{path}: no metadata.yaml and {len(names)} .mcap files that are not '
+                       'the <bag>_<i>.mcap files of one bag')
+    return [os.path.join(path, n) for _, _, n in numbered]
+
+
+def resolve_bag_path(path: str) -> Tuple[Optional[str], List[str], Optional[Dict]]:
+    """Return (bag directory or None, its .mcap paths in order, metadata.yaml or None).
+
+    A bag directory's files are those metadata.yaml lists, then any later file of the
+    same numbering it does not list yet (the one being written when a split bag's
+    recorder died); without metadata.yaml, its one .mcap file or its ``<bag>_<i>.mcap``
+    files by number.
+    """
     if not os.path.exists(path):
         raise BagError(f'{path}: no such file or directory')
     if os.path.isdir(path):
+        names = [f for f in os.listdir(path) if f.endswith('.mcap')]
         if os.path.exists(os.path.join(path, METADATA_FILE)):
             meta = read_metadata(path)
-            files = meta['relative_file_paths']
-            if len(files) != 1:
-                raise BagError(f'{path}: split bags ({len(files)} files) are not supported')
-            mcap_path = os.path.join(path, os.path.basename(files[0]))
-            if not os.path.isfile(mcap_path):
-                raise BagError(f'{path}: metadata.yaml names {files[0]}, which is missing')
-            return path, mcap_path, meta
-        found = sorted(f for f in os.listdir(path) if f.endswith('.mcap'))
-        if not found:
-            raise BagError(f'{path}: not a bag directory (no metadata.yaml, no .mcap file)')
-        if len(found) > 1:
-            raise BagError(f'{path}: no metadata.yaml and {len(found)} .mcap files')
-        return path, os.path.join(path, found[0]), None
+            files = [os.path.basename(f) for f in meta['relative_file_paths']]
+            missing = [f for f in files if not os.path.isfile(os.path.join(path, f))]
+            if missing:
+                raise BagError(f'{path}: metadata.yaml names {", ".join(missing)}, which '
+                               f'{"is" if len(missing) == 1 else "are"} missing')
+            last = _numbered(files[-1:])
+            if last:
+                prefix, index, _ = last[0]
+                files += [name for p, i, name in _numbered(names) if p == prefix and i > index]
+            return path, [os.path.join(path, f) for f in files], meta
+        return path, dir_files(path), None
     if path.endswith(METADATA_FILE):
         return resolve_bag_path(os.path.dirname(path) or '.')
-    return None, path, None
+    return None, [path], None
 
 
 def _check_magic(path: str) -> None:
@@ -126,38 +166,37 @@ def _check_magic(path: str) -> None:
         raise BagError(f'{path}: not an MCAP file' + (' (empty)' if not magic else ''))
 
 
-class Bag:
-    """A bag opened for reading (see module doc)."""
+@dataclass
+class BagFile:
+    """One MCAP file of a bag, read through its summary or (not closed properly) scanned."""
 
-    def __init__(self, path: str):
-        self.path = path
-        self.bag_dir, self.mcap_path, self.metadata_yaml = resolve_bag_path(path)
-        _check_magic(self.mcap_path)
-        self.size_bytes = os.path.getsize(self.mcap_path)
-        self.topics: Dict[str, TopicInfo] = {}
-        self.session: Dict[str, str] = {}
-        self.rosbag2_record: Optional[str] = None
-        self.profile = ''
-        self.library = ''
-        self.complete = False
-        self.stopped_at: Optional[str] = None
-        self.damaged: Optional[str] = None      # set when reading messages failed
-        self.start_ns: Optional[int] = None
-        self.end_ns: Optional[int] = None
-        self.message_count = 0
-        self._scan: Optional[ScanResult] = None
-        self._channels: Dict[int, Tuple[str, str]] = {}
+    path: str
+    size_bytes: int = 0
+    listed: bool = True                 # in metadata.yaml (or there is none)
+    complete: bool = False
+    stopped_at: Optional[str] = None
+    message_count: int = 0
+    start_ns: Optional[int] = None
+    end_ns: Optional[int] = None
+    header: object = None
+    channels: Dict[int, Tuple[object, object, int]] = field(default_factory=dict, repr=False)
+    metadata: List[object] = field(default_factory=list, repr=False)
+    scan: Optional[ScanResult] = field(default=None, repr=False)
+
+    def open(self) -> 'BagFile':
+        _check_magic(self.path)
+        self.size_bytes = os.path.getsize(self.path)
         try:
             self._open_indexed()
         except BagError:
             raise
         except Exception:  # noqa: BLE001 -- no usable summary: fall back to a scan
             self._open_scanned()
+        return self
 
-    # -- opening ---------------------------------------------------------------------------
     def _open_indexed(self) -> None:
         from mcap.reader import make_reader
-        with open(self.mcap_path, 'rb') as fh:
+        with open(self.path, 'rb') as fh:
             fh.seek(-len(MCAP_MAGIC), os.SEEK_END)
             if fh.read() != MCAP_MAGIC:  # torn: the footer cannot be trusted
                 raise ValueError('no trailing magic')
@@ -168,27 +207,25 @@ class Bag:
             if summary is None or summary.statistics is None:
                 raise ValueError('no summary')
             metadata = list(reader.iter_metadata())
-        self.profile, self.library = header.profile, header.library
         stats = summary.statistics
-        for cid, ch in summary.channels.items():
-            self._add_channel(cid, ch, summary.schemas.get(ch.schema_id),
-                              stats.channel_message_counts.get(cid, 0))
-        self._take_metadata(metadata)
+        self.header, self.metadata = header, metadata
+        self.channels = {cid: (ch, summary.schemas.get(ch.schema_id),
+                               stats.channel_message_counts.get(cid, 0))
+                         for cid, ch in summary.channels.items()}
         self.message_count = stats.message_count
         if stats.message_count:
             self.start_ns, self.end_ns = stats.message_start_time, stats.message_end_time
         self.complete = True
 
     def _open_scanned(self) -> None:
-        scan = scan_mcap(self.mcap_path)
-        self._scan = scan
-        self.profile, self.library = scan.header.profile, scan.header.library
+        scan = scan_mcap(self.path)
+        self.scan = scan
         counts: Dict[int, int] = {}
         for m in scan.messages:
             counts[m.channel_id] = counts.get(m.channel_id, 0) + 1
-        for cid, ch in scan.channels.items():
-            self._add_channel(cid, ch, scan.schemas.get(ch.schema_id), counts.get(cid, 0))
-        self._take_metadata(scan.metadata)
+        self.header, self.metadata = scan.header, scan.metadata
+        self.channels = {cid: (ch, scan.schemas.get(ch.schema_id), counts.get(cid, 0))
+                         for cid, ch in scan.channels.items()}
         scan.messages.sort(key=lambda m: m.log_time)
         self.message_count = len(scan.messages)
         if scan.messages:
@@ -196,13 +233,83 @@ class Bag:
         self.complete = False
         self.stopped_at = scan.stopped_at or 'no summary section'
 
-    def _add_channel(self, cid, ch, schema, count) -> None:
+    def messages(self, wanted: Optional[set]) -> Iterator[BagMessage]:
+        """Yield this file's messages of ``wanted`` topics (None: all) in log-time order."""
+        if self.scan is not None:
+            for m in self.scan.messages:
+                ch, schema, _ = self.channels.get(m.channel_id, (None, None, 0))
+                if ch is not None and (wanted is None or ch.topic in wanted):
+                    yield BagMessage(ch.topic, schema.name if schema else '', m.log_time,
+                                     m.publish_time, m.sequence, bytes(m.data))
+            return
+        from mcap.reader import make_reader
+        try:
+            with open(self.path, 'rb') as fh:
+                reader = make_reader(fh)
+                for schema, channel, m in reader.iter_messages(
+                        topics=None if wanted is None else sorted(wanted), log_time_order=True):
+                    yield BagMessage(channel.topic, schema.name if schema else '', m.log_time,
+                                     m.publish_time, m.sequence, bytes(m.data))
+        except BagError:
+            raise
+        except Exception as exc:  # noqa: BLE001 -- a damaged chunk despite a summary
+            raise BagError(f'{self.path}: damaged data ({type(exc).__name__}: {exc}); '
+                           'try "erva bag repair"') from None
+
+    @property
+    def duration_s(self) -> float:
+        if self.start_ns is None or self.end_ns is None:
+            return 0.0
+        return (self.end_ns - self.start_ns) * 1e-9
+
+
+class Bag:
+    """A bag opened for reading: all its files, in order, as one (see module doc)."""
+
+    def __init__(self, path: str):
+        self.path = path
+        self.bag_dir, self.mcap_paths, self.metadata_yaml = resolve_bag_path(path)
+        listed = None
+        if self.metadata_yaml is not None:
+            listed = {os.path.basename(f) for f in self.metadata_yaml['relative_file_paths']}
+        self.files: List[BagFile] = [
+            BagFile(p, listed=listed is None or os.path.basename(p) in listed).open()
+            for p in self.mcap_paths]
+        self.size_bytes = sum(f.size_bytes for f in self.files)
+        self.topics: Dict[str, TopicInfo] = {}
+        self.session: Dict[str, str] = {}
+        self.rosbag2_record: Optional[str] = None
+        first = self.files[0].header
+        self.profile, self.library = first.profile, first.library
+        self.complete = all(f.complete for f in self.files)
+        self.damaged: Optional[str] = None      # set when reading messages failed
+        counted = [f for f in self.files if f.message_count]
+        self.start_ns = min((f.start_ns for f in counted), default=None)
+        self.end_ns = max((f.end_ns for f in counted), default=None)
+        self.message_count = sum(f.message_count for f in self.files)
+        for f in self.files:
+            for ch, schema, count in f.channels.values():
+                self._add_channel(ch, schema, count)
+            self._take_metadata(f.metadata)
+
+    @property
+    def stopped_at(self) -> Optional[str]:
+        """Return why the first file not closed properly could be read only so far."""
+        for f in self.files:
+            if not f.complete:
+                return f.stopped_at
+        return None
+
+    def _add_channel(self, ch, schema, count) -> None:
+        known = self.topics.get(ch.topic)
+        if known is not None:
+            known.count += int(count)
+            return
         type_name = schema.name if schema is not None else ''
         try:
             qos = load_profiles(ch.metadata.get('offered_qos_profiles', ''))
         except Exception:  # noqa: BLE001 -- bad QoS text only loses the QoS
             qos = []
-        self._channels[cid] = (ch.topic, type_name)
         self.topics[ch.topic] = TopicInfo(ch.topic, type_name, int(count), ch.message_encoding,
                                           qos, ch.metadata.get('topic_type_hash', ''))
 
@@ -215,28 +322,32 @@ class Bag:
 
     # -- messages --------------------------------------------------------------------------
     def messages(self, topics: Optional[Iterable[str]] = None) -> Iterator[BagMessage]:
-        """Yield the messages of ``topics`` (default: all) in log-time order."""
+        """Yield the messages of ``topics`` (default: all) in log-time order, file after file.
+
+        Files whose time spans overlap (messages received out of order around a split)
+        are merged; the others are read one at a time.
+        """
         wanted = None if topics is None else set(topics)
-        if self._scan is not None:
-            for m in self._scan.messages:
-                topic, type_name = self._channels.get(m.channel_id, ('', ''))
-                if topic and (wanted is None or topic in wanted):
-                    yield BagMessage(topic, type_name, m.log_time, m.publish_time,
-                                     m.sequence, bytes(m.data))
-            return
-        from mcap.reader import make_reader
-        try:
-            with open(self.mcap_path, 'rb') as fh:
-                reader = make_reader(fh)
-                for schema, channel, m in reader.iter_messages(
-                        topics=None if wanted is None else sorted(wanted), log_time_order=True):
-                    yield BagMessage(channel.topic, schema.name if schema else '', m.log_time,
-                                     m.publish_time, m.sequence, bytes(m.data))
-        except BagError:
-            raise
-        except Exception as exc:  # noqa: BLE001 -- a damaged chunk despite a summary
-            raise BagError(f'{self.mcap_path}: damaged data ({type(exc).__name__}: {exc}); '
-                           'try "erva bag repair"') from None
+        for group in self._overlapping():
+            if len(group) == 1:
+                yield from group[0].messages(wanted)
+            else:
+                yield from heapq.merge(*(f.messages(wanted) for f in group),
+                                       key=lambda m: m.log_time_ns)
+
+    def _overlapping(self) -> List[List[BagFile]]:
+        """Return the files with messages in runs whose time spans overlap (merged)."""
+        groups: List[List[BagFile]] = []
+        end = None
+        for f in self.files:
+            if not f.message_count:
+                continue
+            if groups and f.start_ns <= end:
+                groups[-1].append(f)
+            else:
+                groups.append([f])
+            end = f.end_ns if end is None else max(end, f.end_ns)
+        return groups
 
     # -- summary ---------------------------------------------------------------------------
     @property
@@ -248,9 +359,17 @@ class Bag:
     def warnings(self) -> List[str]:
         """Return what a user should know about this bag (one line each)."""
         out = []
-        if not self.complete:
-            out.append(f'the file was not closed properly ({self.stopped_at}); '
-                       f'{self.message_count} messages are readable; run "erva bag repair"')
+        broken = [f for f in self.files if not f.complete]
+        if broken:
+            which = ('the file' if len(self.files) == 1 else
+                     ', '.join(os.path.basename(f.path) for f in broken))
+            out.append(f'{which} {"was" if len(broken) == 1 else "were"} not closed properly '
+                       f'({self.stopped_at}); {self.message_count} messages are readable; run '
+                       '"erva bag repair"')
+        unlisted = [os.path.basename(f.path) for f in self.files if not f.listed]
+        if unlisted:
+            out.append(f'metadata.yaml does not list {", ".join(unlisted)} (the recorder '
+                       'stopped while writing it): run "erva bag repair"')
         if self.bag_dir is not None and self.metadata_yaml is None:
             out.append('metadata.yaml is missing (ros2 bag play needs it): '
                        'run "erva bag repair"')
@@ -261,11 +380,13 @@ class Bag:
         bad = sorted(t.name for t in self.topics.values() if t.serialization_format != 'cdr')
         if bad:
             out.append(f'topics not in cdr encoding: {", ".join(bad)}')
-        if self.metadata_yaml is not None and self.complete:
+        listed = [f for f in self.files if f.listed]
+        if self.metadata_yaml is not None and all(f.complete for f in listed):
             n = self.metadata_yaml.get('message_count')
-            if n != self.message_count:
-                out.append(f'metadata.yaml counts {n} messages, the MCAP file '
-                           f'{self.message_count}')
+            held = sum(f.message_count for f in listed)
+            if n != held:
+                out.append(f'metadata.yaml counts {n} messages, the MCAP '
+                           f'{"file" if len(listed) == 1 else "files it lists"} {held}')
         return out
 
     def _topic_spans(self) -> Dict[str, Tuple[int, int]]:
@@ -302,7 +423,11 @@ class Bag:
                            'type_hash': t.type_hash})
         meta = self.metadata_yaml or {}
         return {
-            'path': self.path, 'file': self.mcap_path, 'size_bytes': self.size_bytes,
+            'path': self.path, 'size_bytes': self.size_bytes,
+            'files': [{'path': f.path, 'size_bytes': f.size_bytes, 'complete': f.complete,
+                       'message_count': f.message_count, 'start_ns': f.start_ns,
+                       'end_ns': f.end_ns, 'duration_s': round(f.duration_s, 9)}
+                      for f in self.files],
             'storage': 'mcap', 'profile': self.profile, 'library': self.library,
             'ros_distro': meta.get('ros_distro'),
             'bag_format_version': meta.get('version'),
@@ -325,4 +450,5 @@ def open_bag(path: str) -> Bag:
         raise BagError(f'{path}: cannot read bag ({type(exc).__name__}: {exc})') from None
 
 
-__all__ = ['Bag', 'BagMessage', 'TopicInfo', 'open_bag', 'scan_mcap', 'resolve_bag_path']
+__all__ = ['Bag', 'BagFile', 'BagMessage', 'TopicInfo', 'open_bag', 'scan_mcap',
+           'resolve_bag_path', 'dir_files']

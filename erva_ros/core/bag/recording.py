@@ -3,8 +3,9 @@
 :class:`Recording` wraps the :class:`~erva_ros.core.bag.writer.BagWriter` of a session:
 every message taken is counted; the first write error (directory exists, disk full) is
 kept as the recording's error, reported once, and from then on messages are counted as
-lost, never written half; :meth:`close` finishes the file (summary, indexes,
-metadata.yaml).  No ROS inside.
+lost, never written half; the writer splits the bag into files as configured
+(``max_bag_duration_s``, ``max_bag_size_bytes``); :meth:`close` finishes the last file
+(summary, indexes, metadata.yaml).  No ROS inside.
 """
 
 from typing import Any, Callable, Dict, Mapping, Optional
@@ -27,7 +28,9 @@ class Recording:
             self.writer = BagWriter(p['bag_dir'], chunk_size=p['chunk_size'],
                                     compression=p['compression'],
                                     flush_period_s=p['flush_period_s'], fsync=p['fsync'],
-                                    session=session, custom_data=session)
+                                    session=session, custom_data=session,
+                                    max_bag_duration_s=p['max_bag_duration_s'],
+                                    max_bag_size_bytes=p['max_bag_size_bytes'])
         except BagError as exc:
             self.fail(str(exc))
 

@@ -1,62 +1,71 @@
 """Recover a bag whose recorder died: ``erva bag repair DIR`` (like ``ros2 bag reindex``).
 
-A recorder killed with SIGKILL (or a full disk) leaves an MCAP file without summary
-and indexes, perhaps ending inside a chunk, and no metadata.yaml.  Every chunk that
-was flushed is intact; repair copies all readable records (schemas, channels, session
-metadata, messages up to the last complete chunk) into a new, properly closed file in
-the same place, keeps the original as ``<file>.orig`` unless told not to, and writes
-metadata.yaml.  A bag that is complete but lacks metadata.yaml only gets the file.
+A recorder killed with SIGKILL (or a full disk) leaves its last MCAP file without
+summary and indexes, perhaps ending inside a chunk, and a metadata.yaml that does not
+list that file (a split bag: the finished files) or none at all.  Every chunk that was
+flushed is intact; repair copies all readable records of each unfinished file
+(schemas, channels, session metadata, messages up to the last complete chunk) into a
+new, properly closed file in the same place, keeps the original as ``<file>.orig``
+unless told not to, and writes metadata.yaml listing every file.  A bag whose files
+are complete only gets metadata.yaml.
 With ``out_dir`` the repaired bag is a new directory there and the original is not
 touched: the way out when its own disk is full.
 """
 
 import errno
+import functools
 import os
 import shutil
-from typing import Dict, Optional
+from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 
 from erva_ros import __version__
 from erva_ros.core.bag import BagError
 from erva_ros.core.bag import metadata as bag_meta
 from erva_ros.core.bag.qos import load_profiles
-from erva_ros.core.bag.reader import resolve_bag_path, scan_mcap
-from erva_ros.core.bag.writer import PROFILE, ROSBAG2_RECORD
+from erva_ros.core.bag.reader import BagFile, dir_files, resolve_bag_path
+from erva_ros.core.bag.writer import PROFILE, ROSBAG2_RECORD, SESSION_RECORD
 
 
-def _mcap_of(path: str):
-    """Return (bag directory, .mcap path) without trusting a damaged metadata.yaml."""
+def _files_of(path: str) -> Tuple[str, List[str]]:
+    """Return (bag directory, its .mcap paths in order); a damaged metadata.yaml is ignored."""
     try:
-        bag_dir, mcap_path, _ = resolve_bag_path(path)
-        return bag_dir or os.path.dirname(os.path.abspath(mcap_path)), mcap_path
+        bag_dir, paths, _ = resolve_bag_path(path)
+        return bag_dir or os.path.dirname(os.path.abspath(paths[0])), paths
     except BagError:
         if not os.path.isdir(path):
             raise
-        found = sorted(f for f in os.listdir(path) if f.endswith('.mcap'))
-        if len(found) != 1:
-            raise BagError(f'{path}: need exactly one .mcap file to repair, '
-                           f'found {len(found)}') from None
-        return path, os.path.join(path, found[0])
-
-
-def _topics_and_times(scan) -> Dict:
-    counts: Dict[int, int] = {}
-    start: Optional[int] = None
-    end: Optional[int] = None
-    for m in scan.messages:
-        counts[m.channel_id] = counts.get(m.channel_id, 0) + 1
-        start = m.log_time if start is None else min(start, m.log_time)
-        end = m.log_time if end is None else max(end, m.log_time)
-    topics = []
-    for cid, ch in scan.channels.items():
-        schema = scan.schemas.get(ch.schema_id)
         try:
-            qos = load_profiles(ch.metadata.get('offered_qos_profiles', ''))
-        except Exception:  # noqa: BLE001 -- keep the topic, lose its QoS
-            qos = []
-        topics.append(bag_meta.topic_entry(ch.topic, schema.name if schema else '', qos,
-                                           ch.metadata.get('topic_type_hash', ''),
-                                           counts.get(cid, 0), ch.message_encoding))
-    return {'topics': topics, 'start': start, 'end': end}
+            return path, dir_files(path)
+        except BagError:
+            found = [f for f in os.listdir(path) if f.endswith('.mcap')]
+            raise BagError(f'{path}: need one .mcap file or the <bag>_<i>.mcap files of one '
+                           f'bag to repair, found {len(found)} .mcap files') from None
+
+
+def _topics(files: Sequence[BagFile]) -> List[Dict]:
+    """Return the ``topics_with_message_count`` of ``files``: counts summed, in first use."""
+    topics: Dict[str, Dict] = {}
+    for f in files:
+        for ch, schema, count in f.channels.values():
+            entry = topics.get(ch.topic)
+            if entry is not None:
+                entry['message_count'] += int(count)
+                continue
+            try:
+                qos = load_profiles(ch.metadata.get('offered_qos_profiles', ''))
+            except Exception:  # noqa: BLE001 -- keep the topic, lose its QoS
+                qos = []
+            topics[ch.topic] = bag_meta.topic_entry(
+                ch.topic, schema.name if schema else '', qos,
+                ch.metadata.get('topic_type_hash', ''), count, ch.message_encoding)
+    return list(topics.values())
+
+
+def _metadata(files: Sequence[BagFile], custom: Mapping[str, str]) -> Dict:
+    """Return the BagMetadata of ``files`` (read or scanned), in their order."""
+    entries = [bag_meta.file_entry(os.path.basename(f.path), f.start_ns, f.end_ns,
+                                   f.message_count) for f in files]
+    return bag_meta.bag_metadata(entries, _topics(files), custom or None)
 
 
 def _out_dir(out_dir: str, bag_dir: str) -> str:
@@ -77,70 +86,98 @@ def _out_dir(out_dir: str, bag_dir: str) -> str:
 def repair_bag(path: str, keep_original: bool = True, out_dir: Optional[str] = None) -> Dict:
     """Make ``path`` a complete, indexed bag with metadata.yaml; return what was done.
 
-    ``out_dir``: write the repaired bag (its MCAP file, same name, and metadata.yaml) to
-    that new or empty directory instead, leaving ``path`` as it is.
+    Every file not closed properly (in a split bag: the one being written when the
+    recorder died) is rewritten; metadata.yaml then lists all files.  ``out_dir``: write
+    the repaired bag (its MCAP files, same names, and metadata.yaml) to that new or empty
+    directory instead, leaving ``path`` as it is.
     """
+    bag_dir, paths = _files_of(path)
+    target = bag_dir if out_dir is None else _out_dir(out_dir, bag_dir)
+    files = [BagFile(p).open() for p in paths]
+    custom: Dict[str, str] = {}
+    for f in files:
+        for rec in f.metadata:
+            if rec.name == SESSION_RECORD and not custom:
+                custom.update(rec.metadata)
+    meta = _metadata(files, custom)
+    broken = [f for f in files if not f.complete]
+    result = {'bag': target, 'files': [os.path.join(target, os.path.basename(p))
+                                       for p in paths],
+              'messages': meta['message_count'],
+              'topics': {t['topic_metadata']['name']: t['message_count']
+                         for t in meta['topics_with_message_count']},
+              'was_complete': not broken,
+              'stopped_at': '; '.join(f.stopped_at for f in broken) or None,
+              'repaired': [os.path.basename(f.path) for f in broken],
+              'start_ns': meta['starting_time']['nanoseconds_since_epoch'] if meta['message_count']
+              else None,
+              'end_ns': (meta['starting_time']['nanoseconds_since_epoch']
+                         + meta['duration']['nanoseconds']) if meta['message_count'] else None,
+              'originals': [], 'source': bag_dir}
+    for i, f in enumerate(files):
+        target_file = os.path.join(target, os.path.basename(f.path))
+        if f.complete:
+            if out_dir is not None:
+                _write(target, functools.partial(shutil.copyfile, f.path, target_file),
+                       target_file)
+            continue
+        # Its rosbag2 record describes the bag up to this file, as the recorder's would.
+        record = meta if i == len(files) - 1 else _metadata(files[:i + 1], custom)
+        _write(target, functools.partial(_rewrite, f, target_file, record,
+                                         keep_original and out_dir is None, result),
+               target_file + '.repair')
+    _write(target, lambda: bag_meta.write_metadata(target, meta))
+    result['action'] = _action(len(files), result['repaired'], out_dir is not None)
+    return result
+
+
+def _action(n_files: int, repaired: List[str], elsewhere: bool) -> str:
+    """Return what repair did, in words."""
+    if n_files == 1:
+        if repaired:
+            return 'rewrote the MCAP file with summary and indexes, wrote metadata.yaml'
+        return ('copied the MCAP file (it was complete), wrote metadata.yaml' if elsewhere
+                else 'wrote metadata.yaml (the MCAP file was complete)')
+    if repaired:
+        return (f'rewrote {", ".join(repaired)} with summary and indexes, wrote metadata.yaml '
+                f'of {n_files} files')
+    return (f'copied the {n_files} MCAP files (they were complete), wrote metadata.yaml'
+            if elsewhere else f'wrote metadata.yaml (the {n_files} MCAP files were complete)')
+
+
+def _rewrite(part: BagFile, target_file: str, meta: Dict, keep_original: bool,
+             result: Dict) -> None:
+    """Copy every readable record of the scanned ``part`` into a finished ``target_file``."""
     from mcap.writer import CompressionType, Writer
 
-    bag_dir, mcap_path = _mcap_of(path)
-    target = bag_dir if out_dir is None else _out_dir(out_dir, bag_dir)
-    scan = scan_mcap(mcap_path)
-    file_name = os.path.basename(mcap_path)
-    target_file = os.path.join(target, file_name)
-    info = _topics_and_times(scan)
-    custom = {}
-    for rec in scan.metadata:
-        if rec.name == 'erva_session':
-            custom.update({k: v for k, v in rec.metadata.items()})
-    meta = bag_meta.bag_metadata(file_name, info['topics'], info['start'], info['end'],
-                                 custom or None)
-    result = {'bag': target, 'file': target_file, 'messages': len(scan.messages),
-              'topics': {t['topic_metadata']['name']: t['message_count']
-                         for t in info['topics']},
-              'was_complete': scan.complete, 'stopped_at': scan.stopped_at,
-              'start_ns': info['start'], 'end_ns': info['end'], 'original': None,
-              'source': bag_dir}
-    if scan.complete:
-        if out_dir is not None:
-            _write(target, lambda: shutil.copyfile(mcap_path, target_file), target_file)
-        _write(target, lambda: bag_meta.write_metadata(target, meta))
-        result['action'] = ('wrote metadata.yaml (the MCAP file was complete)' if out_dir is None
-                            else 'copied the MCAP file (it was complete), wrote metadata.yaml')
-        return result
-
+    scan = part.scan
     tmp = target_file + '.repair'
-
-    def rewrite() -> None:
-        with open(tmp, 'wb') as fh:
-            out = Writer(fh, compression=CompressionType.NONE)
-            header = scan.header
-            out.start(profile=header.profile or PROFILE,
-                      library=f'{header.library}; repaired by erva_ros/{__version__}')
-            for rec in scan.metadata:
-                if rec.name != ROSBAG2_RECORD:
-                    out.add_metadata(rec.name, dict(rec.metadata))
-            schema_ids = {sid: out.register_schema(s.name, s.encoding, s.data)
-                          for sid, s in sorted(scan.schemas.items())}
-            channel_ids = {cid: out.register_channel(c.topic, c.message_encoding,
-                                                     schema_ids.get(c.schema_id, 0),
-                                                     dict(c.metadata))
-                           for cid, c in sorted(scan.channels.items())}
-            for m in scan.messages:
-                if m.channel_id in channel_ids:
-                    out.add_message(channel_ids[m.channel_id], m.log_time, m.data,
-                                    m.publish_time, m.sequence)
-            out.add_metadata(ROSBAG2_RECORD,
-                             {'serialized_metadata': bag_meta.dump_yaml(meta, False)})
-            out.finish()
-        if out_dir is None and keep_original:
-            result['original'] = mcap_path + '.orig'
-            os.replace(mcap_path, result['original'])
-        os.replace(tmp, target_file)
-
-    _write(target, rewrite, tmp)
-    _write(target, lambda: bag_meta.write_metadata(target, meta))
-    result['action'] = 'rewrote the MCAP file with summary and indexes, wrote metadata.yaml'
-    return result
+    with open(tmp, 'wb') as fh:
+        out = Writer(fh, compression=CompressionType.NONE)
+        header = scan.header
+        out.start(profile=header.profile or PROFILE,
+                  library=f'{header.library}; repaired by erva_ros/{__version__}')
+        for rec in scan.metadata:
+            if rec.name != ROSBAG2_RECORD:
+                out.add_metadata(rec.name, dict(rec.metadata))
+        schema_ids = {sid: out.register_schema(s.name, s.encoding, s.data)
+                      for sid, s in sorted(scan.schemas.items())}
+        channel_ids = {cid: out.register_channel(c.topic, c.message_encoding,
+                                                 schema_ids.get(c.schema_id, 0),
+                                                 dict(c.metadata))
+                       for cid, c in sorted(scan.channels.items())}
+        for m in scan.messages:
+            if m.channel_id in channel_ids:
+                out.add_message(channel_ids[m.channel_id], m.log_time, m.data,
+                                m.publish_time, m.sequence)
+        out.add_metadata(ROSBAG2_RECORD,
+                         {'serialized_metadata': bag_meta.dump_yaml(meta, False)})
+        out.finish()
+    if keep_original:
+        original = part.path + '.orig'
+        os.replace(part.path, original)
+        result['originals'].append(original)
+    os.replace(tmp, target_file)
 
 
 def _write(target: str, write, partial: Optional[str] = None) -> None:

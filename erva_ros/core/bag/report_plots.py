@@ -35,7 +35,7 @@ def write_all(data, out_dir: str, timing: bool = True, actual=None) -> List[str]
     (session/bag_report.py actual_signals).
     """
     t0 = data.t0_ns
-    title = os.path.basename(os.path.normpath(data.bag.bag_dir or data.bag.mcap_path))
+    title = os.path.basename(os.path.normpath(data.bag.bag_dir or data.bag.mcap_paths[0]))
     paths = []
 
     fig, ax = subplots(figsize=(8, 3.2))

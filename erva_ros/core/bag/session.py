@@ -97,12 +97,13 @@ def session_metadata(scenario: str, parameters: Optional[Mapping[str, Any]] = No
     return {str(k): _text(v) for k, v in meta.items()}
 
 
-def recorder_session(text: str, recorder: str, bag_dir: str) -> Dict[str, str]:
+def recorder_session(text: str, recorder: str, bag_dir: str,
+                     extra: Optional[Mapping[str, Any]] = None) -> Dict[str, str]:
     """Return the session record of a recorder given ``session_metadata`` = ``text`` (JSON).
 
-    The recorder adds what it knows (version, git commit, host, start time, itself and
-    the bag); the caller's JSON object wins for the keys only it knows.  ParamError
-    (one line) if ``text`` is not a JSON object.
+    The recorder adds what it knows (version, git commit, host, start time, itself, the
+    bag and ``extra``, e.g. how it splits the bag); the caller's JSON object wins for the
+    keys only it knows.  ParamError (one line) if ``text`` is not a JSON object.
     """
     import json
     from erva_ros.core.params import ParamError
@@ -113,7 +114,7 @@ def recorder_session(text: str, recorder: str, bag_dir: str) -> Dict[str, str]:
     if not isinstance(given, dict):
         raise ParamError('parameter session_metadata must be a JSON object')
     base = session_metadata(str(given.get('scenario', '')),
-                            extra={'recorder': recorder, 'bag_dir': bag_dir})
+                            extra={'recorder': recorder, 'bag_dir': bag_dir, **(extra or {})})
     for key in ('parameters', 'controller', 'seed', 'command'):
         base.pop(key, None)  # only the caller knows these
     base.update({str(k): v if isinstance(v, str) else json.dumps(v, sort_keys=True)

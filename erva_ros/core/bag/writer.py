@@ -1,6 +1,6 @@
-"""rosbag2-compatible MCAP writer: one bag directory with ``<name>_0.mcap`` and metadata.yaml.
+"""rosbag2-compatible MCAP writer: a bag directory of ``<name>_<i>.mcap`` files and metadata.yaml.
 
-The file follows the rosbag2 MCAP storage plugin (``rosbag2_storage_mcap``, Jazzy):
+The files follow the rosbag2 MCAP storage plugin (``rosbag2_storage_mcap``, Jazzy):
 
 * header profile ``ros2``; chunked, uncompressed by default (rosbag2's default; zstd/lz4
   chunk compression optional), message indexes, chunk indexes, statistics and summary
@@ -11,14 +11,26 @@ The file follows the rosbag2 MCAP storage plugin (``rosbag2_storage_mcap``, Jazz
   (YAML string, :mod:`erva_ros.core.bag.qos`) and ``topic_type_hash`` (RIHS01);
 * messages: log time = receive time, publish time = the publisher's send time (DDS
   source timestamp), both in ns since the epoch (or sim time), as rosbag2 records them;
-* on close a ``rosbag2`` metadata record (``serialized_metadata``) and ``metadata.yaml``.
+* on closing a file a ``rosbag2`` metadata record (``serialized_metadata``: the bag so
+  far), and metadata.yaml.
+
+Splitting, as ``ros2 bag record --max-bag-duration/--max-bag-size`` (rosbag2's
+SequentialWriter): before a message is written, if the open file already holds
+``max_bag_size_bytes`` or the message's log time is more than ``max_bag_duration_s``
+after the file's first message, the file is finished and ``<bag>_<i+1>.mcap`` started
+with the same channels and session record; metadata.yaml is rewritten then, listing the
+finished files.  Each file's summary (one chunk index per chunk, ~1 KB each in the
+``mcap`` writer) is held in memory only until that file is finished: splitting bounds
+the writer's memory in a long session.
 
 Crash safety: the chunk in progress is closed and handed to the OS whenever it
 reaches ``chunk_size`` bytes or ``flush_period_s`` has passed, so a killed recorder
 loses at most that much; the session's own metadata record (``erva_session``) is
-written first of all.  ``erva bag repair`` rebuilds index and metadata.yaml.
+written first of all in every file.  ``erva bag repair`` finishes the last file and
+rebuilds metadata.yaml.
 """
 
+from array import array
 import os
 import time
 from typing import Callable, Dict, List, Mapping, Optional, Sequence
@@ -32,6 +44,8 @@ from erva_ros.core.bag.schemas import message_definition, type_description_hash
 #: libmcap's default chunk size, which rosbag2 keeps (bytes).
 DEFAULT_CHUNK_SIZE = 768 * 1024
 DEFAULT_FLUSH_PERIOD_S = 1.0
+#: Smallest max_bag_size_bytes (rosbag2_storage_mcap's minimum split file size).
+MIN_SPLIT_SIZE = 1024
 COMPRESSIONS = ('none', 'zstd', 'lz4')
 #: MCAP metadata record with the session description (scenario, parameters, ...).
 SESSION_RECORD = 'erva_session'
@@ -67,30 +81,41 @@ class BagWriter:
                  compression: str = 'none', flush_period_s: float = DEFAULT_FLUSH_PERIOD_S,
                  fsync: bool = False, session: Optional[Mapping[str, str]] = None,
                  custom_data: Optional[Mapping[str, str]] = None,
+                 max_bag_duration_s: float = 0.0, max_bag_size_bytes: int = 0,
                  clock: Callable[[], float] = time.monotonic):
-        from mcap.writer import CompressionType, LIBRARY_IDENTIFIER, Writer
-
         if compression not in COMPRESSIONS:
             raise BagError(f'compression {compression!r}: choose from {", ".join(COMPRESSIONS)}')
         if chunk_size < 1024:
             raise BagError(f'chunk_size {chunk_size} B is below 1024 B')
+        if not max_bag_duration_s >= 0:
+            raise BagError(f'max_bag_duration_s {max_bag_duration_s} is negative (0: no limit)')
+        if max_bag_size_bytes and not max_bag_size_bytes >= MIN_SPLIT_SIZE:
+            raise BagError(f'max_bag_size_bytes {max_bag_size_bytes} B is below '
+                           f'{MIN_SPLIT_SIZE} B (0: no limit)')
         self.bag_dir = os.path.abspath(bag_dir)
-        self.file_name = os.path.basename(self.bag_dir.rstrip(os.sep)) + '_0.mcap'
-        self.file_path = os.path.join(self.bag_dir, self.file_name)
+        self.bag_name = os.path.basename(self.bag_dir.rstrip(os.sep))
         self.chunk_size = int(chunk_size)
+        self.compression = compression
         self.flush_period_s = float(flush_period_s)
+        self.max_bag_duration_ns = int(round(float(max_bag_duration_s) * 1e9))
+        self.max_bag_size_bytes = int(max_bag_size_bytes)
         self.fsync = bool(fsync)
+        self.session = {str(k): str(v) for k, v in (session or {}).items()}
         self.custom_data = dict(custom_data or {})
         self.error: Optional[str] = None
         self.closed = False
         self.flushes = 0
         self._clock = clock
         self._topics: Dict[str, _Topic] = {}
-        self._schemas: Dict[str, int] = {}
-        self._chunk_bytes = 0
         self._last_flush = clock()
         self._start_ns: Optional[int] = None
         self._end_ns: Optional[int] = None
+        # Per finished file: first log time, last log time, messages (3 int64 each: a
+        # week of 5-minute files is 48 KB); and their bytes.
+        self._finished = array('q')
+        self._finished_bytes = 0
+        self._fh = None
+        self._closed_meta: Optional[Dict] = None
 
         if os.path.lexists(self.bag_dir):
             raise BagError(f'bag directory {bag_dir} already exists')
@@ -102,20 +127,105 @@ class BagWriter:
                 raise BagError(f'bag directory {bag_dir} already exists') from None
             raise BagError(f'cannot create bag directory {bag_dir}: '
                            f'{exc.strerror or exc}') from None
+        self._open_file()
+
+    # -- files -------------------------------------------------------------------------------
+    def _open_file(self) -> None:
+        """Start file ``<bag>_<i>.mcap``: header, session record, every known channel."""
+        from mcap.writer import CompressionType, LIBRARY_IDENTIFIER, Writer
+
+        self.file_name = f'{self.bag_name}_{len(self._finished) // 3}.mcap'
+        self.file_path = os.path.join(self.bag_dir, self.file_name)
+        self._file_start_ns: Optional[int] = None
+        self._file_end_ns: Optional[int] = None
+        self._file_count = 0
+        self._file_bytes = 0       # what the file held at its last flush
+        self._chunk_bytes = 0
+        self._schemas: Dict[str, int] = {}
         try:
             self._fh = open(self.file_path, 'xb')
             kind = {'none': CompressionType.NONE, 'zstd': CompressionType.ZSTD,
-                    'lz4': CompressionType.LZ4}[compression]
+                    'lz4': CompressionType.LZ4}[self.compression]
             # Chunks are closed here (chunk_size, flush period), never by the library.
             self._mcap = Writer(self._fh, chunk_size=2 ** 62, compression=kind)
             self._mcap.start(profile=PROFILE,
                              library=f'{LIBRARY_IDENTIFIER}; erva_ros/{__version__}')
-            if session:
-                self._mcap.add_metadata(SESSION_RECORD, {str(k): str(v)
-                                                         for k, v in session.items()})
+            if self.session:
+                self._mcap.add_metadata(SESSION_RECORD, self.session)
+            for topic in self._topics.values():
+                self._register(topic)
             self._fh.flush()
+            self._file_bytes = self._fh.tell()
         except OSError as exc:
             self._fail(exc)
+
+    def _register(self, topic: _Topic) -> None:
+        """Create ``topic``'s channel (and its type's schema, once per file) in this file."""
+        schema_id = self._schemas.get(topic.type)
+        if schema_id is None:
+            encoding, text = message_definition(topic.type)
+            schema_id = self._mcap.register_schema(topic.type, encoding, text.encode())
+            self._schemas[topic.type] = schema_id
+        topic.channel_id = self._mcap.register_channel(
+            topic.name, MESSAGE_ENCODING, schema_id,
+            {'offered_qos_profiles': dump_profiles(topic.offered_qos),
+             'topic_type_hash': topic.type_hash})
+
+    def _finish_file(self) -> Dict:
+        """Finish the current file (its rosbag2 record, summary, indexes); return the metadata.
+
+        The metadata describes the bag up to and including this file.  The file's writer
+        (its chunk indexes) is let go.
+        """
+        self._check()
+        meta = self.metadata()
+        try:
+            self._mcap.add_metadata(ROSBAG2_RECORD,
+                                    {'serialized_metadata': bag_meta.dump_yaml(meta, False)})
+            self._mcap.finish()
+            self._fh.flush()
+            if self.fsync:
+                os.fsync(self._fh.fileno())
+            size = self._fh.tell()
+            self._fh.close()
+        except OSError as exc:
+            self._fail(exc)
+        self._mcap = None
+        self._finished.extend((self._file_start_ns or 0, self._file_end_ns or 0,
+                               self._file_count))
+        self._finished_bytes += size
+        return meta
+
+    def split(self) -> None:
+        """Finish the current file, write metadata.yaml of the finished files, start the next.
+
+        As ``ros2 bag record --max-bag-duration/--max-bag-size``: the next file is
+        ``<bag>_<i+1>.mcap`` with the same channels and session record.
+        """
+        meta = self._finish_file()
+        self.closed = True      # between two files: nothing open
+        try:
+            bag_meta.write_metadata(self.bag_dir, meta)
+        except BagError as exc:
+            self.error = str(exc)
+            raise
+        self.closed = False
+        self._open_file()
+
+    def _split_due(self, log_time_ns: int) -> bool:
+        """Return True if the next message, at ``log_time_ns``, belongs in a new file.
+
+        rosbag2's rule (SequentialWriter::should_split_bagfile): the file already holds
+        max_bag_size bytes (here: with its open chunk), or the message is more than
+        max_bag_duration after the file's first one (log times).
+        """
+        if not self._file_count:
+            return False
+        if (self.max_bag_size_bytes
+                and self._file_bytes + self._chunk_bytes >= self.max_bag_size_bytes):
+            return True
+        return bool(self.max_bag_duration_ns
+                    and log_time_ns - self._file_start_ns > self.max_bag_duration_ns)
 
     # -- topics and messages ---------------------------------------------------------------
     def has_topic(self, name: str) -> bool:
@@ -133,35 +243,35 @@ class BagWriter:
             return
         if type_hash is None:
             type_hash = type_description_hash(type_name)
+        topic = _Topic(name, type_name, offered_qos, type_hash, 0)
         try:
-            schema_id = self._schemas.get(type_name)
-            if schema_id is None:
-                encoding, text = message_definition(type_name)
-                schema_id = self._mcap.register_schema(type_name, encoding, text.encode())
-                self._schemas[type_name] = schema_id
-            channel_id = self._mcap.register_channel(
-                name, MESSAGE_ENCODING, schema_id,
-                {'offered_qos_profiles': dump_profiles(offered_qos),
-                 'topic_type_hash': type_hash})
+            self._register(topic)
         except OSError as exc:
             self._fail(exc)
-        self._topics[name] = _Topic(name, type_name, offered_qos, type_hash, channel_id)
+        self._topics[name] = topic
 
     def write(self, topic: str, data: bytes, log_time_ns: int,
               publish_time_ns: Optional[int] = None, sequence: int = 0) -> None:
-        """Append one CDR message of a created topic (times in ns)."""
+        """Append one CDR message of a created topic (times in ns); split first when due."""
         self._check()
         entry = self._topics.get(topic)
         if entry is None:
             raise BagError(f'topic {topic} was not created in {self.file_path}')
         log_time_ns = int(log_time_ns)
         publish_time_ns = log_time_ns if publish_time_ns is None else int(publish_time_ns)
+        if self._split_due(log_time_ns):
+            self.split()
         try:
             self._mcap.add_message(entry.channel_id, log_time_ns, data, publish_time_ns,
                                    int(sequence) & 0xFFFFFFFF)
         except OSError as exc:
             self._fail(exc)
         entry.count += 1
+        self._file_count += 1
+        if self._file_start_ns is None or log_time_ns < self._file_start_ns:
+            self._file_start_ns = log_time_ns
+        if self._file_end_ns is None or log_time_ns > self._file_end_ns:
+            self._file_end_ns = log_time_ns
         if self._start_ns is None or log_time_ns < self._start_ns:
             self._start_ns = log_time_ns
         if self._end_ns is None or log_time_ns > self._end_ns:
@@ -186,6 +296,7 @@ class BagWriter:
             self._mcap.flush()
             if self.fsync:
                 os.fsync(self._fh.fileno())
+            self._file_bytes = self._fh.tell()
         except OSError as exc:
             self._fail(exc)
         self._chunk_bytes = 0
@@ -193,23 +304,14 @@ class BagWriter:
         self.flushes += 1
 
     def close(self) -> Dict:
-        """Finish the MCAP file (summary, indexes) and write metadata.yaml; return it."""
+        """Finish the last file (summary, indexes) and write metadata.yaml; return it."""
         if self.closed:
-            return self.metadata()
-        self._check()
-        meta = self.metadata()
-        try:
-            self._mcap.add_metadata(ROSBAG2_RECORD,
-                                    {'serialized_metadata': bag_meta.dump_yaml(meta, False)})
-            self._mcap.finish()
-            self._fh.flush()
-            if self.fsync:
-                os.fsync(self._fh.fileno())
-            self._fh.close()
-        except OSError as exc:
-            self._fail(exc)
+            return self._closed_meta or self.metadata()
+        meta = self._finish_file()
         self.closed = True
+        self._fh = None
         bag_meta.write_metadata(self.bag_dir, meta)
+        self._closed_meta = meta
         return meta
 
     def abort(self) -> None:
@@ -220,6 +322,7 @@ class BagWriter:
                 self._fh.close()
             except OSError:
                 pass
+            self._mcap = None
 
     # -- state -------------------------------------------------------------------------------
     @property
@@ -231,21 +334,33 @@ class BagWriter:
         return {name: t.count for name, t in self._topics.items()}
 
     @property
+    def file_count(self) -> int:
+        """Return the number of files started so far (finished ones and the open one)."""
+        return len(self._finished) // 3 + (0 if self.closed else 1)
+
+    @property
     def bytes_written(self) -> int:
-        try:
-            return self._fh.tell()
-        except (OSError, ValueError):
-            return 0
+        """Return the bytes of all files so far (the open one's up to its last flush)."""
+        return self._finished_bytes + (0 if self.closed else self._file_bytes)
 
     def topics(self) -> List[Dict]:
         """Return the ``topics_with_message_count`` entries of metadata.yaml."""
         return [bag_meta.topic_entry(t.name, t.type, t.offered_qos, t.type_hash, t.count)
                 for t in self._topics.values()]
 
+    def files(self) -> List[Dict]:
+        """Return the ``files`` entries of metadata.yaml: the finished files and the open one."""
+        done = self._finished
+        out = [bag_meta.file_entry(f'{self.bag_name}_{i // 3}.mcap', done[i], done[i + 1],
+                                   done[i + 2]) for i in range(0, len(done), 3)]
+        if not self.closed:
+            out.append(bag_meta.file_entry(self.file_name, self._file_start_ns,
+                                           self._file_end_ns, self._file_count))
+        return out
+
     def metadata(self) -> Dict:
         """Return the BagMetadata mapping of what has been written so far."""
-        return bag_meta.bag_metadata(self.file_name, self.topics(), self._start_ns,
-                                     self._end_ns, self.custom_data)
+        return bag_meta.bag_metadata(self.files(), self.topics(), self.custom_data)
 
     def _check(self) -> None:
         if self.error:
