@@ -263,6 +263,25 @@ class BagFile:
         return (self.end_ns - self.start_ns) * 1e-9
 
 
+def topics_of(files: Iterable[BagFile]) -> Dict[str, TopicInfo]:
+    """Return the topics of ``files`` by name, in first use, their counts summed."""
+    topics: Dict[str, TopicInfo] = {}
+    for f in files:
+        for ch, schema, count in f.channels.values():
+            known = topics.get(ch.topic)
+            if known is not None:
+                known.count += int(count)
+                continue
+            try:
+                qos = load_profiles(ch.metadata.get('offered_qos_profiles', ''))
+            except Exception:  # noqa: BLE001 -- bad QoS text only loses the QoS
+                qos = []
+            topics[ch.topic] = TopicInfo(ch.topic, schema.name if schema is not None else '',
+                                         int(count), ch.message_encoding, qos,
+                                         ch.metadata.get('topic_type_hash', ''))
+    return topics
+
+
 class Bag:
     """A bag opened for reading: all its files, in order, as one (see module doc)."""
 
@@ -276,7 +295,6 @@ class Bag:
             BagFile(p, listed=listed is None or os.path.basename(p) in listed).open()
             for p in self.mcap_paths]
         self.size_bytes = sum(f.size_bytes for f in self.files)
-        self.topics: Dict[str, TopicInfo] = {}
         self.session: Dict[str, str] = {}
         self.rosbag2_record: Optional[str] = None
         first = self.files[0].header
@@ -287,9 +305,8 @@ class Bag:
         self.start_ns = min((f.start_ns for f in counted), default=None)
         self.end_ns = max((f.end_ns for f in counted), default=None)
         self.message_count = sum(f.message_count for f in self.files)
+        self.topics = topics_of(self.files)
         for f in self.files:
-            for ch, schema, count in f.channels.values():
-                self._add_channel(ch, schema, count)
             self._take_metadata(f.metadata)
 
     @property
@@ -299,19 +316,6 @@ class Bag:
             if not f.complete:
                 return f.stopped_at
         return None
-
-    def _add_channel(self, ch, schema, count) -> None:
-        known = self.topics.get(ch.topic)
-        if known is not None:
-            known.count += int(count)
-            return
-        type_name = schema.name if schema is not None else ''
-        try:
-            qos = load_profiles(ch.metadata.get('offered_qos_profiles', ''))
-        except Exception:  # noqa: BLE001 -- bad QoS text only loses the QoS
-            qos = []
-        self.topics[ch.topic] = TopicInfo(ch.topic, type_name, int(count), ch.message_encoding,
-                                          qos, ch.metadata.get('topic_type_hash', ''))
 
     def _take_metadata(self, records) -> None:
         for rec in records:
@@ -451,4 +455,4 @@ def open_bag(path: str) -> Bag:
 
 
 __all__ = ['Bag', 'BagFile', 'BagMessage', 'TopicInfo', 'open_bag', 'scan_mcap',
-           'resolve_bag_path', 'dir_files']
+           'resolve_bag_path', 'dir_files', 'topics_of']

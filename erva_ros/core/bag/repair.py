@@ -21,8 +21,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 from erva_ros import __version__
 from erva_ros.core.bag import BagError
 from erva_ros.core.bag import metadata as bag_meta
-from erva_ros.core.bag.qos import load_profiles
-from erva_ros.core.bag.reader import BagFile, dir_files, resolve_bag_path
+from erva_ros.core.bag.reader import BagFile, dir_files, resolve_bag_path, topics_of
 from erva_ros.core.bag.writer import PROFILE, ROSBAG2_RECORD, SESSION_RECORD
 
 
@@ -44,21 +43,8 @@ def _files_of(path: str) -> Tuple[str, List[str]]:
 
 def _topics(files: Sequence[BagFile]) -> List[Dict]:
     """Return the ``topics_with_message_count`` of ``files``: counts summed, in first use."""
-    topics: Dict[str, Dict] = {}
-    for f in files:
-        for ch, schema, count in f.channels.values():
-            entry = topics.get(ch.topic)
-            if entry is not None:
-                entry['message_count'] += int(count)
-                continue
-            try:
-                qos = load_profiles(ch.metadata.get('offered_qos_profiles', ''))
-            except Exception:  # noqa: BLE001 -- keep the topic, lose its QoS
-                qos = []
-            topics[ch.topic] = bag_meta.topic_entry(
-                ch.topic, schema.name if schema else '', qos,
-                ch.metadata.get('topic_type_hash', ''), count, ch.message_encoding)
-    return list(topics.values())
+    return [bag_meta.topic_entry(t.name, t.type, t.offered_qos, t.type_hash, t.count,
+                                 t.serialization_format) for t in topics_of(files).values()]
 
 
 def _metadata(files: Sequence[BagFile], custom: Mapping[str, str]) -> Dict:
