@@ -49,7 +49,8 @@ def _drive(mode, arrival_ns, delay=D):
             loop.decide()
         xs.append(x)
         us.append(res.damping_cmd)
-        step, = loop.on_height(stamp + TS_NS, float(road.height(t_k + TS)))
+        # (k + 1)·Ts as the offline loop: t_k + Ts can differ from it in the last bit
+        step, = loop.on_height(stamp + TS_NS, float(road.height((k + 1) * TS)))
         x = step.x_next
     loop.fill()
     return np.array(xs), np.array(us), loop.report

@@ -15,7 +15,9 @@ def test_a_live_lockstep_session_reevaluates_to_its_recorded_commands(erva, tmp_
     again = erva('replay', bag, '--reevaluate', '--json', timeout=400)
     result = json.loads(again.stdout)
     assert again.returncode == 0 and result['identical'], result
-    assert result['commands'] >= 15 and result['max_abs_difference'] <= 1e-6
+    # The nodes' inputs from the bag (IEEE doubles) to the same compiled solver: bit for
+    # bit, below the 1e-6 Ns/m that `--reevaluate` allows a bag from another machine.
+    assert result['commands'] >= 15 and result['max_abs_difference'] == 0.0
     assert result['statuses'].get('ok') == result['commands']
     # The check can fail: a controller that ignores the preview answers differently.
     other = erva('replay', bag, '--reevaluate', '--controller', 'skyhook', timeout=400)

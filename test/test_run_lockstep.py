@@ -58,6 +58,27 @@ def _offline(sim_args, delay=0.0):
                                 preview_model=preview, actuation_delay_s=delay)
 
 
+def _same_run(tr, off, mode=''):
+    """Check a live run's trajectory against `erva sim`'s: the same computation.
+
+    The nodes get the very floats `erva sim` computes with (states, road samples and
+    commands cross DDS as IEEE doubles) and run the same compiled functions, so states,
+    commands and accelerations are equal bit for bit on any CPU.  (The NMPC turns a
+    last-bit change of an input into ~1e-6 Ns/m of command, so a tolerance here would
+    hide a real difference of inputs.)  Two figures are other arithmetic of the same
+    values, within a few units in the last place of the signal: the live sample time is
+    its stamp in ns times 1e-9 (`erva sim`: k·Ts), and the live power is the generator
+    message's effort · velocity (`erva sim`: the model's u·v_gen²).
+    """
+    eps = np.finfo(float).eps
+    np.testing.assert_array_equal(tr['x'], off.x, err_msg=mode)
+    np.testing.assert_array_equal(tr['u'], off.u, err_msg=mode)
+    np.testing.assert_array_equal(tr['sprung_accel'], off.sprung_accel, err_msg=mode)
+    np.testing.assert_allclose(tr['t'], off.t, rtol=0, atol=4 * eps * off.t[-1], err_msg=mode)
+    np.testing.assert_allclose(tr['power'], off.power, rtol=0,
+                               atol=8 * eps * np.max(np.abs(off.power)), err_msg=mode)
+
+
 def test_lockstep_run_equals_erva_sim(tmp_path, erva):
     parser = build_parser()
     settings = _settings_file(tmp_path)
@@ -69,12 +90,8 @@ def test_lockstep_run_equals_erva_sim(tmp_path, erva):
 
     tr = live.trajectory
     assert tr['x'].shape == off.x.shape == (50, 6)
-    np.testing.assert_allclose(tr['t'], off.t, atol=1e-12)
-    np.testing.assert_allclose(tr['w'], off.w, rtol=0, atol=1e-15)
-    np.testing.assert_allclose(tr['x'], off.x, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(tr['u'], off.u, rtol=1e-9, atol=1e-6)
-    np.testing.assert_allclose(tr['sprung_accel'], off.sprung_accel, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(tr['power'], off.power, rtol=1e-9, atol=1e-12)
+    _same_run(tr, off)
+    np.testing.assert_array_equal(tr['w'], off.w)
     # Nothing was skipped, late or lost on the way.
     plant = live.summary['plant']
     assert plant['u_from_command'] == 50 and plant['lockstep_timeouts'] == 0
@@ -120,12 +137,8 @@ def test_realtime_equals_lockstep_equals_erva_sim_at_a_command_delay(tmp_path):
         assert plant['u_from_command'] == 50 and plant['command_delay_ms'] == 15.0
         tr = live.trajectory
         assert tr['x'].shape == off.x.shape == (50, 6)
-        np.testing.assert_allclose(tr['x'], off.x, rtol=0, atol=1e-12, err_msg=mode)
-        np.testing.assert_allclose(tr['u'], off.u, rtol=1e-9, atol=1e-6, err_msg=mode)
-        np.testing.assert_allclose(tr['sprung_accel'], off.sprung_accel, rtol=0, atol=1e-9,
-                                   err_msg=mode)
         # The power at t_k is the damping acting then: the command before, until t_k + d.
-        np.testing.assert_allclose(tr['power'], off.power, rtol=1e-9, atol=1e-12, err_msg=mode)
+        _same_run(tr, off, mode)
     if late:
         pytest.skip(f'realtime leg not compared: {late[0]} commands arrived after t_k + d '
                     f'(arrival {late[1]} ms) on this load; lock-step == erva sim checked')

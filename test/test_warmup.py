@@ -206,7 +206,8 @@ def test_erva_compile_check_and_json(tmp_path, erva):
     proc = erva('compile', '--check', '--json', env=env)
     assert proc.returncode == 1 and proc.stderr == '', proc.stderr
     import json
-    res = json.loads(proc.stdout)
+    from erva_ros.core.codegen import codegen_target
+    res = json.loads(proc.stdout)['targets'][codegen_target()]
     labels = [t['target'] for t in res['targets']]
     assert labels[:3] == ['the NMPC (preview_long, erva model)', 'the NMPC (preview, erva model)',
                           'the NMPC (no_preview, erva model)']

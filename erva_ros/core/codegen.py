@@ -2,11 +2,17 @@
 
 ``codegen`` settings: ``auto`` compiles when a C compiler is on PATH, ``on`` insists
 (one-line error without one), ``off`` keeps CasADi's virtual machine.  A generated
-Function is compiled once per machine and cached by the hash of its source, flags and
-CPU, so a changed model, parameter set or horizon gets its own library.  Each library
-is written atomically under a lock, so a killed compile leaves nothing half-written and
-the next run compiles only what is missing; ``erva compile`` (erva_ros.core.warmup)
-fills the cache for a whole configuration before any node starts.
+Function is compiled once per target and cached by the hash of its source and flags, so
+a changed model, parameter set or horizon gets its own library.  Each library is written
+atomically under a lock, so a killed compile leaves nothing half-written and the next
+run compiles only what is missing; ``erva compile`` (erva_ros.core.warmup) fills the
+cache for a whole configuration before any node starts.
+
+The target (ERVA_CODEGEN_TARGET, GCC's ``-march``) is ``native`` by default: this CPU,
+keyed by its model and feature flags, so a cache copied to another CPU never loads it.
+A named target (``x86-64-v3``) builds for another machine, e.g. a vehicle PC; the cache
+records which CPU features its code may use (:class:`TargetRecord`), and a library is
+loaded only on a CPU that has them all.
 """
 
 from concurrent.futures import ThreadPoolExecutor
@@ -16,14 +22,17 @@ import fcntl
 import functools
 import glob
 import hashlib
+import json
 import os
+import platform
+import re
 import shutil
 import signal
 import subprocess
 import sys
 import tempfile
 import threading
-from typing import Callable, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, FrozenSet, List, Optional, Sequence, Set, Tuple
 import warnings
 
 import casadi as ca
@@ -34,10 +43,15 @@ from erva_ros.core.params import ParamError
 #: C compiler flags of ``codegen``.  -O3: the NMPC solver's per-interval kernels run as
 #: loops, which the optimiser speeds up (docs/nmpc.md); compiling it takes ~10 s.
 CODEGEN_FLAGS = ('-O3', '-shared', '-fPIC')
-#: Added when the compiler accepts them: this CPU's instruction set made the NMPC solve
-#: 5-8 % faster (docs/nmpc.md); without contraction to fused multiply-adds the results
-#: are bit for bit those of CODEGEN_FLAGS.  A library is then keyed to the CPU as well.
-NATIVE_FLAGS = ('-march=native', '-ffp-contract=off')
+#: The environment variable that names the CPU the compiled functions are built for, as
+#: GCC's ``-march`` takes it: ``native`` (the default: this CPU), ``x86-64-v2``,
+#: ``x86-64-v3``, ``x86-64-v4`` (the x86-64 psABI levels), or a CPU (``znver3``, ...).
+TARGET_ENV = 'ERVA_CODEGEN_TARGET'
+NATIVE = 'native'
+#: GCC's ``-march`` names: lower case letters, digits, '-', '.' and '_'.
+_TARGET_NAME = re.compile(r'[a-z0-9][a-z0-9._-]*')
+#: Where the cache keeps one record per target it holds (:class:`TargetRecord`).
+TARGET_RECORDS = 'cpu'
 
 
 def codegen_cache_dir() -> str:
@@ -51,17 +65,43 @@ def c_compiler():
     return os.environ.get('CC') or shutil.which('cc') or shutil.which('gcc')
 
 
+class TargetError(ParamError):
+    """The target of the compiled functions is unknown, or this CPU cannot run its code."""
+
+
+def codegen_target() -> str:
+    """Return the target the compiled functions are built for (ERVA_CODEGEN_TARGET, native)."""
+    target = os.environ.get(TARGET_ENV, '').strip() or NATIVE
+    if not _TARGET_NAME.fullmatch(target):
+        raise TargetError(f'{TARGET_ENV}={target!r}: not a -march name (e.g. native, '
+                          f'x86-64-v2, x86-64-v3, znver3)')
+    return target
+
+
+def target_flags(target: str) -> Tuple[str, ...]:
+    """Return the flags added for ``target``: its instruction set, and no fused multiply-adds.
+
+    Without contraction to FMAs every target computes the same IEEE operations in the
+    same order: the results are bit for bit those of CODEGEN_FLAGS (tested), only the
+    speed differs (docs/nmpc.md).
+    """
+    return (f'-march={target}', '-ffp-contract=off')
+
+
 @functools.lru_cache(maxsize=None)
-def codegen_flags(cc: str):
-    """Return the flags ``cc`` compiles with: CODEGEN_FLAGS + NATIVE_FLAGS if it takes them."""
+def _accepts(cc: str, target: str) -> str:
+    """Return '' if ``cc`` compiles for ``target``, else its first error line."""
     with tempfile.TemporaryDirectory() as tmp:
         src = os.path.join(tmp, 'probe.c')
         with open(src, 'w', encoding='utf-8') as fh:
             fh.write('double f(double x) { return x * x + 1.0; }\n')
-        probe = subprocess.run([cc, *CODEGEN_FLAGS, *NATIVE_FLAGS, '-o',
+        probe = subprocess.run([cc, *CODEGEN_FLAGS, *target_flags(target), '-o',
                                 os.path.join(tmp, 'probe.so'), src],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    return CODEGEN_FLAGS + (NATIVE_FLAGS if probe.returncode == 0 else ())
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                               errors='replace')
+    if probe.returncode == 0:
+        return ''
+    return _compiler_message(cc, probe.returncode, probe.stderr)
 
 
 @functools.lru_cache(maxsize=None)
@@ -72,8 +112,197 @@ def _cpu_id() -> str:
             lines = [ln for ln in fh if ln.startswith(('model name', 'flags', 'Features'))]
         return ''.join(sorted(set(lines)))
     except OSError:
-        import platform
         return platform.machine() + platform.processor()
+
+
+@functools.lru_cache(maxsize=None)
+def cpu_features() -> FrozenSet[str]:
+    """Return this CPU's feature flags as /proc/cpuinfo names them (``avx2``, ``fma``, ...)."""
+    out: Set[str] = set()
+    for line in _cpu_id().splitlines():
+        key, _, value = line.partition(':')
+        if key.strip() in ('flags', 'Features'):
+            out.update(value.split())
+    return frozenset(out)
+
+
+#: The compiler's macros of instruction-set extensions (``cc -march=T -dM -E``) and the
+#: /proc/cpuinfo flag of each: what code built for a target may use.  Extensions the
+#: generated arithmetic cannot use (RDRND, SGX, ...) are left out.
+ISA_FLAGS = {
+    '__SSE__': 'sse', '__SSE2__': 'sse2', '__SSE3__': 'pni', '__SSSE3__': 'ssse3',
+    '__SSE4_1__': 'sse4_1', '__SSE4_2__': 'sse4_2', '__SSE4A__': 'sse4a',
+    '__POPCNT__': 'popcnt', '__LZCNT__': 'abm', '__BMI__': 'bmi1', '__BMI2__': 'bmi2',
+    '__MOVBE__': 'movbe', '__F16C__': 'f16c', '__FMA__': 'fma', '__FMA4__': 'fma4',
+    '__XOP__': 'xop', '__AVX__': 'avx', '__AVX2__': 'avx2', '__AVXVNNI__': 'avx_vnni',
+    '__AVX512F__': 'avx512f', '__AVX512CD__': 'avx512cd', '__AVX512BW__': 'avx512bw',
+    '__AVX512DQ__': 'avx512dq', '__AVX512VL__': 'avx512vl', '__AVX512ER__': 'avx512er',
+    '__AVX512PF__': 'avx512pf', '__AVX512IFMA__': 'avx512ifma',
+    '__AVX512VBMI__': 'avx512vbmi', '__AVX512VBMI2__': 'avx512_vbmi2',
+    '__AVX512VNNI__': 'avx512_vnni', '__AVX512BITALG__': 'avx512_bitalg',
+    '__AVX512VPOPCNTDQ__': 'avx512_vpopcntdq', '__AVX512BF16__': 'avx512_bf16',
+    '__AVX512FP16__': 'avx512_fp16', '__AVX512VP2INTERSECT__': 'avx512_vp2intersect',
+    '__ADX__': 'adx', '__AES__': 'aes', '__PCLMUL__': 'pclmulqdq', '__SHA__': 'sha_ni',
+    '__VAES__': 'vaes', '__VPCLMULQDQ__': 'vpclmulqdq', '__GFNI__': 'gfni',
+}
+
+
+def _target_isa(cc: str, target: str) -> FrozenSet[str]:
+    """Return the cpuinfo flags code that ``cc`` builds for ``target`` may use."""
+    with tempfile.TemporaryDirectory() as tmp:
+        src = os.path.join(tmp, 'probe.c')       # the macros the compiler predefines
+        with open(src, 'w', encoding='utf-8') as fh:
+            fh.write('\n')
+        proc = subprocess.run([cc, *target_flags(target), '-dM', '-E', src],
+                              stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    macros = {ln.split()[1] for ln in proc.stdout.splitlines() if ln.startswith('#define ')}
+    return frozenset(flag for macro, flag in ISA_FLAGS.items() if macro in macros)
+
+
+@dataclass(frozen=True)
+class TargetRecord:
+    """What the cache knows of one target: its flags, key salt and required CPU features.
+
+    Written when the first library for the target is compiled (``<cache>/cpu/<tag>.json``),
+    so that a machine without a compiler (a vehicle PC given a cache built elsewhere)
+    knows which CPU can load its libraries.
+    """
+
+    target: str                 # as asked: native, x86-64-v3, ...
+    tag: str                    # the cache's name: the target, native-<CPU hash>, or default
+    flags: Tuple[str, ...]
+    requires: FrozenSet[str]    # cpuinfo flags the code may use
+    cpu: str = ''               # native: the CPU's model name
+
+    @property
+    def salt(self) -> str:
+        """Return what a library's key depends on besides its source."""
+        native = self.tag.startswith(NATIVE + '-')
+        return ' '.join(self.flags) + (_cpu_id() if native else '')
+
+    def missing_here(self) -> List[str]:
+        """Return the features this CPU lacks to run the target's code (empty: it runs)."""
+        return sorted(self.requires - cpu_features())
+
+    def as_dict(self) -> Dict[str, Any]:
+        """Return the record as plain values (its file, and --json)."""
+        return {'target': self.target, 'tag': self.tag, 'flags': list(self.flags),
+                'requires': sorted(self.requires), 'cpu': self.cpu}
+
+
+def _cpu_model() -> str:
+    for line in _cpu_id().splitlines():
+        if line.startswith('model name'):
+            return line.partition(':')[2].strip()
+    return platform.machine()
+
+
+def native_tag_suffix() -> str:
+    """Return the short hash of this CPU's id that names its ``native`` target's cache."""
+    return hashlib.sha1(_cpu_id().encode()).hexdigest()[:8]
+
+
+def _tag(target: str, flags: Sequence[str]) -> str:
+    if target != NATIVE:
+        return target
+    if '-march=native' not in flags:
+        return 'default'           # the compiler takes no -march: its own default
+    return f'{NATIVE}-{native_tag_suffix()}'
+
+
+def _record_path(tag: str) -> str:
+    return os.path.join(codegen_cache_dir(), TARGET_RECORDS, f'{tag}.json')
+
+
+def read_record(tag: str) -> Optional[TargetRecord]:
+    """Return the cache's record of the target ``tag``, or None."""
+    try:
+        with open(_record_path(tag), encoding='utf-8') as fh:
+            d = json.load(fh)
+        return TargetRecord(d['target'], d['tag'], tuple(d['flags']),
+                            frozenset(d['requires']), d.get('cpu', ''))
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def cached_records() -> List[TargetRecord]:
+    """Return the records of every target the cache holds libraries for."""
+    folder = os.path.join(codegen_cache_dir(), TARGET_RECORDS)
+    names = sorted(glob.glob(os.path.join(glob.escape(folder), '*.json')))
+    return [r for r in (read_record(os.path.basename(n)[:-5]) for n in names) if r is not None]
+
+
+def ensure_record(record: TargetRecord) -> None:
+    """Write ``record`` into the cache unless it is there already."""
+    if read_record(record.tag) == record:
+        return
+    path = _record_path(record.tag)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    tmp = f'{path}.{os.getpid()}.{threading.get_ident()}.tmp'
+    with open(tmp, 'w', encoding='utf-8') as fh:
+        json.dump(record.as_dict(), fh, indent=1)
+    os.replace(tmp, path)
+
+
+@dataclass(frozen=True)
+class Toolchain:
+    """The compiler (or None) and the target record the libraries are keyed and loaded by."""
+
+    cc: Optional[str]
+    record: TargetRecord
+
+    @property
+    def flags(self) -> Tuple[str, ...]:
+        """Return the compiler flags of the target's libraries."""
+        return self.record.flags
+
+    @property
+    def salt(self) -> str:
+        """Return what a library's key depends on besides its source."""
+        return self.record.salt
+
+
+@functools.lru_cache(maxsize=None)
+def _toolchain(cc: Optional[str], target: str, cache: str) -> Toolchain:
+    if cc is not None:
+        why = _accepts(cc, target)
+        if why and target != NATIVE:
+            raise TargetError(f'{TARGET_ENV}={target}: {os.path.basename(cc)} cannot build '
+                              f'for it: {why}')
+        flags = CODEGEN_FLAGS + (target_flags(target) if not why else ('-ffp-contract=off',))
+        tag = _tag(target, flags)
+        record = read_record(tag)
+        if record is None or record.flags != flags:
+            march = target_flags(target) if not why else ()
+            requires = _target_isa(cc, target) if march else frozenset()
+            record = TargetRecord(target, tag, flags, requires,
+                                  _cpu_model() if tag.startswith(NATIVE + '-') else '')
+        return Toolchain(cc, record)
+    # No compiler: what the cache holds for the target (built here earlier, or elsewhere).
+    flags = CODEGEN_FLAGS + target_flags(target)
+    tag = _tag(target, flags)
+    record = read_record(tag)
+    if record is None:
+        raise TargetError(f'{TARGET_ENV}={target}: no C compiler (cc or gcc) on PATH and no '
+                          f'libraries built for {target} in {cache} (build them with `erva '
+                          f'compile --target {target}` on a machine with one, and copy the '
+                          f'cache here)')
+    return Toolchain(None, record)
+
+
+def toolchain(target: Optional[str] = None) -> Toolchain:
+    """Return the toolchain of ``target`` (default: :func:`codegen_target`)."""
+    return _toolchain(c_compiler(), target or codegen_target(), codegen_cache_dir())
+
+
+def check_runs_here(tc: Toolchain) -> None:
+    """Raise TargetError (one line) unless this CPU can run the code of ``tc``'s target."""
+    missing = tc.record.missing_here()
+    if missing:
+        raise TargetError(
+            f'{TARGET_ENV}={tc.record.target}: this CPU cannot run code built for it (it has '
+            f'no {", ".join(missing)}); run on a CPU that has them, or choose a target this '
+            f'one runs (native, x86-64-v2, ...)')
 
 
 def library_flags(source: str):
@@ -89,8 +318,22 @@ def library_flags(source: str):
 
 
 def use_codegen(setting: str) -> bool:
-    """Return whether ``codegen`` = setting compiles: 'on', or 'auto' with a C compiler."""
-    return setting == 'on' or (setting == 'auto' and c_compiler() is not None)
+    """Return whether ``codegen`` = setting compiles (or loads compiled libraries).
+
+    'on'; 'auto' with a C compiler, or with libraries built for the target in the cache
+    (copied from another machine).
+    """
+    if setting == 'on':
+        return True
+    if setting != 'auto':
+        return False
+    if c_compiler() is not None:
+        return True
+    try:
+        toolchain()               # without a compiler: only if the cache has the target
+        return True
+    except TargetError:
+        return False
 
 
 @dataclass(frozen=True)
@@ -102,22 +345,16 @@ class CompileJob:
     lib: str
 
 
-def toolchain():
-    """Return (cc or None, flags, salt): what a library's key depends on besides its source."""
-    cc = c_compiler()
-    flags = codegen_flags(cc) if cc is not None else CODEGEN_FLAGS
-    salt = ' '.join(flags) + (_cpu_id() if flags != CODEGEN_FLAGS else '')
-    return cc, flags, salt
-
-
 def plan_functions(fns) -> Tuple[List[str], List[CompileJob]]:
     """Return the cached library path of each of ``fns`` and the jobs of those not cached.
 
-    A library is keyed by the hash of its generated source, the compiler flags and (with
-    NATIVE_FLAGS) the CPU, so a changed model, parameter set or horizon gets its own.
+    A library is keyed by the hash of its generated source, the compiler flags (the
+    target's ``-march`` among them) and, for ``native``, the CPU, so a changed model,
+    parameter set, horizon or target gets its own, and a library built for another CPU
+    is never found.
     """
     cache = codegen_cache_dir()
-    _, _, salt = toolchain()
+    salt = toolchain().salt
     libs, jobs = [], []
     for fn in fns:
         cg = ca.CodeGenerator(f'{fn.name()}.c', {'with_header': False})
@@ -169,6 +406,8 @@ def compile_functions(fns, what: str = '', note: Optional[Callable[[str], None]]
     so through ``note`` (default: a line on stderr); later processes load the libraries.
     """
     libs, jobs = plan_functions(fns)
+    if _collected is None:
+        check_runs_here(toolchain())
     if _collected is not None:
         _collected.libs.extend(libs)
         _collected.jobs.extend(jobs)
@@ -200,7 +439,8 @@ def run_jobs(jobs: Sequence[CompileJob], workers: Optional[int] = None) -> None:
     without a message (seen under load) is run once more.  Every job is tried; then the
     first failure is raised as :class:`CompileError` with the compiler's own message.
     """
-    cc, flags, _ = toolchain()
+    tc = toolchain()
+    cc, flags = tc.cc, tc.flags
     if cc is None:
         raise CompileError("parameter 'codegen' = 'on' needs a C compiler (cc or gcc) on PATH; "
                            'set codegen: off')
@@ -209,12 +449,19 @@ def run_jobs(jobs: Sequence[CompileJob], workers: Optional[int] = None) -> None:
     if not order:
         return
     os.makedirs(codegen_cache_dir(), exist_ok=True)
+    ensure_record(tc.record)          # which CPU may load what is compiled now
     errors: List[str] = []
     workers = max(1, min(workers or _cpus(), len(order)))
-    with ThreadPoolExecutor(workers) as pool:
+    pool = ThreadPoolExecutor(workers)
+    try:
         for err in pool.map(lambda job: _compile_job(job, cc, flags), order):
             if err:
                 errors.append(err)
+    except KeyboardInterrupt:
+        # The running compilers got the terminal's SIGINT too; start no other.
+        pool.shutdown(wait=True, cancel_futures=True)
+        raise
+    pool.shutdown()
     if errors:
         raise CompileError(f"parameter 'codegen': {errors[0]}; set codegen: off")
 
@@ -255,8 +502,9 @@ def _compile_job(job: CompileJob, cc: str, flags) -> str:
                     return ''
                 why = _compiler_message(cc, proc.returncode, proc.stderr)
                 # Killed, or silent (seen under load): once more.  A compiler's error
-                # message would only come again.
-                if proc.returncode > 0 and proc.stderr.strip():
+                # message would only come again, and Ctrl-C means stop.
+                if (proc.returncode > 0 and proc.stderr.strip()) or \
+                        proc.returncode == -signal.SIGINT:
                     break
             return f'compiling {job.name} failed{" twice" if attempt == 2 else ""}: {why}'
         finally:
@@ -289,13 +537,17 @@ def _remove(path: str) -> None:
 def compile_for(setting: str, fns, what: str):
     """Return ``fns`` compiled as ``codegen`` = setting asks, else unchanged.
 
-    'auto' never fails: without a compiler, or if compiling fails, it warns once and
-    keeps CasADi's virtual machine (the same arithmetic); 'on' raises ParamError.
+    'auto' does not fail for want of a compiler: without one, or if compiling fails, it
+    warns once and keeps CasADi's virtual machine (the same arithmetic); 'on' raises
+    ParamError.  A target this CPU cannot run is an error either way (TargetError):
+    running uncompiled, several times slower, would hide it.
     """
     if not use_codegen(setting):
         return list(fns)
     try:
         return compile_functions(fns, what)
+    except TargetError:
+        raise
     except ParamError as exc:
         if setting != 'auto':
             raise
@@ -366,7 +618,10 @@ class BufferedCall:
         return out
 
 
-__all__ = ['CODEGEN_FLAGS', 'NATIVE_FLAGS', 'codegen_flags', 'codegen_cache_dir', 'c_compiler',
-           'library_flags', 'use_codegen', 'toolchain', 'CompileJob', 'CompileError', 'Plan',
+__all__ = ['CODEGEN_FLAGS', 'TARGET_ENV', 'NATIVE', 'codegen_cache_dir', 'c_compiler',
+           'TargetError', 'codegen_target', 'target_flags', 'cpu_features', 'ISA_FLAGS',
+           'TargetRecord', 'native_tag_suffix', 'read_record', 'ensure_record', 'cached_records',
+           'Toolchain', 'toolchain',
+           'check_runs_here', 'library_flags', 'use_codegen', 'CompileJob', 'CompileError', 'Plan',
            'plan_functions', 'collecting',
            'compile_functions', 'run_jobs', 'compile_for', 'BufferedCall']

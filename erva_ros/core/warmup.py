@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import hashlib
 import multiprocessing
 import os
+import signal
 import time
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Set, Tuple, Union
 
@@ -283,7 +284,8 @@ def warm(targets: Sequence[Target], log: Optional[Callable[[str], None]] = None,
     say = log or (lambda line: None)
     t0 = time.monotonic()
     cache = codegen.codegen_cache_dir()
-    cc, _, salt = codegen.toolchain()
+    tc = codegen.toolchain()
+    cc, salt = tc.cc, tc.salt
     workers = max(1, workers or codegen._cpus())
     results: List[Optional[TargetResult]] = [None] * len(targets)
     keys: Dict[int, str] = {}
@@ -319,11 +321,63 @@ def warm(targets: Sequence[Target], log: Optional[Callable[[str], None]] = None,
                                       failed[0] if failed else '')
             if status in ('compiled', 'cached'):
                 _write_manifest(cache, keys[i], libs)
+    if not check and any(r.status in ('cached', 'compiled') for r in results):
+        codegen.ensure_record(tc.record)       # also for a cache an older erva filled
     seconds = time.monotonic() - t0
     if compiled:
         say(f'compiled {len(compiled)} function(s) in {seconds:.0f} s (cached in {cache})')
     return WarmResult(list(results), len(compiled), seconds, cache, cc,
                       sorted(set(errors.values())))
+
+
+@dataclass
+class CachedTarget:
+    """What the cache holds for one codegen target (``erva compile --check``)."""
+
+    record: codegen.TargetRecord
+    parts: int                   # of the given configuration's parts that compile
+    cached: Optional[int]        # of them, complete in the cache (None: another CPU's native)
+    selected: bool               # the target runs use here (ERVA_CODEGEN_TARGET)
+
+    @property
+    def missing_here(self) -> List[str]:
+        """Return the CPU features this machine lacks to run the target's code."""
+        return self.record.missing_here()
+
+    def as_dict(self) -> Dict[str, Any]:
+        """Return the status as plain values (for --json)."""
+        return {'target': self.record.target, 'tag': self.record.tag, 'cpu': self.record.cpu,
+                'parts': self.parts, 'cached': self.cached, 'selected': self.selected,
+                'runs_here': not self.missing_here, 'missing_features': self.missing_here}
+
+
+def cached_targets(targets: Sequence[Target]) -> List[CachedTarget]:
+    """Return, per codegen target in the cache, how many of ``targets`` it holds complete.
+
+    From the manifests alone (milliseconds): a part whose manifest is missing counts as
+    not cached.  A ``native`` target of another CPU cannot be keyed here (its key holds
+    that CPU): its count is None.
+    """
+    cache = codegen.codegen_cache_dir()
+    try:
+        own = codegen.toolchain().record
+    except codegen.TargetError:
+        own = None
+    here = f'{codegen.NATIVE}-{codegen.native_tag_suffix()}'
+    parts = [t for t in targets if t.compiles]
+    records = {r.tag: r for r in codegen.cached_records()}
+    if own is not None:
+        records.setdefault(own.tag, own)
+    selected = own.tag if own is not None else ''
+    out = []
+    for record in sorted(records.values(), key=lambda r: r.tag):
+        if record.tag.startswith(codegen.NATIVE + '-') and record.tag != here:
+            count = None
+        else:
+            count = sum(_cached_libs(cache, _target_key(t, record.salt)) is not None
+                        for t in parts)
+        out.append(CachedTarget(record, len(parts), count, record.tag == selected))
+    return out
 
 
 def ensure_compiled(targets: Sequence[Target], log: Optional[Callable[[str], None]] = None
@@ -332,8 +386,11 @@ def ensure_compiled(targets: Sequence[Target], log: Optional[Callable[[str], Non
 
     :func:`warm`, then a failure is one line through ``log`` where the target's
     ``codegen`` is ``auto`` (it runs uncompiled) and a one-line :class:`ParamError`
-    where it is ``on``.
+    where it is ``on``.  A codegen target this CPU cannot run is a
+    :class:`~erva_ros.core.codegen.TargetError` first.
     """
+    if any(t.compiles for t in targets):
+        codegen.check_runs_here(codegen.toolchain())   # before compiling for nothing
     result = warm(targets, log)
     for target, res in zip(targets, result.targets):
         if res.status != 'failed':
@@ -370,20 +427,32 @@ def _plan_and_compile(targets: Sequence[Target], workers: int,
             errors[job.lib] = str(exc)
 
     ctx = multiprocessing.get_context('spawn')   # no inherited threads, no warm caches
-    with ctx.Pool(min(workers, len(targets)), maxtasksperchild=1) as pool, \
-            ThreadPoolExecutor(workers) as threads:
-        for i, plan in pool.imap_unordered(_plan_indexed, list(enumerate(targets))):
-            plans[i] = plan
-            new = sorted({j.lib: j for j in plan.jobs if j.lib not in submitted}.values(),
-                         key=lambda j: -len(j.source))
-            if say is None or not new:
-                continue
-            say(f'compiling {targets[i].label} (first run on this machine'
-                f'{_expected(targets[i])})')
-            submitted.update(j.lib for j in new)
-            for job in new:
-                threads.submit(one, job)
+    threads = ThreadPoolExecutor(workers)
+    try:
+        with ctx.Pool(min(workers, len(targets)), _ignore_sigint, maxtasksperchild=1) as pool:
+            for i, plan in pool.imap_unordered(_plan_indexed, list(enumerate(targets))):
+                plans[i] = plan
+                new = sorted({j.lib: j for j in plan.jobs if j.lib not in submitted}.values(),
+                             key=lambda j: -len(j.source))
+                if say is None or not new:
+                    continue
+                say(f'compiling {targets[i].label} (first run on this machine'
+                    f'{_expected(targets[i])})')
+                submitted.update(j.lib for j in new)
+                for job in new:
+                    threads.submit(one, job)
+    except KeyboardInterrupt:
+        # Ctrl-C: the planners are terminated, the compilers got the SIGINT, and no
+        # other compile starts; what finished is in the cache.
+        threads.shutdown(wait=True, cancel_futures=True)
+        raise
+    threads.shutdown()
     return plans, compiled, errors
+
+
+def _ignore_sigint() -> None:
+    """In a planning process: leave Ctrl-C to the parent (no traceback per process)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 #: Compiler time (CPU s, one core) of each NMPC's functions, measured on this project's
@@ -405,4 +474,5 @@ def _expected(target: Target) -> str:
 
 
 __all__ = ['NMPC_CONTROLLERS', 'MODELS', 'Target', 'nmpc_target', 'session_targets',
-           'shipped_targets', 'TargetResult', 'WarmResult', 'warm', 'ensure_compiled']
+           'shipped_targets', 'TargetResult', 'WarmResult', 'warm', 'CachedTarget',
+           'cached_targets', 'ensure_compiled']

@@ -1,0 +1,188 @@
+"""Compiled functions built for a CPU target: keyed by it, loaded only where it runs."""
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from conftest import REPO, ros_env, run_erva
+from erva_ros.core import codegen
+from erva_ros.core.model import get_model
+from erva_ros.core.params import paper_params
+
+MODEL = get_model(paper_params(), 'erva')
+#: -march names of which at least one is beyond any CPU: knl has AVX512ER/PF (only
+#: Knights Landing), the others AVX-512 (not on AMD before Zen 4) or SSE4A (AMD only).
+BEYOND = ('x86-64-v4', 'sapphirerapids', 'znver1', 'knl')
+
+pytestmark = pytest.mark.skipif(codegen.c_compiler() is None, reason='no C compiler')
+
+
+def _hessian():
+    """Return a function of the model with transcendental-free but deep arithmetic."""
+    x, u, w = ca.SX.sym('x', 6), ca.SX.sym('u'), ca.SX.sym('w')
+    lag = MODEL.sprung_accel(x, u, w) ** 2 + ca.dot(ca.DM.ones(6), MODEL.ode(x, u, w))
+    return ca.Function('lagrangian_hessian', [x, u, w],
+                       [ca.hessian(lag, ca.vertcat(x, u))[0]])
+
+
+def _use(monkeypatch, cache, target):
+    monkeypatch.setenv('ERVA_CACHE_DIR', str(cache))
+    monkeypatch.setenv(codegen.TARGET_ENV, target)
+
+
+def _beyond_this_cpu() -> str:
+    for target in BEYOND:
+        if codegen.toolchain(target).record.missing_here():
+            return target
+    raise AssertionError(f'this CPU runs all of {BEYOND}: extend the list')
+
+
+def test_every_target_gives_the_native_results_bit_for_bit(tmp_path, monkeypatch):
+    # No fused multiply-adds for any target: the same IEEE operations in the same order,
+    # so a portable build computes exactly what the native one does.
+    fn = _hessian()
+    rng = np.random.default_rng(5)
+    points = [(rng.normal(0, 0.02, 6), rng.uniform(0, 2e4), rng.normal(0, 0.01))
+              for _ in range(20)]
+    out = {}
+    for target in ('native', 'x86-64', 'x86-64-v2'):
+        _use(monkeypatch, tmp_path, target)
+        compiled, = codegen.compile_functions([fn])
+        out[target] = [np.asarray(compiled(*pt)) for pt in points]
+    for target in ('x86-64', 'x86-64-v2'):
+        for a, b in zip(out['native'], out[target]):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_the_cache_is_keyed_by_the_target(tmp_path, monkeypatch):
+    fn = _hessian()
+    libs = {}
+    for target in ('native', 'x86-64-v2', 'native'):
+        _use(monkeypatch, tmp_path, target)
+        [lib], jobs = codegen.plan_functions([fn])
+        # A run asking for another target compiles anew, never loads the other's.
+        assert bool(jobs) == (target not in libs), target
+        assert libs.setdefault(target, lib) == lib
+        codegen.compile_functions([fn])
+    assert libs['native'] != libs['x86-64-v2']
+    tags = {r.target: r for r in codegen.cached_records()}
+    assert set(tags) == {'native', 'x86-64-v2'}
+    assert '-march=x86-64-v2' in tags['x86-64-v2'].flags
+    assert {'sse4_2', 'popcnt'} <= tags['x86-64-v2'].requires
+    assert 'avx' not in tags['x86-64-v2'].requires
+
+
+def test_a_native_library_of_another_cpu_is_never_found(tmp_path, monkeypatch):
+    fn = _hessian()
+    _use(monkeypatch, tmp_path, 'native')
+    codegen.compile_functions([fn])
+    [mine], _ = codegen.plan_functions([fn])
+    # The same cache seen from another CPU (another model name and flags): its own key.
+    other = 'model name\t: Another CPU\nflags\t\t: fpu sse sse2\n'
+    monkeypatch.setattr(codegen, '_cpu_id', lambda: other)
+    codegen._toolchain.cache_clear()
+    try:
+        [theirs], jobs = codegen.plan_functions([fn])
+        assert theirs != mine and [j.lib for j in jobs] == [theirs]
+    finally:
+        monkeypatch.undo()
+        codegen._toolchain.cache_clear()
+
+
+def test_a_library_loads_only_on_a_cpu_that_runs_its_target(tmp_path, monkeypatch):
+    target = _beyond_this_cpu()
+    fn = _hessian()
+    _use(monkeypatch, tmp_path, target)
+    # Building for another machine works (`erva compile --target`) ...
+    _, jobs = codegen.plan_functions([fn])
+    codegen.run_jobs(jobs)
+    assert os.path.isfile(jobs[0].lib)
+    # ... loading it here does not: one line naming what this CPU lacks.
+    missing = codegen.toolchain().record.missing_here()
+    with pytest.raises(codegen.TargetError) as err:
+        codegen.compile_functions([fn])
+    assert f'{codegen.TARGET_ENV}={target}' in str(err.value)
+    assert ', '.join(missing) in str(err.value) and '\n' not in str(err.value)
+    # Nor does codegen 'auto' hide it by running uncompiled.
+    with pytest.raises(codegen.TargetError):
+        codegen.compile_for('auto', [fn], 'the test function')
+
+
+def test_a_cache_built_elsewhere_loads_without_a_compiler(tmp_path, monkeypatch):
+    # A vehicle PC without gcc, given the cache a workstation built for its target.
+    fn = _hessian()
+    _use(monkeypatch, tmp_path / 'built', 'x86-64-v2')
+    built, = codegen.compile_functions([fn])
+    shutil.copytree(tmp_path / 'built', tmp_path / 'vehicle')
+    _use(monkeypatch, tmp_path / 'vehicle', 'x86-64-v2')
+    monkeypatch.delenv('CC', raising=False)
+    monkeypatch.setenv('PATH', '')
+    assert codegen.c_compiler() is None and codegen.use_codegen('auto')
+    loaded, = codegen.compile_functions([fn])         # would raise if it had to compile
+    x = (np.full(6, 0.01), 15000.0, 0.002)
+    np.testing.assert_array_equal(np.asarray(loaded(*x)), np.asarray(built(*x)))
+    # A target the cache does not hold: codegen 'auto' runs uncompiled, 'on' says why.
+    monkeypatch.setenv(codegen.TARGET_ENV, 'x86-64-v3')
+    assert not codegen.use_codegen('auto')
+    with pytest.raises(codegen.TargetError, match='no C compiler .* and no libraries '
+                                                  'built for x86-64-v3'):
+        codegen.toolchain()
+
+
+def test_a_bad_or_foreign_target_is_one_line_and_nothing_runs(tmp_path):
+    env = {'ERVA_CACHE_DIR': str(tmp_path)}
+    cases = {'no such cpu': 'not a -march name',
+             'pentium9': 'cannot build for it',
+             _beyond_this_cpu(): 'this CPU cannot run code built for it'}
+    for target, why in cases.items():
+        proc = run_erva('sim', '--controller', 'preview', '--duration', '0.1',
+                        env=dict(env, **{codegen.TARGET_ENV: target}))
+        assert proc.returncode == 2, (target, proc.stdout, proc.stderr)
+        assert len(proc.stderr.strip().splitlines()) == 1 and why in proc.stderr, target
+    assert not any(p.endswith('.so') for p in os.listdir(tmp_path))
+
+
+def test_compile_check_lists_the_targets_the_cache_holds(tmp_path, monkeypatch):
+    # The suite's warm cache (conftest.compiled_functions): every part of the native target.
+    # (ERVA_CODEGEN_TARGET may name another target than native: the suite runs either.)
+    selected = codegen.codegen_target()
+    proc = run_erva('compile', '--check', '--json')
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    out = json.loads(proc.stdout)
+    mine = [c for c in out['cache'] if c['selected']]
+    assert len(mine) == 1 and mine[0]['target'] == selected and mine[0]['runs_here']
+    assert mine[0]['cached'] == mine[0]['parts'] > 10
+    assert all(t['status'] == 'cached' for t in out['targets'][selected]['targets'])
+    # Asking for a target not built yet: missing, and exit 1.
+    other = 'x86-64' if selected != 'x86-64' else 'x86-64-v2'
+    proc = run_erva('compile', '--check', '--target', other)
+    assert proc.returncode == 1 and f'target {other}: missing' in proc.stdout
+
+
+def test_ctrl_c_stops_a_compile_in_one_line_and_keeps_what_finished(tmp_path):
+    # As a terminal does: SIGINT to the whole process group once compiling has started.
+    env = ros_env({'ERVA_CACHE_DIR': str(tmp_path)})
+    proc = subprocess.Popen([sys.executable, '-m', 'erva_ros.cli', 'compile'], cwd=REPO,
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    lines = []
+    for line in proc.stderr:
+        lines.append(line)
+        if 'compiling' in line:
+            break
+    os.killpg(proc.pid, signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    err = ''.join(lines) + err
+    assert proc.returncode == 130, err
+    assert 'Traceback' not in err and 'KeyboardInterrupt' not in err, err
+    assert err.strip().splitlines()[-1].startswith('erva compile: interrupted')
+    # Nothing half-written: every file in the cache is a whole library or a record.
+    leftovers = [f for f in os.listdir(tmp_path) if f.endswith(('.tmp', '.c'))]
+    assert not leftovers
