@@ -52,6 +52,26 @@ def test_info_lists_topics_counts_duration_and_session(erva, good_bag):
     assert open_bag(os.path.join(good_bag, 'good_0.mcap')).message_count == 800
 
 
+def test_info_prints_times_and_options_as_ros2_bag_info(erva, good_bag, tmp_path):
+    """rosbag2 Jazzy's format_bag_meta_data: local time with 9 decimals, then seconds."""
+    out = erva('bag', 'info', good_bag, env={'TZ': 'UTC'}, check=True).stdout
+    # T0 = 1.8e9 s is 2027-01-15 08:00:00 UTC; the last message 7.98 s + 1 ns later.
+    assert 'Start:             Jan 15 2027 08:00:00.000000000 (1800000000.000000000)\n' in out
+    assert 'End:               Jan 15 2027 08:00:07.980000001 (1800000007.980000001)\n' in out
+    assert 'ROS Distro:        jazzy\n' in out and 'Service:           0\n' in out
+    later = erva('bag', 'info', good_bag, env={'TZ': 'Asia/Tokyo'}, check=True).stdout
+    assert 'Start:             Jan 15 2027 17:00:00.000000000 (1800000000.000000000)' in later
+    assert erva('bag', 'info', '-t', good_bag, check=True).stdout.split() == [
+        '/clock', '/erva/state']
+    verbose = erva('bag', 'info', '-v', '-s', 'mcap', good_bag, check=True).stdout
+    assert 'Service information: ' in verbose and 'scenario: info-test' in verbose
+    empty = str(tmp_path / 'empty')
+    BagWriter(empty).close()
+    out = erva('bag', 'info', empty, check=True).stdout
+    for key in ('Duration', 'Start', 'End'):
+        assert f'{key + ":":<19}unknown\n' in out, out
+
+
 def test_a_torn_file_is_read_up_to_its_last_chunk(tmp_path):
     path = str(tmp_path / 'torn')
     w = _write(path)
@@ -132,3 +152,21 @@ def test_damaged_chunk_with_intact_summary_is_one_line(erva, tmp_path, good_bag)
         proc = erva(*command)
         assert proc.returncode in (0, 2), proc.stderr
         assert 'Traceback' not in proc.stderr and len(proc.stderr.strip().splitlines()) <= 1
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize('command', [['bag', 'info'], ['report'], ['replay', '--rate', '50'],
+                                     ['bag', 'play', '--rate', '50'], ['identify'],
+                                     ['map', 'build', '--out', 'MAP']])
+def test_every_reader_warns_about_a_truncated_bag(erva, good_bag, tmp_path, command):
+    """A bag cut at 60 % of its file: each command that reads it says so (one home)."""
+    path = os.path.join(good_bag, 'good_0.mcap')
+    with open(path, 'r+b') as fh:
+        fh.truncate(os.path.getsize(path) * 6 // 10)
+    args = [str(tmp_path / 'map.db') if a == 'MAP' else a for a in command]
+    proc = erva(*args[:2], good_bag, *args[2:]) if command[0] in ('bag', 'map') else \
+        erva(args[0], good_bag, *args[1:])
+    out = proc.stdout + proc.stderr
+    assert 'not closed properly' in out and 'erva bag repair' in out, out
+    if command[0] in ('replay', 'bag') and command[-1] == '50':
+        assert proc.returncode == 0 and 'warning: the file was not closed' in proc.stderr

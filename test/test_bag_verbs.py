@@ -27,12 +27,14 @@ SAMPLE = os.path.join(REPO, 'bags', 'sample')
 ROS2_PLAY = ['-s', '--storage', '-r', '--rate', '--topics', '-e', '--regex', '-x',
              '--exclude-regex', '--exclude-topics', '-l', '--loop', '-m', '--remap', '--clock',
              '-d', '--delay', '--playback-duration', '-p', '--start-paused', '--start-offset',
-             '--disable-keyboard-controls', '--wait-for-all-acked']
+             '--disable-keyboard-controls', '--wait-for-all-acked', '--read-ahead-queue-size']
 #: ros2 bag record options (Jazzy) that erva bag record has too.
 ROS2_RECORD = ['-o', '--output', '-s', '--storage', '--topics', '-a', '--all', '--all-topics',
                '-e', '--regex', '--exclude-regex', '--exclude-topics',
                '--include-hidden-topics', '--use-sim-time', '--node-name', '--custom-data',
                '--storage-config-file']
+#: ros2 bag info options (Jazzy).
+ROS2_INFO = ['-s', '--storage', '-t', '--topic-name', '-v', '--verbose']
 
 
 def _subparser(parser, *path):
@@ -56,6 +58,8 @@ def test_bag_verbs_are_aliases_with_the_options_of_ros2_bag():
     assert set(ROS2_RECORD) <= set(_options(record)), \
         set(ROS2_RECORD) - set(_options(record))
     assert {'-s', '--storage'} <= set(_options(reindex))
+    info = _subparser(parser, 'bag', 'info')
+    assert set(ROS2_INFO) <= set(_options(info)), set(ROS2_INFO) - set(_options(info))
     assert reindex is _subparser(parser, 'bag', 'repair')          # one command, two names
     # `erva bag play` is `erva replay` playing: the same options, the same values.
     line = ['-r', '2', '-l', '-p', '--start-offset', '1.5', '--topics', '/erva/state',
@@ -72,6 +76,11 @@ def test_bag_verbs_are_aliases_with_the_options_of_ros2_bag():
                            '/rosout', '--custom-data', 'car=test', '--use-sim-time'])
     assert (a.output, a.all_topics, a.regex, a.exclude_topics, a.custom_data,
             a.use_sim_time) == ('x', True, 'erva', ['/rosout'], ['car=test'], True)
+    # Topics as positional arguments too (ros2 bag record takes them, deprecated), not both.
+    a = parser.parse_args(['bag', 'record', '/erva/state', 'damping_cmd'])
+    assert (a.topics_positional, a.topics) == (['/erva/state', 'damping_cmd'], [])
+    with pytest.raises(SystemExit):
+        parser.parse_args(['bag', 'record', '/erva/state', '--topics', '/erva/state'])
     a = parser.parse_args(['bag', 'reindex', SAMPLE])
     assert a.bag_command == 'reindex' and a._name == 'bag'
 
@@ -100,6 +109,37 @@ def test_topic_selection_and_playback_clock():
     assert clock.resume(30.0) and not clock.resume(31.0)
     assert clock.paused_s == 19.0
     assert clock.due(1_000 + 3 * 10**9) == 30.5     # the schedule continues where it stopped
+
+
+def test_reach_counts_what_went_out_before_each_topics_last_subscriber_matched():
+    from erva_ros.core.bag.playback import Reach
+    reach = Reach(['/a', '/b', '/c'])
+    reach.start({'/a': 0, '/b': 1, '/c': 0})
+    lines = reach.start_lines()
+    assert lines[0] == 'subscribers matched at the start: /a 0, /b 1, /c 0'
+    assert lines[1].startswith('WARN no subscriber matched /a, /c (2 of 3 topics)')
+    assert '--wait-for-subscribers' in lines[1] and reach.end_line() is None
+    for i in range(10):   # /a matched from message 4, /b's second from 6, /c never
+        reach.publish('/a', 0 if i < 4 else 1)
+        reach.publish('/b', 1 if i < 6 else 2)
+        reach.publish('/c', 0)
+    got = {t: (r['unmatched'], r['before_last_match'], r['most'])
+           for t, r in reach.as_dict().items()}
+    assert got == {'/a': (4, 4, 1), '/b': (0, 6, 2), '/c': (10, 0, 0)}
+    assert reach.end_line() == (
+        'WARN of 30 messages, 14 went out with no subscriber matched, 10 before the last '
+        'subscriber of their topic matched; a subscriber that matched late does not have '
+        'them (/a 4 of 10, /b 6 of 10, /c 10 of 10)')
+
+
+def test_missing_by_sequence_tells_only_where_one_publisher_numbers_the_topic():
+    from types import SimpleNamespace as M
+    from erva_ros.core.bag.sequences import Missing, missing_by_sequence
+    msgs = [M(topic='/late', sequence=s) for s in (5, 6, 8, 9)] + \
+        [M(topic='/two', sequence=s) for s in (1, 2, 1, 3)] + \
+        [M(topic='/none', sequence=0)] + [M(topic='/whole', sequence=s) for s in (1, 2, 3)]
+    assert missing_by_sequence(msgs) == {'/late': Missing(4, 4, 1), '/two': None,
+                                         '/none': None, '/whole': Missing(3, 0, 0)}
 
 
 def test_record_chooses_topics_as_ros2_bag_record():
@@ -142,6 +182,8 @@ def test_bad_play_and_record_options_are_one_line_before_anything_starts(erva, t
               '/nope not in the bag; it has /diagnostics, /erva/damping_cmd')
     _one_line(erva('bag', 'play', SAMPLE, '-x', '.*'), 'leaves nothing to play')
     _one_line(erva('replay', SAMPLE, '--reevaluate', '--start-offset', 1),
+              'do not publish: drop the play options')
+    _one_line(erva('replay', SAMPLE, '--reevaluate', '--read-ahead-queue-size', 10),
               'do not publish: drop the play options')
     config = tmp_path / 'mcap.yaml'
     config.write_text('compression: Zstd\nnoChunking: true\n')
@@ -216,6 +258,25 @@ def _start(*args, **kw):
                             stderr=subprocess.PIPE, start_new_session=True, **kw)
 
 
+def _line_waiter(proc):
+    """Return ``wait_line(text)``: the next line of ``proc``'s stderr that contains ``text``."""
+    lines, seen = queue.Queue(), []
+    threading.Thread(target=lambda: [lines.put(x) for x in proc.stderr], daemon=True).start()
+
+    def wait_line(text, timeout=120.0):
+        end = time.monotonic() + timeout
+        while True:
+            try:
+                line = lines.get(timeout=max(0.0, end - time.monotonic()))
+            except queue.Empty:
+                proc.kill()
+                raise AssertionError(f'no "{text}" line in {timeout:g} s: {seen[-5:]}') from None
+            seen.append(line)
+            if text in line:
+                return line
+    return wait_line
+
+
 @pytest.mark.ros
 def test_record_what_is_played_from_a_start_offset(tmp_path):
     """Only messages at or after start + offset are played; the recording holds exactly those."""
@@ -279,22 +340,7 @@ def test_nothing_is_published_while_paused_and_everything_after(how):
             proc = _start(*args, '--start-paused', stdin=slave)
             pause = resume = lambda: os.write(master, b' ')     # noqa: E731
 
-        lines = queue.Queue()
-        reader = threading.Thread(target=lambda: [lines.put(x) for x in proc.stderr],
-                                  daemon=True)
-        reader.start()
-
-        def wait_line(text, timeout=120.0):
-            end = time.monotonic() + timeout
-            while True:
-                try:
-                    line = lines.get(timeout=max(0.0, end - time.monotonic()))
-                except queue.Empty:
-                    proc.kill()
-                    raise AssertionError(f'no "{text}" line in {timeout:g} s') from None
-                if text in line:
-                    return line
-
+        wait_line = _line_waiter(proc)
         if how == 'space key':
             assert 'space pauses and resumes' in wait_line('space pauses')
             assert 'paused after 0 messages' in wait_line('paused after')
@@ -326,3 +372,61 @@ def test_nothing_is_published_while_paused_and_everything_after(how):
     assert stats['total'] == 200 and stats['pauses'] == 1
     assert [bytes(m) for m in counter.received] == [
         d for _, _, d in _bag_messages(SAMPLE, [topic])]
+
+
+@pytest.mark.ros
+def test_a_recorder_started_after_the_player_both_say_what_it_missed(tmp_path):
+    """Play with no subscriber; pause; start `erva bag record TOPIC` (positional); resume.
+
+    The player says no subscriber matched at its start, and at the end how many messages
+    went out before the recorder matched; the recorder, by the player's sequence numbers,
+    says the same count is not in its bag.  Nothing here depends on timing: the pause
+    holds the player while the recorder matches.
+    """
+    from recorder_helpers import DiagnosticsWatcher, wait_recorded
+    topic, out = '/erva/state', tmp_path / 'late'
+    play = _start('bag', 'play', SAMPLE, '--topics', topic, '--rate', '0.5', '--json')
+    wait_line = _line_waiter(play)
+    watcher, rec = DiagnosticsWatcher(), None
+    try:
+        assert f'subscribers matched at the start: {topic} 0' in wait_line('at the start')
+        assert 'WARN no subscriber matched any of the 1 topics' in wait_line('WARN')
+        before = 0
+        while not before:                  # at least one message out with no subscriber
+            play.send_signal(signal.SIGUSR1)
+            before = int(wait_line('paused after').split('paused after ')[1].split()[0])
+            if not before:
+                play.send_signal(signal.SIGUSR2)
+                wait_line('resumed after')
+        rec = _start('bag', 'record', topic, '-o', out, '--json')
+        assert watcher.wait(lambda: any(s.get(f'publishers:{topic}') == '1' for s in
+                                        watcher.values('erva_bag_recorder: bag recorder')),
+                            120), watcher.values('erva_bag_recorder')
+        play.send_signal(signal.SIGUSR2)
+        stats = json.loads(play.stdout.read())
+        assert play.wait(timeout=300) == 0
+        late = wait_line('WARN of 200 messages')
+        reach = stats['subscribers'][topic]
+        assert (reach['at_start'], reach['most'], reach['published']) == (0, 1, 200)
+        # Out before the recorder matched: at least those before the pause.
+        assert reach['before_last_match'] >= before and \
+            reach['unmatched'] == reach['before_last_match']
+        assert f'{topic} {reach["before_last_match"]} of 200' in late
+        wait_recorded(watcher, {topic: 200 - reach['before_last_match']},
+                      'erva_bag_recorder')
+        rec.send_signal(signal.SIGINT)
+        rec_out, rec_err = rec.communicate(timeout=120)
+    finally:
+        for proc in (play, rec):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        watcher.close()
+    assert rec.returncode == 0, rec_err
+    result = json.loads(rec_out)
+    assert result['topics_requested'] == [topic]          # the positional topic
+    assert result['counts'] == {topic: 200 - reach['before_last_match']}
+    assert result['missing'] == {topic: {'recorded': result['counts'][topic],
+                                         'before_first': reach['before_last_match'],
+                                         'holes': 0}}
+    assert f'{reach["before_last_match"]} went out before this recorder matched' in rec_err

@@ -58,8 +58,21 @@ def test_erva_fr_cli_json_csv_png(tmp_path, erva):
     rows = (out / 'fr.csv').read_text().splitlines()
     assert rows[0].startswith('model,freq_hz,accel_amp_m_s2')
     assert len(rows) == 1 + 2 * 6
-    assert (out / 'fr.png').read_bytes()[:4] == b'\x89PNG'
-    assert os.path.getsize(out / 'fr.png') > 10_000
+    for png in ('fr.png', 'fr_bode.png'):         # linear as paper Fig. 4, and Bode
+        assert (out / png).read_bytes()[:4] == b'\x89PNG'
+        assert os.path.getsize(out / png) > 10_000
+        assert str(out / png) in res['files']
+
+
+def test_bode_magnitudes_are_per_unit_road_amplitude_in_db():
+    """|z̈_s|/|w| in dB (20·log10) and P/|w|² in dB (10·log10).
+
+    A 2 mm tone giving 2 m/s² and 4e-6 W is a gain of 1000 s⁻² (60 dB) and 1 W/m² (0 dB).
+    """
+    tones = [fr.ToneResult(1.0, 2.0, 1.4, 4e-6, 2.0), fr.ToneResult(2.0, 0.2, 0.14, 4e-8, 2.0)]
+    curve = fr.FRCurve('erva', 1e4, 2e-3, tones)
+    assert curve.gain_db == pytest.approx([60.0, 40.0])
+    assert curve.power_db == pytest.approx([0.0, -20.0])
 
 
 @pytest.mark.parametrize('args,needle', [

@@ -77,7 +77,8 @@ ROSDEP_KEYS = {
     'can': 'python3-can', 'argcomplete': 'python3-argcomplete',
     'casadi': 'casadi-pip', 'cantools': 'python3-cantools-pip',
     'mcap': None,                            # no key: pip install mcap
-    'foxglove': None, 'websockets': None,    # extra erva_ros[foxglove]
+    'foxglove': None,                        # no key: pip install foxglove-sdk
+    'websockets': 'python3-websockets',      # extra erva_ros[foxglove]: the bench's viewer
     'distributed': None,                     # extra erva_ros[dask]
 }
 
@@ -108,8 +109,11 @@ def test_every_imported_package_is_declared_with_its_rosdep_key():
     assert imported <= set(ROSDEP_KEYS), f'no decision for {imported - set(ROSDEP_KEYS)}'
     missing = {ROSDEP_KEYS[m] for m in imported if ROSDEP_KEYS[m]} - deps
     assert not missing, f'package.xml lacks <exec_depend> {sorted(missing)}'
-    # The pip-installed ones with a rosdistro key use it (not a comment saying there is none).
+    # The pip-installed ones with a rosdistro key use it (not a comment saying there is none);
+    # those without one are named for pip in a comment.
     assert {'casadi-pip', 'python3-cantools-pip', 'rosidl_parser'} <= deps
+    with open(os.path.join(REPO, 'package.xml'), encoding='utf-8') as fh:
+        assert 'pip install mcap foxglove-sdk' in fh.read()
 
 
 def test_every_requirement_is_pinned_and_the_viewer_library_is_in_its_extra():

@@ -60,6 +60,24 @@ def test_comfort_and_power_equal_the_closed_loops(erva, offline_session, tmp_pat
     assert 'offline session' in text
 
 
+def test_road_preview_plot_compares_each_preview_with_the_road_that_came(offline_session):
+    """The offline preview is the road itself: 0 error 1 and N steps ahead.
+
+    At every t_k whose point the 2 s road still covers; a preview matched one sample off
+    would be ~0.1 mm out.
+    """
+    from erva_ros.core.bag.reader import open_bag
+    from erva_ros.core.bag.report_plots import preview_errors
+    from erva_ros.session.bag_report import load_session
+    data = load_session(open_bag(offline_session[0]))
+    n = len(data.previews[0]) - 1
+    errors = preview_errors(data)
+    assert sorted(errors) == [1, n] and data.road.n == len(data.previews) == 100
+    for h, (t_k, e) in errors.items():
+        assert len(t_k) == 100 - h and t_k[0] == 0.0
+        assert max(abs(e)) < 1e-9, (h, max(abs(e)))
+
+
 def _stamp(ns):
     return Time(sec=ns // 10 ** 9, nanosec=ns % 10 ** 9)
 
@@ -97,7 +115,8 @@ def test_timing_deadlines_and_fallbacks_from_message_times(erva, tmp_path):
                              message='no command', values=[
                                  KeyValue(key='harvested_j', value='8.0')])])
         write_message(w, '/diagnostics', diag, T0 + 2000 * MS)
-    r = json.loads(erva('report', bag, '--json', check=True).stdout)
+    r = json.loads(erva('report', bag, '--json', '--out', tmp_path / 'o', check=True).stdout)
+    assert os.path.join(tmp_path, 'o', 'timing.png') in r['files']   # measured: it has one
     t = r['timing']
     assert r['ts_s'] == pytest.approx(0.02) and not t['offline'] and t['clock'] == 'wall'
     assert t['latency_publish_ms']['p50'] == pytest.approx(2.0)

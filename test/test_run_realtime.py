@@ -8,6 +8,7 @@ import signal
 import time
 
 import pytest
+import yaml
 
 from conftest import fifo_permitted, sim_delay_args
 from run_helpers import bag_counts, run_with_node_stopped, SampleWatch, start_run as _start
@@ -93,6 +94,17 @@ def test_erva_run_realtime_records_and_summarises(tmp_path, erva):
     assert {t: c['recorded'] for t, c in rec['topics'].items()} == {
         **{f'/erva/{t}': n for t, n in published.items()},
         '/erva/prediction': published['damping_cmd']}
+    # The summary also counts the bag as erva bag info does: the loop's topics and
+    # /diagnostics; and the bag keeps the params file every node read (not its path).
+    info = json.loads(erva('bag', 'info', bag, '--json', check=True).stdout)
+    assert rec['in_bag'] == {'messages': sum(counts.values()), 'topics': len(counts),
+                             'diagnostics': counts['/diagnostics']}
+    assert rec['in_bag']['messages'] == info['message_count'] == \
+        sum(c['recorded'] for c in rec['topics'].values()) + counts['/diagnostics']
+    params = yaml.safe_load(info['session']['params_yaml'])
+    assert params['/**']['ros__parameters']['session_id'] == info['session']['session_id']
+    assert params['/**/nmpc_node']['ros__parameters']['controller'] == 'preview'
+    assert 'params_file' not in info['session']
 
 
 def test_killed_nmpc_plant_holds_plan_then_passive_and_run_fails(tmp_path):

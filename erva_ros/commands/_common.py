@@ -9,6 +9,20 @@ from erva_ros.core.errors import CLIError
 from erva_ros.session.report import print_json  # noqa: F401 (one home, for the commands)
 
 
+def bag_warner(prog: str, into: Optional[list] = None, path: str = ''):
+    """Return a ``warn`` for :func:`erva_ros.core.bag.reader.open_bag`: print on stderr.
+
+    Each line is also appended to ``into`` (a command's --json output); ``path`` names the
+    bag in the line (a command that reads several).
+    """
+    def warn(line: str) -> None:
+        print(f'{prog}: warning: {path + ": " if path else ""}{line}', file=sys.stderr,
+              flush=True)
+        if into is not None:
+            into.append(line)
+    return warn
+
+
 def add_params_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--params', metavar='FILE', default=None,
                         help='ROS 2 parameter file with the ERVA parameters '

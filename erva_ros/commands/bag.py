@@ -16,8 +16,9 @@ Session bags are rosbag2 directories (metadata.yaml, bag format version 9) holdi
 MCAP file (profile ros2, ros2msg schemas, cdr messages), as ros2 bag record writes
 them: ros2 bag info/play and Foxglove open them directly.
 
-  erva bag info BAG      topics, types, counts, duration and the session metadata
-                         (scenario, parameters, seed, controller, version, host, ...)
+  erva bag info BAG      as ros2 bag info (-t, -v): topics, types, counts, duration,
+                         and the session metadata (scenario, parameters, seed,
+                         controller, version, host, ...)
   erva bag repair BAG    after the recorder was killed: rebuild the MCAP summary and
                          index from every flushed chunk and write metadata.yaml
   erva bag bench         recorder throughput and the latency it adds to a 50 Hz loop
@@ -27,9 +28,11 @@ The verbs of ros2 bag (rosbag2 Jazzy), with its options where they overlap:
 
   erva bag play BAG      = erva replay BAG (-r, --topics, -e, -x, -l, --clock, -d,
                          --start-offset, -p, --playback-duration, -m, ...); space
-                         pauses, kill -USR1/-USR2 pause/resume
-  erva bag record        record a running graph with erva's recorder (-o, --topics,
-                         -a, -e, --exclude-*, --use-sim-time, --custom-data, ...)
+                         pauses, kill -USR1/-USR2 pause/resume; says how many
+                         subscribers each topic had and what went out before they matched
+  erva bag record        record a running graph with erva's recorder (TOPIC ..., -o,
+                         --topics, -a, -e, --exclude-*, --use-sim-time, --custom-data,
+                         ...); says what it lacks by the publishers' sequence numbers
   erva bag reindex BAG   = erva bag repair BAG
 
 BAG is a bag directory or its .mcap file."""
@@ -42,9 +45,19 @@ def add_arguments(parser):
     sub = parser.add_subparsers(dest='bag_command', metavar='ACTION')
     sub.required = True
     p = sub.add_parser('info', help='topics, counts, duration and session metadata of a bag',
-                       description='Show what a bag holds, like "ros2 bag info", plus the '
-                                   'session metadata the recorder stored.')
+                       description='Show what a bag holds, like "ros2 bag info" (its layout '
+                                   'and time format; times in local time), plus each '
+                                   'topic\'s rate, the files of a split bag and the session '
+                                   'metadata the recorder stored.')
     p.add_argument('bag', metavar='BAG', help='bag directory or .mcap file')
+    p.add_argument('-s', '--storage', choices=('mcap',), default=None,
+                   help='storage of the bag (only mcap; default: detected)')
+    p.add_argument('-t', '--topic-name', action='store_true',
+                   help='only the topic names, one per line (as ros2 bag info -t)')
+    p.add_argument('-v', '--verbose', action='store_true',
+                   help='as ros2 bag info -v, the recorded services with their request and '
+                        'response counts (erva records none: "Service: 0"); and every '
+                        'session value in full')
     add_json_option(p)
     p = sub.add_parser('repair', aliases=['reindex'],
                        help='make a bag whose recorder died complete again (alias: reindex, '
@@ -141,20 +154,27 @@ def _add_record(sub) -> None:
                                    '(rosbag2 layout, MCAP) with erva\'s recorder '
                                    '(recorder_node, its own process), as "ros2 bag record" '
                                    'does, with its options where they overlap.  Without '
-                                   '--topics, -a or -e: the topics `erva run` records.  '
+                                   'topics (TOPIC ... or --topics), -a or -e: the topics '
+                                   '`erva run` records.  '
                                    '-a and -e choose among the topics the graph shows '
                                    'after --discovery-wait (once: as ros2 bag record '
                                    '--no-discovery).  Ctrl-C (or --duration) stops: the '
                                    'recorder takes what was delivered to it (up to 5 s '
                                    'while publishers go on), closes the bag, which is '
-                                   'then read back and counted.  Uses $ROS_DOMAIN_ID.')
+                                   'then read back and counted; the publishers\' sequence '
+                                   'numbers say what it lacks (sent before it matched a '
+                                   'publisher, holes).  Uses $ROS_DOMAIN_ID.')
     p.add_argument('-o', '--output', metavar='DIR', default=None,
                    help='bag directory to create (default: bags/<UTC time>_record)')
     p.add_argument('-s', '--storage', choices=('mcap',), default='mcap',
                    help='storage (only mcap, the default)')
-    p.add_argument('--topics', nargs='+', metavar='TOPIC', default=[],
-                   help='record these topics (relative names: under /)'
-                   ).completer = _known_topics
+    chosen = p.add_mutually_exclusive_group()
+    chosen.add_argument('topics_positional', nargs='*', metavar='TOPIC', default=[],
+                        help='record these topics (as --topics; ros2 bag record takes them '
+                             'so too)').completer = _known_topics
+    chosen.add_argument('--topics', nargs='+', metavar='TOPIC', default=[],
+                        help='record these topics (relative names: under /)'
+                        ).completer = _known_topics
     p.add_argument('-a', '--all', action='store_true', dest='all_topics',
                    help='record every topic the graph shows (except hidden ones)')
     p.add_argument('--all-topics', action='store_true', dest='all_topics',
@@ -213,7 +233,8 @@ def _record(args) -> int:
             raise CLIError(f'--custom-data {item!r}: give KEY=VALUE')
         custom[key] = value
     opts = bag_record.RecordOptions(
-        output=args.output or new_bag_dir('bags', 'record'), topics=args.topics,
+        output=args.output or new_bag_dir('bags', 'record'),
+        topics=args.topics or args.topics_positional,
         all_topics=args.all_topics, regex=args.regex, exclude_topics=args.exclude_topics,
         exclude_regex=args.exclude_regex, include_hidden=args.include_hidden_topics,
         node_name=args.node_name, use_sim_time=args.use_sim_time, custom_data=custom,
@@ -234,6 +255,11 @@ def _record(args) -> int:
     result = bag_record.record(opts, chosen, lambda: stop['flag'],
                                lambda line: print(f'erva bag record: {line}',
                                                   file=sys.stderr, flush=True))
+    missing = bag_record.missing_line(result)
+    for line in result.get('warnings', []):
+        print(f'erva bag record: warning: {line}', file=sys.stderr)
+    if missing:
+        print(f'erva bag record: {missing}', file=sys.stderr)
     if args.json:
         print_json(result)
     elif 'error' in result:
@@ -242,7 +268,12 @@ def _record(args) -> int:
         print(f'{result["bag"]}: {result["messages"]} messages on {len(result["counts"])} '
               f'topics, {result["duration_s"]:.3f} s (stopped by {result["stopped_by"]})')
         for topic, n in sorted(result['counts'].items()):
-            print(f'  {topic}: {n}')
+            lack = result['missing'].get(topic)
+            print(f'  {topic}: {n}' + ('' if lack is None else
+                                       f' (not in the bag: {lack["before_first"]} before '
+                                       f'this recorder matched the publisher, '
+                                       f'{lack["holes"]} in between)'
+                                       if lack['before_first'] + lack['holes'] else ''))
     if result.get('recorder_log'):
         print(f'erva bag record: recorder_node exited {result["exit_status"]}:\n'
               f'{result["recorder_log"]}', file=sys.stderr)
@@ -312,10 +343,18 @@ def _size(n: int) -> str:
 
 
 def _info(args) -> int:
+    from erva_ros.core.bag.metadata import format_duration, format_time_point
     from erva_ros.core.bag.reader import open_bag
     info = open_bag(args.bag).info()
     if args.json:
         print_json(info)
+        return 0
+    if args.topic_name and args.verbose:       # as ros2 bag info
+        print("Warning! You have set both the '-t' and '-v' parameters. The '-t' parameter "
+              'will be ignored.')
+    elif args.topic_name:
+        for t in info['topics']:
+            print(t['name'])
         return 0
     files = info['files']
     names = [os.path.basename(f['path']) for f in files]
@@ -324,26 +363,35 @@ def _info(args) -> int:
                  f'{"" if f["complete"] else ", not closed properly"})'
                  for n, f in zip(names, files)]
         names.insert(0, f'{len(files)} files')
+    start, end = info['start_ns'], info['end_ns']
     rows = [('Files', ('\n' + ' ' * 19).join(names)),
             ('Bag size', _size(info['size_bytes'])),
             ('Storage id', f'mcap (profile {info["profile"]}, {info["library"]})'),
-            ('ROS Distro', info['ros_distro'] or '-'),
-            ('Duration', f'{info["duration_s"]:.9f}s'),
-            ('Start', f'{info["start"]} ({info["start_ns"]})' if info['start'] else '-'),
-            ('End', f'{info["end"]} ({info["end_ns"]})' if info['end'] else '-'),
+            ('ROS Distro', info['ros_distro'] or 'unknown'),
+            ('Duration', f'{format_duration(end - start)}s' if start is not None
+             else 'unknown'),
+            ('Start', format_time_point(start)),
+            ('End', format_time_point(end)),
             ('Messages', str(info['message_count']))]
     for key, value in rows:
         print(f'{key + ":":<19}{value}')
     for i, t in enumerate(info['topics']):
-        rate = f'{t["rate_hz"]:.2f} Hz' if t['rate_hz'] else '-'
+        rate = f'{t["rate_hz"]:.2f} Hz' if t['rate_hz'] else 'unknown'
         print(f'{"Topic information:" if i == 0 else "":<19}Topic: {t["name"]} | Type: '
               f'{t["type"]} | Count: {t["count"]} | Rate: {rate} | Serialization Format: '
               f'{t["serialization_format"]}')
     if not info['topics']:
-        print(f'{"Topic information:":<19}(none)')
+        print('Topic information: ')
+    print(f'{"Service:":<19}0')        # erva records no service events
+    print('Service information: ')
     for i, (key, value) in enumerate(sorted(info['session'].items())):
-        if len(value) > LONG_VALUE:
-            value = value[:LONG_VALUE] + f'... ({len(value)} chars; see --json)'
+        lines = value.splitlines() or ['']
+        if args.verbose:      # in full; a multi-line value (the params file) indented
+            value = ('\n' + ' ' * (21 + len(key))).join(lines)
+        elif len(lines) > 1:
+            value = f'{lines[0]} ... ({len(lines)} lines; see -v or --json)'
+        elif len(value) > LONG_VALUE:
+            value = value[:LONG_VALUE] + f'... ({len(value)} chars; see -v or --json)'
         print(f'{"Session:" if i == 0 else "":<19}{key}: {value}')
     for w in info['warnings']:
         print(f'warning: {w}')

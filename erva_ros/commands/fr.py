@@ -16,6 +16,9 @@ Approximate frequency response (paper §IV.A, Fig. 4).  For each sinusoidal road
 tone the nonlinear ERVA (and the linear benchmark) is simulated with constant
 damping u = c_e0 until its response is periodic; the chassis-acceleration
 amplitude (m/s²) and the mean harvested power (W) are measured over whole periods.
+--out writes them as fr.csv, on linear axes as the paper's Fig. 4 (fr.png), and as a
+Bode magnitude plot (fr_bode.png: log frequency; |z̈_s|/|w| in dB re 1 s⁻², power per
+squared road amplitude in dB re 1 W/m²).
 
 Paper resonances: passive ERVA 1.7 Hz and 5.8 Hz; benchmark 3.7 Hz."""
 
@@ -36,7 +39,8 @@ def add_arguments(parser):
                         help='constant electrical damping u (Ns/m, default c_e0 from the params)')
     parser.add_argument('--models', default='erva,benchmark',
                         help='comma-separated models to sweep (erva, benchmark)')
-    add_out_option(parser, 'fr.csv and fr.png')
+    add_out_option(parser, 'fr.csv, fr.png (linear axes, as paper Fig. 4) and fr_bode.png '
+                           '(log frequency, dB)')
     add_json_option(parser)
 
 
@@ -89,7 +93,8 @@ def main(args) -> int:
                                  f'{t.settle_s:g}'])
         marks = sorted({f for k in curves for f in PAPER_RESONANCES_HZ.get(k, [])})
         png = fr_figure(curves, os.path.join(out, 'fr.png'), marks)
-        result['files'] = [csv_path, png]
+        bode = fr_figure(curves, os.path.join(out, 'fr_bode.png'), marks, bode=True)
+        result['files'] = [csv_path, png, bode]
 
     if args.json:
         print_json(result)

@@ -2,7 +2,7 @@
 
 import os
 
-from erva_ros.commands._common import add_json_option, positive_float, print_json
+from erva_ros.commands._common import add_json_option, bag_warner, positive_float, print_json
 from erva_ros.core.errors import CLIError
 
 COMMAND = 'identify'
@@ -105,10 +105,11 @@ def main(args) -> int:
     prior = load_erva_params(args.prior)
     if args.out and os.path.isdir(args.out):
         raise CLIError(f'--out {args.out!r} is a directory; give a file name')
-    recs = load_recordings(args.bags, args.namespace, args.road_topic)
+    warn = bag_warner('erva identify')
+    recs = load_recordings(args.bags, args.namespace, args.road_topic, warn)
     if args.validate:
         fit, held = list(recs), list(load_recordings(args.validate, args.namespace,
-                                                     args.road_topic))
+                                                     args.road_topic, warn))
     else:
         fit, held = _split(recs, args.holdout)
 

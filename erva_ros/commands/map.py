@@ -3,8 +3,8 @@
 import math
 import os
 
-from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
-                                       positive_int, print_json)
+from erva_ros.commands._common import (add_json_option, add_params_option, bag_warner,
+                                       positive_float, positive_int, print_json)
 from erva_ros.core.errors import CLIError
 
 COMMAND = 'map'
@@ -106,7 +106,8 @@ def _build(args) -> int:
     params = load_erva_params(args.params)
     created = not os.path.exists(args.out)
     road_map = None if created else RoadMap.open(args.out)
-    drives = [read_bag_drive(b) for b in args.bags]          # every bag checked first
+    drives = [read_bag_drive(b, warn=bag_warner('erva map build', path=b))
+              for b in args.bags]                              # every bag checked first
     digests = set()
     for d in drives:
         if d.record.digest() in digests:

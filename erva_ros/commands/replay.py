@@ -4,8 +4,8 @@ import contextlib
 import os
 import sys
 
-from erva_ros.commands._common import (add_json_option, add_params_option, positive_float,
-                                       print_json)
+from erva_ros.commands._common import (add_json_option, add_params_option, bag_warner,
+                                       positive_float, positive_int, print_json)
 from erva_ros.commands.run import FOXGLOVE_DEFAULT
 from erva_ros.core.errors import CLIError
 from erva_ros.core.progress import Progress
@@ -54,6 +54,10 @@ def add_play_arguments(parser) -> None:
     parser.add_argument('bag', metavar='BAG', help='bag directory or .mcap file')
     parser.add_argument('-s', '--storage', choices=('mcap',), default=None,
                         help='storage of the bag (only mcap; default: detected)')
+    parser.add_argument('--read-ahead-queue-size', type=positive_int, default=None,
+                        metavar='N', help='accepted as ros2 bag play\'s, but changes nothing '
+                                          'here: the player reads the bag chunk by chunk as '
+                                          'it plays, with no queue of messages to size')
     parser.add_argument('-r', '--rate', type=positive_float, default=1.0,
                         help='playback speed factor (default 1 = original timing)')
     parser.add_argument('--topics', nargs='+', metavar='TOPIC', default=None,
@@ -223,7 +227,7 @@ def _reevaluate(args, bag) -> int:
     return 0 if result['identical'] else 3
 
 
-def _play(args, bag) -> int:
+def _play(args, bag, warnings) -> int:
     import signal
     import time
 
@@ -248,10 +252,10 @@ def _play(args, bag) -> int:
                         exclude_regex=args.exclude_regex, remap=_remaps(args.remap))
         if args.foxglove is not None:
             server = _serve(args.foxglove, bag, player, lambda: stop['flag'])
-        if args.wait_for_subscribers > 0 and not player.wait_for_subscribers(
-                args.wait_for_subscribers):
-            print(f'{prog}: warning: not every topic has a subscriber; playing anyway',
-                  file=sys.stderr)
+        if args.wait_for_subscribers > 0:
+            player.wait_for_subscribers(args.wait_for_subscribers)
+        player.on_start = lambda reach: [print(f'{prog}: {line}', file=sys.stderr, flush=True)
+                                         for line in reach.start_lines()]
         end = time.monotonic() + max(0.0, args.delay)
         while time.monotonic() < end and not stop['flag']:
             time.sleep(0.02)
@@ -264,6 +268,10 @@ def _play(args, bag) -> int:
         if server is not None:
             server.close()
         ros.close()
+    late = player.reach.end_line()
+    if late:
+        print(f'{prog}: {late}', file=sys.stderr)
+    stats['warnings'] = warnings + ([late] if late else [])
     if args.json:
         from erva_ros.session.report import jsonable
         print_json(jsonable(stats))
@@ -349,10 +357,14 @@ def play_main(args, prog: str) -> int:
 
     args.prog = prog
     check_play_options(args)
+    if args.read_ahead_queue_size is not None:
+        print(f'{prog}: note: --read-ahead-queue-size {args.read_ahead_queue_size} changes '
+              'nothing: the bag is read chunk by chunk as it plays', file=sys.stderr)
     if args.foxglove is not None:
         from erva_ros.session.foxglove_process import check_address
         check_address(args.foxglove)
-    bag = open_bag(args.bag)
+    warnings = []
+    bag = open_bag(args.bag, bag_warner(prog, warnings))
     check_play_options(args, bag)
     # A bad selection: one line before any node starts.
     played = select_topics(bag.topics, args.topics or (), args.regex, args.exclude_topics,
@@ -361,7 +373,7 @@ def play_main(args, prog: str) -> int:
     if unknown:
         raise CLIError(f'--remap {", ".join(unknown)}: not a played topic (the played ones: '
                        f'{", ".join(played)})')
-    return _play(args, bag)
+    return _play(args, bag, warnings)
 
 
 def main(args) -> int:
@@ -380,13 +392,14 @@ def main(args) -> int:
         raise CLIError('choose one of --drive-plant and --reevaluate')
     playing = (args.loop, args.clock, args.topics, args.regex, args.exclude_regex,
                args.exclude_topics, args.remap, args.start_offset, args.start_paused,
-               args.playback_duration is not None, args.delay, args.wait_for_subscribers)
+               args.playback_duration is not None, args.delay, args.wait_for_subscribers,
+               args.read_ahead_queue_size is not None)
     if any(playing):
         raise CLIError('--drive-plant and --reevaluate do not publish: drop the play options '
                        '(--loop, --clock, --topics, --start-offset, ...)')
     if args.foxglove is not None:
         raise CLIError('--foxglove serves what is played: drop --drive-plant/--reevaluate')
-    bag = open_bag(args.bag)
+    bag = open_bag(args.bag, bag_warner('erva replay'))
     if args.reevaluate:
         return _reevaluate(args, bag)
     if os.path.exists(args.record_dir) and not os.path.isdir(args.record_dir):

@@ -51,6 +51,18 @@ class FRCurve:
     def power(self) -> np.ndarray:
         return np.array([t.power_mean_w for t in self.tones])
 
+    @property
+    def gain_db(self) -> np.ndarray:
+        """Return |z̈_s| / |w| in dB re 1 s⁻² (20·log10; -inf where there is no response)."""
+        with np.errstate(divide='ignore'):
+            return 20 * np.log10(self.accel / self.amplitude_m)
+
+    @property
+    def power_db(self) -> np.ndarray:
+        """Return P / |w|² in dB re 1 W/m² (10·log10, a power; -inf where none)."""
+        with np.errstate(divide='ignore'):
+            return 10 * np.log10(self.power / self.amplitude_m ** 2)
+
 
 def tone_response(model: QuarterCarModel, freq_hz: float, amplitude_m: float, damping: float,
                   dt: float = 5e-4, window_s: float = 2.0, max_s: float = 60.0) -> ToneResult:

@@ -18,7 +18,7 @@ give the topic of a road estimate (``road_topic``) -- the fit then takes that es
 as the road, and its error biases k_t and M_us first.
 """
 
-from typing import Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -89,10 +89,14 @@ class _Grid:
 
 
 def load_recording(path: str, namespace: Optional[str] = None,
-                   road_topic: str = contract.ROAD_HEIGHT) -> Recording:
-    """Return the identification data of one bag (module doc); one-line IdentifyError if not."""
+                   road_topic: str = contract.ROAD_HEIGHT,
+                   warn: Optional[Callable[[str], None]] = None) -> Recording:
+    """Return the identification data of one bag (module doc); one-line IdentifyError if not.
+
+    ``warn`` is told what is wrong with the bag's files (:func:`open_bag`).
+    """
     try:
-        bag = open_bag(path)
+        bag = open_bag(path, warn)
     except BagError as exc:
         raise IdentifyError(str(exc)) from None
     ns = _ns(bag, namespace)
@@ -196,9 +200,14 @@ def write_recording(bag_dir: str, rec: Recording, session: Optional[Dict[str, st
 
 
 def load_recordings(paths, namespace: Optional[str] = None,
-                    road_topic: str = contract.ROAD_HEIGHT) -> Tuple[Recording, ...]:
-    """Return one :class:`Recording` per bag; all must be of one kind and sample time."""
-    recs = tuple(load_recording(p, namespace, road_topic) for p in paths)
+                    road_topic: str = contract.ROAD_HEIGHT,
+                    warn: Optional[Callable[[str], None]] = None) -> Tuple[Recording, ...]:
+    """Return one :class:`Recording` per bag; all must be of one kind and sample time.
+
+    ``warn`` is told what is wrong with each bag's files, the bag's path first.
+    """
+    recs = tuple(load_recording(p, namespace, road_topic,
+                                None if warn is None else _prefixed(warn, p)) for p in paths)
     for r in recs[1:]:
         if r.channels != recs[0].channels:
             raise IdentifyError(f'{r.name}: HIL and full-state sessions mixed: give bags of '
@@ -206,6 +215,10 @@ def load_recordings(paths, namespace: Optional[str] = None,
         if abs(r.ts - recs[0].ts) > 1e-9:
             raise IdentifyError(f'{r.name}: sample time {r.ts:g} s, not {recs[0].ts:g} s')
     return recs
+
+
+def _prefixed(warn: Callable[[str], None], path: str) -> Callable[[str], None]:
+    return lambda line: warn(f'{path}: {line}')
 
 
 __all__ = ['load_recording', 'load_recordings', 'write_recording']

@@ -26,25 +26,48 @@ def save(fig, path: str, dpi: int = 110) -> str:
     return path
 
 
-def fr_figure(curves: Dict[str, object], path: str, paper_marks: Sequence[float] = ()) -> str:
-    """Two-panel frequency response (acceleration, power), as paper Fig. 4."""
+def fr_figure(curves: Dict[str, object], path: str, paper_marks: Sequence[float] = (),
+              bode: bool = False) -> str:
+    """Two-panel frequency response (acceleration, power); write it to ``path``.
+
+    Linear axes as paper Fig. 4 (amplitude in m/s², mean power in W), or with ``bode`` as
+    an engineer's Bode magnitude plot: log frequency, the gain road → chassis acceleration
+    |z̈_s| / |w| in dB re 1 s⁻² (20·log10) and the harvested power per squared road
+    amplitude P / |w|² in dB re 1 W/m² (10·log10, a power).  Both are per unit of road
+    amplitude, so they hold for any amplitude where the response is linear.
+    """
     fig, (ax_a, ax_p) = subplots(2, 1, figsize=(7, 6), sharex=True)
     styles = {'erva': ('tab:blue', 'passive ERVA'),
               'benchmark': ('tab:orange', 'linear benchmark')}
     for name, curve in curves.items():
         color, label = styles.get(name, (None, name))
-        ax_a.plot(curve.freqs, curve.accel, color=color, label=label)
-        ax_p.plot(curve.freqs, curve.power, color=color, label=label)
+        accel, power = (curve.gain_db, curve.power_db) if bode else (curve.accel, curve.power)
+        ax_a.plot(curve.freqs, accel, color=color, label=label)
+        ax_p.plot(curve.freqs, power, color=color, label=label)
     for f in paper_marks:
         for ax in (ax_a, ax_p):
             ax.axvline(f, color='grey', lw=0.8, ls=':')
     amp_mm = next(iter(curves.values())).amplitude_m * 1e3
-    ax_a.set_ylabel('chassis acceleration amplitude (m/s²)')
-    ax_p.set_ylabel('mean harvested power (W)')
+    if bode:
+        from matplotlib.ticker import NullFormatter
+        ax_p.set_xscale('log')
+        freqs = np.concatenate([np.asarray(c.freqs, dtype=float) for c in curves.values()])
+        ticks = [f for f in (0.1, 0.2, 0.5, 1, 2, 3, 5, 10, 20, 50, 100)
+                 if freqs.min() <= f <= freqs.max()]
+        ax_p.set_xticks(ticks, [f'{f:g}' for f in ticks])    # plain Hz, not 10^n
+        ax_p.xaxis.set_minor_formatter(NullFormatter())
+        ax_a.set_ylabel('|z̈_s| / |w| (dB re 1 s⁻²)')
+        ax_p.set_ylabel('P / |w|² (dB re 1 W/m²)')
+        ax_a.set_title(f'Frequency response, Bode magnitude (road amplitude {amp_mm:g} mm; '
+                       'dotted: paper resonances)', fontsize=10)
+    else:
+        ax_a.set_ylabel('chassis acceleration amplitude (m/s²)')
+        ax_p.set_ylabel('mean harvested power (W)')
+        ax_a.set_title(f'Approximate FR as paper Fig. 4 (linear axes), road amplitude '
+                       f'{amp_mm:g} mm (dotted: paper resonances)', fontsize=10)
     ax_p.set_xlabel('road tone frequency (Hz)')
-    ax_a.set_title(f'Approximate FR, road amplitude {amp_mm:g} mm (dotted: paper resonances)')
     for ax in (ax_a, ax_p):
-        ax.grid(True, alpha=0.3)
+        ax.grid(True, which='both', alpha=0.3)
         ax.legend()
     return save(fig, path, dpi=120)
 

@@ -17,7 +17,10 @@ Topic selection, ``start_offset_s`` (log_0 is then the bag's start plus the offs
 (:mod:`erva_ros.core.bag.playback`).  :meth:`Player.pause`, :meth:`Player.resume` and
 :meth:`Player.toggle_pause` may be called from a signal handler or another thread: they
 only queue the request, which the playing loop applies (``on_pause`` is then told).
-``remap`` publishes a recorded topic under another name.
+``remap`` publishes a recorded topic under another name.  Each message's publisher is
+asked how many subscribers it has matched as it publishes (:class:`Reach`): ``on_start``
+is told the counts when playing starts, and the stats count what went out before a
+topic's last subscriber matched.
 
 The what-if mode (erva_ros/session/whatif.py) does not publish: the road recorded at the
 tyre drives a fresh offline closed loop with another controller, written as a new session.
@@ -32,7 +35,7 @@ from erva_ros.core import topics as contract
 
 from erva_ros.ros import qos as ros_qos
 from erva_ros.core.bag import BagError
-from erva_ros.core.bag.playback import PlaybackClock, select_topics
+from erva_ros.core.bag.playback import PlaybackClock, Reach, select_topics
 from erva_ros.core.bag.reader import Bag
 from erva_ros.core.metrics import percentiles_ms
 
@@ -66,6 +69,9 @@ class Player:
         #: Called as on_pause(paused, messages published so far) when a pause or a
         #: resume takes effect (in the playing thread).
         self.on_pause: Optional[Callable[[bool, int], None]] = None
+        #: Called as on_start(reach) once, when playing starts (the subscribers matched
+        #: per topic then are in ``reach``).
+        self.on_start: Optional[Callable[[Reach], None]] = None
         self._requests: 'queue.SimpleQueue[str]' = queue.SimpleQueue()
         self.topics = select_topics(bag.topics, list(topics or ()), regex,
                                     list(exclude_topics or ()), exclude_regex)
@@ -91,7 +97,7 @@ class Player:
             # As deep as the data's history: a stalled subscriber gets every tick repaired.
             self.clock_pub = node.create_publisher(
                 Clock, contract.CLOCK, ros_qos.publisher_qos(history_s, 1.0 / self.clock_hz))
-        self.published: Dict[str, int] = {name: 0 for name in self.topics}
+        self.reach = Reach(self.topics)
         self.clock_ticks = 0
         self.pauses = 0
         self.lateness_s: List[float] = []
@@ -124,6 +130,15 @@ class Player:
                 self.pauses += request == 'pause'
                 if self.on_pause is not None:
                     self.on_pause(self.playback.paused, sum(self.published.values()))
+
+    @property
+    def published(self) -> Dict[str, int]:
+        """Return the messages published so far per topic."""
+        return self.reach.published
+
+    def matched(self) -> Dict[str, int]:
+        """Return the subscribers each topic's publisher has matched now."""
+        return {t: p.get_subscription_count() for t, p in self.publishers.items()}
 
     def _depth(self, count: int, history_s: float) -> int:
         """Return how many of a topic's ``count`` messages are played in ``history_s``."""
@@ -186,6 +201,9 @@ class Player:
         """Play (once, or until stopped with ``loop``); return what was published."""
         passes = 0
         started = time.monotonic()
+        self.reach.start(self.matched())
+        if self.on_start is not None:
+            self.on_start(self.reach)
         if self.start_paused and self.on_pause is not None:
             self.on_pause(True, 0)
         while True:
@@ -204,13 +222,15 @@ class Player:
                 target = self._wait_until_due(m.log_time_ns, should_stop)
                 if target is None:
                     return self._stats(passes, started, stopped=True)
-                self.publishers[m.topic].publish(m.data)
+                publisher = self.publishers[m.topic]
+                matched = publisher.get_subscription_count()
+                publisher.publish(m.data)
+                self.reach.publish(m.topic, matched)
                 if self.sink is not None:
                     self.sink(m.topic, m.data, m.log_time_ns)
                 # Measured once the message is out: its source timestamp then lies in
                 # [target, target + lateness], a bound a subscriber can check.
                 self.lateness_s.append(time.monotonic() - target)
-                self.published[m.topic] += 1
                 played += 1
             if not self.loop or should_stop() or not played:
                 return self._stats(passes, started, stopped=should_stop())
@@ -231,6 +251,7 @@ class Player:
                 'start_offset_s': self.start_offset_s, 'pauses': self.pauses,
                 'paused_s': self.playback.paused_s, 'remap': dict(self.remap),
                 'published': dict(self.published), 'total': sum(self.published.values()),
+                'subscribers': self.reach.as_dict(),
                 'clock_ticks': self.clock_ticks,
                 'lateness_ms': percentiles_ms(self.lateness_s)}
 

@@ -164,7 +164,8 @@ def check_bag(bag_path: str, published: Mapping[str, Optional[int]],
     session's time span) are counted as foreign, not as the loop's; so are statuses of
     another session (``session``: this one's id).  Returns ``{'topics': {topic:
     {published, recorded, lost, foreign}}, 'lost': total, 'unknown': [topics],
-    'diagnostics_missing': {status name: [seq, ...]}, 'foreign_statuses': n}``.
+    'diagnostics_missing': {status name: [seq, ...]}, 'foreign_statuses': n, 'in_bag':
+    {messages, topics, diagnostics}}`` (``in_bag``: the whole bag, as `erva bag info` counts).
     """
     from erva_ros.core.bag.reader import open_bag
     from erva_ros.core.contract import decode_diagnostics
@@ -190,8 +191,12 @@ def check_bag(bag_path: str, published: Mapping[str, Optional[int]],
             foreign[msg.topic] += 1
         else:
             recorded[msg.topic] += 1
+    # What the bag holds in all, as `erva bag info` counts it (its /diagnostics included).
+    in_bag = {'messages': bag.message_count, 'topics': len(bag.topics),
+              'diagnostics': bag.topics[topics.DIAGNOSTICS].count
+              if topics.DIAGNOSTICS in bag.topics else 0}
     out = {'topics': {}, 'lost': 0, 'unknown': [], 'diagnostics_missing': {},
-           'foreign_statuses': foreign_statuses}
+           'foreign_statuses': foreign_statuses, 'in_bag': in_bag}
     for topic, n in published.items():
         lost = None if n is None else max(0, n - recorded[topic])
         out['topics'][topic] = {'published': n, 'recorded': recorded[topic], 'lost': lost,

@@ -20,10 +20,12 @@ The recording stops on SIGINT/SIGTERM (or ``duration_s`` after the recorder open
 bag): the recorder is sent SIGINT, takes what was delivered to it (recorder_node's
 drain: while publishers go on, for up to 5 s, and what arrives meanwhile is recorded
 too), finishes the file (summary, index, metadata.yaml) and exits; the bag is then read
-back and counted per topic.
+back and counted per topic, and the publishers' sequence numbers say what it lacks: what
+went out before the recorder matched a publisher (a recorder started after ``erva bag
+play``), and holes (:mod:`erva_ros.core.bag.sequences`).
 """
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 import os
 import re
 import shutil
@@ -32,6 +34,7 @@ import time
 from typing import Callable, Dict, List, Mapping, Optional
 
 from erva_ros.core.bag import BagError
+from erva_ros.core.bag.sequences import missing_by_sequence
 from erva_ros.core.errors import CLIError
 from erva_ros.session.processes import ChildProcess, child_env, module_argv
 
@@ -189,13 +192,35 @@ def record(opts: RecordOptions, topics: List[str], should_stop: Callable[[], boo
     if status != 0:
         result['recorder_log'] = tail
     try:
-        info = open_bag(opts.output).info()
+        bag = open_bag(opts.output)
+        info = bag.info()
+        missing = missing_by_sequence(bag.messages())
     except (BagError, OSError) as exc:
         result['error'] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         return result
     result.update({'messages': info['message_count'], 'duration_s': info['duration_s'],
-                   'counts': {t['name']: t['count'] for t in info['topics']}})
+                   'counts': {t['name']: t['count'] for t in info['topics']},
+                   'warnings': info['warnings'],
+                   'missing': {t: None if m is None else asdict(m)
+                               for t, m in sorted(missing.items())}})
     return result
+
+
+def missing_line(result: Mapping) -> Optional[str]:
+    """Return a WARN line on what the publishers' numbers say the bag lacks (or None)."""
+    missing = {t: m for t, m in (result.get('missing') or {}).items()
+               if m and m['before_first'] + m['holes']}
+    if not missing:
+        return None
+    before = sum(m['before_first'] for m in missing.values())
+    holes = sum(m['holes'] for m in missing.values())
+    parts = ([f'{before} went out before this recorder matched their publisher'] if before
+             else []) + ([f'{holes} are holes in between'] if holes else [])
+    topics = ', '.join(f'{t} {m["before_first"] + m["holes"]}'
+                       for t, m in list(missing.items())[:4])
+    more = f', and {len(missing) - 4} more topics' if len(missing) > 4 else ''
+    return (f'WARN by their publishers\' sequence numbers, {before + holes} messages are not '
+            f'in the bag: {" and ".join(parts)} ({topics}{more})')
 
 
 def _run(opts: RecordOptions, argv: List[str], logs: str, should_stop: Callable[[], bool],
@@ -227,4 +252,4 @@ def _run(opts: RecordOptions, argv: List[str], logs: str, should_stop: Callable[
 
 
 __all__ = ['RecordOptions', 'STORAGE_KEYS', 'absolute', 'hidden', 'choose_topics',
-           'storage_parameters', 'check_output', 'graph_topics', 'record']
+           'storage_parameters', 'check_output', 'graph_topics', 'record', 'missing_line']

@@ -290,10 +290,9 @@ def compute_report(data: SessionData) -> Dict:
 
 
 def _warnings(bag) -> List[str]:
+    """Return what is wrong with the bag's files (its one home) and with its session."""
     from erva_ros.core.bag.session_check import session_warnings
-    out = [] if bag.complete else ['the bag was not closed properly; the figures cover what '
-                                   'is readable']
-    return out + session_warnings(bag)
+    return bag.warnings() + session_warnings(bag)
 
 
 def timing_report(data: SessionData, ts: Optional[float]) -> Dict:
@@ -368,7 +367,11 @@ def prediction_report(data: SessionData, ts: Optional[float]) -> Optional[Dict]:
 def write_plots(data: SessionData, out_dir: str, timing: bool = True) -> List[str]:
     """Write the report's PNG figures into ``out_dir`` (timing.png if ``timing``)."""
     from erva_ros.core.bag import report_plots
-    return report_plots.write_all(data, out_dir, timing, actual_signals(data))
+    from erva_ros.core.bag.session import stored_parameters
+    live = stored_parameters(data.bag.session).get('live') or {}
+    deadlines = {'ts': _sample_time(data.state.stamp_ns) or _sample_time(data.cmd.stamp_ns)
+                 or 0.0, 'd': float(live.get('command_delay_s') or 0.0)}
+    return report_plots.write_all(data, out_dir, timing, actual_signals(data), deadlines)
 
 
 __all__ = ['SessionData', 'Series', 'load_session', 'compute_report', 'write_plots',

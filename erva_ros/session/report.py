@@ -173,7 +173,13 @@ def _recording_lines(r: Dict[str, Any]) -> List[str]:
         line += f'; {foreign} foreign (stamped outside the session)'
     if r.get('lost_in_transport'):
         line += f'; the middleware reported {r["lost_in_transport"]} lost in transport'
-    return [line]
+    bag = r.get('in_bag')
+    if not bag:
+        return [line]
+    # The count `erva bag info` gives: the loop's topics, /diagnostics and anything else.
+    return [line, f'            the bag holds {bag["messages"]} messages on {bag["topics"]} '
+                  f'topics as erva bag info counts them, {bag["diagnostics"]} on /diagnostics '
+                  'included']
 
 
 def _hil_lines(h: Dict[str, Any]) -> List[str]:

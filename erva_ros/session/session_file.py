@@ -207,17 +207,23 @@ def _preview_map(cfg: RunConfig, live: Dict[str, Any]) -> str:
 
 
 def session_description(session: Session) -> Dict[str, str]:
-    """Return what describes the session (the bag's erva_session record)."""
+    """Return what describes the session (the bag's erva_session record).
+
+    ``params_yaml`` is the session params file itself, as every node read it: the bag
+    keeps it, the file goes with the session directory.
+    """
     from erva_ros.core.bag import session as bag_session
     params = {'erva': session.erva, 'controller': session.settings.as_dict(),
               'live': session.live}
+    with open(session.params_file, encoding='utf-8') as fh:
+        params_yaml = fh.read()
     return bag_session.session_metadata(
         session.scenario, parameters=params, seed=session.live['seed'],
         controller=session.settings.controller,
         extra={'mode': session.live['mode'], 'model': session.live['model'],
                'duration_s': session.live['duration_s'], 'ecu': session.ecu,
                'preview': f'map:{session.preview_map}' if session.preview_map else 'road',
-               'params_file': session.params_file, 'session_id': session.session_id})
+               'params_yaml': params_yaml, 'session_id': session.session_id})
 
 
 __all__ = ['HIL_START_DELAY_S', 'PARAMS_FILE', 'Session', 'default_config_file',

@@ -40,6 +40,29 @@ METADATA_FILE = 'metadata.yaml'
 ROOT_KEY = 'rosbag2_bagfile_information'
 
 
+def format_duration(ns: int) -> str:
+    """Return a duration as ``ros2 bag info`` prints it: seconds, 9 decimals (10.945622281)."""
+    ns = int(ns)
+    return f'{ns // 10**9}.{ns % 10**9:09d}'
+
+
+def format_time_point(ns: Optional[int], utc: bool = False) -> str:
+    """Return a time as ``ros2 bag info`` (Jazzy) prints it, or ``unknown`` for None.
+
+    As rosbag2_py's ``format_time_point``: the local date and time (``%b %e %Y
+    %H:%M:%S``) with nine decimals, then the seconds since the epoch, e.g.
+    ``Dec  7 2026 15:46:41.473955228 (1796658401.473955228)``.  ``utc``: in UTC instead.
+    """
+    import datetime
+    if ns is None:
+        return 'unknown'
+    sec = int(ns) // 10**9
+    tz = datetime.timezone.utc if utc else None
+    when = datetime.datetime.fromtimestamp(sec, tz=tz)
+    frac = f'{int(ns) % 10**9:09d}'
+    return f'{when.strftime("%b %e %Y %H:%M:%S")}.{frac} ({sec}.{frac})'
+
+
 def topic_entry(name: str, type_name: str, offered_qos: Sequence[Dict], type_hash: str,
                 count: int, serialization_format: str = 'cdr') -> Dict:
     """Return one ``topics_with_message_count`` entry."""
@@ -202,5 +225,6 @@ def read_metadata(bag_dir: str) -> Dict:
     return meta
 
 
-__all__ = ['bag_metadata', 'file_entry', 'topic_entry', 'dump_yaml', 'write_metadata',
+__all__ = ['format_duration', 'format_time_point',
+           'bag_metadata', 'file_entry', 'topic_entry', 'dump_yaml', 'write_metadata',
            'read_metadata', 'METADATA_FILE', 'BAG_FORMAT_VERSION']

@@ -12,10 +12,16 @@ rules of ``ros2 bag play`` (rosbag2 Jazzy):
 * ``--playback-duration S``: messages more than S seconds after that point are not played;
 * pauses: the playback clock stops (a /clock publisher keeps publishing the frozen time)
   and no message goes out until it resumes; the schedule then continues where it stopped.
+
+Unlike ``ros2 bag play``, the player never loses silently (:class:`Reach`): it says how
+many subscribers each topic had matched when it started, warns when a topic had none,
+and at the end counts the messages that went out before a topic's last subscriber
+matched -- those a late subscriber (a recorder started after the player) cannot have.
 """
 
+from dataclasses import asdict, dataclass
 import re
-from typing import Iterable, List, Optional, Sequence
+from typing import Dict, Iterable, List, Mapping, Optional, Sequence
 
 from erva_ros.core.bag import BagError
 
@@ -107,4 +113,86 @@ class PlaybackClock:
         return True
 
 
-__all__ = ['compile_regex', 'select_topics', 'PlaybackClock']
+@dataclass
+class TopicReach:
+    """Whom one topic's messages reached: its publisher's matched subscribers over time."""
+
+    at_start: int = 0           # subscribers matched when playing started
+    most: int = 0               # the most matched at any message
+    published: int = 0
+    unmatched: int = 0          # published while no subscriber was matched
+    before_last_match: int = 0  # published before the count first reached ``most``
+
+
+class Reach:
+    """Per topic, the subscribers a player's publisher had matched at each message.
+
+    A reliable, volatile publisher delivers a message only to the subscribers it has
+    matched when it publishes: a subscriber that matches later never gets it.  So what
+    went out before the last subscriber matched is what a late one missed.
+    """
+
+    def __init__(self, topics: Iterable[str]):
+        self.topics: Dict[str, TopicReach] = {t: TopicReach() for t in topics}
+
+    def start(self, matched: Mapping[str, int]) -> None:
+        """Take each topic's matched subscribers when playing starts."""
+        for topic, n in matched.items():
+            r = self.topics[topic]
+            r.at_start = r.most = int(n)
+
+    def publish(self, topic: str, matched: int) -> None:
+        """Count one message of ``topic`` published while ``matched`` subscribers were."""
+        r = self.topics[topic]
+        if matched > r.most:
+            r.most, r.before_last_match = matched, r.published
+        r.unmatched += matched == 0
+        r.published += 1
+
+    @property
+    def published(self) -> Dict[str, int]:
+        """Return the messages published per topic."""
+        return {t: r.published for t, r in self.topics.items()}
+
+    def start_lines(self) -> List[str]:
+        """Return the subscribers matched per topic at the start; a WARN if a topic had none."""
+        counts = ', '.join(f'{t} {r.at_start}' for t, r in self.topics.items())
+        out = [f'subscribers matched at the start: {counts}']
+        alone = [t for t, r in self.topics.items() if r.at_start == 0]
+        if alone:
+            which = (f'any of the {len(alone)} topics' if len(alone) == len(self.topics) else
+                     f'{_some(alone)} ({len(alone)} of {len(self.topics)} topics)')
+            out.append(f'WARN no subscriber matched {which}: their messages reach no one '
+                       'until one matches (--wait-for-subscribers S waits up to S s for '
+                       'every topic)')
+        return out
+
+    def end_line(self) -> Optional[str]:
+        """Return a WARN line on what went out unmatched or before a late match (or None)."""
+        rs = self.topics
+        missed = {t: max(r.unmatched, r.before_last_match) for t, r in rs.items()}
+        if not any(missed.values()):
+            return None
+        total = sum(r.published for r in rs.values())
+        unmatched = sum(r.unmatched for r in rs.values())
+        late = sum(r.before_last_match for r in rs.values())
+        parts = ([f'{unmatched} went out with no subscriber matched'] if unmatched else []) + \
+            ([f'{late} before the last subscriber of their topic matched']
+             if late and late != unmatched else [])
+        if late:
+            parts[-1] += '; a subscriber that matched late does not have them'
+        per_topic = _some([f'{t} {n} of {rs[t].published}' for t, n in missed.items() if n])
+        return f'WARN of {total} messages, {", ".join(parts)} ({per_topic})'
+
+    def as_dict(self) -> Dict[str, Dict[str, int]]:
+        """Return {topic: TopicReach as a dict}."""
+        return {t: asdict(r) for t, r in self.topics.items()}
+
+
+def _some(items: Sequence[str], most: int = 4) -> str:
+    """Return up to ``most`` of ``items`` joined, with how many more."""
+    shown = ', '.join(items[:most])
+    return shown + (f', and {len(items) - most} more' if len(items) > most else '')
+
+
+__all__ = ['compile_regex', 'select_topics', 'PlaybackClock', 'Reach', 'TopicReach']

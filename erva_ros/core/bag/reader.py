@@ -15,7 +15,7 @@ import datetime
 import heapq
 import os
 import re
-from typing import Dict, Iterable, Iterator, List, Optional, Tuple
+from typing import Callable, Dict, Iterable, Iterator, List, Optional, Tuple
 
 from erva_ros.core.bag import BagError
 from erva_ros.core.bag.metadata import METADATA_FILE, read_metadata
@@ -444,14 +444,23 @@ class Bag:
         }
 
 
-def open_bag(path: str) -> Bag:
-    """Open ``path`` as a bag; any failure is a one-line :class:`BagError`."""
+def open_bag(path: str, warn: Optional[Callable[[str], None]] = None) -> Bag:
+    """Open ``path`` as a bag; any failure is a one-line :class:`BagError`.
+
+    ``warn(line)`` is called with each of :meth:`Bag.warnings` (a file not closed properly,
+    unlisted files, a missing metadata.yaml, ...): every command that reads a bag passes
+    one, so a truncated bag is never read in silence.
+    """
     try:
-        return Bag(path)
+        bag = Bag(path)
     except BagError:
         raise
     except (OSError, ValueError, UnicodeDecodeError) as exc:
         raise BagError(f'{path}: cannot read bag ({type(exc).__name__}: {exc})') from None
+    if warn is not None:
+        for line in bag.warnings():
+            warn(line)
+    return bag
 
 
 __all__ = ['Bag', 'BagFile', 'BagMessage', 'TopicInfo', 'open_bag', 'scan_mcap',

@@ -97,6 +97,15 @@ def session_metadata(scenario: str, parameters: Optional[Mapping[str, Any]] = No
     return {str(k): _text(v) for k, v in meta.items()}
 
 
+def stored_parameters(session: Mapping[str, str]) -> Dict[str, Any]:
+    """Return the ``parameters`` a session record stores (erva, controller, live), {} if none."""
+    try:
+        params = json.loads(session.get('parameters', '') or '{}')
+    except ValueError:
+        return {}
+    return params if isinstance(params, dict) else {}
+
+
 def recorder_session(text: str, recorder: str, bag_dir: str,
                      extra: Optional[Mapping[str, Any]] = None) -> Dict[str, str]:
     """Return the session record of a recorder given ``session_metadata`` = ``text`` (JSON).
@@ -170,5 +179,5 @@ def recorder_ros_args(bag_dir: str, metadata: Optional[Mapping[str, Any]] = None
     return args
 
 
-__all__ = ['new_bag_dir', 'session_metadata', 'recorder_session', 'recorder_ros_args',
-           'git_commit', 'utc_stamp']
+__all__ = ['new_bag_dir', 'session_metadata', 'stored_parameters', 'recorder_session',
+           'recorder_ros_args', 'git_commit', 'utc_stamp']

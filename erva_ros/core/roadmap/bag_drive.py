@@ -13,15 +13,15 @@ row of NaN (the estimator predicts through it), a repeated one is dropped (count
 """
 
 from dataclasses import dataclass
-import json
 import math
-from typing import Dict, Mapping, Optional
+from typing import Callable, Dict, Mapping, Optional
 
 import numpy as np
 
 from erva_ros.core import contract, topics
 from erva_ros.core.bag import BagError
 from erva_ros.core.bag.reader import open_bag
+from erva_ros.core.bag.session import stored_parameters
 from erva_ros.core.hil import topics as hil_topics
 from erva_ros.core.roadmap import MapError
 from erva_ros.core.roadmap.drive import DriveRecord
@@ -61,11 +61,7 @@ def route_of_live(live: Mapping) -> str:
 
 
 def _session_live(session: Dict[str, str]) -> Optional[Dict]:
-    try:
-        params = json.loads(session.get('parameters', '') or '{}')
-    except ValueError:
-        return None
-    live = params.get('live') if isinstance(params, dict) else None
+    live = stored_parameters(session).get('live')
     return live if isinstance(live, dict) and 'road' in live else None
 
 
@@ -78,9 +74,13 @@ def _topic(bag, name: str) -> Optional[str]:
     return ends[0] if len(ends) == 1 else None
 
 
-def read_bag_drive(path: str, ts: Optional[float] = None) -> BagDrive:
-    """Return the drive recorded in the bag at ``path``; MapError/BagError (one line) if none."""
-    bag = open_bag(path)
+def read_bag_drive(path: str, ts: Optional[float] = None,
+                   warn: Optional[Callable[[str], None]] = None) -> BagDrive:
+    """Return the drive recorded in the bag at ``path``; MapError/BagError (one line) if none.
+
+    ``warn`` is told what is wrong with the bag's files (:func:`open_bag`).
+    """
+    bag = open_bag(path, warn)
     meas_topic = _topic(bag, hil_topics.ECU_MEASUREMENTS)
     if meas_topic is None:
         raise MapError(f'{path}: no {hil_topics.ECU_MEASUREMENTS} topic: not a HIL session '
