@@ -17,7 +17,7 @@ configuration at once, in parallel, with one line per part:
   the NMPCs preview_long, preview and no_preview (config/nmpc.yaml) on the ERVA and the
   benchmark model, without and with a command delay (command_delay_s > 0: any value
   loads the same functions); the plant on both models; the EKF and the simulated ECU's
-  plant of the HIL loop (config/hil.yaml).
+  plant of the HIL loop (config/hil.yaml), and the road EKF of a map's preview.
 
 Targets.  The libraries are built for a CPU, named as GCC's -march takes it: `native`
 (the default: this CPU, fastest), `x86-64-v2`, `x86-64-v3`, `x86-64-v4` (the x86-64

@@ -117,16 +117,19 @@ class ExtendedKalmanFilter:
         self.nx = nx
         # Stable over the whole input box (stiff at high c_e, docs/model.md).
         self.substeps = substeps or rk4_stable_substeps(self.model, self.ts, max(u_max, 1.0))
-        step = self.model.rk4_step(self.ts, self.substeps)
-        x, u = ca.SX.sym('x', nx), ca.SX.sym('u')
-        w0, w1 = ca.SX.sym('w0'), ca.SX.sym('w1')
+        # rk4_step as a loop: its Jacobian compiles in seconds, not a minute (model.py).
+        step = self.model.rk4_loop(self.ts, self.substeps)
+        x, u = ca.MX.sym('x', nx), ca.MX.sym('u')
+        w0, w1 = ca.MX.sym('w0'), ca.MX.sym('w1')
         xn = step(x, u, w0, w1)
-        self._pred = ca.Function('ekf_predict', [x, u, w0, w1], [xn, ca.jacobian(xn, x)],
+        a = ca.densify(ca.jacobian(xn, x))
+        self._pred = ca.Function('ekf_predict', [x, u, w0, w1], [xn, a],
                                  ['x', 'u', 'w0', 'w1'], ['xn', 'A'])
-        y = self.model.measurements(x, u, w0)
-        self._meas = ca.Function('ekf_measure', [x, u, w0], [y, ca.jacobian(y, x)],
+        xs, us, ws = ca.SX.sym('x', nx), ca.SX.sym('u'), ca.SX.sym('w')
+        y = self.model.measurements(xs, us, ws)
+        self._meas = ca.Function('ekf_measure', [xs, us, ws], [y, ca.jacobian(y, xs)],
                                  ['x', 'u', 'w'], ['y', 'H'])
-        self._cycle = self._cycle_function(x, xn, ca.jacobian(xn, x), u, w0, w1)
+        self._cycle = self._cycle_function(x, xn, a, u, w0, w1)
         # As the NMPC: C when a compiler is there (2x faster).
         self._pred, self._meas, self._cycle = compile_for(
             codegen, (self._pred, self._meas, self._cycle), 'the EKF')
@@ -145,15 +148,20 @@ class ExtendedKalmanFilter:
         only where its mask is 1, with the output linearised once at the prior.
         """
         nx = self.nx
-        p = ca.SX.sym('P', nx, nx)
-        q = ca.SX.sym('Q', nx, nx)
-        r = ca.SX.sym('r', 3)
+        # The update in SX (elementwise, as before), called from the MX prediction.
+        xn_s, a_s = ca.SX.sym('xn', nx), ca.SX.sym('A', nx, nx)
+        p, q = ca.SX.sym('P', nx, nx), ca.SX.sym('Q', nx, nx)
+        r, w_s = ca.SX.sym('r', 3), ca.SX.sym('w')
         u_now, y, mask = ca.SX.sym('u_now'), ca.SX.sym('y', 3), ca.SX.sym('mask', 3)
-        p1 = a @ p @ a.T + q
-        yh, hh = self._meas(xn, u_now, w1)     # the SX function: inlined
-        xk, pk, nis = sequential_update(xn, p1, yh, hh, y, mask, r)
-        return ca.Function('ekf_cycle', [x, p, q, r, u_mean, u_now, w0, w1, y, mask],
-                           [xk, pk, nis],
+        p1 = a_s @ p @ a_s.T + q
+        yh, hh = self._meas(xn_s, u_now, w_s)     # the SX function: inlined
+        xk, pk, nis = sequential_update(xn_s, p1, yh, hh, y, mask, r)
+        update = ca.Function('ekf_update', [xn_s, a_s, p, q, r, u_now, w_s, y, mask],
+                             [xk, pk, nis])
+        pm, qm, rm = ca.MX.sym('P', nx, nx), ca.MX.sym('Q', nx, nx), ca.MX.sym('r', 3)
+        u_now_m, ym, mask_m = ca.MX.sym('u_now'), ca.MX.sym('y', 3), ca.MX.sym('mask', 3)
+        return ca.Function('ekf_cycle', [x, pm, qm, rm, u_mean, u_now_m, w0, w1, ym, mask_m],
+                           update(xn, a, pm, qm, rm, u_now_m, w1, ym, mask_m),
                            ['x', 'P', 'Q', 'r', 'u_mean', 'u_now', 'w0', 'w1', 'y', 'mask'],
                            ['x_next', 'P_next', 'nis'])
 

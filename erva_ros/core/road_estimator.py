@@ -231,25 +231,27 @@ class RoadEKF:
         nx, nr = self.model.nx, road.n_states
         self.nx, self.nz = nx, nx + nr
         self.substeps = rk4_stable_substeps(self.model, self.ts, max(u_max, 1.0))
-        flow = self.model.rk4_flow(self.substeps)      # (x, u, w0, w1, dt), stable to Ts
+        # rk4_flow as a loop (x, u, w0, w1, dt), stable to Ts: its Jacobians compile in
+        # seconds, not minutes (model.py).
+        flow = self.model.rk4_loop(None, self.substeps)
         phi, self.Qe = road.matrices(self.ts)
         self._shift = np.zeros(nx)
         self._shift[0] = self._shift[2] = 1.0           # S: z_s and z_us ride on w
-        z, e = ca.SX.sym('z', self.nz), ca.SX.sym('e', nr)
-        u = ca.SX.sym('u', 3)                           # u_a on [0, d), u_b on [d, Ts), d
+        z, e = ca.MX.sym('z', self.nz), ca.MX.sym('e', nr)
+        u = ca.MX.sym('u', 3)                           # u_a on [0, d), u_b on [d, Ts), d
         xi, r = z[:nx], z[nx:]
         r1 = ca.mtimes(ca.DM(phi), r) + e
         dw = r1[0] - r[0]
         wd = dw * u[2] / self.ts                        # the road at the switch
         xd = flow(xi, u[0], 0, wd, u[2])
         zn = ca.vertcat(flow(xd, u[1], wd, dw, self.ts - u[2]) - ca.DM(self._shift) * dw, r1)
-        zn0 = ca.substitute(zn, e, ca.DM.zeros(nr))
-        a = ca.jacobian(zn0, z)
-        g = ca.substitute(ca.jacobian(zn, e), e, ca.DM.zeros(nr))
-        u_now = ca.SX.sym('u_now')
-        y = self._outputs(z, u_now)
-        h = ca.Function('road_ekf_h', [z, u_now], [y, ca.densify(ca.jacobian(y, z))])
-        cycle = self._cycle_function(z, u, u_now, zn0, a, g, h)
+        prediction = ca.Function('road_ekf_prediction', [z, u, e],
+                                 [zn, ca.jacobian(zn, z), ca.jacobian(zn, e)])
+        zn0, a, g = (ca.densify(v) for v in prediction(z, u, ca.DM.zeros(nr)))
+        zs, u_now = ca.SX.sym('z', self.nz), ca.SX.sym('u_now')
+        y = self._outputs(zs, u_now)
+        h = ca.Function('road_ekf_h', [zs, u_now], [y, ca.densify(ca.jacobian(y, zs))])
+        cycle = self._cycle_function(z, u, zn0, a, g, h)
         h, cycle = compile_for(codegen, (h, cycle), 'the road EKF')
         self._h = BufferedCall(h)
         self._cycle = BufferedCall(cycle)
@@ -267,22 +269,31 @@ class RoadEKF:
         return ca.vertcat(m.measurements(x, u_now, w), u_now * m.generator_velocity(x),
                           m.ode(x, u_now, w)[3])
 
-    def _cycle_function(self, z, u, u_now, zn, a, g, hfun) -> ca.Function:
+    def _cycle_function(self, z, u, zn, a, g, hfun) -> ca.Function:
         """Predict + sequential update of one cycle as one CasADi function (R diagonal).
 
         The rows are applied one by one, each only where its mask is 1, with the output
         linearised once at the prior: equal to the batch update.
         """
-        nz, ny = self.nz, len(ROAD_MEASUREMENTS)
-        p = ca.SX.sym('P', nz, nz)
-        q = ca.SX.sym('Q', nz, nz)
-        qe = ca.SX.sym('Qe', self.road.n_states, self.road.n_states)
+        nz, ny, nr = self.nz, len(ROAD_MEASUREMENTS), self.road.n_states
+        # The update in SX (elementwise, as before), called from the MX prediction.
+        zn_s, a_s, g_s = ca.SX.sym('zn', nz), ca.SX.sym('A', nz, nz), ca.SX.sym('G', nz, nr)
+        p, q = ca.SX.sym('P', nz, nz), ca.SX.sym('Q', nz, nz)
+        qe = ca.SX.sym('Qe', nr, nr)
+        u_now_s = ca.SX.sym('u_now')
         r, y, mask = ca.SX.sym('r', ny), ca.SX.sym('y', ny), ca.SX.sym('mask', ny)
-        p1 = a @ p @ a.T + q + g @ qe @ g.T
-        yh, hh = hfun(zn, u_now)
-        zk, pk, nis = sequential_update(zn, p1, yh, hh, y, mask, r)
-        return ca.Function('road_ekf_cycle', [z, p, q, qe, r, u, u_now, y, mask],
-                           [ca.densify(v) for v in (zk, pk, nis, zn, p1, a)],
+        p1 = a_s @ p @ a_s.T + q + g_s @ qe @ g_s.T
+        yh, hh = hfun(zn_s, u_now_s)
+        zk, pk, nis = sequential_update(zn_s, p1, yh, hh, y, mask, r)
+        update = ca.Function('road_ekf_update',
+                             [zn_s, a_s, g_s, p, q, qe, r, u_now_s, y, mask],
+                             [ca.densify(v) for v in (zk, pk, nis, p1)])
+        pm, qm, qem = ca.MX.sym('P', nz, nz), ca.MX.sym('Q', nz, nz), ca.MX.sym('Qe', nr, nr)
+        rm, ym, mask_m = ca.MX.sym('r', ny), ca.MX.sym('y', ny), ca.MX.sym('mask', ny)
+        u_now_m = ca.MX.sym('u_now')
+        zk, pk, nis, p1 = update(zn, a, g, pm, qm, qem, rm, u_now_m, ym, mask_m)
+        return ca.Function('road_ekf_cycle', [z, pm, qm, qem, rm, u, u_now_m, ym, mask_m],
+                           [zk, pk, nis, zn, p1, a],
                            ['z', 'P', 'Q', 'Qe', 'r', 'u_profile', 'u_now', 'y', 'mask'],
                            ['z_next', 'P_next', 'nis', 'z_pred', 'P_pred', 'A'])
 

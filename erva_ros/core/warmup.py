@@ -51,8 +51,10 @@ class Target:
 
     ``role``: ``nmpc`` (nmpc_node, `erva sim`, `erva bench`: make_controller with
     ``settings``), ``plant`` (plant_sim_node: PlantSimulator at ``ts``), ``ekf``
-    (state_estimator_node: the EKF at ``ts``, stable up to ``u_max``) or ``ecu_plant``
-    (`erva ecu-sim`: the plant at the ECU period ``ts`` with its ``latch_s`` profile).
+    (state_estimator_node: the EKF at ``ts``, stable up to ``u_max``), ``road_ekf``
+    (state_estimator_node estimating the road, `--preview map:`: the road EKF, likewise)
+    or ``ecu_plant`` (`erva ecu-sim`: the plant at the ECU period ``ts`` with its
+    ``latch_s`` profile).
     """
 
     role: str
@@ -77,6 +79,8 @@ class Target:
             return f'the NMPC ({s.controller}, {self.model} model{delay})'
         if self.role == 'ekf':
             return f'the EKF ({self.model} model)'
+        if self.role == 'road_ekf':
+            return f'the road EKF ({self.model} model)'
         if self.role == 'ecu_plant':
             return f"the simulated ECU's plant ({self.model} model)"
         return f'the plant ({self.model} model)'
@@ -98,6 +102,11 @@ class Target:
         if self.role == 'ekf':
             from erva_ros.core.estimator import ExtendedKalmanFilter
             return ExtendedKalmanFilter(self.params, self.model, self.ts, u_max=self.u_max)
+        if self.role == 'road_ekf':
+            # Its functions depend on the road model's kind, not on its noise levels: the
+            # node's random walk (core/road_loop.py) is RoadEKF's default.
+            from erva_ros.core.road_estimator import RoadEKF
+            return RoadEKF(self.params, self.model, self.ts, u_max=self.u_max)
         from erva_ros.core.plant import PlantSimulator
         plant = PlantSimulator(self.params, self.model, self.ts)
         if self.role == 'ecu_plant':    # as EcuSimCore: one period of latch_s pieces
@@ -113,14 +122,15 @@ def nmpc_target(params: ERVAParams, settings: ControllerSettings, model: str = '
 
 
 def session_targets(erva: Union[ERVAParams, Mapping[str, float]], settings: ControllerSettings,
-                    live: Mapping[str, Any], ecu: str = 'none', hil_file: Optional[str] = None
-                    ) -> List[Target]:
+                    live: Mapping[str, Any], ecu: str = 'none', hil_file: Optional[str] = None,
+                    road_estimated: bool = False) -> List[Target]:
     """Return the cores of an `erva run` session: what its nodes will build and load.
 
     ``erva``, ``settings`` and ``live`` are the session's effective values (those of the
     params file the nodes read); ``ecu`` 'virtual' replaces plant_sim_node by the
     simulated ECU and the estimator (their settings from ``hil_file``, default
-    config/hil.yaml).
+    config/hil.yaml), whose filter is the road EKF when ``road_estimated`` (a map's
+    preview).
     """
     params = erva if isinstance(erva, ERVAParams) else validate_erva(dict(erva), 'session')
     model, ts = live['model'], float(live['ts'])
@@ -129,7 +139,7 @@ def session_targets(erva: Union[ERVAParams, Mapping[str, float]], settings: Cont
         out.append(Target('plant', params, model, ts))
     else:
         from erva_ros.core.hil.settings import load_ecu_sim_section, load_estimator_section
-        out.append(Target('ekf', params, model, ts,
+        out.append(Target('road_ekf' if road_estimated else 'ekf', params, model, ts,
                           u_max=load_estimator_section(hil_file)['u_max']))
         out.append(Target('ecu_plant', params, model, ts,
                           latch_s=load_ecu_sim_section(hil_file)['latch_s']))
@@ -144,7 +154,8 @@ def shipped_targets(params_file: Optional[str] = None, nmpc_file: Optional[str] 
     On each model the NMPCs (preview_long, preview, no_preview) of config/nmpc.yaml, without
     and with a command delay (config/live.yaml's ``command_delay_s``: any d > 0 loads the
     same functions, d is a parameter of the OCP), and the plant; the EKF and the simulated
-    ECU's plant of the HIL loop (config/hil.yaml).  Other files may replace the shipped ones.
+    ECU's plant of the HIL loop (config/hil.yaml), and the road EKF of a map's preview.
+    Other files may replace the shipped ones.
     """
     params = load_erva_params(params_file)
     base = load_controller_settings(nmpc_file)
@@ -159,6 +170,8 @@ def shipped_targets(params_file: Optional[str] = None, nmpc_file: Optional[str] 
     # The HIL loop (config/hil.yaml calibrates the ERVA's generator): estimator and ECU.
     out += session_targets(params, base, {'model': 'erva', 'ts': base.ts}, 'virtual',
                            hil_file)[1:]
+    out += session_targets(params, base, {'model': 'erva', 'ts': base.ts}, 'virtual',
+                           hil_file, road_estimated=True)[1:2]
     return out
 
 
@@ -455,12 +468,11 @@ def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-#: Compiler time (CPU s, one core) of each NMPC's functions, measured on this project's
-#: machine (gcc 12, -O1 -march=native; 2026-12-04): the progress line's rough figure.
-#: The time is not proportional to the size of the C source (the benchmark preview's 1.5
-#: MB took 33 s, the ERVA preview's 3.7 MB 13 s: register allocation in one function).
-REFERENCE_CPU_S = {('erva', 'preview'): 14, ('erva', 'preview_long'): 44,
-                   ('benchmark', 'preview'): 34, ('benchmark', 'preview_long'): 17}
+#: Compiler time (CPU s, one core) of each NMPC's functions without a command delay (with
+#: one: ~15 % more), measured on this project's machine (gcc 12, -O3 -march=native;
+#: 2026-12-07, load 9-15, docs/tests.md): the progress line's rough figure.
+REFERENCE_CPU_S = {('erva', 'preview'): 14, ('erva', 'preview_long'): 21,
+                   ('benchmark', 'preview'): 7, ('benchmark', 'preview_long'): 12}
 
 
 def _expected(target: Target) -> str:

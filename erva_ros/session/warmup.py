@@ -21,7 +21,7 @@ def warm_session(session: Session, log: Callable[[str], None],
     :func:`erva_ros.session.hil_processes.hil_process_specs`).
     """
     return ensure_compiled(session_targets(session.erva, session.settings, session.live,
-                                           session.ecu, hil_file), log)
+                                           session.ecu, hil_file, session.road_estimated), log)
 
 
 __all__ = ['warm_session']
