@@ -292,15 +292,18 @@ def test_memory_does_not_grow_with_the_session():
     assert grown < 256 * 1024, f'the store grew by {grown} bytes over 100,000 samples'
 
 
-def test_estimates_on_their_own_grid_pair_with_the_truth_within_a_quarter_period():
-    # With the road estimated the estimator stamps each ECU cycle on its receive grid,
-    # 0.5 ms after the ECU's instant: the error is still over every cycle, and the same.
+def test_estimates_on_their_own_grid_pair_with_the_truth_of_their_cycle():
+    # With the road estimated the estimator stamps each ECU cycle on its own grid: its
+    # first cycle's receive time, a part of a period after the ECU's instant (0.5 ms on a
+    # quiet machine, more on a busy one).  The error is still over every cycle, the same,
+    # and the offset is measured: in the window the estimator places a cycle on its grid
+    # with, [-Ts/4, 3Ts/4) (EstimatorLoop.stamp).
     from erva_ros.session.monitor_stats import SessionStreams
     rng = np.random.default_rng(3)
     truth = rng.normal(size=(60, 6))
     est = truth + rng.normal(scale=0.01, size=truth.shape)
     errors = {}
-    for offset in (0, 500_000):
+    for offset in (0, 500_000, 12_000_000, -4_000_000):
         s = SessionStreams(0.02)
         for k in range(60):
             t = 1_000_000_000 + k * 20_000_000
@@ -311,10 +314,18 @@ def test_estimates_on_their_own_grid_pair_with_the_truth_within_a_quarter_period
                 s.add_state(t + offset, t + offset + 1000, est[k])
                 s.add_truth(t, truth[k])
         errors[offset] = (s.error.matched, s.error.err2.copy())
-    assert errors[0][0] == errors[500_000][0] == 60
-    np.testing.assert_array_equal(errors[0][1], errors[500_000][1])
-    # A quarter period off is another cycle's: not paired.
+        assert (s.error.offset_ns, s.error.offset_spread_ns) == (offset, 0)
+    assert {m for m, _ in errors.values()} == {60}
+    for offset in (500_000, 12_000_000, -4_000_000):
+        np.testing.assert_array_equal(errors[0][1], errors[offset][1])
+    # The deflection and its rate come after the state's coordinates.
+    np.testing.assert_allclose(errors[0][1][6:], [
+        np.sum(((est - truth)[:, 0] - (est - truth)[:, 2]) ** 2),
+        np.sum(((est - truth)[:, 1] - (est - truth)[:, 3]) ** 2)], rtol=1e-12)
+    # 3Ts/4 on is the next cycle's window: paired with that one, at -Ts/4.
     s = SessionStreams(0.02)
-    s.add_state(1_000_000_000 + 5_000_001, 1_000_000_000, est[0])
     s.add_truth(1_000_000_000, truth[0])
+    s.add_state(1_000_000_000 + 15_000_000, 1_000_000_000, est[0])
     assert s.error.matched == 0
+    s.add_truth(1_020_000_000, truth[1])
+    assert s.error.matched == 1 and s.error.offset_ns == -5_000_000
