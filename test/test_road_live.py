@@ -161,8 +161,8 @@ def test_erva_run_previews_from_the_map_and_records_the_road(road_map, tmp_path)
     assert m['alignments'] >= 1 and m['fallback_points'] < m['points']
     assert s['messages']['dropped_total'] == 0
     counts, stamps = {}, {}
-    with open(os.path.join(s['bag'], os.listdir(s['bag'])[0]) if os.path.isdir(s['bag'])
-              else s['bag'], 'rb') as fh:
+    mcap, = [f for f in os.listdir(s['bag']) if f.endswith('.mcap')]
+    with open(os.path.join(s['bag'], mcap), 'rb') as fh:
         for _, channel, message in make_reader(fh).iter_messages():
             counts[channel.topic] = counts.get(channel.topic, 0) + 1
             if channel.topic in (f'{ns}/{topics.ROAD_ESTIMATE}', f'{ns}/{topics.ROAD_PREVIEW}',
