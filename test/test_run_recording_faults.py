@@ -9,17 +9,15 @@ runs on, and the bag keeps every message written before it.
 """
 
 import json
-import os
 import re
-import signal
 import subprocess
 import sys
 
 import pytest
 
 from conftest import REPO, ros_env
-from run_helpers import (bag_counts as _bag_counts, run_with_node_stopped, SampleWatch,
-                         start_run, wait_connected)
+from run_helpers import (bag_counts as _bag_counts, run_with_node_killed,
+                         run_with_node_stopped, start_run)
 
 pytestmark = pytest.mark.ros
 
@@ -120,19 +118,9 @@ def test_a_killed_recorder_is_named_as_the_bags_end_and_no_log_line_is_its_cause
     # The recorder's last log line says what it was doing ("running at SCHED_FIFO 10"),
     # not why it ended: the error names the signal.  Its bag, unfinished, says the same
     # as its cut-short cause (not "erva run was killed"), and so does the repaired bag.
-    watch = SampleWatch()
-    proc = start_run('--duration', 3, '--record', tmp_path / 'bags', '--json')
-    try:
-        pids = wait_connected(proc)
-        watch.wait(50, proc=proc)
-        os.kill(pids['recorder_node'], signal.SIGKILL)
-        out, err = proc.communicate(timeout=240)
-    finally:
-        watch.close()
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-    s = json.loads(out)
-    assert proc.returncode == 1 and s['commands']['received'] == 151, err[-2000:]
+    code, s, err, _ = run_with_node_killed('recorder_node', 50, '--duration', 3, '--record',
+                                           tmp_path / 'bags')
+    assert code == 1 and s['commands']['received'] == 151, err[-2000:]
     died = [e for e in s['errors'] if 'recorder_node died' in e]
     assert len(died) == 1 and re.fullmatch(r'recorder_node died \(exit status -9\) at t = '
                                            r'\d+\.\d\d s: killed by SIGKILL', died[0]), died

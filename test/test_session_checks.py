@@ -11,8 +11,8 @@ from rclpy.serialization import serialize_message
 
 from erva_ros.core import topics
 from erva_ros.core.bag.reader import open_bag
-from erva_ros.core.bag.session_check import (begin_session_end, END_FILE, mark_session_end,
-                                            session_end, session_warnings)
+from erva_ros.core.bag.session_check import (
+    begin_session_end, END_FILE, mark_session_end, session_end, session_warnings)
 from erva_ros.core.bag.writer import BagWriter
 from erva_ros.core.reports import NodeReport
 from erva_ros.session import verdict
@@ -131,7 +131,7 @@ def test_the_verdict_names_each_shortfall_with_its_worst_instance():
 
 
 def _map_block(samples, fallback, before, unmatched, accepted, refused, streaks):
-    """A summary's road.map block (monitor_figures.road) of a map preview of 11 points."""
+    """Return a summary's road.map block (monitor_figures.road), previews of 11 points."""
     block = {'samples': samples, 'points': 11 * samples, 'fallback_samples': fallback,
              'fallback_points': before + unmatched, 'before_start_points': before,
              'beyond_end_points': 0, 'gap_points': 0, 'unmatched_points': unmatched,
