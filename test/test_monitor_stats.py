@@ -293,8 +293,8 @@ def test_memory_does_not_grow_with_the_session():
 
 
 def test_estimates_on_their_own_grid_pair_with_the_truth_of_their_cycle():
-    # With the road estimated the estimator stamps each ECU cycle on its own grid: its
-    # first cycle's receive time, a part of a period after the ECU's instant (0.5 ms on a
+    # An ECU whose samples are off the estimator's grid (its clock not the estimator's):
+    # the estimates are stamped a part of a period after the ECU's instants (0.5 ms on a
     # quiet machine, more on a busy one).  The error is still over every cycle, the same,
     # and the offset is measured: in the window the estimator places a cycle on its grid
     # with, [-Ts/4, 3Ts/4) (EstimatorLoop.stamp).

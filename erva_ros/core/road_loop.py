@@ -4,8 +4,9 @@
 ``estimated``: per ECU cycle the :class:`~erva_ros.core.road_estimator.RoadEKF` (the
 quarter car *and* the road at the tyre from what the ECU measures), and the odometry
 (distance = ∫ speed, with the configured error: :class:`~erva_ros.core.roadmap.vehicle.
-Odometry`).  No road topic is read: the cycles' own grid is the first cycle's stamp (an
-ECU samples on its clock; `erva run`'s simulated ECU on the road's).
+Odometry`).  No road topic is read: each cycle is stamped with its instant k·Ts, where
+an ECU samples (docs/hil.md §8; `erva run`'s simulated ECU on the road's samples, which
+are there too).
 
 :class:`MapPreviewLoop` is road_preview_node's core with ``source`` ``map``: per
 ``road/estimate`` the preview from the map
@@ -47,7 +48,7 @@ class RoadEstimatorLoop(EstimatorLoop):
         report.road_at_tyre = 'estimated'
 
     def has_grid(self) -> bool:
-        """Return True: the grid is the cycles' own."""
+        """Return True: the grid is k·Ts (stamp)."""
         return True
 
     def road_at(self, stamp_ns: int) -> bool:
@@ -55,9 +56,15 @@ class RoadEstimatorLoop(EstimatorLoop):
         return True
 
     def stamp(self, stamp: int) -> int:
-        """Return the instant a cycle stands for, on the first cycle's grid (EstimatorLoop)."""
+        """Return the instant a cycle received at ``stamp`` stands for: its k·Ts.
+
+        A real ECU runs its cycles at k·Ts of the synchronised clock (docs/hil.md §8), and
+        `erva run`'s simulated ECU on the road's samples, which are at k·Ts too: the grid
+        of EstimatorLoop.stamp is that one.  So the state, the preview and the command
+        carry the ECU's own instant, and the command's cycle number is the ECU's.
+        """
         if self.grid_ns is None:
-            self.grid_ns = stamp
+            self.grid_ns = 0
         return super().stamp(stamp)
 
     def step(self, stamp_ns: int, m: Measurements) -> np.ndarray:

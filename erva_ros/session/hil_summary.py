@@ -193,14 +193,15 @@ def from_sample_instant(summary: Dict[str, Any], error: PairedError,
     """Make the figures timed from a state's stamp start at the ECU's sample instant t_k.
 
     On the road grid the estimator stamps each cycle with t_k itself.  With the road
-    estimated it stamps it on its own grid (its first cycle's receive time, as a vehicle's
-    estimator must: nothing tells it the ECU's instants), ``error.offset_ns`` after t_k;
-    the state, the preview and the command carry that stamp.  Each figure timed from it
-    (the estimator's stages of the chain, the command on CAN, the NMPC's and the
-    monitor's sample -> command) is then shifted by that constant, measured here against
-    the ECU's truth, so it runs from t_k too (a percentile of values shifted by a
-    constant is shifted by it).  Unknown (no pair, or pairs at different offsets): those
-    figures are not shown.  ``summary['hil']['stamp_offset_ms']`` gives the offset.
+    estimated it stamps it with the k·Ts of the real-ECU contract (docs/hil.md §8), which
+    is t_k when the ECU keeps the contract (`erva run`'s does: the road's samples are on
+    k·Ts).  An ECU off that grid puts t_k ``error.offset_ns`` before the stamp the state,
+    the preview and the command carry; each figure timed from it (the estimator's stages
+    of the chain, the command on CAN, the NMPC's and the monitor's sample -> command) is
+    then shifted by that constant, measured here against the ECU's truth, so it runs from
+    t_k too (a percentile of values shifted by a constant is shifted by it).  Unknown (no
+    pair, or pairs at different offsets): those figures are not shown.
+    ``summary['hil']['stamp_offset_ms']`` gives the offset.
     """
     from erva_ros.session.monitor_figures import stats
     hil = summary['hil']

@@ -150,8 +150,8 @@ class PairedError:
     The coordinates are the state's and :data:`DERIVED` (the suspension deflection and its
     rate), which stay observable when the road is estimated (docs/road.md).  The first
     ``warmup`` pairs are left out (the filter starts from rest).  ``offset_ns`` is the
-    estimate's stamp minus the truth's (None before a pair; on the road grid 0, on the
-    estimator's own grid a constant part of a period), ``offset_spread_ns`` its largest
+    estimate's stamp minus the truth's (None before a pair; 0 when both are on the
+    samples' grid, else a constant part of a period), ``offset_spread_ns`` its largest
     minus smallest value over the pairs (0 when every pair agrees).
     """
 
@@ -275,8 +275,8 @@ class SessionStreams:
         self.error = PairedError(warmup)
         # An estimate stamped s is of the ECU's sample t with s - t in [-Ts/4, 3Ts/4): the
         # window in which the estimator places a cycle received at s on its grid
-        # (EstimatorLoop.stamp).  On the road grid s = t; on its own grid (the road
-        # estimated), s is the first cycle's receive time and on: a part of a period after.
+        # (EstimatorLoop.stamp).  With the ECU on that grid s = t; an ECU off it (its
+        # clock not the estimator's) puts its samples a constant part of a period away.
         ts_ns = int(round(self.ts * 1e9))
         self._pair_ns = (-(ts_ns // 4), ts_ns - ts_ns // 4)
         self.state_size: Optional[int] = None
