@@ -329,3 +329,37 @@ def test_estimates_on_their_own_grid_pair_with_the_truth_of_their_cycle():
     assert s.error.matched == 0
     s.add_truth(1_020_000_000, truth[1])
     assert s.error.matched == 1 and s.error.offset_ns == -5_000_000
+
+
+def test_figures_timed_from_the_states_stamp_run_from_the_ecus_instant():
+    # An ECU off the estimator's grid: its instants 3 ms before the stamps.  What was timed
+    # from the stamp is shifted by the offset the pairs measure; the ECU's own figures not.
+    from erva_ros.session import hil_summary
+    from erva_ros.session.monitor_stats import PairedError
+
+    def summary():
+        t = {'p50': 1.0, 'p99': 2.0, 'max': 3.0, 'samples': 10}
+        chain = {k: dict(t) for k in hil_summary.CHAIN}
+        return {'hil': {'chain_ms': chain}, 'commands': {'sample_to_command_ms': dict(t)},
+                'nmpc': {'latency_ms': dict(t)}}
+
+    error = PairedError(0)
+    for k in range(3):
+        error.add(np.zeros(6), np.zeros(6), 3_000_000)
+    s = summary()
+    hil_summary.from_sample_instant(s, error, road_estimated=True)
+    assert s['hil']['stamp_offset_ms'] == 3.0
+    shifted = {'p50': 4.0, 'p99': 5.0, 'max': 6.0, 'samples': 10}
+    for key in hil_summary.STAMPED_STAGES:
+        assert s['hil']['chain_ms'][key] == shifted
+    assert s['hil']['chain_ms']['sensors_on_can']['p50'] == 1.0       # the ECU's own
+    assert s['commands']['sample_to_command_ms'] == s['nmpc']['latency_ms'] == shifted
+    # Pairs at two offsets: unknown, so not shown; on the road grid nothing moves.
+    error.add(np.zeros(6), np.zeros(6), 2_000_000)
+    s = summary()
+    hil_summary.from_sample_instant(s, error, road_estimated=True)
+    assert s['hil']['stamp_offset_ms'] is None
+    assert s['hil']['chain_ms']['state_published']['samples'] is None
+    s = summary()
+    hil_summary.from_sample_instant(s, error, road_estimated=False)
+    assert s == {**summary(), 'hil': {**summary()['hil'], 'stamp_offset_ms': 0.0}}
