@@ -42,8 +42,23 @@ def _command_modules():
     return mods
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse with a one-line error (the README's promise), for ``erva`` and every command.
+
+    argparse prints the whole usage before its error (12 lines for `erva run`); here the
+    error is one line that says where the usage is.  Sub-commands' parsers are of this
+    class too (``add_subparsers`` makes its parsers of the parent's class).
+    """
+
+    def error(self, message: str):
+        """Print ``<prog>: error: <message> (<prog> --help: ...)`` on stderr; exit 2."""
+        text = ' '.join(message.splitlines())
+        self.exit(2, f'{self.prog}: error: {text} ("{self.prog} --help" lists the '
+                     'options)\n')
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog='erva',
         description='Energy-regenerative vibration absorber (ERVA): NMPC on ROS 2, offline '
                     'simulation, the paper\'s figures and table, bags and HIL tools.',
@@ -58,7 +73,19 @@ def build_parser() -> argparse.ArgumentParser:
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         mod.add_arguments(p)
         p.set_defaults(_main=mod.main, _name=mod.COMMAND)
+        for leaf in _leaves(p):
+            leaf.set_defaults(_parser=leaf)
     return parser
+
+
+def _leaves(parser: argparse.ArgumentParser):
+    """Yield the parsers of ``parser``'s innermost sub-commands (itself if it has none)."""
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        yield parser
+    for action in subs:
+        for sub in action.choices.values():
+            yield from _leaves(sub)
 
 
 def _complete(parser: argparse.ArgumentParser) -> None:
@@ -75,7 +102,9 @@ def _complete(parser: argparse.ArgumentParser) -> None:
 def main(argv: Optional[List[str]] = None) -> int:
     parser = build_parser()
     _complete(parser)
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:       # said by the command's parser, not erva's: "erva run: error: ..."
+        args._parser.error(f'unrecognized arguments: {" ".join(extra)}')
     name = f'erva {args._name}'
     try:
         return int(args._main(args) or 0)

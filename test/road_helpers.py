@@ -7,6 +7,8 @@ the session record with the live parameters (road, seed, speed, ts).
 """
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 
@@ -17,6 +19,8 @@ from erva_ros.core.hil import topics as hil_topics
 from erva_ros.core.params import paper_params
 from erva_ros.core.roadmap.vehicle import OdometryError, Route, simulate_vehicle
 from erva_ros.core.roads import make_road
+
+from conftest import REPO, ros_env
 
 P = paper_params()
 TS = 0.02
@@ -63,3 +67,10 @@ def nodes(path):
     import sqlite3
     with sqlite3.connect(path) as conn:
         return np.array(conn.execute('SELECT * FROM nodes ORDER BY i').fetchall(), dtype=float)
+
+
+def map_build(bags, out):
+    """Run ``erva map build BAGS --out OUT`` as a user does; it must succeed."""
+    r = subprocess.run([sys.executable, '-m', 'erva_ros.cli', 'map', 'build', *bags, '--out',
+                        out], capture_output=True, text=True, env=ros_env(), cwd=REPO)
+    assert r.returncode == 0, r.stderr

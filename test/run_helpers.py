@@ -101,28 +101,45 @@ class SampleWatch:
         rclpy.try_shutdown(context=self.context)
 
 
-def run_with_node_stopped(node, tmp_path, duration, stop_after_s, stop_for_s, *args):
-    """Run erva run (recording, JSON); SIGSTOP ``node`` ``stop_after_s`` into the run.
+def run_acting_on(node, after_samples, act, *args):
+    """Run ``erva run ARGS --json``; call ``act(pid of node)`` ``after_samples`` into the run.
 
     "Into the run" counts the loop's samples (SampleWatch), not the test's wall time, so
-    a busy machine cannot move the stop out of the run.  Return (exit code, summary, stderr).
+    a busy machine cannot move the action out of the run.  Return (exit code, summary,
+    stderr, {node: pid}).
     """
     watch = SampleWatch()
-    proc = start_run('--duration', duration, '--record', tmp_path, '--json', *args)
+    proc = start_run(*args, '--json')
     try:
         pids = wait_connected(proc)
-        watch.wait(int(round(stop_after_s / 0.02)), proc=proc)
-        os.kill(pids[node], signal.SIGSTOP)
-        try:
-            time.sleep(stop_for_s)
-        finally:
-            os.kill(pids[node], signal.SIGCONT)
+        watch.wait(after_samples, proc=proc)
+        act(pids[node])
         out, err = proc.communicate(timeout=240)
     finally:
         watch.close()
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-    return proc.returncode, json.loads(out), err
+    return proc.returncode, json.loads(out), err, pids
+
+
+def run_with_node_stopped(node, tmp_path, duration, stop_after_s, stop_for_s, *args):
+    """Run erva run (recording, JSON); SIGSTOP ``node`` ``stop_after_s`` into the run.
+
+    Return (exit code, summary, stderr).
+    """
+    def stop(pid):
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            time.sleep(stop_for_s)
+        finally:
+            os.kill(pid, signal.SIGCONT)
+    return run_acting_on(node, int(round(stop_after_s / 0.02)), stop, '--duration', duration,
+                         '--record', tmp_path, *args)[:3]
+
+
+def run_with_node_killed(node, after_samples, *args):
+    """Run ``erva run ARGS --json``; SIGKILL ``node`` ``after_samples`` into the run."""
+    return run_acting_on(node, after_samples, lambda pid: os.kill(pid, signal.SIGKILL), *args)
 
 
 def bag_counts(bag_dir, decode=False):

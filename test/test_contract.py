@@ -155,6 +155,31 @@ def test_diagnostics_both_ways():
     assert [s.name for s in back.status] == ['/erva/nmpc_node', '/erva/x']
 
 
+def test_a_report_crosses_as_its_declared_types_and_nothing_else():
+    # road_preview_node once reported its map offset as a numpy float: under numpy 2 its
+    # text was 'np.float64(0.048)', which no reader parses, and the summary said nan.
+    from erva_ros.core.reports import (EstimatorReport, format_value, report_from_status,
+                                       report_status, RoadReport, Timing)
+    assert format_value(np.float64(0.048)) == '0.048' and format_value(np.int64(7)) == '7'
+    assert format_value(np.bool_(True)) == 'true'
+    r = RoadReport(node='/erva/road_preview_node', source='map', map_offset_m=0.048,
+                   map_samples=3, map_fallback_streak_from_ns=STAMP)
+    back = report_from_status(report_status(r))
+    assert back.values() == r.values()        # NaN fields too, as text
+    assert back.map_offset_m == 0.048 and back.map_fallback_streak_from_ns == STAMP
+    bad = [(RoadReport, 'map_offset_m', np.float64(0.048)), (RoadReport, 'map_samples', 3.0),
+           (RoadReport, 'map_samples', True), (RoadReport, 'source', 1),
+           (EstimatorReport, 'latency_ms', Timing(np.float64(1.0))),
+           (EstimatorReport, 'std', {'z_s': np.float64(1e-3)})]
+    for cls, name, value in bad:
+        report = cls(node='/erva/x')
+        setattr(report, name, value)
+        with pytest.raises(TypeError, match=f'{cls.__name__}.{name}'):
+            report.values()
+    ok = EstimatorReport(node='/erva/x', nis_mean=2, std={'z_s': 1e-3})   # an int is a number
+    assert report_from_status(report_status(ok)).nis_mean == 2.0
+
+
 def test_measurements_strict_and_observed():
     values = [1e4, 9e3, -0.3, 0.002, 0.05, 40.0]
     data = c.MEASUREMENTS_ENCODER.encode(STAMP, values)

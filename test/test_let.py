@@ -87,3 +87,23 @@ def test_a_late_command_never_acts_and_is_counted():
     assert not np.array_equal(xs[53], ref.x[53])        # the plan acted instead
     assert report.command_arrival_ms.samples == report.steps
     assert report.arrival_p999_ms == pytest.approx(6.001, abs=1e-6)
+
+
+def test_passive_before_any_command_acted_is_a_warning_and_after_an_outage_an_error():
+    # Sample 0 with d > 0: its command came after t_0 + d (a cold first solve), so it never
+    # acts and there is no earlier plan: passive c_e0 by design, a WARN.  Once a command
+    # has acted, passive damping means the commands stopped and the plan ran out: ERROR.
+    from erva_ros.core.levels import ERROR, WARN
+    loop = PlantLoop(ERVAParams(), _cfg('realtime'), PlantReport())
+    loop.on_height(T0, 0.0)
+    loop.on_command(T0, np.full(2, 3000.0), T0 + D_NS + 1000)           # late
+    decisions = [s.decision for s in loop.on_height(T0 + TS_NS, 0.0)]
+    assert decisions == [(WARN, 'first command late (after t_k + d): passive damping c_e0')]
+    loop.on_command(T0 + TS_NS, np.full(2, 3000.0), T0 + TS_NS + D_NS - 1000)
+    for k in (2, 3, 4):
+        decisions += [s.decision for s in loop.on_height(T0 + k * TS_NS, 0.0)]
+    assert [lvl for lvl, _ in decisions] == [WARN, 0, WARN, ERROR]
+    assert decisions[-1] == (ERROR, 'no command and plan used up: passive damping c_e0')
+    loop.fill()
+    assert (loop.report.late_commands, loop.report.u_from_command, loop.report.u_from_plan,
+            loop.report.u_from_passive) == (1, 1, 1, 2)

@@ -115,6 +115,13 @@ def test_timing_deadlines_and_fallbacks_from_message_times(erva, tmp_path):
                              message='no command', values=[
                                  KeyValue(key='harvested_j', value='8.0')])])
         write_message(w, '/diagnostics', diag, T0 + 2000 * MS)
+        # Before the loop's first sample and after its last (Ts on): the start-up's and
+        # the shut-down's states, reported apart.
+        for t, text in ((T0 - 100 * MS, 'ECU silent: no valid frame received yet'),
+                        (T0 + 2001 * MS, 'no fresh damping command for 0.062 s')):
+            write_message(w, '/diagnostics', DiagnosticArray(status=[DiagnosticStatus(
+                level=DiagnosticStatus.ERROR, name='/erva/ecu_bridge_node: command',
+                message=text)]), t)
     r = json.loads(erva('report', bag, '--json', '--out', tmp_path / 'o', check=True).stdout)
     assert os.path.join(tmp_path, 'o', 'timing.png') in r['files']   # measured: it has one
     t = r['timing']
@@ -133,6 +140,12 @@ def test_timing_deadlines_and_fallbacks_from_message_times(erva, tmp_path):
     assert r['comfort']['acc_rms'] == pytest.approx(2.0)
     assert r['power']['harvested_j'] == 8.0 and r['power']['power_w'] == pytest.approx(4.0)
     assert r['diagnostics_errors'] == ['/erva/plant_sim_node: no command']
+    assert r['diagnostics_errors_outside'] == {'/erva/ecu_bridge_node: command': [
+        'ECU silent: no valid frame received yet', 'no fresh damping command for 0.062 s']}
+    text = erva('report', bag, check=True).stdout
+    assert text.count('ERROR diagnostic') == 1
+    assert 'outside the loop (before its first sample, after its last): 2 ERROR statuses of ' \
+        '/erva/ecu_bridge_node: command' in text
 
 
 def test_a_bag_without_session_topics_still_reports(erva, tmp_path):

@@ -69,6 +69,8 @@ def test_estimator_estimates_the_road_only_while_active(tmp_path):
         play(40)
         assert len(estimates) >= 30
         assert [e.stamp_ns for e in estimates] == [s for s, _ in h.states]
+        # Each cycle, received 0.5 ms after its k·Ts, is stamped with it (docs/hil.md §8).
+        assert {e.stamp_ns % TS_NS for e in estimates} == {0}
         steps = {round(b.distance_m - a.distance_m, 9) for a, b in zip(estimates, estimates[1:])
                  if b.stamp_ns - a.stamp_ns == TS_NS}
         assert steps == {round(SPEED * TS_NS * 1e-9, 9)}       # odometry: Ts·speed a cycle
@@ -86,18 +88,12 @@ def test_estimator_estimates_the_road_only_while_active(tmp_path):
         assert stop_node(proc) == 0
 
 
-def _map_build(bags, out):
-    r = subprocess.run([sys.executable, '-m', 'erva_ros.cli', 'map', 'build', *bags, '--out',
-                        out], capture_output=True, text=True, env=ros_env(), cwd=REPO)
-    assert r.returncode == 0, r.stderr
-
-
 @pytest.fixture(scope='module')
 def road_map(tmp_path_factory):
     """Return a map of the paper road, seed 0, at 20 m/s: 12 s of a simulated drive."""
     d = tmp_path_factory.mktemp('map')
     run = rh.drive(rh.route(0, seconds=14.0), 1, seconds=12.0)
-    _map_build([rh.write_bag(str(d / 'drive.mcap'), run)], str(d / 'paper.map'))
+    rh.map_build([rh.write_bag(str(d / 'drive.mcap'), run)], str(d / 'paper.map'))
     return str(d / 'paper.map')
 
 
@@ -161,8 +157,8 @@ def test_erva_run_previews_from_the_map_and_records_the_road(road_map, tmp_path)
     assert m['alignments'] >= 1 and m['fallback_points'] < m['points']
     assert s['messages']['dropped_total'] == 0
     counts, stamps = {}, {}
-    with open(os.path.join(s['bag'], os.listdir(s['bag'])[0]) if os.path.isdir(s['bag'])
-              else s['bag'], 'rb') as fh:
+    mcap, = [f for f in os.listdir(s['bag']) if f.endswith('.mcap')]
+    with open(os.path.join(s['bag'], mcap), 'rb') as fh:
         for _, channel, message in make_reader(fh).iter_messages():
             counts[channel.topic] = counts.get(channel.topic, 0) + 1
             if channel.topic in (f'{ns}/{topics.ROAD_ESTIMATE}', f'{ns}/{topics.ROAD_PREVIEW}',
@@ -185,7 +181,7 @@ def test_erva_run_previews_from_the_map_and_records_the_road(road_map, tmp_path)
                           cwd=REPO, timeout=300)
     assert play.returncode == 0, play.stderr[-2000:]
     assert json.loads(play.stdout)['total'] == sum(counts.values())
-    _map_build([bag], str(tmp_path / 'next.map'))
+    rh.map_build([bag], str(tmp_path / 'next.map'))
 
 
 def _run_text(summary):
@@ -198,7 +194,7 @@ def test_a_bad_map_stops_erva_run_before_anything_starts(road_map, tmp_path):
     corrupt.write_bytes(b'not a database' * 100)
     other = tmp_path / 'other.map'
     run = rh.drive(rh.route(1, seconds=14.0), 1, seconds=12.0)
-    _map_build([rh.write_bag(str(tmp_path / 'seed1.mcap'), run, road_seed=1)], str(other))
+    rh.map_build([rh.write_bag(str(tmp_path / 'seed1.mcap'), run, road_seed=1)], str(other))
     cases = {'no such map file': (tmp_path / 'missing.map', ()),
              'not a readable road map': (corrupt, ()),
              'the map is of route': (other, ()),

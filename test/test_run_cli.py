@@ -40,6 +40,16 @@ def test_run_help_lists_the_options(erva):
     (['--road-file', 'DIR'], r"road_file '.*' is a directory, not a CSV file$"),
     (['--road-file', 'HUGE'], r"road_file '.*' is 513 MiB; the limit is 512 MiB \(about 20 "
                               r"million rows\): cut it to the part the run drives$"),
+    (['--road-file', 'UNSORTED'], r'road_file .*unsorted.csv:5: time 0.5 s is not after the '
+                                  r'row before \(1 s\)'),
+    # The loop's timing is the controller's too: a bad one is the live file's, not an
+    # "override"'s.
+    (['--live', 'BADTS'], r"badts.yaml: parameter 'ts' must be a number in \[0.001, 1\] s, "
+                          r"got list \[1\]$"),
+    (['--live', 'LATE'], r"late.yaml: parameter 'command_delay_s' = 0.05 must be below "
+                         r"ts = 0.02 s$"),
+    (['--command-delay', '0.03'], r"^erva run: error: --command-delay \(ts: .*live.yaml\): "
+                                  r"parameter 'command_delay_s' = 0.03 must be below ts"),
 ])
 def test_bad_input_is_one_line_and_no_node_starts(erva, tmp_path, args, message):
     bad = tmp_path / 'live.yaml'
@@ -61,6 +71,13 @@ def test_bad_input_is_one_line_and_no_node_starts(erva, tmp_path, args, message)
     files['HORIZN'].write_text('/**/nmpc_node:\n  ros__parameters:\n    horizn: 5\n')
     files['DIR'] = tmp_path / 'roads'
     files['DIR'].mkdir()
+    files['UNSORTED'] = tmp_path / 'unsorted.csv'
+    files['UNSORTED'].write_text('time_s, height_m\n0, 0\n# a comment\n1, 0.01\n0.5, 0\n')
+    live = open(os.path.join(REPO, 'config', 'live.yaml'), encoding='utf-8').read()
+    for name, old, new in (('BADTS', 'ts: 0.02 ', 'ts: [1] '),
+                           ('LATE', 'command_delay_s: 0.015', 'command_delay_s: 0.05')):
+        files[name] = tmp_path / f'{name.lower()}.yaml'
+        files[name].write_text(live.replace(old, new))
     files['HUGE'] = tmp_path / 'huge.csv'
     with open(files['HUGE'], 'wb') as fh:     # sparse: nothing written, 513 MiB long
         fh.truncate(513 * 2 ** 20)
@@ -102,6 +119,43 @@ def test_option_values_are_checked_by_argparse(erva):
         proc = erva('run', *args)
         assert proc.returncode == 2 and 'error:' in proc.stderr, args
         assert 'Traceback' not in proc.stderr
+
+
+def _commands(parser, path=()):
+    """Yield (command path, its parser) of every command below ``parser`` (aliases too)."""
+    import argparse
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        yield path, parser
+    for action in subs:
+        for name, sub in action.choices.items():
+            yield from _commands(sub, (*path, name))
+
+
+@pytest.mark.parametrize('args, message', [
+    (['run', '--duration', '-1'], "argument --duration: '-1' must be a positive, finite number"),
+    (['run', '--alpha1', 'abc'], "argument --alpha1: 'abc' is not a number in [0, 1e+06]"),
+    (['run', '--seed', '-5'], "argument --seed: '-5' is not an integer in [0, 1e+09]"),
+    (['run', '--controller', 'foo'], "argument --controller: invalid choice: 'foo'"),
+    (['replay', 'x.mcap', '--rate', '0'], "argument -r/--rate: '0' must be a positive"),
+])
+def test_a_bad_option_is_one_line_for_every_command(capsys, args, message):
+    # The README promises one line; argparse prints its whole usage first (12 lines for
+    # `erva run`).  Every command's parser is the CLI's own (cli.Parser).
+    from erva_ros import cli
+    commands = dict(_commands(cli.build_parser()))
+    assert len(commands) > 20 and ('bag', 'info') in commands and ('run',) in commands
+    # (a command with a required argument says that first)
+    cases = [(args, commands[(args[0],)].prog, message)] + [
+        ([*path, '--no-such-option'], p.prog, '') for path, p in commands.items()]
+    for argv, prog, text in cases:
+        with pytest.raises(SystemExit) as exc:
+            cli.main(argv)
+        err = capsys.readouterr().err
+        lines = err.strip().splitlines()
+        assert exc.value.code == 2 and len(lines) == 1, (argv, err)
+        assert lines[0].startswith(f'{prog}: error: ') and text in lines[0], (argv, err)
+        assert lines[0].endswith(f'("{prog} --help" lists the options)'), (argv, err)
 
 
 def test_launch_file_parses_and_references_what_exists():

@@ -11,7 +11,8 @@ import pytest
 import yaml
 
 from conftest import fifo_permitted, sim_delay_args
-from run_helpers import bag_counts, run_with_node_stopped, SampleWatch, start_run as _start
+from run_helpers import bag_counts, run_with_node_killed, run_with_node_stopped, SampleWatch
+from run_helpers import start_run as _start
 from run_helpers import wait_connected as _wait_connected
 
 
@@ -108,19 +109,9 @@ def test_erva_run_realtime_records_and_summarises(tmp_path, erva):
 
 
 def test_killed_nmpc_plant_holds_plan_then_passive_and_run_fails(tmp_path):
-    watch = SampleWatch()
-    proc = _start('--duration', 3, '--no-record', '--json')
-    try:
-        pids = _wait_connected(proc)
-        watch.wait(30, proc=proc)        # killed well into the run, on any machine
-        os.kill(pids['nmpc_node'], signal.SIGKILL)
-        out, err = proc.communicate(timeout=120)
-    finally:
-        watch.close()
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-    assert proc.returncode == 1, err
-    s = json.loads(out)
+    # killed well into the run, on any machine
+    code, s, err, pids = run_with_node_killed('nmpc_node', 30, '--duration', 3, '--no-record')
+    assert code == 1, err
     assert any(e.startswith('nmpc_node died (exit status -9)') for e in s['errors']), s['errors']
     assert 'nmpc_node died' in err and 'the run goes on without it' in err
     plant = s['plant']

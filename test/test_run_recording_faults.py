@@ -16,7 +16,8 @@ import sys
 import pytest
 
 from conftest import REPO, ros_env
-from run_helpers import bag_counts as _bag_counts, run_with_node_stopped, start_run
+from run_helpers import (bag_counts as _bag_counts, run_with_node_killed,
+                         run_with_node_stopped, start_run)
 
 pytestmark = pytest.mark.ros
 
@@ -95,3 +96,39 @@ def test_a_full_disk_is_one_error_line_and_the_bag_keeps_what_was_written(
     assert code.returncode == 0, code.stderr
     counts = _bag_counts(repaired)
     assert all(counts.get(t, 0) == n for t, n in kept.items()), (counts, kept)
+    # The bag says what happened, before and after the repair (erva run was not killed).
+    for bag in (s['bag'], repaired):
+        end = _cut_short(bag)
+        assert end == [f'the session was cut short: {s["errors"][0]}'], (bag, end)
+    assert any(w.startswith('repaired: ') for w in _warnings(repaired))
+
+
+def _warnings(bag):
+    info = subprocess.run([sys.executable, '-m', 'erva_ros.cli', 'bag', 'info', str(bag),
+                           '--json'], env=ros_env(), cwd=REPO, capture_output=True, text=True)
+    assert info.returncode == 0, info.stderr
+    return json.loads(info.stdout)['warnings']
+
+
+def _cut_short(bag):
+    return [w for w in _warnings(bag) if 'cut short' in w]
+
+
+def test_a_killed_recorder_is_named_as_the_bags_end_and_no_log_line_is_its_cause(tmp_path):
+    # The recorder's last log line says what it was doing ("running at SCHED_FIFO 10"),
+    # not why it ended: the error names the signal.  Its bag, unfinished, says the same
+    # as its cut-short cause (not "erva run was killed"), and so does the repaired bag.
+    code, s, err, _ = run_with_node_killed('recorder_node', 50, '--duration', 3, '--record',
+                                           tmp_path / 'bags')
+    assert code == 1 and s['commands']['received'] == 151, err[-2000:]
+    died = [e for e in s['errors'] if 'recorder_node died' in e]
+    assert len(died) == 1 and re.fullmatch(r'recorder_node died \(exit status -9\) at t = '
+                                           r'\d+\.\d\d s: killed by SIGKILL', died[0]), died
+    assert _cut_short(s['bag']) == [f'the session was cut short: {died[0]}']
+    repaired = tmp_path / 'repaired'
+    fixed = subprocess.run([sys.executable, '-m', 'erva_ros.cli', 'bag', 'repair', s['bag'],
+                            '--out', str(repaired)], env=ros_env(), cwd=REPO,
+                           capture_output=True, text=True)
+    assert fixed.returncode == 0, fixed.stderr
+    assert _cut_short(repaired) == [f'the session was cut short: {died[0]}']
+    assert any(w.startswith('repaired: ') for w in _warnings(repaired))

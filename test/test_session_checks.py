@@ -4,13 +4,15 @@ Bags are written with the writer and rclpy's own serialisation (not the contract
 test); the verdict is computed from a synthetic session's observations.
 """
 
+import os
 
 import pytest
 from rclpy.serialization import serialize_message
 
 from erva_ros.core import topics
 from erva_ros.core.bag.reader import open_bag
-from erva_ros.core.bag.session_check import mark_session_end, session_end, session_warnings
+from erva_ros.core.bag.session_check import (
+    begin_session_end, END_FILE, mark_session_end, session_end, session_warnings)
 from erva_ros.core.bag.writer import BagWriter
 from erva_ros.core.reports import NodeReport
 from erva_ros.session import verdict
@@ -41,14 +43,30 @@ def _bag(path, session_id='s1', statuses=(), repeat=0):
 def test_a_session_bag_says_how_its_session_ended(tmp_path):
     bag = _bag(tmp_path / 'b')
     assert session_end(open_bag(bag)) is None
+    # What the bag itself shows: the recorder finished it, so erva run stopped first.
     assert session_warnings(open_bag(bag)) == [
-        'the session was cut short: no end record (erva run was killed before it finished '
-        'the bag)']
-    mark_session_end(bag, completed=False, reason='nmpc_node died (exit status 1)')
+        'the session was cut short: no end record, though the recorder finished the bag '
+        '(erva run was stopped before it recorded the end)']
+    # erva run reserves the end file as the loop starts: killed, it says no more.
+    begin_session_end(bag)
+    end_file = os.path.join(bag, END_FILE)
+    assert session_warnings(open_bag(bag)) == [
+        'the session was cut short: erva run stopped before it recorded how the session '
+        'ended (killed?)']
+    size = os.path.getsize(end_file)
+    assert mark_session_end(bag, completed=False,
+                            reason='nmpc_node died (exit status 1)') == []
+    assert os.path.getsize(end_file) == size           # written in place: a full disk takes it
     assert session_warnings(open_bag(bag)) == [
         'the session was cut short: nmpc_node died (exit status 1)']
-    mark_session_end(bag, completed=True)
+    # The end file alone (the recorder died: no metadata.yaml) says the same.
+    os.remove(os.path.join(bag, 'metadata.yaml'))
+    assert session_end(open_bag(bag)) == {'completed': False,
+                                          'reason': 'nmpc_node died (exit status 1)'}
+    assert mark_session_end(bag, completed=True) == []
     assert session_end(open_bag(bag)) == {'completed': True, 'reason': ''}
+    bag = _bag(tmp_path / 'c')
+    mark_session_end(bag, completed=True)
     assert session_warnings(open_bag(bag)) == []
     assert open_bag(bag).info()['warnings'] == []           # erva bag info
     # A bag not made by erva run (no session id) is not judged as a session.
@@ -85,7 +103,9 @@ def _observations(cmd_delays_ms, skipped=0, timeouts=0, misses=0, gap_s=None):
 def test_the_verdict_names_each_shortfall_with_its_worst_instance():
     limits = verdict.quality_limits()
     assert limits == {'max_deadline_misses': 0, 'max_state_timeouts': 0,
-                      'max_skipped_road_samples': 0, 'max_command_gap_s': 0.06}
+                      'max_skipped_road_samples': 0, 'max_command_gap_s': 0.06,
+                      'max_preview_fallback_samples': 0, 'max_unmatched_preview_points': 0,
+                      'max_refused_alignments': 0}
     obs, summary = _observations([3.0] * 50)
     assert verdict.warnings(obs, summary, limits) == []
     delays = [3.0] * 50
@@ -108,3 +128,53 @@ def test_the_verdict_names_each_shortfall_with_its_worst_instance():
     assert verdict.warnings(obs, summary, looser) == []
     with pytest.raises(Exception, match="max_command_gap_s"):
         verdict.quality_limits({'max_command_gap_s': -1.0})
+
+
+def _map_block(samples, fallback, before, unmatched, accepted, refused, streaks):
+    """Return a summary's road.map block (monitor_figures.road), previews of 11 points."""
+    block = {'samples': samples, 'points': 11 * samples, 'fallback_samples': fallback,
+             'fallback_points': before + unmatched, 'before_start_points': before,
+             'beyond_end_points': 0, 'gap_points': 0, 'unmatched_points': unmatched,
+             'alignments': accepted, 'alignments_refused': refused,
+             'tries': accepted + refused}
+    for name, (n, a, b) in streaks.items():
+        block[f'{name}_streak'] = {'count': n, 'from_s': a, 'to_s': b}
+    return {'road': {'map': block}}
+
+
+def test_the_verdict_weighs_the_map_preview():
+    # The README's run of 4 s on a map that starts at 20 m: its first 1.54 s without the
+    # map (before its start, then until the first alignment on it), as measured.
+    limits = verdict.quality_limits()
+    run = _map_block(201, 78, 561, 297, 25, 10, {'fallback': (78, 0.0, 1.54),
+                                                 'unmatched': (27, 1.02, 1.54),
+                                                 'refused': (10, 0.46, 1.36)})
+    assert verdict.map_warnings(run, limits) == [
+        "78 of 201 map previews fell back to the no-preview prediction (858 of 2211 points: "
+        "561 before the map's start, 297 unmatched; longest 78 previews in a row, "
+        "t = 0.00–1.54 s)",
+        '297 preview points unmatched: no alignment with the map accepted recently (longest '
+        '27 previews in a row, t = 1.02–1.54 s)',
+        '10 of 35 alignments with the map refused (longest 10 refusals in a row, '
+        't = 0.46–1.36 s)']
+    looser = verdict.quality_limits({'max_preview_fallback_samples': 78,
+                                     'max_unmatched_preview_points': 297,
+                                     'max_refused_alignments': 10})
+    assert verdict.map_warnings(run, looser) == []
+    # Another route's map under the right name: never aligned, no preview from it at all.
+    wrong = _map_block(201, 201, 561, 1650, 0, 38, {'fallback': (201, 0.0, 4.0),
+                                                    'unmatched': (150, 1.02, 4.0),
+                                                    'refused': (38, 0.46, 3.96)})
+    assert verdict.map_warnings(wrong, looser)[-1] == (
+        '38 of 38 alignments with the map refused (longest 38 refusals in a row, '
+        't = 0.46–3.96 s); none accepted: is the map of this road?')
+    assert verdict.map_warnings({'road': {}}, limits) == []     # no map preview
+
+
+def test_a_streak_is_the_longest_run_in_a_row_and_when():
+    from erva_ros.core.road_loop import Streak
+    s = Streak()
+    for k, hit in enumerate([0, 1, 1, 0, 1, 1, 1, 0, 1]):
+        s.mark(T0 + k * TS_NS, bool(hit))
+    assert (s.longest, s.from_ns, s.to_ns) == (3, T0 + 4 * TS_NS, T0 + 6 * TS_NS)
+    assert (Streak().longest, Streak().from_ns) == (0, 0)

@@ -123,6 +123,12 @@ def main(args) -> int:
         print(line)
     for e in report['diagnostics_errors']:
         print(f'ERROR diagnostic: {e}')
+    outside = report.get('diagnostics_errors_outside') or {}
+    if outside:     # start-up and shut-down by design (bag_report.errors_by_span)
+        n = sum(len(v) for v in outside.values())
+        print(f'outside the loop (before its first sample, after its last): {n} ERROR '
+              f'status{"es" if n > 1 else ""} of {", ".join(sorted(outside))} (start-up '
+              'and shut-down: waiting for the ECU, the safe command after the last one)')
     for path in report.get('files', []):
         print(f'wrote {path}')
     return 0

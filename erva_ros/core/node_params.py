@@ -179,6 +179,12 @@ QUALITY_SPECS: Dict[str, Any] = {
                                         'may skip'),
     'max_command_gap_s': Number(0.0, 3600.0, 's', 'longest pause between two commands',
                                 lo_open=True),
+    'max_preview_fallback_samples': Integer(0, 10**9, '-', 'map previews allowed to fall '
+                                            'back (a point with the no-preview prediction)'),
+    'max_unmatched_preview_points': Integer(0, 10**9, '-', 'map preview points allowed '
+                                            'without a recent accepted alignment'),
+    'max_refused_alignments': Integer(0, 10**9, '-', 'alignments with the map allowed to '
+                                      'be refused'),
 }
 
 

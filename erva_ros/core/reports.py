@@ -20,9 +20,12 @@ Every report carries the node's name (the status name: its fully qualified name)
 """
 
 from dataclasses import dataclass, field, fields, MISSING
+import functools
 import math
 import typing
 from typing import Any, ClassVar, Dict, Mapping, Optional, Type
+
+import numpy as np
 
 from erva_ros.core.levels import OK
 
@@ -56,12 +59,45 @@ def keyed(prefix: str, value_type=int):
 
 
 def format_value(value: Any) -> str:
-    """Return ``value`` as diagnostic text (floats exactly: their shortest repr)."""
-    if isinstance(value, bool):
+    """Return ``value`` as diagnostic text (floats exactly: their shortest repr).
+
+    A numpy scalar is written as the Python number it holds: its own repr
+    (``np.float64(0.048)`` under numpy 2) is no number to a reader.
+    """
+    if isinstance(value, (bool, np.bool_)):
         return 'true' if value else 'false'
-    if isinstance(value, float):
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
         return repr(value) if math.isfinite(value) else str(value)
+    if isinstance(value, np.integer):
+        return str(int(value))
     return str(value)
+
+
+#: What each declared field type takes: exactly these Python types (a numpy scalar is
+#: not one: the node converts, so nothing but the declared type crosses to the session).
+_ACCEPTS = {float: (float, int), int: (int,), str: (str,), bool: (bool,)}
+
+
+def _check_type(cls_name: str, name: str, kind, value) -> None:
+    """Raise TypeError unless ``value`` is exactly of the declared field type ``kind``."""
+    inner = [a for a in typing.get_args(kind) if a is not type(None)]
+    if inner:                                   # Optional[X]
+        if value is None:
+            return
+        kind = inner[0]
+    accepted = _ACCEPTS.get(kind)
+    if accepted is None:
+        return
+    if type(value) not in accepted:
+        raise TypeError(f'{cls_name}.{name} is {type(value).__module__}.'
+                        f'{type(value).__qualname__} {value!r}, not {kind.__name__}')
+
+
+@functools.lru_cache(maxsize=None)
+def _hints(cls) -> Dict[str, Any]:
+    """Return the declared types of a report class's fields (resolved once per class)."""
+    return typing.get_type_hints(cls)
 
 
 def _parse(text: str, kind) -> Any:
@@ -107,27 +143,40 @@ class NodeReport:
         return self.node.rsplit('/', 1)[-1]
 
     def values(self) -> Dict[str, str]:
-        """Return this report as the key/value strings of a status (module doc)."""
+        """Return this report as the key/value strings of a status (module doc).
+
+        Every value must be of its field's declared type (TypeError otherwise): a float
+        field holds a Python float (or int), an int field an int, and so on, so what a
+        reader parses back is what the node meant.
+        """
         out = {KIND_KEY: self.KIND}
+        hints = _hints(type(self))
+        name = type(self).__name__
         for f in fields(self):
             if f.name in self.HEADER:
                 continue
             value = getattr(self, f.name)
             prefix = f.metadata.get('prefix')
             if prefix is not None:
+                for k, v in value.items():
+                    _check_type(name, f'{f.name}[{k!r}]', f.metadata['type'], v)
                 out.update({f'{prefix}{k}': format_value(v) for k, v in sorted(value.items())})
             elif isinstance(value, Timing):
+                for k, t in (('p50', float), ('p99', float), ('max', float), ('samples', int)):
+                    _check_type(name, f'{f.name}.{k}', t, getattr(value, k))
                 out.update({f'{f.name}_{k}': format_value(v)
                             for k, v in value.as_dict().items()})
-            elif value is not None:
-                out[f.name] = format_value(value)
+            else:
+                _check_type(name, f.name, hints[f.name], value)
+                if value is not None:
+                    out[f.name] = format_value(value)
         return out
 
     @classmethod
     def from_values(cls, node: str, level: int, message: str, values: Mapping[str, str],
                     hardware_id: str = '') -> 'NodeReport':
         """Return the report of a status (missing keys keep their defaults)."""
-        hints = typing.get_type_hints(cls)
+        hints = _hints(cls)
         kw: Dict[str, Any] = {'node': node, 'level': level, 'message': message,
                               'hardware_id': hardware_id}
         for f in fields(cls):
@@ -184,6 +233,17 @@ class RoadReport(NodeReport):
     map_offset_m: float = math.nan
     map_offset_std_m: float = math.nan
     map_correlation: float = math.nan
+    # the worst instance of each: the longest run in a row (samples; refused: tries) and
+    # the stamps of its first and last (ns; 0: none)
+    map_fallback_streak: int = 0
+    map_fallback_streak_from_ns: int = 0
+    map_fallback_streak_to_ns: int = 0
+    map_unmatched_streak: int = 0
+    map_unmatched_streak_from_ns: int = 0
+    map_unmatched_streak_to_ns: int = 0
+    map_refused_streak: int = 0
+    map_refused_streak_from_ns: int = 0
+    map_refused_streak_to_ns: int = 0
     rejected_estimate: int = 0
 
 

@@ -4,8 +4,9 @@
 ``estimated``: per ECU cycle the :class:`~erva_ros.core.road_estimator.RoadEKF` (the
 quarter car *and* the road at the tyre from what the ECU measures), and the odometry
 (distance = ∫ speed, with the configured error: :class:`~erva_ros.core.roadmap.vehicle.
-Odometry`).  No road topic is read: the cycles' own grid is the first cycle's stamp (an
-ECU samples on its clock; `erva run`'s simulated ECU on the road's).
+Odometry`).  No road topic is read: each cycle is stamped with its instant k·Ts, where
+an ECU samples (docs/hil.md §8; `erva run`'s simulated ECU on the road's samples, which
+are there too).
 
 :class:`MapPreviewLoop` is road_preview_node's core with ``source`` ``map``: per
 ``road/estimate`` the preview from the map
@@ -47,7 +48,7 @@ class RoadEstimatorLoop(EstimatorLoop):
         report.road_at_tyre = 'estimated'
 
     def has_grid(self) -> bool:
-        """Return True: the grid is the cycles' own."""
+        """Return True: the grid is k·Ts (stamp)."""
         return True
 
     def road_at(self, stamp_ns: int) -> bool:
@@ -55,9 +56,15 @@ class RoadEstimatorLoop(EstimatorLoop):
         return True
 
     def stamp(self, stamp: int) -> int:
-        """Return the instant a cycle stands for, on the first cycle's grid (EstimatorLoop)."""
+        """Return the instant a cycle received at ``stamp`` stands for: its k·Ts.
+
+        A real ECU runs its cycles at k·Ts of the synchronised clock (docs/hil.md §8), and
+        `erva run`'s simulated ECU on the road's samples, which are at k·Ts too: the grid
+        of EstimatorLoop.stamp is that one.  So the state, the preview and the command
+        carry the ECU's own instant, and the command's cycle number is the ECU's.
+        """
         if self.grid_ns is None:
-            self.grid_ns = stamp
+            self.grid_ns = 0
         return super().stamp(stamp)
 
     def step(self, stamp_ns: int, m: Measurements) -> np.ndarray:
@@ -175,6 +182,9 @@ class MapPreviewLoop:
         self.window = max(2, int(round(p['map_speed_window_s'] / p['ts'])) + 1)
         self.odometry: deque = deque(maxlen=self.window)
         self.last_ns: Optional[int] = None
+        #: The longest runs of samples that fell back, were unmatched, and of refused
+        #: alignments in a row: the worst instance of each, for the session's verdict.
+        self.streaks = {name: Streak() for name in STREAKS}
         self.report = report
         report.source, report.map_file = 'map', p['map_file']
 
@@ -191,8 +201,15 @@ class MapPreviewLoop:
             raise MessageRejected('road/estimate not newer than the last')
         self.last_ns = est.stamp_ns
         self.odometry.append((est.stamp_ns, est.distance_m))
+        c = self.preview.counts
+        unmatched, tries, refused = (c.unmatched_samples, c.alignments + c.alignments_refused,
+                                     c.alignments_refused)
         res = self.preview.step(est.distance_m, self.speed(), est.height_m, est.var_w,
                                 self.points)
+        self.streaks['fallback'].mark(est.stamp_ns, res.fallback_points > 0)
+        self.streaks['unmatched'].mark(est.stamp_ns, c.unmatched_samples > unmatched)
+        if c.alignments + c.alignments_refused > tries:     # a match was tried
+            self.streaks['refused'].mark(est.stamp_ns, c.alignments_refused > refused)
         self.fill()
         return res
 
@@ -204,8 +221,37 @@ class MapPreviewLoop:
                      'unmatched_points', 'alignments', 'alignments_refused',
                      'unaligned_samples'):
             setattr(r, f'map_{name}', getattr(c, name))
-        r.map_offset_m, r.map_offset_std_m = pv.offset, pv.offset_std
-        r.map_correlation = pv.correlation
+        r.map_offset_m, r.map_offset_std_m = float(pv.offset), float(pv.offset_std)
+        r.map_correlation = float(pv.correlation)
+        for name, streak in self.streaks.items():
+            setattr(r, f'map_{name}_streak', streak.longest)
+            setattr(r, f'map_{name}_streak_from_ns', streak.from_ns)
+            setattr(r, f'map_{name}_streak_to_ns', streak.to_ns)
+
+
+#: The map preview's streaks in RoadReport (``map_<name>_streak``, ``_from_ns``, ``_to_ns``).
+STREAKS = ('fallback', 'unmatched', 'refused')
+
+
+class Streak:
+    """The longest run of marked events in a row, and its first and last stamp (ns)."""
+
+    def __init__(self):
+        self.longest = 0
+        self.from_ns = self.to_ns = 0
+        self._run = 0
+        self._start = 0
+
+    def mark(self, stamp_ns: int, hit: bool) -> None:
+        """Take the next event at ``stamp_ns``: ``hit`` continues the run, else ends it."""
+        if not hit:
+            self._run = 0
+            return
+        if not self._run:
+            self._start = stamp_ns
+        self._run += 1
+        if self._run > self.longest:
+            self.longest, self.from_ns, self.to_ns = self._run, self._start, stamp_ns
 
 
 def check_session_map(path: str, live: Mapping[str, Any], margin_m: float = 3.0) -> str:
@@ -236,4 +282,5 @@ def check_session_map(path: str, live: Mapping[str, Any], margin_m: float = 3.0)
     return path
 
 
-__all__ = ['RoadEstimatorLoop', 'road_estimator_loop', 'MapPreviewLoop', 'check_session_map']
+__all__ = ['RoadEstimatorLoop', 'road_estimator_loop', 'MapPreviewLoop', 'STREAKS', 'Streak',
+           'check_session_map']

@@ -89,6 +89,9 @@ def read_road_csv(path: str, what: str = 'road_file') -> np.ndarray:
         _first_bad_row(path, what)
     if rows is None or rows.shape[0] < 2:
         raise RoadError(f'{what} {path!r} needs at least two "time_s, height_m" rows')
+    back = np.flatnonzero(np.diff(rows[:, 0]) <= 0)
+    if back.size:
+        _unsorted_row(path, what, int(back[0]) + 1)
     return rows
 
 
@@ -171,6 +174,22 @@ def _first_bad_row(path: str, what: str) -> None:
             raise RoadError(f'{what} {path}:{lineno}: {body[:60]!r} is not a finite '
                             f'"time_s, height_m" row')
         seen_row = True
+
+
+def _unsorted_row(path: str, what: str, index: int) -> None:
+    """Raise RoadError naming the line of data row ``index`` (0-based), out of time order."""
+    n, previous = -1, None
+    for lineno, line in enumerate(_lines(path), 1):
+        body = line.split('#', 1)[0].strip()
+        if not body or not _numeric_row(body):
+            continue
+        n += 1
+        if n == index:
+            raise RoadError(f'{what} {path}:{lineno}: time {body.split(",")[0].strip()} s is '
+                            f'not after the row before ({previous} s): the rows must be in '
+                            'strictly increasing time')
+        previous = body.split(',')[0].strip()
+    raise RoadError(f'{what} {path!r}: the times must be strictly increasing')
 
 
 @dataclass

@@ -29,6 +29,7 @@ from trajectory_msgs.msg import JointTrajectory
 from erva_ros.core import contract, topics
 from erva_ros.core.levels import OK
 from erva_ros.core.loop.road_source import RoadSample, RoadSource
+from erva_ros.core.loop.timing import next_grid_delay_ns
 from erva_ros.core.loop.validation import MessageRejected
 from erva_ros.core.reports import RoadReport
 from erva_ros.core.road_loop import MapPreviewLoop
@@ -47,7 +48,7 @@ class RoadPreviewNode(LoopNode):
         self.source = RoadSource(self.p, self.report)
         self.report.hardware_id = f'road:{self.source.road.name}'
         self._settling = Settling(self.p['start_delay_s'])
-        self._sample_timer = None
+        self._sample_timer = self._align_timer = None
         self._finished = False
         if self.p['mode'] == 'lockstep':
             # Subscribed before the publishers exist: the plant waits for them to appear.
@@ -109,8 +110,19 @@ class RoadPreviewNode(LoopNode):
         if not self._settling.held(ready, time.monotonic()):
             return
         self._start_timer.cancel()
+        # The samples fall on k·Ts of the clock, as a real ECU's cycles do (docs/hil.md §8:
+        # the cycle number is round(t / Ts)): the simulated ECU samples on this grid, and
+        # an estimator without the road stamps its cycles on it.  So the sample timer is
+        # made at the next such instant (at least 1 ms ahead).
+        delay = next_grid_delay_ns(self.now_ns(), 0, self.source.ts_ns)
+        if delay < 1_000_000:
+            delay += self.source.ts_ns
+        self._align_timer = self.timer(delay * 1e-9, self._on_grid_instant)
+
+    def _on_grid_instant(self) -> None:
+        self._align_timer.cancel()
         # rcl timers fire at creation + m·period without drift; the grid is anchored at the
-        # first firing's scheduled instant (below), so no sample is stamped ahead of its time.
+        # first firing's instant on k·Ts (below), so no sample is stamped ahead of its time.
         self._sample_timer = self.timer(self.source.ts, self._on_sample_timer)
         self.status.set(OK, 'running')
 
@@ -118,8 +130,10 @@ class RoadPreviewNode(LoopNode):
         now = self.now_ns()
         if self.source.grid.start_ns is None:
             # The grid starts at this firing's scheduled instant (the next one minus a
-            # period): later firings are never before their own scheduled instant.
+            # period), made the k·Ts it was meant for (the timer was made a little after
+            # it): later firings are never before their own instant.
             now -= self.source.ts_ns - self._sample_timer.time_until_next_call()
+            now -= now % self.source.ts_ns
         sample = self.source.on_timer(now)
         if sample is not None:
             self._publish(sample)

@@ -5,8 +5,9 @@ the shared model, paper eq. (11)): one ``ecu/measurements`` message per ECU cycl
 ecu_bridge_node and, with ``road_at_tyre`` ``truth``, ``road/height`` (buffered,
 interpolated) give one estimate on ``state`` stamped with the cycle's instant (on the
 road's grid with ``stamp_on_road_grid``).  With ``estimated`` (docs/road.md) no road is
-read: the RoadEKF estimates it (:mod:`erva_ros.core.road_loop`), each cycle stamped on the
-grid of the first, and ``road/estimate`` carries ŵ(t_k) and the odometry distance.
+read: the RoadEKF estimates it (:mod:`erva_ros.core.road_loop`), each cycle stamped with
+its instant k·Ts (the real-ECU contract, docs/hil.md §8), and ``road/estimate`` carries
+ŵ(t_k) and the odometry distance.
 A malformed or absurd message is rejected and counted, never reaching the filter.
 
 ``ecu/measurements`` is taken by its own thread straight from its wait set

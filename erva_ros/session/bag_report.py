@@ -284,9 +284,37 @@ def compute_report(data: SessionData) -> Dict:
         f'{k}/u_from_{src}': float(getattr(r, f'u_from_{src}'))
         for k, r in plants.items() if isinstance(r, PlantReport)
         for src in ('command', 'plan', 'passive')}
-    report['diagnostics_errors'] = sorted({f'{r.node}: {r.message}'
-                                           for _, r in data.reports if r.level >= ERROR})
+    inside, outside = errors_by_span(data, ts)
+    report['diagnostics_errors'] = inside
+    report['diagnostics_errors_outside'] = outside
     return report
+
+
+def errors_by_span(data: SessionData, ts: Optional[float]
+                   ) -> Tuple[List[str], Dict[str, List[str]]]:
+    """Return the ERROR statuses ('node: message') logged within the loop, and outside it.
+
+    Those outside by node: {node: [messages]}.
+
+    The loop spans the first state's arrival to one period after the last's (the bag's
+    log times).  Outside it come the start-up's and the shut-down's designed states: the
+    bridge waiting for the ECU's first frame before the loop starts, its safe command
+    once the NMPC stopped after the last sample and the ECU silent once it ended.
+    """
+    errors = [(t, r.node, r.message) for t, r in data.reports if r.level >= ERROR]
+    if data.state.n:
+        lo = int(data.state.log_ns.min())
+        hi = int(data.state.log_ns.max()) + int(round((ts or 0.0) * 1e9))
+    else:
+        lo, hi = -1, 2 ** 63
+    inside = sorted({f'{node}: {text}' for t, node, text in errors if lo <= t <= hi})
+    outside: Dict[str, List[str]] = {}
+    for t, node, text in errors:
+        if not lo <= t <= hi and f'{node}: {text}' not in inside:
+            outside.setdefault(node, [])
+            if text not in outside[node]:
+                outside[node].append(text)
+    return inside, outside
 
 
 def _warnings(bag) -> List[str]:
@@ -375,4 +403,5 @@ def write_plots(data: SessionData, out_dir: str, timing: bool = True) -> List[st
 
 
 __all__ = ['SessionData', 'Series', 'load_session', 'compute_report', 'write_plots',
-           'guess_namespace', 'last_reports', 'actual_signals', 'prediction_report']
+           'guess_namespace', 'last_reports', 'errors_by_span', 'actual_signals',
+           'prediction_report']

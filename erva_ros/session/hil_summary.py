@@ -42,6 +42,9 @@ CHAIN = {'sensors_on_can': (ECU, 'sample_to_can_ms'),
          'state_published': (ESTIMATOR, 'sample_to_state_ms'),
          'command_on_can': (BRIDGE_COMMAND, 'sample_to_can_ms'),
          'command_applied': (ECU, 'sample_to_applied_ms')}
+#: The stages timed from the state's stamp (the estimator's, which the command carries);
+#: the others from the ECU's own sample instant.
+STAMPED_STAGES = ('measurements_at_estimator', 'state_published', 'command_on_can')
 #: E2E rejections (erva_ros.core.hil.e2e) grouped as the summary reports them.
 DROPS = {'crc': ('bad_crc',), 'counter': ('repeated', 'skipped', 'bad_counter'),
          'length': ('wrong_length',)}
@@ -137,7 +140,7 @@ def hil_block(report: Reports, error: PairedError,
         'updates', 'incomplete', 'gaps', 'restarts', 'late_or_repeated', 'rejected',
         'no_road', 'road_waits', 'road_extrapolated', 'before_road')}
     estimator['nis_mean'] = _get(est, 'nis_mean')
-    estimator['error'] = estimation_error(error)
+    estimator['error'] = estimation_error(error, _get(est, 'road_at_tyre') == 'estimated')
     return {'bridge': bridge, 'ecu': ecu_out, 'estimator': estimator,
             'latency_ms': {'bridge_ros_to_can': stats(_get(cmd, 'ros_to_can_ms')),
                            'bridge_can_to_ros': stats(_get(link, 'can_to_ros_ms')),
@@ -147,21 +150,75 @@ def hil_block(report: Reports, error: PairedError,
                          for stage, (name, timing) in CHAIN.items()}}
 
 
-def estimation_error(error: PairedError) -> Dict[str, Any]:
-    """Return the RMS of estimate - truth per state over the samples both have.
+#: Coordinates of the estimation error with the road at the tyre estimated: the
+#: absolute heights z_s, z_us carry the road's unobservable offset, which drifts
+#: (docs/road.md), so their error relative to their RMS means nothing; the deflection
+#: z_s - z_us takes their place.  The velocities are observable up to a common vertical
+#: velocity the road model's prior bounds.
+ROAD_ESTIMATED = {'erva': ('z_s - z_us', 'zdot_s', 'zdot_us', 'z_d', 'zdot_d'),
+                  'benchmark': ('z_s - z_us', 'zdot_s', 'zdot_us')}
+#: The state's coordinates left out then.
+NOT_OBSERVABLE = ('z_s', 'z_us')
 
-    Both are stamped with the ECU's sample instants (estimator on the road grid), so
-    they pair by stamp; the first ``WARMUP`` pairs are left out (``error.warmup``).
+
+def estimation_error(error: PairedError, road_estimated: bool = False) -> Dict[str, Any]:
+    """Return the RMS of estimate - truth per coordinate over the samples both have.
+
+    Each estimate is paired with the ECU's truth of its sample (monitor_stats.PairedError);
+    the first ``WARMUP`` pairs are left out (``error.warmup``).  ``relative_rms`` is that
+    RMS over the truth's own RMS (the coordinate's size).  With ``road_estimated`` the
+    coordinates are :data:`ROAD_ESTIMATED`, and ``not_observable`` names the state's
+    coordinates left out.
     """
     from erva_ros.core.model import STATE_NAMES
+    from erva_ros.session.monitor_stats import DERIVED
     n = error.matched
     if not n:
         return {'matched': 0}
-    names = STATE_NAMES['erva' if error.err2.shape[0] == 6 else 'benchmark']
-    rms = np.sqrt(error.err2 / n)
-    scale = np.sqrt(error.true2 / n)
-    return {'matched': n, 'rms': dict(zip(names, rms.tolist())),
-            'relative_rms': dict(zip(names, (rms / np.where(scale > 0, scale, np.nan)).tolist()))}
+    model = 'erva' if error.err2.shape[0] == 6 + len(DERIVED) else 'benchmark'
+    names = STATE_NAMES[model] + tuple(name for name, _, _ in DERIVED)
+    shown = ROAD_ESTIMATED[model] if road_estimated else STATE_NAMES[model]
+    rms = dict(zip(names, np.sqrt(error.err2 / n).tolist()))
+    scale = dict(zip(names, np.sqrt(error.true2 / n).tolist()))
+    out: Dict[str, Any] = {
+        'matched': n, 'rms': {k: rms[k] for k in shown},
+        'relative_rms': {k: rms[k] / scale[k] if scale[k] > 0 else None for k in shown}}
+    if road_estimated:
+        out['not_observable'] = list(NOT_OBSERVABLE)
+    return out
+
+
+def from_sample_instant(summary: Dict[str, Any], error: PairedError,
+                        road_estimated: bool) -> None:
+    """Make the figures timed from a state's stamp start at the ECU's sample instant t_k.
+
+    On the road grid the estimator stamps each cycle with t_k itself.  With the road
+    estimated it stamps it with the k·Ts of the real-ECU contract (docs/hil.md §8), which
+    is t_k when the ECU keeps the contract (`erva run`'s does: the road's samples are on
+    k·Ts).  An ECU off that grid puts t_k ``error.offset_ns`` before the stamp the state,
+    the preview and the command carry; each figure timed from it (the estimator's stages
+    of the chain, the command on CAN, the NMPC's and the monitor's sample -> command) is
+    then shifted by that constant, measured here against the ECU's truth, so it runs from
+    t_k too (a percentile of values shifted by a constant is shifted by it).  Unknown (no
+    pair, or pairs at different offsets): those figures are not shown.
+    ``summary['hil']['stamp_offset_ms']`` gives the offset.
+    """
+    from erva_ros.session.monitor_figures import stats
+    hil = summary['hil']
+    if not road_estimated:
+        offset_ms: Optional[float] = 0.0
+    elif error.offset_ns is not None and error.offset_spread_ns == 0:
+        offset_ms = error.offset_ns * 1e-6
+    else:
+        offset_ms = None
+    hil['stamp_offset_ms'] = offset_ms
+    timed = [(hil['chain_ms'], k) for k in STAMPED_STAGES]
+    timed += [(summary['commands'], 'sample_to_command_ms'), (summary['nmpc'], 'latency_ms')]
+    for block, key in timed:
+        if key not in block or offset_ms == 0.0:
+            continue
+        block[key] = stats(None) if offset_ms is None else {
+            k: v if k == 'samples' else v + offset_ms for k, v in block[key].items()}
 
 
 def _sum(report: Optional[NodeReport], names) -> Optional[int]:
@@ -169,5 +226,6 @@ def _sum(report: Optional[NodeReport], names) -> Optional[int]:
     return None if report is None else sum(getattr(report, n) for n in names)
 
 
-__all__ = ['ECU', 'ESTIMATOR', 'PERIODIC', 'published', 'plant_equivalents', 'hil_block',
-           'estimation_error']
+__all__ = ['ECU', 'ESTIMATOR', 'PERIODIC', 'CHAIN', 'STAMPED_STAGES', 'ROAD_ESTIMATED',
+           'NOT_OBSERVABLE', 'published', 'plant_equivalents', 'hil_block', 'estimation_error',
+           'from_sample_instant']

@@ -165,12 +165,26 @@ MAP_COUNTS = ('samples', 'points', 'fallback_points', 'fallback_samples', 'beyon
 
 
 def road(obs) -> Dict[str, Any]:
-    """Return the road node's samples (published, skipped), and the map preview's counts."""
+    """Return the road node's samples (published, skipped), and the map preview's counts.
+
+    The map's streaks (``<name>_streak``: the longest run of previews that fell back, of
+    unmatched previews, of refused alignments in a row) give their length and when they
+    were, in s from the first state's stamp (None: there was none).
+    """
+    from erva_ros.core.road_loop import STREAKS
     r = obs.report('road_preview_node')
     out = _fields(r, ('samples_published', 'samples_skipped'))
     if r is not None and r.source == 'map':
         out['map'] = {k: getattr(r, f'map_{k}') for k in MAP_COUNTS}
+        out['map']['tries'] = r.map_alignments + r.map_alignments_refused
         out['map']['file'] = r.map_file
+        s0 = obs.streams.state_stamp.first
+        for name in STREAKS:
+            n = getattr(r, f'map_{name}_streak')
+            span = [None if not n or s0 is None else
+                    round((getattr(r, f'map_{name}_streak_{end}_ns') - s0) * 1e-9, 3)
+                    for end in ('from', 'to')]
+            out['map'][f'{name}_streak'] = {'count': n, 'from_s': span[0], 'to_s': span[1]}
     return out
 
 
@@ -231,6 +245,9 @@ def summary(obs, ts: float, n_steps: int, realtime: bool) -> Dict[str, Any]:
         finished = hil_summary.ECU in obs.finished_rx
         out['hil'] = hil_summary.hil_block(obs.report, obs.streams.error,
                                            obs.bridge_timeouts if finished else None)
+        est = obs.report(hil_summary.ESTIMATOR)
+        hil_summary.from_sample_instant(out, obs.streams.error,
+                                        est is not None and est.road_at_tyre == 'estimated')
     if realtime:
         out['commands']['actuation'] = actuation(out['plant'], out['commands']['for_samples'])
     out['events'] = events(obs)

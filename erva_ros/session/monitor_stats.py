@@ -13,7 +13,8 @@ session's length:
   (exact to 2,000 samples, within 0.1 % beyond);
 * what belongs to one sample across topics is paired by stamp in a bounded window of the
   recent samples (:data:`WINDOW`): a command with the state of its stamp (also when the
-  state comes later), an estimate with the ECU's true state (:class:`PairedError`);
+  state comes later), an estimate with the ECU's true state of its sample, the nearest
+  stamp in the estimator's own stamping window (:class:`PairedError`);
 * the sampled trajectory in preallocated columns, up to ``cap`` samples
   (:data:`TRAJECTORY_CAP`): beyond, it is the session's first part.
 """
@@ -51,18 +52,14 @@ class Recent(OrderedDict):
             self.popitem(last=False)
 
 
-def near(recent: Recent, stamp: int, tol_ns: int, look: int = 8):
-    """Return the entry of ``stamp``, else of a recent stamp within ``tol_ns`` of it (None).
+def paired(recent: Recent, stamp: int, lo_ns: int, hi_ns: int, look: int = 8):
+    """Return (key, entry) of a recent key k with ``lo_ns <= stamp - k < hi_ns`` (None).
 
-    An estimator without the road's grid (the road estimated) stamps each ECU cycle on
-    its own receive grid, a fraction of a period after the ECU's instant.
+    The window is one period wide, so at most one sample of a grid lies in it.
     """
-    hit = recent.get(stamp)
-    if hit is not None or tol_ns <= 0:
-        return hit
     for i, key in enumerate(reversed(recent)):
-        if abs(key - stamp) <= tol_ns:
-            return recent[key]
+        if lo_ns <= stamp - key < hi_ns:
+            return key, recent[key]
         if i >= look:
             break
     return None
@@ -148,9 +145,14 @@ class SumSquares:
 
 
 class PairedError:
-    """Estimates against the truth at the same stamps: sums of error² and truth², by state.
+    """Estimates against the truth of their sample: sums of error² and truth², by coordinate.
 
-    The first ``warmup`` pairs are left out (the filter starts from rest).
+    The coordinates are the state's and :data:`DERIVED` (the suspension deflection and its
+    rate), which stay observable when the road is estimated (docs/road.md).  The first
+    ``warmup`` pairs are left out (the filter starts from rest).  ``offset_ns`` is the
+    estimate's stamp minus the truth's (None before a pair; 0 when both are on the
+    samples' grid, else a constant part of a period), ``offset_spread_ns`` its largest
+    minus smallest value over the pairs (0 when every pair agrees).
     """
 
     def __init__(self, warmup: int):
@@ -158,13 +160,20 @@ class PairedError:
         self.pairs = 0
         self.err2: Optional[np.ndarray] = None
         self.true2: Optional[np.ndarray] = None
+        self.offset_ns: Optional[int] = None
+        self._offsets = (0, 0)          # smallest, largest
 
-    def add(self, estimate: np.ndarray, truth: np.ndarray) -> None:
+    def add(self, estimate: np.ndarray, truth: np.ndarray, offset_ns: int = 0) -> None:
         """Take one pair (pairs come in stamp order: both topics do)."""
         self.pairs += 1
+        if self.offset_ns is None:
+            self.offset_ns, self._offsets = offset_ns, (offset_ns, offset_ns)
+        else:
+            lo, hi = self._offsets
+            self._offsets = (min(lo, offset_ns), max(hi, offset_ns))
         if self.pairs <= self.warmup:
             return
-        err = estimate - truth
+        err, truth = with_derived(estimate - truth), with_derived(truth)
         if self.err2 is None:
             self.err2, self.true2 = err ** 2, truth ** 2
         else:
@@ -175,6 +184,20 @@ class PairedError:
     def matched(self) -> int:
         """Return the pairs counted (after the warm-up)."""
         return max(0, self.pairs - self.warmup)
+
+    @property
+    def offset_spread_ns(self) -> int:
+        """Return the largest minus the smallest stamp offset of the pairs."""
+        return self._offsets[1] - self._offsets[0]
+
+
+#: Coordinates added to a state's in the estimation error: (name, i, j) for x_i − x_j.
+DERIVED = (('z_s - z_us', 0, 2), ('zdot_s - zdot_us', 1, 3))
+
+
+def with_derived(x: np.ndarray) -> np.ndarray:
+    """Return the state x followed by its :data:`DERIVED` coordinates."""
+    return np.concatenate([x, [x[i] - x[j] for _, i, j in DERIVED]])
 
 
 class Commands:
@@ -250,7 +273,12 @@ class SessionStreams:
         self.accels = 0
         self.commands = Commands(ts, pause_s)
         self.error = PairedError(warmup)
-        self._pair_ns = int(round(self.ts * 1e9 / 4))   # an estimate's cycle: within Ts/4
+        # An estimate stamped s is of the ECU's sample t with s - t in [-Ts/4, 3Ts/4): the
+        # window in which the estimator places a cycle received at s on its grid
+        # (EstimatorLoop.stamp).  With the ECU on that grid s = t; an ECU off it (its
+        # clock not the estimator's) puts its samples a constant part of a period away.
+        ts_ns = int(round(self.ts * 1e9))
+        self._pair_ns = (-(ts_ns // 4), ts_ns - ts_ns // 4)
         self.state_size: Optional[int] = None
         self.trajectory = Trajectory(cap if n_steps is None else min(cap, n_steps))
         self._states = Recent()         # stamp -> (rx, x)
@@ -275,17 +303,18 @@ class SessionStreams:
         row = self._row(stamp)
         if row is not None:
             self.trajectory.x[row, :len(x)] = x
-        truth = near(self._truth, stamp, self._pair_ns)
-        if truth is not None:
-            self.error.add(x, truth)
+        hit = paired(self._truth, stamp, *self._pair_ns)
+        if hit is not None:
+            self.error.add(x, hit[1], stamp - hit[0])
         self._resolve()
 
     def add_truth(self, stamp: int, x: np.ndarray) -> None:
         """Take the ECU's true state of sample ``stamp`` (HIL)."""
         self._truth.put(stamp, x)
-        state = near(self._states, stamp, self._pair_ns)
-        if state is not None:
-            self.error.add(state[1], x)
+        lo, hi = self._pair_ns
+        hit = paired(self._states, stamp, -hi + 1, -lo + 1)    # stamp - s in (-hi, -lo]
+        if hit is not None:
+            self.error.add(hit[1][1], x, hit[0] - stamp)
 
     def add_accel(self, stamp: int, value: float) -> None:
         """Take the sprung-mass acceleration of sample ``stamp``: a row of the trajectory."""
@@ -382,4 +411,5 @@ class SessionStreams:
 
 
 __all__ = ['WINDOW', 'MAX_PENDING', 'TRAJECTORY_CAP', 'Recent', 'Worst', 'Gaps', 'Span',
-           'SumSquares', 'near', 'PairedError', 'Commands', 'Trajectory', 'SessionStreams']
+           'SumSquares', 'paired', 'PairedError', 'DERIVED', 'with_derived', 'Commands',
+           'Trajectory', 'SessionStreams']

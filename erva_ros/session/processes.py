@@ -19,12 +19,17 @@ import ctypes
 from dataclasses import dataclass, field
 import functools
 import os
+import re
 import signal
 import subprocess
 import sys
 import time
 from typing import Dict, Iterable, List, Mapping, Optional, Sequence
 
+#: A log line that says something failed: an ERROR/FATAL log line (rclpy's format), an
+#: exception's last line, or a command's one-line ``prog: error: ...``.
+_ERROR_LINE = re.compile(r'^\s*\[(ERROR|FATAL)\]|^\s*[\w.]*(Error|Exception|Interrupt)\b: |'
+                         r'^\s*[\w. -]+: (error|internal error): ')
 #: Grace period (s) between SIGINT, SIGTERM and SIGKILL when stopping a process.
 STOP_GRACE_S = 5.0
 #: How long (s) a hung process gets to write its stacks (SIGUSR1) before SIGKILL.
@@ -196,6 +201,24 @@ class ChildProcess:
                 return ''.join(fh.readlines()[-lines:]).rstrip()
         except OSError:
             return ''
+
+    def cause(self, lines: int = 20) -> str:
+        """Return why the process ended, as far as known ('' if not).
+
+        Killed: 'killed by SIGKILL' (a signal from outside; its log says nothing about
+        it).  Otherwise the last error among the log's last ``lines`` lines: an ERROR or
+        FATAL log line, an exception's line, a command's ``prog: error: ...``.  Never any
+        other log line: the last line of a log says what the process was doing, not why
+        it ended.
+        """
+        status = self.popen.poll()
+        if status is not None and status < 0:
+            try:
+                return f'killed by {signal.Signals(-status).name}'
+            except ValueError:
+                return f'killed by signal {-status}'
+        errors = [line for line in self.tail(lines).splitlines() if _ERROR_LINE.search(line)]
+        return errors[-1].strip() if errors else ''
 
     def close(self) -> None:
         """Close the log file."""

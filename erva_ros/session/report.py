@@ -150,9 +150,8 @@ def format_summary(s: Dict[str, Any]) -> str:
     else:
         warned = len(s.get('warnings') or [])
         lines.append(f'  ok        all nodes ran and stopped cleanly ({s["wall_time_s"]:.1f} s '
-                     'wall)' + (f', but not all in real time ({warned} warning'
-                                f'{"s" if warned > 1 else ""}; --strict fails such a run)'
-                                if warned else ''))
+                     'wall)' + (f', with {warned} warning{"s" if warned > 1 else ""} '
+                                '(--strict fails such a run)' if warned else ''))
     return '\n'.join(lines)
 
 
@@ -200,13 +199,20 @@ def _hil_lines(h: Dict[str, Any]) -> List[str]:
                      f'{_p(chain.get("sensors_on_can"))}, at the estimator '
                      f'{_p(chain.get("measurements_at_estimator"))}, state published '
                      f'{_p(chain.get("state_published"))},')
+        offset = h.get('stamp_offset_ms', 0.0)
+        stamps = ('' if offset == 0 else '; the state\'s stamps: not paired with t_k'
+                  if offset is None else f'; the state\'s stamps: t_k + {offset:.2f} ms')
         lines.append(f'            command on CAN {_p(chain.get("command_on_can"))}, applied '
-                     f'by the ECU {_p(chain.get("command_applied"))}')
+                     f'by the ECU {_p(chain.get("command_applied"))}{stamps}')
     err = est.get('error') or {}
     if err.get('matched'):
-        rel = ', '.join(f'{k} {v:.0%}' for k, v in err['relative_rms'].items())
-        lines.append(f'            error / state RMS vs the ECU\'s truth: {rel} '
-                     f'({err["matched"]} samples)')
+        rel = ', '.join(f'{k} {v:.0%}' for k, v in err['relative_rms'].items()
+                        if v is not None)
+        hidden = err.get('not_observable')
+        lines.append(f'            error RMS / its RMS vs the ECU\'s truth: {rel} '
+                     f'({err["matched"]} samples'
+                     + (f'; {", ".join(hidden)} not observable with the road estimated)'
+                        if hidden else ')'))
     return lines
 
 

@@ -24,7 +24,8 @@ ACTIVATION_ORDER = {'realtime': ('nmpc_node', 'state_estimator_node', 'ecu_bridg
                     'lockstep': ('nmpc_node', 'road_preview_node', 'plant_sim_node')}
 #: The `erva run` option of a live parameter, where its name differs.
 OPTION_OF = {'duration_s': 'duration', 'preview_snr_db': 'preview_snr',
-             'preview_delay_s': 'preview_delay', 'road_file': 'road_file'}
+             'preview_delay_s': 'preview_delay', 'road_file': 'road_file',
+             'command_delay_s': 'command_delay'}
 
 
 #: How long (s) a session's processes may take to start and connect: a cold start builds

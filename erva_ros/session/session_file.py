@@ -169,8 +169,7 @@ def prepare_session(cfg: RunConfig, recording: bool) -> Session:
     # The loop's sample time is the live file's (the controller runs at it).
     live_file = read_live_file(cfg.live_file)
     # So is the command delay d: the OCP models the d at which plant and ECU apply.
-    loop = {key: cfg.live_overrides.get(key, live_file.get(key, LIVE.defaults()[key]))
-            for key in ('ts', 'command_delay_s')}
+    loop = _loop_timing(cfg, live_file)
     overrides = {'controller': cfg.controller, 'alpha1': cfg.alpha1, 'alpha2': cfg.alpha2,
                  **loop}
     overrides.update(cfg.settings_overrides)
@@ -189,6 +188,31 @@ def prepare_session(cfg: RunConfig, recording: bool) -> Session:
                        sort_keys=False)
     return Session(erva.as_dict(), settings, live, directory, path, scenario, cfg.ecu,
                    preview_map)
+
+
+def _loop_timing(cfg: RunConfig, live_file: Dict[str, Any]) -> Dict[str, float]:
+    """Return the loop's ts and command_delay_s, checked; a bad one is blamed on its source.
+
+    Each comes from its option (``--command-delay``), else the live file, else the
+    shipped config/live.yaml; the controller settings take them as given.
+    """
+    specs, out, source = LIVE.specs(), {}, {}
+    for key in ('ts', 'command_delay_s'):
+        if key in cfg.live_overrides:
+            value = cfg.live_overrides[key]
+            source[key] = '--' + OPTION_OF.get(key, key).replace('_', '-')
+        elif key in live_file:
+            value, source[key] = live_file[key], cfg.live_file or default_config_file(
+                'live.yaml')
+        else:
+            value, source[key] = LIVE.defaults()[key], default_config_file('live.yaml')
+        out[key] = specs[key].check(key, value, source[key])
+    if not out['command_delay_s'] < out['ts']:
+        where = source['command_delay_s'] + (
+            '' if source['ts'] == source['command_delay_s'] else f' (ts: {source["ts"]})')
+        raise ParamError(f'{where}: parameter \'command_delay_s\' = '
+                         f'{out["command_delay_s"]:g} must be below ts = {out["ts"]:g} s')
+    return out
 
 
 def _preview_map(cfg: RunConfig, live: Dict[str, Any]) -> str:

@@ -16,7 +16,6 @@ import time
 from typing import Any, Dict, List, Optional
 
 from erva_ros.core import topics
-from erva_ros.core.bag import BagError
 from erva_ros.core.errors import CLIError
 from erva_ros.session import accounting, hil_summary
 from erva_ros.core.reports import FoxgloveReport, RecorderReport
@@ -201,7 +200,7 @@ class Supervisor:
         for name in lc.pending():
             ok = lc.result(name)
             if ok is False:
-                log = self.procs[name].tail(1)
+                log = self.procs[name].cause()
                 self.errors.append(f'{name} refused to {self.phase[:-3] + "e"}'
                                    + (f': {log}' if log else ''))
                 return True
@@ -241,6 +240,7 @@ class Supervisor:
             return True
         if self.gate.open():
             self.phase = 'running'
+            self._begin_bag_end()
             self.log(f'connected in {now - self.t_start:.1f} s; running '
                      f'{self.session.live["duration_s"]:g} s ({self.session.live["mode"]})')
         elif now - self.t_start > 10.0 and not getattr(self, '_told_waiting', False):
@@ -297,8 +297,9 @@ class Supervisor:
             self.dead.add(name)
             where = (f'at t = {self.obs.received[topics.STATE] * self.session.live["ts"]:.2f}'
                      f' s' if self.phase == 'running' else f'while {self.phase}')
+            cause = p.cause()
             self.errors.append(f'{name} died (exit status {p.poll()}) {where}'
-                               + (f': {p.tail(1)}' if p.tail(1) else ''))
+                               + (f': {cause}' if cause else ''))
             # Without the controller the real-time plant falls back to the plan, then
             # passive damping, which is worth seeing; without the recorder the loop
             # runs on unrecorded.
@@ -353,8 +354,9 @@ class Supervisor:
             bag_failed = name == RECORDER and bool(getattr(
                 accounting.recorder_report(self.obs.reports), 'error', ''))
             if name not in self.dead and status != 0 and not bag_failed:
+                cause = p.cause()
                 self.errors.append(f'{name} did not stop cleanly (exit status {status})'
-                                   + (f': {p.tail(1)}' if p.tail(1) else ''))
+                                   + (f': {cause}' if cause else ''))
         if RECORDER in self.procs:
             summary['bag'] = self.procs[RECORDER].bag_dir
             summary['recording'] = self._check_recording()
@@ -370,8 +372,7 @@ class Supervisor:
             summary['warnings'] = warnings(self.obs, summary, quality_limits())
             if self.cfg.strict:     # --strict: a run that was not real time fails
                 self.errors += [f'{w} (--strict)' for w in summary['warnings']]
-        if (RECORDER in self.procs and RECORDER not in self.dead
-                and not summary['recording'].get('failed')):
+        if RECORDER in self.procs:     # also with the recorder dead or its disk full
             self._mark_bag_end(summary['bag'])
         summary.update({
             'scenario': {'controller': s.settings.controller,
@@ -386,16 +387,23 @@ class Supervisor:
         })
         return summary
 
+    def _begin_bag_end(self) -> None:
+        """Reserve the bag's end record as the loop starts (session_check.begin_session_end)."""
+        from erva_ros.core.bag.session_check import begin_session_end
+        if RECORDER in self.procs and RECORDER not in self.dead:
+            try:
+                begin_session_end(self.procs[RECORDER].bag_dir)
+            except OSError as exc:
+                self.log(f'could not reserve the session\'s end record in the bag: {exc}')
+
     def _mark_bag_end(self, bag_dir: str) -> None:
         """Record in the bag whether the session ran to its end (else why not)."""
         from erva_ros.core.bag.session_check import mark_session_end
         why = self.errors[0] if self.errors else (
             '' if self.scenario_done else f'stopped while {self.phase}')
-        try:
-            mark_session_end(bag_dir, completed=self.scenario_done and not self.errors,
-                             reason=why)
-        except (BagError, OSError) as exc:   # no metadata.yaml: the recorder failed
-            self.log(f'could not record the session\'s end in {bag_dir}: {exc}')
+        for line in mark_session_end(bag_dir, completed=self.scenario_done and not self.errors,
+                                     reason=why):
+            self.log(f'could not record the session\'s end: {line}')
 
     def _check_rejections(self, summary: Dict[str, Any]) -> None:
         """Fail the run if rejected inputs cost the loop a sample of control."""

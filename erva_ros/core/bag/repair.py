@@ -22,6 +22,7 @@ from erva_ros import __version__
 from erva_ros.core.bag import BagError
 from erva_ros.core.bag import metadata as bag_meta
 from erva_ros.core.bag.reader import BagFile, dir_files, resolve_bag_path, topics_of
+from erva_ros.core.bag.session_check import END_KEY, end_file_record, REPAIRED_KEY
 from erva_ros.core.bag.writer import PROFILE, ROSBAG2_RECORD, SESSION_RECORD
 
 
@@ -85,8 +86,17 @@ def repair_bag(path: str, keep_original: bool = True, out_dir: Optional[str] = N
         for rec in f.metadata:
             if rec.name == SESSION_RECORD and not custom:
                 custom.update(rec.metadata)
-    meta = _metadata(files, custom)
     broken = [f for f in files if not f.complete]
+    # How the session ended (erva run's record) stays with the bag, and the bag says it
+    # was repaired (core/bag/session_check.py).
+    end = _end_record(bag_dir)
+    if end:
+        custom[END_KEY] = end
+    if broken:
+        custom[REPAIRED_KEY] = (f'{", ".join(os.path.basename(f.path) for f in broken)} '
+                                f'not closed ({"; ".join(f.stopped_at for f in broken)}), '
+                                'rewritten with what was readable')
+    meta = _metadata(files, custom)
     result = {'bag': target, 'files': [os.path.join(target, os.path.basename(p))
                                        for p in paths],
               'messages': meta['message_count'],
@@ -115,6 +125,15 @@ def repair_bag(path: str, keep_original: bool = True, out_dir: Optional[str] = N
     _write(target, lambda: bag_meta.write_metadata(target, meta))
     result['action'] = _action(len(files), result['repaired'], out_dir is not None)
     return result
+
+
+def _end_record(bag_dir: str) -> Optional[str]:
+    """Return how the session ended, as metadata.yaml or the bag's end file has it."""
+    try:
+        custom = bag_meta.read_metadata(bag_dir).get('custom_data') or {}
+    except BagError:
+        custom = {}
+    return custom.get(END_KEY) or end_file_record(bag_dir)
 
 
 def _action(n_files: int, repaired: List[str], elsewhere: bool) -> str:

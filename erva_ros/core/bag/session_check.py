@@ -1,10 +1,14 @@
 """Is a bag one whole session, and only its own?  The checks behind `erva bag info`'s warnings.
 
-* **The end.**  `erva run` writes how its session ended into the bag's metadata.yaml
-  (custom_data ``erva_session_end``: completed or not, and why) once the recorder has
-  finished the file (:func:`mark_session_end`).  A bag of `erva run` without that record
-  was cut short: the supervisor was killed before it could say.  A repaired bag says so
-  (``erva_repaired``, :mod:`erva_ros.core.bag.repair`).
+* **The end.**  `erva run` records how its session ended (completed or not, and why):
+  in the bag's metadata.yaml (custom_data ``erva_session_end``) once the recorder has
+  finished the file, and always in the bag's end file (:data:`END_FILE`), which it writes
+  as the loop starts (:func:`begin_session_end`, saying "erva run stopped before it
+  recorded the end") and overwrites in place at the end (:func:`mark_session_end`): in
+  place, so a disk the recording filled still takes it.  The recorder dead or its disk
+  full, the end file is what says so; `erva bag repair` carries it into the repaired
+  bag's metadata and says it repaired (``erva_repaired``, :mod:`erva_ros.core.bag.repair`).
+  A bag of `erva run` without either record says what the bag itself shows.
 * **Only its own.**  A bag records a session's namespace, and ``/diagnostics``, which every
   node on the DDS domain shares.  Reports (:mod:`erva_ros.core.reports`) carry their
   session's id: a report in the bag's namespace with another id means another session ran
@@ -14,40 +18,100 @@
 """
 
 import json
+import os
 from typing import Dict, List, Optional
 
 from erva_ros.core import contract, topics
-from erva_ros.core.bag.metadata import read_metadata, write_metadata
+from erva_ros.core.bag import BagError
+from erva_ros.core.bag.metadata import METADATA_FILE, read_metadata, write_metadata
 from erva_ros.core.reports import report_from_status
 from erva_ros.core.wire import header_stamp_ns
 
 #: custom_data keys of metadata.yaml.
 END_KEY = 'erva_session_end'
 REPAIRED_KEY = 'erva_repaired'
+#: The end record's own file in the bag directory (JSON; other tools ignore it).
+END_FILE = 'erva_session_end.json'
+#: Its size, reserved as the loop starts: the end is written into it in place.
+END_FILE_BYTES = 4096
+#: What the end file says until `erva run` records the end.
+NOT_RECORDED = 'erva run stopped before it recorded how the session ended (killed?)'
 #: Data topics whose stamps a session publishes once each.
 ONCE_PER_STAMP = (topics.STATE, topics.SPRUNG_ACCEL, topics.GENERATOR, topics.ROAD_HEIGHT,
                   topics.ROAD_PREVIEW)
 
 
-def mark_session_end(bag_dir: str, completed: bool, reason: str = '') -> None:
-    """Record in ``bag_dir``'s metadata.yaml how the session ended (``completed`` or why not)."""
-    meta = read_metadata(bag_dir)
-    custom = dict(meta.get('custom_data') or {})
-    custom[END_KEY] = json.dumps({'completed': bool(completed), 'reason': reason},
-                                 sort_keys=True)
-    meta['custom_data'] = custom
-    write_metadata(bag_dir, meta)
+def _end_text(completed: bool, reason: str) -> bytes:
+    """Return the end record as END_FILE_BYTES of JSON (a long reason cut to fit)."""
+    for cut in range(len(reason), -1, -64):
+        text = json.dumps({'completed': bool(completed), 'reason': reason[:cut]},
+                          sort_keys=True).encode('utf-8')
+        if len(text) < END_FILE_BYTES:
+            return text.ljust(END_FILE_BYTES - 1) + b'\n'
+    raise ValueError('the end record does not fit')     # not reached: '' fits
+
+
+def begin_session_end(bag_dir: str) -> None:
+    """Reserve the bag's end file, saying the end is not recorded yet (OSError: could not)."""
+    with open(os.path.join(bag_dir, END_FILE), 'wb') as fh:
+        fh.write(_end_text(False, NOT_RECORDED))
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+def mark_session_end(bag_dir: str, completed: bool, reason: str = '') -> List[str]:
+    """Record in ``bag_dir`` how the session ended (``completed`` or why not).
+
+    Into the end file in place (reserved by :func:`begin_session_end`; written new if it
+    was not), and into metadata.yaml if the recorder wrote one.  Returns what could not be
+    written, one line each ([]: all of it).
+    """
+    failed = []
+    path = os.path.join(bag_dir, END_FILE)
+    try:
+        with open(path, 'r+b' if os.path.exists(path) else 'wb') as fh:
+            fh.write(_end_text(completed, reason))
+    except OSError as exc:
+        failed.append(f'cannot write {path}: {exc.strerror or exc}')
+    if not os.path.exists(os.path.join(bag_dir, METADATA_FILE)):
+        return failed
+    try:
+        meta = read_metadata(bag_dir)
+        custom = dict(meta.get('custom_data') or {})
+        custom[END_KEY] = json.dumps({'completed': bool(completed), 'reason': reason},
+                                     sort_keys=True)
+        meta['custom_data'] = custom
+        write_metadata(bag_dir, meta)
+    except BagError as exc:
+        failed.append(str(exc))
+    return failed
+
+
+def end_file_record(bag_dir: Optional[str]) -> Optional[str]:
+    """Return the end file's record as metadata's custom_data value (None: no such file)."""
+    if bag_dir is None:
+        return None
+    try:
+        with open(os.path.join(bag_dir, END_FILE), 'rb') as fh:
+            text = fh.read(END_FILE_BYTES).decode('utf-8', errors='replace').strip()
+    except OSError:
+        return None
+    return text or None
 
 
 def session_end(bag) -> Optional[Dict]:
-    """Return the recorded end of the session ({'completed', 'reason'}), None if absent."""
-    text = ((bag.metadata_yaml or {}).get('custom_data') or {}).get(END_KEY)
+    """Return the recorded end of the session ({'completed', 'reason'}), None if absent.
+
+    metadata.yaml's record, else the end file's.
+    """
+    text = (((bag.metadata_yaml or {}).get('custom_data') or {}).get(END_KEY)
+            or end_file_record(bag.bag_dir))
     if not text:
         return None
     try:
         return json.loads(text)
     except ValueError:
-        return {'completed': False, 'reason': f'unreadable end record {text!r}'}
+        return {'completed': False, 'reason': f'unreadable end record {text[:80]!r}'}
 
 
 def session_warnings(bag) -> List[str]:
@@ -60,8 +124,11 @@ def session_warnings(bag) -> List[str]:
     if own_id:                      # recorded by `erva run`
         end = session_end(bag)
         if end is None:
-            out.append('the session was cut short: no end record (erva run was killed '
-                       'before it finished the bag)')
+            out.append('the session was cut short: no end record, ' + (
+                'and the recorder did not finish the bag (killed, or its disk was full)'
+                if not bag.complete or custom.get(REPAIRED_KEY) else
+                'though the recorder finished the bag (erva run was stopped before it '
+                'recorded the end)'))
         elif not end.get('completed'):
             out.append(f'the session was cut short: {end.get("reason") or "not completed"}')
     namespace = _namespace(bag)
@@ -103,4 +170,5 @@ def _namespace(bag) -> str:
     return topics.NAMESPACE
 
 
-__all__ = ['END_KEY', 'REPAIRED_KEY', 'mark_session_end', 'session_end', 'session_warnings']
+__all__ = ['END_KEY', 'REPAIRED_KEY', 'END_FILE', 'NOT_RECORDED', 'begin_session_end',
+           'mark_session_end', 'end_file_record', 'session_end', 'session_warnings']

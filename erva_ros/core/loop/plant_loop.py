@@ -140,6 +140,9 @@ class PlantLoop:
         """
         deadline = (self.t_ns + self.delay_ns
                     if self.delay_ns and not self.lockstep else None)
+        # Passive damping is an outage (ERROR) only once a command has acted: before that
+        # (the start, or a first command late for its t_k + d) there is no plan to use up.
+        started = self.hold.counts['command'] + self.hold.counts['plan'] > 0
         self.u_k, source = self.hold.select(self.t_ns, deadline)
         self.sample = self.plant.sample(self._u_at_t_k(), self.w_k)
         if source == 'command':
@@ -148,6 +151,8 @@ class PlantLoop:
             return WARN, 'command late: applying the previous plan'
         if self.hold.stamp_ns is None:
             return WARN, 'no command yet: passive damping c_e0'
+        if not started:
+            return WARN, 'first command late (after t_k + d): passive damping c_e0'
         return ERROR, 'no command and plan used up: passive damping c_e0'
 
     # -- commands ----------------------------------------------------------------------
