@@ -286,6 +286,8 @@ def compute_report(data: SessionData) -> Dict:
         for src in ('command', 'plan', 'passive')}
     report['diagnostics_errors'] = sorted({f'{r.node}: {r.message}'
                                            for _, r in data.reports if r.level >= ERROR})
+    from erva_ros.session.segments import bag_block
+    report['tuning'] = bag_block(data)      # the segments by parameter set (live changes)
     return report
 
 
