@@ -133,7 +133,7 @@ class NMPCNode(LoopNode):
             self._resume.trigger()
 
     def _announce(self) -> None:
-        """A new parameter set's first command is out: log from when, publish the status."""
+        """Say from when a new parameter set acts (its first command is out): log, status."""
         text = self.loop.announcement()
         if text:
             self.get_logger().info(text)
