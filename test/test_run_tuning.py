@@ -151,3 +151,19 @@ def test_bad_set_options_are_one_line_before_anything_starts(erva, tmp_path):
         lines = proc.stderr.strip().splitlines()
         assert len(lines) == 1 and says in lines[0], (option, proc.stderr)
     assert not (tmp_path / 'bags').exists() or not os.listdir(tmp_path / 'bags')
+
+
+@pytest.mark.slow
+def test_a_realtime_set_goes_through_the_service_and_the_summary_says_from_when(erva):
+    proc = erva('run', '--duration', '2', '--no-record', '--set', '1.0:alpha2=0.5', '--json')
+    assert proc.returncode == 0, proc.stderr
+    tuning = json.loads(proc.stdout)['tuning']
+    assert tuning['set'] == [{'t_s': 1.0, 'changes': {'alpha2': 0.5}, 'accepted': True,
+                              'reason': ''}]
+    first, second = tuning['segments']
+    assert second['changed'] == {'alpha2': [0.0, 0.5]}
+    # Sent Ts/2 before the sample at 1 s: it acts from there, or (a loaded machine) from
+    # a sample later, or earlier if the sample before was solved after it came; the
+    # summary says which.  The two segments cover the run.
+    assert 0.98 <= second['from_s'] == first['to_s'] < 2.0
+    assert first['samples'] + second['samples'] == 100

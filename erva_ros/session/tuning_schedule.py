@@ -32,6 +32,9 @@ from erva_ros.core.params import ParamError
 
 #: What `--set` may change: nmpc_node's live parameters but the hold itself.
 RUN_KEYS = tuple(k for k in NODE_LIVE_KEYS if k != 'lockstep_hold_s')
+#: Real time: a request due within this long (ns) is sent at its instant, the session's
+#: loop (which polls every ~20 ms) waiting for it.
+LOOKAHEAD_NS = 30_000_000
 
 
 @dataclass
@@ -114,11 +117,15 @@ class ScheduledChanges:
         step = self.steps[self._next]
         due = first_stamp_ns + step.k * self.ts_ns
         if self.lockstep:
-            ready = newest_state_ns is not None and newest_state_ns >= due
+            if newest_state_ns is None or newest_state_ns < due or not self.client.ready():
+                return
         else:
-            ready = time.time_ns() >= due - self.ts_ns // 2
-        if not ready or not self.client.ready():
-            return
+            # The session's loop comes by every ~20 ms: within reach, wait for the instant.
+            left = due - self.ts_ns // 2 - time.time_ns()
+            if left > LOOKAHEAD_NS or not self.client.ready():
+                return
+            if left > 0:
+                time.sleep(left * 1e-9)
         step.request = dict(step.changes)
         if self.lockstep:          # the next hold, at once with this change
             after = self.steps[self._next + 1].t_s if self._next + 1 < len(self.steps) else 0.0
@@ -158,4 +165,4 @@ def _reason(response) -> Optional[str]:
     return results_reason(response.result)
 
 
-__all__ = ['RUN_KEYS', 'Step', 'plan', 'first_hold_s', 'ScheduledChanges']
+__all__ = ['RUN_KEYS', 'LOOKAHEAD_NS', 'Step', 'plan', 'first_hold_s', 'ScheduledChanges']

@@ -158,8 +158,9 @@ class ControlLoop:
     def stage(self, changes: Mapping[str, Any]) -> None:
         """Check a parameter change and stage it for the next sample (ParamError: refused).
 
-        All or nothing: a refused change stages nothing.  Any request, also a refused one,
-        releases a lock-step hold (the requester reports a refusal).
+        All or nothing: a refused change stages nothing.  Any request that reaches this
+        check, also one it refuses, releases a lock-step hold (the requester reports a
+        refusal; `erva run --set` checks its changes before the run).
         """
         self.requested = True
         ctrl = {k: v for k, v in changes.items() if k in LIVE_KEYS}
