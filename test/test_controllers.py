@@ -23,7 +23,10 @@ def test_shipped_settings_file_loads_and_spec_tables_cover_every_field():
     s = load_controller_settings()
     assert s == ControllerSettings()       # the file states the defaults
     names = {f.name for f in fields(ControllerSettings)}
-    assert names == set(settings_mod.NUMERIC_SPECS) | set(settings_mod.CHOICE_SPECS)
+    assert names == set(settings_mod.SPECS)
+    assert set(settings_mod.SPECS) == (set(settings_mod.NUMERIC_SPECS)
+                                       | set(settings_mod.CHOICE_SPECS)
+                                       | set(settings_mod.FLAG_SPECS))
     assert set(settings_mod.DEFAULTS) == names
     for key in names:
         assert settings_mod.describe(key)

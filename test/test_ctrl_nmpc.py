@@ -118,7 +118,7 @@ def test_real_time_sqp_never_increases_the_objective(hessian):
         p = np.r_[w, rng.choice([0.0, 1.0]), rng.choice([0.01, 1.0])]
         guess = rng.uniform(0, 2, 10)
         alt = np.ones(10)
-        u, z, f, _ = rti(x0, 0.1, guess, alt, p)
+        u, z, f, _ = rti(x0, 0.1, guess, alt, ocp.with_box(p))    # the box: a parameter
         f_guess = float(value(x0, 0.1, guess, p)[1])
         f_alt = float(value(x0, 0.1, alt, p)[1])
         assert float(f) <= min(f_guess, f_alt) + 1e-12

@@ -227,9 +227,20 @@ def test_nodes_declare_the_config_defaults_with_their_descriptors(ros_context):
         assert desc.floating_point_range[0].to_value == 10.0
         assert node.describe_parameter('mode').additional_constraints == \
             'one of realtime, lockstep'
+        # live (dynamic) parameters are not read-only; the others say why they are
+        live_names = set(np_.SCHEMAS['nmpc_node'].live())
+        assert {'alpha1', 'alpha2', 'u_min', 'u_max', 'use_preview', 'fallback',
+                'time_budget_s', 'state_timeout_periods'} <= live_names
+        for name in values:
+            d = node.describe_parameter(name)
+            assert d.read_only == (name not in live_names), name
+            assert ('read-only while the node runs: ' in d.description) == d.read_only, name
+        assert 'needs a new solver' in node.describe_parameter('horizon').description
+        assert 'sample grid' in node.describe_parameter('ts').description
     finally:
         node.destroy_node()
-    assert descriptor('x', Text('free')).description == 'free'
+    assert descriptor('x', Text('free')).description == \
+        f'free; read-only while the node runs: {np_.READ_AT_START}'
 
 
 @pytest.mark.parametrize('node', sorted(np_.SCHEMAS))

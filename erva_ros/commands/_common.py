@@ -83,6 +83,14 @@ def settings_type(key: str):
 realtime_priority = live_type('realtime_priority')
 
 
+def add_set_option(parser: argparse.ArgumentParser, where: str) -> None:
+    """Add ``--set T:KEY=VALUE`` (repeatable): a live parameter changed at sample time T."""
+    parser.add_argument('--set', action='append', default=[], metavar='T:KEY=VALUE',
+                        help=f'change a live parameter at T s after the first sample, {where} '
+                             '(repeatable; e.g. 1.0:alpha1=0.5, 2:u_max=15000, '
+                             '1.5:use_preview=false; the live ones: docs/live.md)')
+
+
 def ensure_out_dir(path: Optional[str]) -> Optional[str]:
     """Create ``path`` if needed; a clear error if it cannot be written."""
     if path is None:

@@ -20,6 +20,10 @@ Everything is computed from the bag (no parameters, no re-simulation):
              and states that never got a command, from the messages themselves
   prediction the plan's predicted z̈_s, power and states (/erva/prediction) against
              what the bag shows at t_k + h·Ts, h = 1, 5 and N: RMS and max error
+  params     a run whose live parameters changed (erva param set, erva run --set):
+             its segments by parameter set, from nmpc_node's recorded reports -- from
+             when to when, what changed, RMS of z̈_s and mean P at the samples of each --
+             and the changes as /parameter_events recorded them
 
 --out DIR writes acceleration.png, damping_cmd.png, power.png, road_preview.png,
 prediction.png (predicted vs actual z̈_s and power, 1, 5 and N steps ahead) and,
@@ -121,6 +125,9 @@ def main(args) -> int:
                                            sorted(f['reported'].items())) or 'not reported'))
     for line in prediction_lines(report['prediction']):
         print(line)
+    from erva_ros.session.segments import lines as segment_lines
+    for line in segment_lines(report.get('tuning')):      # live changes: the segments
+        print(line.strip() if line.startswith('  params') else line)
     for e in report['diagnostics_errors']:
         print(f'ERROR diagnostic: {e}')
     outside = report.get('diagnostics_errors_outside') or {}

@@ -7,8 +7,9 @@ import sys
 
 from erva_ros.commands._closed_loop_options import (add_can_log_option, can_log_path,
                                                     non_negative_int)
-from erva_ros.commands._common import (add_json_option, add_params_option, live_type,
-                                       positive_float, print_json, realtime_priority)
+from erva_ros.commands._common import (add_json_option, add_params_option, add_set_option,
+                                       live_type, positive_float, print_json,
+                                       realtime_priority)
 from erva_ros.core import topics
 from erva_ros.core.bag.writer import MIN_SPLIT_SIZE
 from erva_ros.core.errors import CLIError
@@ -144,6 +145,9 @@ def add_arguments(parser):
                              'the command (signals stop it) and see the same files; DDS '
                              'settings come from the environment (docs/hil.md)')
     add_can_log_option(parser)
+    add_set_option(parser, 'sent to nmpc_node through its SetParameters service (lock-step: '
+                           'acting from exactly that sample, as erva sim --set; real time: '
+                           'sent Ts/2 before it)')
     parser.add_argument('--strict', action='store_true',
                         help='fail the run (exit 1) when it was not real time: deadline '
                              'misses, state timeouts, skipped road samples or command pauses '
@@ -229,7 +233,8 @@ def run_config(args, record_dir=None):
                      force=getattr(args, 'force', False),
                      recorder_overrides=bag_split_parameters(args),
                      strict=getattr(args, 'strict', False),
-                     preview_map=getattr(args, 'preview', None))
+                     preview_map=getattr(args, 'preview', None),
+                     changes=tuple(getattr(args, 'set', ()) or ()))
 
 
 def _ecu_prefix(args) -> tuple:

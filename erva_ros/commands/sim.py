@@ -7,7 +7,8 @@ from erva_ros.commands._closed_loop_options import (add_road_options, add_settin
                                                     load_settings, make_road_from_args,
                                                     preview_model_from_args)
 from erva_ros.commands._common import (add_json_option, add_out_option, add_params_option,
-                                       compile_first, ensure_out_dir, print_json)
+                                       add_set_option, compile_first, ensure_out_dir,
+                                       print_json)
 from erva_ros.core.errors import CLIError
 
 COMMAND = 'sim'
@@ -26,6 +27,11 @@ power (W), controller solve time p50/p99/max (ms) and fallback counts.
 mode: each command acts S seconds after its sample, the previous one until then);
 --command-delay S makes the controller compensate it (setting command_delay_s).
 
+--set T:KEY=VALUE changes a live setting (weights, damping box, preview switch,
+fallback, budget: docs/live.md) before the sample at T s, as `erva run --set` does in the
+live loop (in lock-step: from that very sample, the same commands); the output then
+gives the run's segments by parameter set, with comfort and power each.
+
 With --out DIR: timeseries.csv and timeseries.png (road, acceleration, power and
 damping vs time, like Figs. 5-7).
 
@@ -41,6 +47,7 @@ def add_arguments(parser):
                         help='the plant applies each command S seconds after its sample '
                              '(0 <= S < ts; default 0)')
     add_road_options(parser)
+    add_set_option(parser, 'before that sample is computed')
     add_out_option(parser, 'timeseries.csv and timeseries.png')
     add_json_option(parser)
 
@@ -50,17 +57,23 @@ def main(args) -> int:
     from erva_ros.core.controllers import make_controller
     from erva_ros.core.params import load_erva_params
 
+    from erva_ros.core.controllers.tuning import (Built, check_schedule, parse_change,
+                                                  ScheduledTuning)
     out = ensure_out_dir(args.out)
     params = load_erva_params(args.params)
     settings = load_settings(args)
+    changes = [parse_change(text) for text in args.set]
+    check_schedule(Built.of(settings, params.c_e0), settings, changes)   # before anything
     compile_first(COMMAND, params, settings, args.model, not args.json)
     controller = make_controller(settings.controller, params, settings, kind=args.model)
     road = make_road_from_args(args, args.duration, args.seed)
     preview = preview_model_from_args(args, args.seed, settings.ts)
+    tuner = ScheduledTuning(controller, settings, params.c_e0, changes) if changes else None
     try:
         run = simulate_closed_loop(params, controller, road, args.duration, settings.ts,
                                    preview_model=preview, kind=args.model,
-                                   actuation_delay_s=args.actuation_delay)
+                                   actuation_delay_s=args.actuation_delay,
+                                   before_sample=tuner.before_sample if tuner else None)
     except ValueError as exc:
         raise CLIError(str(exc)) from None
     m = run.metrics
@@ -77,6 +90,11 @@ def main(args) -> int:
         'solve_ms': {k: m['solve_ms'][k] for k in ('p50', 'p99', 'max')},
         'fallbacks': m['fallbacks'], 'realtime_factor': m['realtime_factor'],
     }
+    if tuner is not None:
+        from erva_ros.session import segments
+        result['tuning'] = segments.block(segments.segments(
+            [(k * run.ts, values) for k, values in tuner.sets], run.t, run.sprung_accel,
+            run.power, run.ts))
     if out:
         from erva_ros.core.plots_closed_loop import timeseries_figure
         csv_path = os.path.join(out, 'timeseries.csv')
@@ -111,6 +129,9 @@ def main(args) -> int:
         fb = {k: v for k, v in m['fallbacks'].items() if v}
         print(f'  fallbacks:            {fb or "none"}')
         print(f'  real-time factor:     {m["realtime_factor"]:.1f}x')
+        if tuner is not None:
+            from erva_ros.session.segments import lines
+            print('\n'.join(lines(result['tuning'])))
         for f in result.get('files', []):
             print(f'wrote {f}')
     return 0

@@ -5,6 +5,8 @@ Per-step semantics (the live lock-step mode reproduces them exactly):
     plant = PlantSimulator(params, kind, ts)
     for k in range(n):  t_k = k·Ts,  w_k = road.height(t_k)
         preview = error_model(road.preview(t_k, N, Ts))      # or the perfect preview
+        if before_sample is not None:
+            before_sample(k)
         cpu0 = time.thread_time_ns()
         res = controller.compute(plant.x, preview, t_k)
         solve_cpu[k] = (time.thread_time_ns() - cpu0) * 1e-9
@@ -70,10 +72,14 @@ def simulate_closed_loop(params: ERVAParams, controller: Controller, road: Road,
                          preview_model: Optional[PreviewErrorModel] = None,
                          kind: str = 'erva', keep_plans: bool = False,
                          progress: Optional[Callable[[int, int], None]] = None,
-                         actuation_delay_s: float = 0.0) -> ClosedLoopResult:
+                         actuation_delay_s: float = 0.0,
+                         before_sample: Optional[Callable[[int], None]] = None
+                         ) -> ClosedLoopResult:
     """Run ``controller`` on the plant over ``road`` for ``duration_s`` (see module doc).
 
     ``ts`` defaults to the controller's; the controller is reset first.
+    ``before_sample(k)`` runs before the controller computes sample k: a sample boundary,
+    where live settings change (`erva sim --set`, core/controllers/tuning.py).
     """
     ts = controller.ts if ts is None else float(ts)
     n = int(round(duration_s / ts))
@@ -104,6 +110,8 @@ def simulate_closed_loop(params: ERVAParams, controller: Controller, road: Road,
         preview = road.preview(t_k, big_n, ts)
         if preview_model is not None:
             preview = preview_model.apply(preview, t_k)
+        if before_sample is not None:
+            before_sample(k)
         cpu0 = time.thread_time_ns()
         res = controller.compute(plant.x, preview, t_k)
         solve_cpu[k] = (time.thread_time_ns() - cpu0) * 1e-9

@@ -16,7 +16,7 @@ sample by exact stamp equality.
 
 from dataclasses import dataclass
 import math
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -539,6 +539,54 @@ def encode_diagnostics(stamp_ns: int, statuses: Sequence[Status]) -> bytes:
     return w.bytes()
 
 
+# -- rcl_interfaces/ParameterEvent ----------------------------------------------------------
+@dataclass(frozen=True)
+class ParameterEvent:
+    """A node's parameter change as rclpy announces it on /parameter_events."""
+
+    stamp_ns: int                 # the node's clock when it set them
+    node: str                     # its fully qualified name
+    new: Dict[str, Any]           # declared: name -> value (None: not set)
+    changed: Dict[str, Any]       # set: name -> value
+    deleted: Tuple[str, ...]
+
+
+#: A parameter's text may be long (a session's JSON description): up to this many bytes.
+_PARAMETER_TEXT = 1 << 22
+
+
+def _parameter_value(r: Reader) -> Any:
+    """Read an rcl_interfaces/ParameterValue: the field its ``type`` names."""
+    kind = r.byte()
+    fields = (r.byte(), r.i64(), r.double(), r.string(_PARAMETER_TEXT),
+              [r.byte() for _ in range(r.count())], [bool(r.byte()) for _ in range(r.count())],
+              [r.i64() for _ in range(r.count())], list(r.doubles()),
+              [r.string(_PARAMETER_TEXT) for _ in range(r.count())])
+    if kind == 0:
+        return None
+    if not 1 <= kind <= 9:
+        raise CdrError(f'parameter type {kind} unknown')
+    value = fields[kind - 1]
+    return bool(value) if kind == 1 else value
+
+
+def _parameters(r: Reader) -> Dict[str, Any]:
+    out = {}
+    for _ in range(r.count()):
+        name = r.string()
+        out[name] = _parameter_value(r)
+    return out
+
+
+def decode_parameter_event(data: bytes) -> ParameterEvent:
+    """Return a /parameter_events message."""
+    r = Reader(data)
+    stamp = r.time_ns()
+    node = r.string()
+    new, changed = _parameters(r), _parameters(r)
+    return ParameterEvent(stamp, node, new, changed, tuple(_parameters(r)))
+
+
 #: The observer's decoder of each contract topic (relative names): monitor and reports.
 DECODERS = {
     topics.STATE: decode_state,
@@ -569,5 +617,6 @@ __all__ = ['GRID_TOL_NS', 'MEASUREMENT_LIMITS', 'NS', 's_to_ns', 'state_joint_na
            'decode_alignment', 'encode_alignment', 'decode_preview', 'decode_command_offsets',
            'encode_preview', 'decode_command', 'check_command_delay', 'encode_command',
            'Predicted', 'decode_prediction', 'encode_prediction', 'decode_clock',
-           'encode_clock', 'decode_diagnostics', 'encode_diagnostics', 'DECODERS', 'CdrError',
+           'encode_clock', 'decode_diagnostics', 'encode_diagnostics', 'ParameterEvent',
+           'decode_parameter_event', 'DECODERS', 'CdrError',
            'MessageRejected']

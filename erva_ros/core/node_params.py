@@ -71,10 +71,15 @@ def live_specs() -> Dict[str, Any]:
         'lockstep_timeout_s': Number(0.01, 3600.0, 's',
                                      'lock-step: wall time the plant waits for a command'),
         'state_timeout_periods': Integer(1, 1000, 'periods', 'NMPC: passive command + ERROR '
-                                         'after this many periods without a state'),
+                                         'after this many periods without a state', live=True),
         'publish_prediction': Flag('NMPC: publish the plan\'s predicted states, chassis '
                                    'acceleration and power on `prediction` after each '
                                    'command'),
+        'lockstep_hold_s': Number(0.0, 86400.0, 's', 'NMPC, lock-step: before solving the '
+                                  'sample at this time (s after the first) wait until a '
+                                  'parameter request comes, so that a change acts from '
+                                  'exactly that sample (erva run --set); 0 = never',
+                                  live=True),
         'wait_for_subscribers': Integer(0, 100, '-', 'time master: subscribers each of its '
                                         'topics needs first'),
         'wait_for_reader': Text('time master: one subscriber of each of its topics must be '
@@ -283,6 +288,10 @@ class NodeSchema:
             out[name] = defaults[name] if name in defaults else COMMAND_LINE_DEFAULTS[name]
         return out
 
+    def live(self) -> Tuple[str, ...]:
+        """Return the names of the node's dynamic parameters (their specs are ``live``)."""
+        return tuple(name for name, spec, _ in self.items() if spec.live)
+
     def group(self, name: str) -> Group:
         """Return the group of parameter ``name``."""
         for n, _, group in self.items():
@@ -308,7 +317,7 @@ SCHEMAS: Dict[str, NodeSchema] = {s.node: s for s in (
         'max_stamp_age_s')))),
     NodeSchema('nmpc_node', ((ERVA, ()), (CONTROLLER, ()), (LIVE, _LOOP + (
         'model', 'command_delay_s', 'state_timeout_periods', 'publish_prediction',
-        'max_stamp_lead_s', 'max_stamp_age_s')))),
+        'lockstep_hold_s', 'max_stamp_lead_s', 'max_stamp_age_s')))),
     NodeSchema('ecu_bridge_node', ((ERVA, ()), (LIVE, _HIL + ('command_delay_s',)),
                                    (BRIDGE, ()))),
     NodeSchema('state_estimator_node', ((ERVA, ()), (LIVE, _HIL + ('speed_mps',)),
@@ -364,6 +373,47 @@ def launch_arguments() -> Tuple[Tuple[str, str, type, str], ...]:
     return tuple(out)
 
 
+#: Why a parameter stays read-only while its node runs: (reason, names).  Every parameter
+#: of a node is live (its spec says so) or has its reason here (or the default:
+#: READ_AT_START); ``ros2 param describe`` shows it, `erva param set` says it on a refusal.
+READ_ONLY_REASONS: Tuple[Tuple[str, Tuple[str, ...]], ...] = (
+    ('the compiled solver is built for it: a new value needs a new solver (compiled '
+     'seconds to minutes), which a running loop cannot wait for; restart with it',
+     ('controller', 'horizon', 'cost', 'long_cost', 'solver', 'hessian', 'terminal_cost',
+      'terminal_weight', 'collocation_degree', 'long_steps', 'long_step_s', 'max_iter',
+      'long_max_iter', 'sqp_tol', 'codegen', 'ipopt_max_iter', 'ipopt_starts')),
+    ('it fixes the sample grid (Ts) or the command instant (t_k + d) that the plant, the '
+     'road, the ECU and the controller share: they would all have to change at one sample',
+     ('ts', 'command_delay_s')),
+    ('it is the scenario: a run is one reproducible scenario (road, seed, length, time base, '
+     'identification signal), the same in lock-step and in `erva sim`',
+     ('mode', 'duration_s', 'road', 'road_file', 'seed', 'road_class', 'speed_mps',
+      'bump_height_m', 'bump_length_m', 'bump_start_s', 'preview_steps', 'preview_noise',
+      'preview_snr_db', 'preview_delay_s', 'excite_signal', 'excite_bit_s', 'excite_seed',
+      'excite_f0_hz', 'excite_f1_hz', 'excite_sweep_s')),
+    ('a topic or a connection: the session matches every writer with every reader before '
+     'the loop starts, and its loss accounting counts on it',
+     ('publish_prediction', 'publisher_history_s', 'wait_for_subscribers', 'wait_for_reader',
+      'start_delay_s')),
+)
+#: The reason of the model and the device's physical parameters (config/erva_paper.yaml).
+DEVICE_REASON = ('the device\'s physics: the plant and the prediction model (compiled) are '
+                 'built on it; another device is another run (erva identify, --params)')
+#: The reason of every other read-only parameter.
+READ_AT_START = ('read when the node starts or is configured (start-up, scheduling, input '
+                 'checks, diagnostics); restart the node to change it')
+
+
+def read_only_reason(name: str) -> str:
+    """Return why parameter ``name`` stays read-only while its node runs."""
+    if name == 'model' or name in ERVA.specs():
+        return DEVICE_REASON
+    for reason, names in READ_ONLY_REASONS:
+        if name in names:
+            return reason
+    return READ_AT_START
+
+
 def spec_of(name: str, node: Optional[str] = None):
     """Return the spec of parameter ``name`` (of ``node``, else of any node that has it)."""
     for schema in ([SCHEMAS[node]] if node else SCHEMAS.values()):
@@ -383,5 +433,5 @@ __all__ = ['MAX_PRIORITY', 'MODES', 'TS_SPEC', 'live_specs', 'RECORDER_SPECS', '
            'FOXGLOVE', 'QUALITY', 'ROAD_ESTIMATE', 'MAP_PREVIEW', 'ROAD_ESTIMATE_SPECS',
            'MAP_PREVIEW_SPECS', 'ROAD_AT_TYRE', 'PREVIEW_SOURCES', 'QUALITY_SPECS', 'NodeSchema',
            'SCHEMAS', 'LOOP_NODES',
-           'session_sections', 'LAUNCH_ARGUMENTS', 'launch_arguments', 'spec_of',
-           'argparse_kwargs']
+           'session_sections', 'LAUNCH_ARGUMENTS', 'launch_arguments', 'READ_ONLY_REASONS',
+           'DEVICE_REASON', 'READ_AT_START', 'read_only_reason', 'spec_of', 'argparse_kwargs']

@@ -314,6 +314,13 @@ class NMPCReport(NodeReport):
     controller_fallback_passive: int = 0
     controller_failures: int = 0
     controller_nan_rejections: int = 0
+    # live tuning (core/controllers/tuning.py): the parameter set in force, numbered 0, 1,
+    # ... as changes take effect, the stamp of its first sample (0: from the start), its
+    # live values as text (``live:alpha1``...), and lock-step holds that timed out
+    parameter_set: int = 0
+    parameter_set_from_ns: int = 0
+    live: Dict[str, str] = keyed('live:', str)
+    hold_timeouts: int = 0
     solve_ms: Timing = field(default_factory=Timing)
     latency_ms: Timing = field(default_factory=Timing)
     rx_latency_ms: Timing = field(default_factory=Timing)

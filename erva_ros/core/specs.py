@@ -10,6 +10,10 @@ Each spec knows its allowed values and its meaning, and nothing else (defaults l
 * :class:`Text` -- any string;
 * :class:`Texts` -- a list of strings.
 
+A spec with ``live=True`` is a dynamic parameter of the nodes that declare it: it may
+change while the node runs (a ROS parameter that is not read-only; docs/live.md), and
+takes effect at the node's next sample.  Every other one is read-only while it runs.
+
 ``check(key, value, source)`` returns the value converted to its type or raises a
 one-line :class:`ParamError` naming the key, the value and what is allowed;
 ``describe()`` is the allowed range as text; ``argparse()`` gives an option's
@@ -42,6 +46,7 @@ class Number:
     unit: str
     doc: str
     lo_open: bool = False
+    live: bool = False      # may change while the node runs (module doc)
 
     kind = 'number'
     python_type = float
@@ -118,6 +123,7 @@ class Choice:
 
     options: Tuple[str, ...]
     doc: str
+    live: bool = False
 
     kind = 'choice'
 
@@ -146,6 +152,7 @@ class Flag:
     """True or false."""
 
     doc: str
+    live: bool = False
 
     kind = 'flag'
 
@@ -174,6 +181,7 @@ class Text:
     """Any string."""
 
     doc: str
+    live = False
 
     kind = 'string'
 
@@ -202,6 +210,7 @@ class Texts:
     """A list of strings."""
 
     doc: str
+    live = False
 
     kind = 'list of strings'
 

@@ -61,6 +61,8 @@ ROAD_ALIGNMENT = 'road/alignment'
 ROAD_ESTIMATE_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 DIAGNOSTICS = '/diagnostics'
 CLOCK = '/clock'
+#: Every node announces its parameters' changes here (rclpy); sessions record it.
+PARAMETER_EVENTS = '/parameter_events'
 
 
 def time_master_topics(realtime: bool) -> tuple:
@@ -89,6 +91,8 @@ TOPIC_TYPES = {
     DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray',
     CLOCK: 'rosgraph_msgs/msg/Clock',
 }
+#: Topics of ROS itself that a session records: published by every node, not per sample.
+ROS_TOPIC_TYPES = {PARAMETER_EVENTS: 'rcl_interfaces/msg/ParameterEvent'}
 #: The topics of a session with the vehicle's own road and a map preview.
 MAP_TOPIC_TYPES = {
     f'{NAMESPACE}/{ROAD_ESTIMATE}': ROAD_ESTIMATE_TYPE,
@@ -100,6 +104,8 @@ def type_of(name: str, namespace: str = NAMESPACE):
     """Return the ROS type name of a contract topic (relative or absolute name), or None."""
     from erva_ros.core.hil.topics import TOPIC_TYPES as HIL_TYPES
     full = name if name.startswith('/') else f'{NAMESPACE}/{name}'
+    if full in ROS_TOPIC_TYPES:
+        return ROS_TOPIC_TYPES[full]
     if not name.startswith('/') or full in TOPIC_TYPES or full in HIL_TYPES \
             or full in MAP_TOPIC_TYPES:
         return TOPIC_TYPES.get(full) or HIL_TYPES.get(full) or MAP_TOPIC_TYPES.get(full)

@@ -234,7 +234,8 @@ def _code_fingerprint() -> str:
 #: whether a command delay is modelled changes the OCP, not its value.  (Were one of them
 #: ever compiled in, a node would still find its library missing and compile it.)
 NOT_COMPILED_IN = ('alpha1', 'alpha2', 'max_iter', 'long_max_iter', 'sqp_tol', 'time_budget_s',
-                   'ipopt_max_iter', 'ipopt_starts', 'road_prediction')
+                   'ipopt_max_iter', 'ipopt_starts', 'road_prediction', 'use_preview',
+                   'fallback')
 
 
 def _target_key(target: Target, salt: str) -> str:

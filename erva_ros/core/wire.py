@@ -87,6 +87,14 @@ class Reader:
         self.pos += 1
         return v
 
+    def i64(self) -> int:
+        """Return an int64."""
+        self._align(8)
+        self._need(8)
+        (v,) = struct.unpack_from('<q', self.buf, self.pos)
+        self.pos += 8
+        return v
+
     def double(self) -> float:
         """Return a float64."""
         self._align(8)
@@ -95,10 +103,10 @@ class Reader:
         self.pos += 8
         return v
 
-    def string(self) -> str:
-        """Return the next text field, UTF-8 decoded."""
+    def string(self, limit: int = MAX_ELEMENTS) -> str:
+        """Return the next text field, UTF-8 decoded (at most ``limit`` bytes)."""
         n = self.u32()
-        if n == 0 or n > MAX_ELEMENTS:
+        if n == 0 or n > limit:
             raise CdrError(f'string of length {n}')
         self._need(n)
         raw = bytes(self.buf[self.pos:self.pos + n - 1])

@@ -13,6 +13,15 @@ messages; nothing here waits for a client, and the loop's nodes never wait for t
 Parameters: config/session.yaml (``host``, ``port``, ``topics``, ``session_metadata``,
 ``message_backlog_size``, ``diagnostics_period_s``, ``nice``; ``ros2 param describe``).
 
+As foxglove_bridge, it offers the ``parameters`` capability (view and set every
+parameter of the namespace's nodes, ``/erva/nmpc_node.alpha1``, through their parameter
+services: a live one changes at the node's next sample, a refused change comes back with
+the node's reason as an error status; values followed by a client are updated from
+/parameter_events) and the ``connectionGraph`` (publishers and subscribers of each topic,
+the nodes offering each service).  ``/clock`` is served once a publisher of it appears
+(lock-step: the plant's), never in real time; under ``use_sim_time`` the server's time
+follows it (the ``time`` capability).
+
 Logs ``serving ws://HOST:PORT`` once listening (`erva run --foxglove` waits for it).  An
 address that cannot be bound ends it with one line and exit status 2.  Its report on
 /diagnostics counts the messages received and forwarded, the clients, the messages
@@ -27,6 +36,7 @@ import time
 from typing import Dict, List, Optional
 
 from erva_ros.core import topics as contract
+from erva_ros.core.contract import decode_clock
 from erva_ros.core.levels import OK, WARN
 from erva_ros.core.params import ParamError
 from erva_ros.core.reports import FoxgloveReport
@@ -34,12 +44,16 @@ from erva_ros.ros import foxglove_server as fg
 from erva_ros.ros import qos as ros_qos
 from erva_ros.ros.bag_messages import message_class
 from erva_ros.ros.loop_node import LoopNode
+from erva_ros.ros.param_client import connection_graph, GraphParameters
 from erva_ros.ros.runtime import run_node
 
 DISCOVERY_PERIOD_S = 0.5
 #: Reader history per topic: the server takes each message at once; this only bridges
 #: a stall of this process (2 s of a 50 Hz topic) without the publishers noticing.
 DEPTH = 100
+#: Topics served only once a publisher of them appears (as foxglove_bridge serves what
+#: the graph has): /clock exists in lock-step only.
+ON_DEMAND = (contract.CLOCK,)
 
 
 class FoxgloveNode(LoopNode):
@@ -63,24 +77,33 @@ class FoxgloveNode(LoopNode):
             raise ParamError('parameter session_metadata must be a JSON object')
         if p['nice']:
             os.nice(p['nice'])   # before the server's threads start: they inherit it
+        self._use_sim_time = bool(self.get_parameter('use_sim_time').value)
+        self.parameters = GraphParameters(self, self.get_namespace())
         try:
             fg.check_bindable(p['host'], p['port'])
             self.server = fg.FoxgloveServer(
                 p['host'], p['port'], name=f'erva {self.get_namespace()}',
                 backlog=p['message_backlog_size'], session=session,
-                namespace=self.get_namespace())
+                namespace=self.get_namespace(), with_time=self._use_sim_time,
+                parameters=self.parameters, graph=True)
         except (ValueError, RuntimeError) as exc:
             raise ParamError(str(exc)) from None
-        self._use_sim_time = bool(self.get_parameter('use_sim_time').value)
         self._subs: Dict[str, object] = {}
         self._pending: List[str] = []
+        self._graph = None          # the connection graph last sent
+        self._clock_topic = self.resolve_topic_name(contract.CLOCK)
         for name in p['topics']:
             topic = self.resolve_topic_name(name)
             type_name = contract.type_of(name, self.get_namespace())
-            if type_name is None:
+            if type_name is None or name in ON_DEMAND:
                 self._pending.append(topic)
             else:
                 self._subscribe(topic, type_name)
+        # Parameter changes, for the clients that follow values (served or not).
+        self._events = self.create_subscription(
+            message_class(contract.ROS_TOPIC_TYPES[contract.PARAMETER_EVENTS]),
+            contract.PARAMETER_EVENTS, self.server.parameter_event,
+            ros_qos.control_qos(DEPTH), raw=True)
         self.report.url = self.server.url
         self.status.set(OK, f'serving {self.server.url}')
         self.status_timer()
@@ -97,17 +120,21 @@ class FoxgloveNode(LoopNode):
             ros_qos.control_qos(DEPTH), raw=True)
 
     def _discover(self) -> None:
-        """Subscribe to the requested topics of unknown type once the graph shows it."""
-        if not self._pending:
-            self._discovery.cancel()
-            return
+        """Follow the graph: topics that got a publisher, nodes with parameters, the graph."""
         graph = dict(self.get_topic_names_and_types())
-        for topic in [t for t in self._pending if t in graph]:
+        for topic in [t for t in self._pending if t in graph
+                      and (t != self._clock_topic or self.count_publishers(t))]:
             self._pending.remove(topic)
             try:
                 self._subscribe(topic, graph[topic][0])
             except Exception as exc:  # noqa: BLE001 -- a type not installed here
                 self.get_logger().warning(f'not serving {topic}: {exc}')
+        self.parameters.refresh()
+        if self.server.graph_subscribers:       # (as foxglove_bridge: nodes by full name)
+            now = connection_graph(self, graph)
+            if now != self._graph:
+                self.server.publish_graph(*now)
+                self._graph = now
 
     def _on_message(self, topic: str, data: bytes, info: dict) -> None:
         self.report.received += 1
@@ -116,6 +143,8 @@ class FoxgloveNode(LoopNode):
         else:
             log_time = info.get('received_timestamp') or time.time_ns()
         self.server.log(topic, data, log_time)
+        if topic == self._clock_topic and self._use_sim_time:    # the server time: the loop
+            self.server.broadcast_time(decode_clock(data))
 
     def refresh_report(self) -> None:
         s, r = self.server.stats(), self.report

@@ -10,6 +10,11 @@ the OCP models).  Then, with ``publish_prediction``, ``prediction``: the states,
 and power the plan predicts at t_k + j·Ts (core/loop/prediction.py).  ``realtime``: a
 1/Ts wall-clock timer in phase with the state stamps; ``lockstep``: each state solved
 once its preview is there, no budget.  Inputs are validated (core/contract.py).
+
+Live parameters (`erva param set`; announced on /parameter_events): the weights, the box,
+the preview switch, the fallbacks (core/controllers/tuning.py); checked and staged by the
+core, they act from the next sample, the status with the new set going out at once.  In
+lock-step the sample at ``lockstep_hold_s`` waits for a parameter request (`erva run --set`).
 """
 
 import time
@@ -19,7 +24,8 @@ from trajectory_msgs.msg import JointTrajectory
 
 from erva_ros.core import topics
 from erva_ros.core.levels import ERROR, OK, WARN
-from erva_ros.core.loop.control_loop import build_loop, MessageRejected, Output
+from erva_ros.core.controllers.settings import SPECS, validate_settings
+from erva_ros.core.loop.control_loop import build_loop, HOLD_TIMEOUT_S, MessageRejected, Output
 from erva_ros.core.loop.sample_schedule import Job
 from erva_ros.core.loop.timing import next_grid_delay_ns
 from erva_ros.core.reports import NMPCReport
@@ -39,6 +45,9 @@ class NMPCNode(LoopNode):
         self.report.hardware_id = f'controller:{self.loop.controller.name}'
         self.state_rx_ns = 0         # wall time the state being solved arrived
         self._tick_timer = self._align_timer = None
+        self._held = None            # lock-step: (job, since) waiting for a parameter request
+        self._resume = self.create_guard_condition(self._resume_held)
+        self._built.append((self.destroy_guard_condition, self._resume))
         self.pub_cmd = self.publisher(JointTrajectory, topics.DAMPING_CMD)
         if self.loop.predictor is not None:
             self.pub_prediction = self.publisher(JointTrajectory, topics.PREDICTION)
@@ -108,13 +117,44 @@ class NMPCNode(LoopNode):
                 self.get_logger().error(outage)
             plan, text = self.loop.safe(safe)
             self.pub_cmd.publish(self.loop.command(safe, plan))
+            self._announce()
             self.status.set(ERROR, text)
+
+    # -- live parameters ---------------------------------------------------------------
+    def on_parameters(self, values) -> None:
+        if self.configured:       # checked and staged for the next sample (or ParamError)
+            self.loop.stage(values)
+        else:                     # configure builds with them: the same checks as then
+            validate_settings({**{k: self.p[k] for k in SPECS},
+                               **{k: v for k, v in values.items() if k in SPECS}})
+
+    def parameters_set(self, names) -> None:
+        if self._held is not None:       # a lock-step hold ends with the request
+            self._resume.trigger()
+
+    def _announce(self) -> None:
+        """Say from when a new parameter set acts (its first command is out): log, status."""
+        text = self.loop.announcement()
+        if text:
+            self.get_logger().info(text)
+            self.status.publish()
+
+    def _resume_held(self) -> None:
+        if self._held is not None:
+            job, self._held = self._held[0], None
+            self._run(job)
 
     # -- solving -----------------------------------------------------------------------
     def _run(self, job: Job) -> None:
         """Solve one sample, publish its command with the plan, then its prediction."""
+        if self.loop.holds(job):
+            self._held = (job, time.monotonic())
+            self.status.set(OK, f'lock-step: the sample at t = {self.loop.hold_s:g} s waits '
+                            'for a parameter request')
+            return
         out: Output = self.loop.solve(job)
         self.pub_cmd.publish(self.loop.command(out.stamp_ns, out.plan))
+        self._announce()
         change = self.loop.published(out, time.time_ns(), self.state_rx_ns)
         if change is not None:
             self.status.set(*change)
@@ -134,6 +174,9 @@ class NMPCNode(LoopNode):
 
     # -- report ------------------------------------------------------------------------
     def on_status_timer(self, busy_window_s: float) -> None:
+        if self._held is not None and time.monotonic() - self._held[1] > HOLD_TIMEOUT_S:
+            self.get_logger().warning(self.loop.give_up_hold())
+            self._resume_held()
         change = self.loop.periodic_status()
         if change is not None:
             self.status.set(*change)

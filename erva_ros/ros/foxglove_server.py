@@ -10,6 +10,14 @@ A JSON channel ``<namespace>/session`` carries the session description (scenario
 controller, parameters, version: what the bag stores as its ``erva_session`` record);
 it is sent again whenever a client subscribes to it.
 
+Capabilities, as foxglove_bridge offers them: ``parameters`` (view and set the nodes'
+parameters, named ``<node>.<parameter>``, e.g. ``/erva/nmpc_node.alpha1``; a
+:class:`ParameterSource` maps them onto the nodes' parameter services, a refused change
+comes back as an error status with the node's reason), ``connectionGraph`` (which node
+publishes and subscribes which topic, which node offers which service:
+:meth:`FoxgloveServer.publish_graph`) and ``time`` (the server's clock: a replay's log
+time, the lock-step session's /clock).
+
 Slow viewers: the SDK queues up to ``backlog`` messages per client and, when a client
 does not read, drops that client's oldest ones (``log`` never waits).  The SDK does not
 report how many (foxglove-sdk 0.30.3 discards the count), so :class:`FoxgloveServer`
@@ -22,7 +30,7 @@ import json
 import logging
 import socket
 import threading
-from typing import Dict, Mapping, Optional, Tuple
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 from erva_ros.core import topics
 
@@ -36,6 +44,8 @@ DEFAULT_BACKLOG = 1024
 SESSION_TOPIC = 'session'
 #: The SDK's WebSocket subprotocol (0.30.3 accepts only this one).
 SUBPROTOCOL = 'foxglove.sdk.v1'
+#: ``<node>.<parameter>``: how a node's parameter is named to clients (as foxglove_bridge).
+NODE_PARAMETER_SEP = '.'
 #: Logger of the SDK's "outbox for client ... full" line (Rust log target, via pyo3-log).
 _OVERFLOW_LOGGER = 'foxglove.websocket.connected_client.send_lossy'
 #: How long closing may wait for clients: the SDK's stop() waits on a client that does
@@ -130,12 +140,29 @@ class _Overflows(logging.Handler):
         self.events += 1
 
 
+class ParameterSource:
+    """Where the ``parameters`` capability gets and sets values (the ROS side implements it).
+
+    Names are ``<node>.<parameter>``; values are Python values (None: not set).  Called
+    from the SDK's threads.
+    """
+
+    def get(self, names: Sequence[str]) -> List[Tuple[str, Any]]:
+        """Return (name, value) of ``names`` (empty: every parameter there is)."""
+        raise NotImplementedError
+
+    def set(self, values: Sequence[Tuple[str, Any]]) -> List[str]:
+        """Set the values (all of a node's at once); return one line per refusal."""
+        raise NotImplementedError
+
+
 class FoxgloveServer:
     """A Foxglove WebSocket server forwarding CDR bytes per topic (see the module doc)."""
 
     def __init__(self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, name: str = 'erva',
                  backlog: int = DEFAULT_BACKLOG, session: Optional[Mapping[str, str]] = None,
-                 namespace: str = topics.NAMESPACE, with_time: bool = False):
+                 namespace: str = topics.NAMESPACE, with_time: bool = False,
+                 parameters: Optional[ParameterSource] = None, graph: bool = False):
         import foxglove
         from foxglove.websocket import Capability
 
@@ -155,11 +182,18 @@ class FoxgloveServer:
         self.session_topic = f'{namespace.rstrip("/")}/{SESSION_TOPIC}'
         self._session_channel = foxglove.Channel(self.session_topic, context=self.context)
         self._topic_of[self._session_channel.id()] = self.session_topic
+        #: The parameters capability's source, and the names clients follow.
+        self.parameters = parameters
+        self._watched: set = set()
+        #: Clients following the connection graph (the ROS side publishes it while > 0).
+        self.graph_subscribers = 0
+        capabilities = ([Capability.Time] if with_time else []) \
+            + ([Capability.Parameters] if parameters is not None else []) \
+            + ([Capability.ConnectionGraph] if graph else [])
         self.server = foxglove.start_server(
             name=name, host=host, port=port, context=self.context,
             server_listener=_Listener(self), supported_encodings=['cdr'],
-            capabilities=[Capability.Time] if with_time else [],
-            message_backlog_size=int(backlog))
+            capabilities=capabilities, message_backlog_size=int(backlog))
         self.host, self.port = host, self.server.port
         self.url = url(host, self.port)
 
@@ -203,6 +237,63 @@ class FoxgloveServer:
         """Send the session description on its channel (again)."""
         if self.session:
             self._session_channel.log(json.dumps(self.session).encode('utf-8'))
+
+    # -- parameters and the connection graph ---------------------------------------------
+    def _parameter(self, name: str, value: Any):
+        """Return a foxglove Parameter: floats typed Float64 (a whole 1.0 stays a double)."""
+        from foxglove.websocket import Parameter, ParameterType
+        if value is None:
+            return Parameter(name)
+        if isinstance(value, float):
+            return Parameter(name, value=value, type=ParameterType.Float64)
+        if isinstance(value, (list, tuple)) and value \
+                and all(isinstance(v, float) for v in value):
+            return Parameter(name, value=list(value), type=ParameterType.Float64Array)
+        return Parameter(name, value=list(value) if isinstance(value, tuple) else value)
+
+    def _get_parameters(self, names: Sequence[str]) -> list:
+        return [self._parameter(n, v) for n, v in self.parameters.get(list(names))]
+
+    def _set_parameters(self, parameters: Sequence) -> list:
+        from foxglove import StatusLevel
+        values = [(p.name, p.get_value()) for p in parameters]
+        for line in self.parameters.set(values):
+            self.server.publish_status(line, StatusLevel.Error)
+        return self._get_parameters([n for n, _ in values])
+
+    def parameter_event(self, data: bytes) -> None:
+        """Take a /parameter_events message (CDR): its values to the clients following them."""
+        from erva_ros.core.contract import CdrError, decode_parameter_event
+        try:
+            event = decode_parameter_event(data)
+        except CdrError:
+            return
+        self.parameters_changed({f'{event.node}{NODE_PARAMETER_SEP}{k}': v
+                                 for k, v in {**event.new, **event.changed}.items()})
+
+    def parameters_changed(self, changed: Mapping[str, Any]) -> None:
+        """Send changed values (``<node>.<parameter>``) to the clients following them."""
+        with self._lock:
+            followed = [(n, v) for n, v in changed.items() if n in self._watched]
+        if followed:
+            self.server.publish_parameter_values([self._parameter(n, v) for n, v in followed])
+
+    def publish_graph(self, published: Mapping[str, Sequence[str]],
+                      subscribed: Mapping[str, Sequence[str]],
+                      services: Mapping[str, Sequence[str]]) -> None:
+        """Send the connection graph: topic -> publishing / subscribing nodes, service -> nodes.
+
+        Not from an SDK callback (the SDK would deadlock): from the ROS side's own thread.
+        """
+        from foxglove import ConnectionGraph
+        graph = ConnectionGraph()
+        for topic, ids in published.items():
+            graph.set_published_topic(topic, sorted(ids))
+        for topic, ids in subscribed.items():
+            graph.set_subscribed_topic(topic, sorted(ids))
+        for service, ids in services.items():
+            graph.set_advertised_service(service, sorted(ids))
+        self.server.publish_connection_graph(graph)
 
     # -- client bookkeeping (called by the SDK's threads) --------------------------------------
     def _subscribed(self, client_id: int, channel_id: int) -> None:
@@ -264,7 +355,7 @@ class ReplaySink:
 
 
 class _Listener:
-    """The SDK's ServerListener: subscriptions per client, for the counters."""
+    """The SDK's ServerListener: subscriptions, parameters and the graph's followers."""
 
     def __init__(self, server: FoxgloveServer):
         self._server = server
@@ -274,6 +365,26 @@ class _Listener:
 
     def on_unsubscribe(self, client, channel) -> None:
         self._server._unsubscribed(client.id, channel.id)
+
+    def on_get_parameters(self, client, param_names, request_id=None):
+        return self._server._get_parameters(param_names)
+
+    def on_set_parameters(self, client, parameters, request_id=None):
+        return self._server._set_parameters(parameters)
+
+    def on_parameters_subscribe(self, param_names) -> None:
+        with self._server._lock:
+            self._server._watched.update(param_names)
+
+    def on_parameters_unsubscribe(self, param_names) -> None:
+        with self._server._lock:
+            self._server._watched.difference_update(param_names)
+
+    def on_connection_graph_subscribe(self) -> None:
+        self._server.graph_subscribers += 1
+
+    def on_connection_graph_unsubscribe(self) -> None:
+        self._server.graph_subscribers = max(0, self._server.graph_subscribers - 1)
 
 
 _OVERFLOW_HANDLER: Optional[_Overflows] = None
@@ -296,6 +407,7 @@ def _install_overflow_counter() -> _Overflows:
     return _OVERFLOW_HANDLER
 
 
-__all__ = ['FoxgloveServer', 'ReplaySink', 'parse_address', 'check_bindable', 'is_loopback', 'url',
+__all__ = ['FoxgloveServer', 'ParameterSource', 'ReplaySink', 'parse_address', 'check_bindable',
+           'is_loopback', 'url',
            'sdk_missing', 'DEFAULT_ADDRESS', 'DEFAULT_HOST', 'DEFAULT_PORT', 'DEFAULT_BACKLOG',
-           'SESSION_TOPIC', 'SUBPROTOCOL']
+           'SESSION_TOPIC', 'SUBPROTOCOL', 'NODE_PARAMETER_SEP']

@@ -4,8 +4,9 @@
 besides its own core:
 
 * its parameters, declared from its schema (:data:`erva_ros.core.node_params.SCHEMAS`,
-  the node's name is the key) with descriptors: ``self.p`` (read-only: a bad value
-  stops the node at start-up with one line);
+  the node's name is the key) with descriptors: ``self.p`` (a bad value stops the node
+  at start-up with one line); the live ones (dynamic, docs/live.md) are checked by
+  :meth:`on_parameters` when set, and ``self.p`` follows them;
 * its typed report (:mod:`erva_ros.core.reports`) and the :class:`StatusReporter` that
   publishes it on ``/diagnostics`` in every lifecycle state: ``self.report``,
   ``self.status``;
@@ -25,7 +26,8 @@ built.  With the parameter ``autostart`` (default true) the node configures and
 activates itself at start-up, as `ros2 run` users expect; `erva run` and the launch
 file's ``autostart:=false`` drive the transitions instead (docs/live.md).
 
-Hooks a node may override: :meth:`configure`, :meth:`activate`, :meth:`deactivate`,
+Hooks a node may override: :meth:`on_parameters`, :meth:`configure`, :meth:`activate`,
+:meth:`deactivate`,
 :meth:`refresh_report` (bring the report's figures up to date before a status goes
 out), :meth:`started` (once active at its priority, e.g. start threads) and :meth:`stop`
 (the shutdown protocol; the recorder finishes its bag there).
@@ -45,9 +47,10 @@ from erva_ros.core.levels import ERROR
 from erva_ros.core.loop.status import StatusReporter
 from erva_ros.core.params import ParamError
 from erva_ros.core.loop.validation import Rejections, StampWindow
+from erva_ros.core.node_params import SCHEMAS
 from erva_ros.core.reports import NodeReport
 from erva_ros.ros import qos as ros_qos
-from erva_ros.ros.parameters import declare_node_parameters
+from erva_ros.ros.parameters import declare_node_parameters, on_set_callback
 
 #: The spin loop and the acknowledgement wait wake at least this often (s).
 SLICE_S = 0.1
@@ -86,6 +89,10 @@ class LoopNode(LifecycleNode):
         name = name or self.NAME
         super().__init__(name, **({'namespace': namespace} if namespace else {}))
         self.p = declare_node_parameters(self, name)
+        if SCHEMAS[name].live():     # after declaring: rclpy calls these on every set
+            self.add_on_set_parameters_callback(on_set_callback(SCHEMAS[name],
+                                                                self.on_parameters))
+            self.add_post_set_parameters_callback(self._parameters_set)
         self.autostart = self.p.get('autostart', True)
         self.active = False
         self.configured = False
@@ -283,7 +290,22 @@ class LoopNode(LifecycleNode):
         """Return how many messages of ``topic`` were rejected."""
         return self.rejections.counts.get(topic, 0)
 
+    def _parameters_set(self, parameters) -> None:
+        """Follow live parameters rclpy set (and announced on /parameter_events) in ``self.p``."""
+        for p in parameters:
+            self.p[p.name] = p.value
+        self.parameters_set([p.name for p in parameters])
+
     # -- hooks -------------------------------------------------------------------------
+    def on_parameters(self, values) -> None:
+        """Check live parameters about to be set, each checked by its spec already.
+
+        Raise ParamError to refuse them all (the reason goes back to the requester).
+        """
+
+    def parameters_set(self, names) -> None:
+        """React after live parameters ``names`` were set (``self.p`` has their values)."""
+
     def configure(self) -> None:
         """Build the core, publishers, subscriptions and timers (raise ParamError if bad)."""
 

@@ -287,6 +287,8 @@ def compute_report(data: SessionData) -> Dict:
     inside, outside = errors_by_span(data, ts)
     report['diagnostics_errors'] = inside
     report['diagnostics_errors_outside'] = outside
+    from erva_ros.session.segments import bag_block
+    report['tuning'] = bag_block(data)      # the segments by parameter set (live changes)
     return report
 
 

@@ -27,10 +27,11 @@ import numpy as np
 
 from erva_ros.core import contract, topics
 from erva_ros.core.levels import ERROR
-from erva_ros.core.reports import NodeReport, report_from_status
+from erva_ros.core.reports import NMPCReport, NodeReport, report_from_status
 from erva_ros.session import hil_summary
 from erva_ros.session.monitor_figures import MAX_EVENTS
 from erva_ros.session.monitor_stats import SessionStreams, TRAJECTORY_CAP
+from erva_ros.session.segments import ParameterSetLog
 
 
 class Observations:
@@ -89,6 +90,8 @@ class Observations:
         self.streams = SessionStreams(ts, n_steps, command_gap_s, trajectory_cap,
                                       hil_summary.WARMUP)
         self._newest: Dict[str, int] = {}       # topic -> newest stamp taken
+        #: The controller's parameter sets (live tuning), as its reports announce them.
+        self.parameter_sets = ParameterSetLog()
         self._true_state = TRUE_STATE if hil else None
 
     # -- input -------------------------------------------------------------------------
@@ -159,6 +162,8 @@ class Observations:
                 self._bridge_error = error
             self.reports[name] = report
             self.report_rx[name] = rx_ns
+            if isinstance(report, NMPCReport):
+                self.parameter_sets.add(report)
             if report.finished:
                 self.finished_rx.setdefault(name, rx_ns)
 

@@ -147,12 +147,16 @@ class RecorderDrain:
 def record_writers(record: List[str], namespace: str, n_diagnostics: int) -> Dict[str, int]:
     """Return the writers the recorder must match per topic before the start.
 
-    One per data topic; /diagnostics: ``n_diagnostics`` (every node, the recorder itself
-    and the Foxglove server).
+    One per data topic; /diagnostics and /parameter_events: ``n_diagnostics`` (every
+    node, the recorder itself and the Foxglove server: each announces its parameter
+    changes, so a change made during the run is in the bag).
     """
+    node_wide = (topics.DIAGNOSTICS, topics.PARAMETER_EVENTS)
     out = {accounting.qualify(t, namespace): 1 for t in record
-           if t not in (topics.CLOCK, topics.DIAGNOSTICS)}
+           if t not in (topics.CLOCK, *node_wide)}
     out[topics.DIAGNOSTICS] = n_diagnostics
+    if topics.PARAMETER_EVENTS in record:
+        out[topics.PARAMETER_EVENTS] = n_diagnostics
     return out
 
 

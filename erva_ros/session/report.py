@@ -119,6 +119,8 @@ def format_summary(s: Dict[str, Any]) -> str:
                  f'{nm.get("controller_fallback_plan")}, passive '
                  f'{nm.get("controller_fallback_passive")}; state timeouts '
                  f'{nm.get("state_timeouts")}')
+    from erva_ros.session.segments import lines as segment_lines
+    lines.extend(segment_lines(s.get('tuning')))     # the segments by parameter set, if any
     if 'hil' in s:
         lines.extend(_hil_lines(s['hil']))
     else:

@@ -64,6 +64,7 @@ class RunConfig:
     strict: bool = False                   # real-time warnings fail the run (exit 1)
     preview_map: Optional[str] = None      # --preview map:FILE: the road estimated, the
     #                                        preview from this map (needs --ecu)
+    changes: tuple = ()                    # --set T:KEY=VALUE: live changes at sample times
 
 
 def ensure_ecu_available(ecu: str) -> None:

@@ -72,6 +72,7 @@ class Session:
     scenario: str
     ecu: str = 'none'
     preview_map: str = ''           # the map of --preview map:FILE ('' : the road's preview)
+    steps: tuple = ()               # --set: live changes (session/tuning_schedule.Step)
 
     @property
     def session_id(self) -> str:
@@ -175,6 +176,9 @@ def prepare_session(cfg: RunConfig, recording: bool) -> Session:
     overrides.update(cfg.settings_overrides)
     settings = load_controller_settings(cfg.nmpc_file, overrides)
     live = live_values(cfg, settings, recording)
+    from erva_ros.session.tuning_schedule import first_hold_s, plan
+    steps = plan(cfg.changes, settings, erva.c_e0, live)
+    live['lockstep_hold_s'] = first_hold_s(steps, live)
     preview_map = _preview_map(cfg, live)
     if cfg.session_dir is None:
         remove_stale_session_dirs()
@@ -187,7 +191,7 @@ def prepare_session(cfg: RunConfig, recording: bool) -> Session:
         yaml.safe_dump(session_params(erva.as_dict(), settings, live, preview_map), fh,
                        sort_keys=False)
     return Session(erva.as_dict(), settings, live, directory, path, scenario, cfg.ecu,
-                   preview_map)
+                   preview_map, tuple(steps))
 
 
 def _loop_timing(cfg: RunConfig, live_file: Dict[str, Any]) -> Dict[str, float]:

@@ -93,6 +93,13 @@ class Supervisor:
                         if n in self.node_names]
         self.lifecycle = LifecycleDriver(self.monitor, self.managed, cfg.namespace)
         self._to_activate: List[str] = []
+        self.scheduled = None        # --set: live changes sent at their samples
+        if session.steps:
+            from erva_ros.ros.param_client import RemoteParameters
+            from erva_ros.session.tuning_schedule import ScheduledChanges
+            self.scheduled = ScheduledChanges(
+                session.steps, RemoteParameters(self.monitor, f'{cfg.namespace}/nmpc_node'),
+                not session.realtime, session.live['ts'])
 
     def start(self) -> None:
         """Start the recorder (when recording) and the nodes, slowest first.
@@ -176,6 +183,9 @@ class Supervisor:
                 if self.phase == 'running':
                     last_progress = now   # the no-progress limit starts when connected
             elif self.phase == 'running':
+                if self.scheduled is not None:
+                    st = self.obs.streams.state_stamp
+                    self.scheduled.poll(st.first, st.last)
                 states = self.obs.received[topics.STATE]
                 if states != last_states:
                     last_states, last_progress = states, now
@@ -363,6 +373,7 @@ class Supervisor:
         if 'foxglove_server' in self.procs:
             from erva_ros.session import foxglove_process
             summary['foxglove'] = foxglove_process.summary(self.obs.reports)
+        summary['tuning'] = self._tuning()
         if summary['commands']['received'] == 0 and not self.caught:
             self.errors.append('no damping commands were received')
         self._check_rejections(summary)
@@ -395,6 +406,22 @@ class Supervisor:
                 begin_session_end(self.procs[RECORDER].bag_dir)
             except OSError as exc:
                 self.log(f'could not reserve the session\'s end record in the bag: {exc}')
+
+    def _tuning(self) -> Dict[str, Any]:
+        """Return the run's segments by parameter set (and the --set requests' outcome)."""
+        from erva_ros.session import segments
+        st = self.obs.streams
+        tr, n = st.trajectory, st.trajectory.rows
+        segs = segments.from_sets(self.obs.parameter_sets.sets, st.state_stamp.first or 0,
+                                  tr.stamp[:n], tr.sprung_accel[:n], tr.power[:n],
+                                  self.session.live['ts'])
+        out = segments.block(segs, complete=n == st.accels)
+        if self.scheduled is not None:
+            out['set'] = self.scheduled.results()
+            nmpc = self.obs.report('nmpc_node')
+            out['hold_timeouts'] = None if nmpc is None else nmpc.hold_timeouts
+            self.errors += self.scheduled.errors(out['hold_timeouts'])
+        return out
 
     def _mark_bag_end(self, bag_dir: str) -> None:
         """Record in the bag whether the session ran to its end (else why not)."""

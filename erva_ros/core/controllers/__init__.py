@@ -26,8 +26,18 @@ from erva_ros.core.params import ERVAParams, ParamError
 def make_controller(name: Optional[str], params: ERVAParams,
                     settings: Optional[ControllerSettings] = None, kind: str = 'erva'
                     ) -> Controller:
-    """Build the controller ``name`` (default settings.controller) for the model ``kind``."""
+    """Build the controller ``name`` (default settings.controller) for the model ``kind``.
+
+    Its live settings (:meth:`Controller.retune`: the fallback...) are those of ``settings``.
+    """
     settings = settings or ControllerSettings()
+    ctrl = _build(name, params, settings, kind)
+    ctrl.fallback = settings.fallback
+    return ctrl
+
+
+def _build(name: Optional[str], params: ERVAParams, settings: ControllerSettings,
+           kind: str) -> Controller:
     name = name or settings.controller
     if name not in CONTROLLER_NAMES + EXCITATION_NAMES:
         raise ParamError(f'unknown controller {name!r}; choose one of '

@@ -9,12 +9,17 @@ safety net every controller shares:
 * the law raises, reports failure or returns NaN → fall back to the previous plan
   shifted by one step (``fallback_plan``), and when that plan is used up, to the
   passive damping c_e0 (``fallback_passive``);
+  (``fallback: passive``: the passive damping at once, no previous plan);
 * a valid solution that took longer than ``time_budget_s`` is still used (status
   ``late``, counted): it is the freshest answer there is -- the previous plan shifted
   was computed from an older state, and replacing a late answer by it did the damage
   under load, not the lateness.  Whether a newer state has arrived meanwhile is for the
   caller to know (the node); the plant's command hold then uses the plan's next point;
 * the command is always clipped into the input box [u_min, u_max].
+
+:meth:`Controller.retune` takes the live settings (erva_ros/core/controllers/tuning.py:
+the box, the fallback; the NMPC's weights, preview switch and budget too) between two
+samples, without a rebuild.
 """
 
 from abc import ABC, abstractmethod
@@ -51,6 +56,8 @@ class Controller(ABC):
 
     #: Short name used by make_controller, `erva sim --controller` and diagnostics.
     name = 'controller'
+    #: After a failed solve: 'plan' (the previous plan shifted, then c_e0) or 'passive'.
+    fallback = 'plan'
 
     def __init__(self, horizon: int, ts: float, u_min: float, u_max: float,
                  c_e0: float, time_budget_s: float = math.inf):
@@ -68,6 +75,16 @@ class Controller(ABC):
         #: or None.
         self.delay = None
         self.reset()
+
+    def retune(self, settings) -> None:
+        """Take the live settings of ``settings`` (ControllerSettings) for the next compute().
+
+        The input box and the fallback; laws with more live settings extend this.  The
+        settings are checked first (erva_ros/core/controllers/tuning.py ``retuned``): the
+        box keeps the passive damping c_e0 inside.
+        """
+        self.u_min, self.u_max = float(settings.u_min), float(settings.u_max)
+        self.fallback = settings.fallback
 
     def predict_delay(self, model, delay_s: float) -> None:
         """Plan from x(t_k + ``delay_s``) predicted with ``model``: the command acts that late."""
@@ -163,7 +180,7 @@ class Controller(ABC):
     def _fallback_plan(self):
         """Return (status, plan): the previous plan shifted one step, else passive c_e0."""
         prev = self._prev_plan
-        if prev is not None and self._prev_age + 1 < prev.size:
+        if self.fallback == 'plan' and prev is not None and self._prev_age + 1 < prev.size:
             self._prev_age += 1
             rest = prev[self._prev_age:]
             plan = np.concatenate([rest, np.full(prev.size - rest.size, self.c_e0)])

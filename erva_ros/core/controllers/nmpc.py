@@ -9,8 +9,14 @@ picks the starts and calls its solver:
 ``sqp``    the real-time SQP (:mod:`erva_ros.core.controllers.sqp`), one CasADi Function;
 ``ipopt``  the converged reference (:mod:`erva_ros.core.controllers.reference`).
 
-Road: ``preview`` and ``preview_long`` use the preview w(t_k + j·Ts); ``no_preview`` the
-measured height w(t_k) held over the horizon (``road_prediction: hold``) or 0 (``zero``).
+Road: ``preview`` and ``preview_long`` use the preview w(t_k + j·Ts) (with ``use_preview``,
+switchable live); ``no_preview`` (and the others with ``use_preview`` false) the measured
+height w(t_k) held over the horizon (``road_prediction: hold``) or 0 (``zero``): the road
+is an OCP parameter, one compiled solver for both.
+
+Live settings (:meth:`NMPCController.retune`, erva_ros/core/controllers/tuning.py): the
+weights α1, α2 (OCP parameters), the input box (a parameter of the solver), the preview
+switch, the fallback and the time budget change between two solves without a rebuild.
 
 Starts: the warm start (the previous plan shifted by one sample, its last value
 repeated), a constant-c_e0 plan, and the warm start with its first move at u_max or
@@ -92,8 +98,9 @@ class NMPCController(Controller):
         self._block_start = np.cumsum((0,) + self.blocks[:-1])
         self._sprung_accel = BufferedCall(self.model.sprung_accel)
         # Per-sample arrays filled in place (the solve itself takes well under a ms).
-        self._p = self.ocp.params(np.zeros(self.ocp.horizon + 1),
-                                  (s.alpha1, s.alpha2), s.command_delay_s, self.c_e0)
+        self._p = self.ocp.with_box(self.ocp.params(np.zeros(self.ocp.horizon + 1),
+                                                    (s.alpha1, s.alpha2), s.command_delay_s,
+                                                    self.c_e0), s.u_min, s.u_max)
         self._u_alt = np.empty((len(self.blocks), N_ALTERNATIVES))
         self._u_alt[:, 0] = self.c_e0 / U_SCALE
         #: Set to a list to keep every real-time solve (:class:`RecordedProblem`), to be
@@ -121,6 +128,14 @@ class NMPCController(Controller):
                              '(command_delay_s); predicting it as well would apply it twice')
         super().predict_delay(model, delay_s)
 
+    def retune(self, settings: ControllerSettings) -> None:
+        """Take the live settings for the next solve: weights, box, preview, fallback, budget."""
+        super().retune(settings)
+        self.settings = settings
+        self._p[self.ocp.n_p:] = settings.u_min / U_SCALE, settings.u_max / U_SCALE
+        if settings.solver == 'sqp':
+            self.time_budget_s = settings.time_budget_s
+
     # -- memory -------------------------------------------------------------------------
     def _reset_law(self) -> None:
         self._prev_sample = None     # (x, u, w) of the previous sample, for x_a(k-1)
@@ -137,7 +152,7 @@ class NMPCController(Controller):
     # -- one sample -----------------------------------------------------------------------
     def road_prediction(self, preview: np.ndarray) -> np.ndarray:
         """Return the road heights the OCP uses: the preview, or the held measurement."""
-        if self.name != 'no_preview':
+        if self.name != 'no_preview' and self.settings.use_preview:
             return preview
         if self.settings.road_prediction == 'hold':
             return np.full(preview.size, preview[0])
@@ -179,7 +194,7 @@ class NMPCController(Controller):
         p[:w.size] = w
         p[w.size:w.size + 2] = self.settings.alpha1, self.settings.alpha2
         if self.ocp.delayed:
-            p[-2:] = self.command_delay_s, self._acting / U_SCALE
+            p[self.ocp.n_p - 2:self.ocp.n_p] = self.command_delay_s, self._acting / U_SCALE
         u_guess = self._guess_plan()[self._block_start] / U_SCALE
         u_alt = self._alternatives(u_guess)
         try:

@@ -243,6 +243,22 @@ class OCP:
         return self.horizon + 3 + 2 * int(self.delayed)
 
     @property
+    def n_pb(self) -> int:
+        """Return the size of the solvers' parameters: p, then the input box (scaled)."""
+        return self.n_p + 2
+
+    def with_box(self, p, u_min: Optional[float] = None, u_max: Optional[float] = None
+                 ) -> np.ndarray:
+        """Return the solvers' parameters: ``p``, then the box [u_min, u_max] (default: spec's).
+
+        The box is a parameter of the real-time SQP and of the reference's bounds, so it
+        may change between solves; the NLP itself (``nlp``) takes only ``p``.
+        """
+        lo = self.u_min if u_min is None else u_min
+        hi = self.u_max if u_max is None else u_max
+        return np.r_[p, lo / U_SCALE, hi / U_SCALE]
+
+    @property
     def v_min(self) -> float:
         """Return the lower input bound, scaled (v = u/U_SCALE)."""
         return self.u_min / U_SCALE
@@ -274,12 +290,16 @@ class OCP:
         h1 = self.horizon + 1
         return ca.vertcat(p[:h1], p[h1 + 2:]) if self.delayed else p[:h1]
 
-    def bounds(self, x0: np.ndarray, a_prev: float) -> Tuple[np.ndarray, np.ndarray]:
-        """Return (lbz, ubz): the input box, and the first stage state fixed to x(t_k)."""
+    def bounds(self, x0: np.ndarray, a_prev: float, box: Optional[Tuple[float, float]] = None
+               ) -> Tuple[np.ndarray, np.ndarray]:
+        """Return (lbz, ubz): the input box, and the first stage state fixed to x(t_k).
+
+        ``box``: the scaled bounds (v_min, v_max) (:meth:`with_box`'s tail), else the spec's.
+        """
         lbz = np.full(self.nz, -np.inf)
         ubz = np.full(self.nz, np.inf)
-        lbz[self.u_index] = self.v_min
-        ubz[self.u_index] = self.v_max
+        lbz[self.u_index], ubz[self.u_index] = box if box is not None else (self.v_min,
+                                                                            self.v_max)
         x0s = np.r_[x0 / self.x_scale, [a_prev] if self.with_acc else []]
         lbz[:self.nxa] = ubz[:self.nxa] = x0s
         return lbz, ubz

@@ -33,13 +33,15 @@ def build_ipopt(ocp: OCP, max_iter: int) -> ca.Function:
     return ca.nlpsol('nmpc_ipopt', 'ipopt', {'x': zs, 'p': ps, 'f': f, 'g': g}, opts)
 
 
-def converge_from(ocp: OCP, ipopt: ca.Function, x, a_prev, p, starts):
+def converge_from(ocp: OCP, ipopt: ca.Function, x, a_prev, pb, starts):
     """Solve the OCP with IPOPT from each start plan (scaled inputs); keep the best.
 
-    Returns (the best converged solution or None, the last return status, the
-    iteration count of each start).
+    ``pb``: the OCP's parameters and the input box, as the real-time SQP takes them
+    (:meth:`OCP.with_box`).  Returns (the best converged solution or None, the last
+    return status, the iteration count of each start).
     """
-    lbz, ubz = ocp.bounds(x, a_prev)
+    p = pb[:ocp.n_p]
+    lbz, ubz = ocp.bounds(x, a_prev, tuple(pb[ocp.n_p:]))
     best, status, iterations = None, 'failed', []
     for u0 in starts:
         z0 = np.asarray(ocp.rollout(x, a_prev, u0, ocp.road_params(p))).ravel()
@@ -87,7 +89,7 @@ class RecordedProblem(NamedTuple):
     a_prev: float           # x_a(k−1)
     u_guess: np.ndarray     # the warm start (scaled inputs)
     u_alt: np.ndarray       # the other starts, one per column (constant c_e0 first)
-    p: np.ndarray           # the OCP's parameters
+    p: np.ndarray           # the solver's parameters: the OCP's, then the box (OCP.with_box)
     u: np.ndarray           # the real-time solution (scaled inputs)
     f: float                # its objective as the solver returned it
 
@@ -102,7 +104,8 @@ def reference_gap(ocp: OCP, problem: RecordedProblem, ipopt_max_iter: int,
     solver's own z may be a start's).
     """
     pr = problem
-    f_rt = float(plan_value_function(ocp, codegen)(pr.x, pr.a_prev, pr.u, pr.p)[1])
+    f_rt = float(plan_value_function(ocp, codegen)(pr.x, pr.a_prev, pr.u,
+                                                   pr.p[:ocp.n_p])[1])
     best, _, _ = converge_from(ocp, build_ipopt(ocp, ipopt_max_iter), pr.x, pr.a_prev, pr.p,
                                (pr.u_guess, pr.u_alt[:, 0], pr.u))
     f_ref = f_rt if best is None else min(f_rt, float(best['f']))

@@ -16,7 +16,7 @@ from typing import Any, Dict, Mapping, Optional, Tuple
 
 from erva_ros.core.params import ERVA_SPECS, ParamError, read_ros_params, ROS_BUILTINS
 from erva_ros.core.node_params import COMMAND_DELAY_SPEC, TS_SPEC
-from erva_ros.core.specs import Choice, Integer, Number, unknown_parameters
+from erva_ros.core.specs import Choice, Flag, Integer, Number, unknown_parameters
 
 #: Control laws understood by make_controller (and `erva sim --controller`).
 CONTROLLER_NAMES = ('passive', 'skyhook', 'no_preview', 'preview', 'preview_long')
@@ -37,6 +37,9 @@ HESSIANS = ('exact', 'gauss_newton')
 CODEGEN_MODES = ('auto', 'on', 'off')
 #: How the no-preview NMPC predicts the road: hold the last measured height, or zero.
 ROAD_PREDICTIONS = ('hold', 'zero')
+#: What follows a failed solve: the previous plan shifted while it lasts, then passive
+#: c_e0 (plan), or passive c_e0 at once (passive).  erva_ros/core/controllers/base.py.
+FALLBACKS = ('plan', 'passive')
 
 #: Node name whose section of the params file holds the controller settings.
 NODE_NAME = 'nmpc_node'
@@ -45,17 +48,21 @@ NODE_NAME = 'nmpc_node'
 NUMERIC_SPECS: Dict[str, Number] = {
     'horizon': Integer(1, 200, 'steps', 'prediction horizon N (paper: 10)'),
     'ts': TS_SPEC,
-    'alpha1': Number(0.0, 1e6, '-', 'comfort weight alpha1 on chassis acceleration (eq. (12))'),
-    'alpha2': Number(0.0, 1e6, '-', 'energy weight alpha2 on harvested power (eq. (12))'),
-    'u_min': Number(0.0, 1e6, 'Ns/m', 'lower bound of the electrical damping c_e'),
-    'u_max': Number(0.0, 1e6, 'Ns/m', 'upper bound of the electrical damping c_e', lo_open=True),
+    'alpha1': Number(0.0, 1e6, '-', 'comfort weight alpha1 on chassis acceleration (eq. (12))',
+                     live=True),
+    'alpha2': Number(0.0, 1e6, '-', 'energy weight alpha2 on harvested power (eq. (12))',
+                     live=True),
+    'u_min': Number(0.0, 1e6, 'Ns/m', 'lower bound of the electrical damping c_e', live=True),
+    'u_max': Number(0.0, 1e6, 'Ns/m', 'upper bound of the electrical damping c_e', lo_open=True,
+                    live=True),
     'max_iter': Integer(1, 50, 'iterations', 'real-time SQP: most iterations per sample'),
     'sqp_tol': Number(0.0, 1.0, '-', 'real-time SQP: stop when an iteration is predicted to '
                       'gain less than this share of the objective', lo_open=False),
     'ipopt_max_iter': Integer(1, 100000, 'iterations', 'IPOPT iteration limit (reference)'),
     'ipopt_starts': Integer(1, 4, 'starts', 'IPOPT reference: converge from the warm start, '
                             '+ constant c_e0, + first move at u_max, + at u_min; keep the best'),
-    'time_budget_s': Number(0.0, 10.0, 's', 'solve time beyond which the plan is not used'),
+    'time_budget_s': Number(0.0, 10.0, 's', 'real-time SQP: a solve slower than this is '
+                            'counted late (its plan is still used)', live=True),
     'command_delay_s': COMMAND_DELAY_SPEC,
     'collocation_degree': Integer(1, 6, '-', 'Radau collocation points per interval (model)'),
     'long_steps': Integer(0, 200, 'steps', 'preview_long: coarse intervals after the first N'),
@@ -86,7 +93,10 @@ CHOICE_SPECS: Dict[str, Choice] = {
     'solver': Choice(SOLVER_KINDS,
                      'NMPC solver: sqp (real-time SQP) or ipopt (converged reference)'),
     'road_prediction': Choice(ROAD_PREDICTIONS,
-                              'no_preview road model: hold last height or zero'),
+                              'no_preview road model: hold last height or zero', live=True),
+    'fallback': Choice(FALLBACKS, 'after a failed solve: the previous plan shifted while it '
+                       'lasts, then the passive c_e0 (plan), or c_e0 at once (passive)',
+                       live=True),
     'long_cost': Choice(COST_KINDS, 'stage cost of preview_long (paper or continuous)'),
     'terminal_cost': Choice(TERMINAL_COSTS, 'continuous cost: value of the state at the '
                             'horizon end as if the passive damping took over (passive) or '
@@ -97,8 +107,14 @@ CHOICE_SPECS: Dict[str, Choice] = {
                                      '(auto: when cc/gcc is on PATH; cached in '
                                      '~/.cache/erva_ros)'),
 }
+#: On/off settings.
+FLAG_SPECS: Dict[str, Flag] = {
+    'use_preview': Flag('NMPC preview and preview_long: plan on the road preview (false: the '
+                        'road predicted as road_prediction says, as no_preview does)',
+                        live=True),
+}
 #: Every setting's spec (erva_ros.core.specs): the one table of allowed values.
-SPECS: Dict[str, Any] = {**NUMERIC_SPECS, **CHOICE_SPECS}
+SPECS: Dict[str, Any] = {**NUMERIC_SPECS, **CHOICE_SPECS, **FLAG_SPECS}
 
 
 def _shipped_settings() -> Dict[str, Any]:
@@ -140,6 +156,8 @@ class ControllerSettings:
     command_delay_s: float = 0.0
     collocation_degree: int = _SHIPPED['collocation_degree']
     road_prediction: str = _SHIPPED['road_prediction']
+    use_preview: bool = _SHIPPED['use_preview']
+    fallback: str = _SHIPPED['fallback']
     long_steps: int = _SHIPPED['long_steps']
     long_step_s: float = _SHIPPED['long_step_s']
     long_max_iter: int = _SHIPPED['long_max_iter']
@@ -256,8 +274,8 @@ def load_controller_settings(path: Optional[str] = None,
 
 
 __all__ = ['CONTROLLER_NAMES', 'EXCITATION_NAMES', 'EXCITE_SIGNALS', 'COST_KINDS',
-           'SOLVER_KINDS', 'ROAD_PREDICTIONS', 'NODE_NAME',
-           'NUMERIC_SPECS', 'INTEGER_KEYS', 'CHOICE_SPECS', 'SPECS', 'DEFAULTS',
+           'SOLVER_KINDS', 'ROAD_PREDICTIONS', 'FALLBACKS', 'NODE_NAME',
+           'NUMERIC_SPECS', 'INTEGER_KEYS', 'CHOICE_SPECS', 'FLAG_SPECS', 'SPECS', 'DEFAULTS',
            'ControllerSettings',
            'describe', 'validate_settings', 'load_controller_settings',
            'with_linked_iteration_cap',

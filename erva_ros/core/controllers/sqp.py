@@ -41,6 +41,10 @@ Starts: the warm start and the alternatives, each put on the collocation equatio
 the NLP is iterated.  f and ‖g‖₁ of the current point travel with it, from where it was
 evaluated (a start or the line search), so an iteration never evaluates the NLP twice.
 
+The input box [u_min, u_max] is a parameter of the solver (after the OCP's p), not a
+constant of its code: the bounds may change between two solves (live tuning,
+docs/live.md) without a new compiled solver.
+
 The whole solver is one CasADi Function with conditionals (no Python per iteration).
 With ``codegen`` its two pieces are compiled to C as wholes, the starts and one
 iteration (QP model, box QP, line search, stop test): the solver calls the iteration
@@ -484,7 +488,8 @@ def _sqp_parts(ocp, n_alt: int, hessian: str):
     """Return (starts, step): the SQP's two pieces, each compiled whole with ``codegen``.
 
     ``starts`` (x0, a_prev, u_guess, u_alt, p) -> state = [z; f; ‖g‖₁; done; iterations]: the
-    best start (module doc).  ``step`` (done, p, f_ref, tol, state) -> state: one
+    best start (module doc); p is the OCP's parameters and the input box
+    (``OCP.with_box``).  ``step`` (done, p, f_ref, tol, state) -> state: one
     iteration (QP model, box QP, line search, stop test), or the state unchanged once
     ``done``.  Each is generated as one C function; the solver only calls ``step``
     ``max_iter`` times, so no model, QP or line-search operation runs in CasADi's
@@ -495,16 +500,18 @@ def _sqp_parts(ocp, n_alt: int, hessian: str):
         qp_model_function(ocp, hessian), step_function(ocp), projection_function(ocp),
         start_function(ocp), merit_function(ocp))
     box_qp = box_qp_function(nb)
-    lo, hi = ocp.v_min, ocp.v_max
     u_idx = [int(i) for i in ocp.u_index]
-    p = ca.MX.sym('p', ocp.n_p)
+    # The solver's parameters: the OCP's p and the input box (scaled), a parameter so that
+    # the bounds may change between two solves without a new compiled solver.
+    p = ca.MX.sym('p', ocp.n_pb)
+    p_ocp, lo, hi = p[:ocp.n_p], p[ocp.n_p], p[ocp.n_p + 1]
 
     def candidate(zz, dz, t, rho):
         """Return z + t·Δz (inputs clipped into the box) on the equations: [z; f; ‖g‖₁], merit."""
         zc = zz + t * dz
         zc[u_idx] = ca.fmin(ca.fmax(zc[u_idx], lo), hi)
-        zc = project(zc, p)        # from the linear prediction back onto the equalities
-        f, infeas = merit(zc, p)
+        zc = project(zc, p_ocp)        # from the linear prediction back onto the equalities
+        f, infeas = merit(zc, p_ocp)
         return ca.vertcat(zc, f, infeas), f + rho * infeas
 
     # -- line search: step t is evaluated only if every longer step failed -----------
@@ -541,7 +548,7 @@ def _sqp_parts(ocp, n_alt: int, hessian: str):
     state = ca.MX.sym('state', ns)
     f_ref, tol = ca.MX.sym('f_ref'), ca.MX.sym('tol')
     z = state[:nz]
-    h_red, g_red, g_lin, dz0, stages, mdata = qp_model(z, p)
+    h_red, g_red, g_lin, dz0, stages, mdata = qp_model(z, p_ocp)
     u = z[u_idx]
     du = box_qp(h_red, g_red, lo - u, hi - u)
     dz = expand(stages, dz0, du)
@@ -574,9 +581,10 @@ def _sqp_parts(ocp, n_alt: int, hessian: str):
     # Start from the best, by its value in the very NLP solved, of the warm start and
     # the alternatives (columns of u_alt): the OCP is non-convex and a shifted plan can
     # sit in a poor basin.
-    best = ca.vertcat(*plan_start(x0, a_prev, ca.fmin(ca.fmax(u_guess, lo), hi), p))
+    best = ca.vertcat(*plan_start(x0, a_prev, ca.fmin(ca.fmax(u_guess, lo), hi), p_ocp))
     for j in range(n_alt):
-        alt = ca.vertcat(*plan_start(x0, a_prev, ca.fmin(ca.fmax(u_alt[:, j], lo), hi), p))
+        alt = ca.vertcat(*plan_start(x0, a_prev, ca.fmin(ca.fmax(u_alt[:, j], lo), hi),
+                                     p_ocp))
         best = ca.if_else(alt[nz] < best[nz], alt, best)      # [z; f; ‖g‖₁] together
     starts = ca.Function('sqp_starts', [x0, a_prev, u_guess, u_alt, p],
                          [ca.vertcat(best, 0, 0)],
@@ -590,14 +598,15 @@ def build_rti(ocp, max_iter: int, tol: float = 1e-4, codegen: str = 'off',
     """Return the real-time SQP as one Function (module doc).
 
     (x0, a_prev, u_guess, u_alt, p) -> (u, z, f, iterations): inputs scaled as in
-    the OCP (v = u/U_SCALE), u_alt holds other starts (columns); the best start by
-    its cost in the NLP is iterated until the step is below ``tol`` or
-    ``max_iter`` iterations.
+    the OCP (v = u/U_SCALE), u_alt holds other starts (columns), p is the OCP's
+    parameters followed by the input box (:meth:`~erva_ros.core.controllers.ocp.OCP.with_box`:
+    the bounds may change between solves); the best start by its cost in the NLP is
+    iterated until the step is below ``tol`` or ``max_iter`` iterations.
     """
     nb, nz = len(ocp.blocks), ocp.nz
     starts, step = compile_for(codegen, _sqp_parts(ocp, n_alt, hessian), 'the NMPC solver')
     ns = starts.size1_out(0)                    # state = [z; f; ‖g‖₁; done; iterations]
-    x0, a_prev, p = ca.MX.sym('x0', ocp.nx), ca.MX.sym('a_prev'), ca.MX.sym('p', ocp.n_p)
+    x0, a_prev, p = ca.MX.sym('x0', ocp.nx), ca.MX.sym('a_prev'), ca.MX.sym('p', ocp.n_pb)
     u_guess, u_alt = ca.MX.sym('u_guess', nb), ca.MX.sym('u_alt', nb, n_alt)
     st = starts(x0, a_prev, u_guess, u_alt, p)
     f_start = st[nz]
@@ -609,7 +618,8 @@ def build_rti(ocp, max_iter: int, tol: float = 1e-4, codegen: str = 'off',
                       ['x0', 'a_prev', 'u_guess', 'u_alt', 'p'],
                       ['u', 'z', 'f', 'iterations'])
     hi, lo = ocp.v_max, ocp.v_min
-    rti(np.zeros(ocp.nx), 0.0, np.full(nb, hi), np.full((nb, n_alt), lo), np.zeros(ocp.n_p))
+    rti(np.zeros(ocp.nx), 0.0, np.full(nb, hi), np.full((nb, n_alt), lo),
+        ocp.with_box(np.zeros(ocp.n_p)))
     return rti
 
 

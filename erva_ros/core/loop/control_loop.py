@@ -8,23 +8,33 @@ returns the status the node should show.  Timings and counters go into the node'
 report (:class:`~erva_ros.core.reports.NMPCReport`).  :meth:`ControlLoop.command` and
 :meth:`ControlLoop.prediction` return the bytes of ``damping_cmd`` and of its companion
 ``prediction`` (core/loop/prediction.py), which the node publishes after the command.
+
+Live tuning: :meth:`ControlLoop.stage` checks a parameter change the node accepted
+(core/controllers/tuning.py for the controller's; ``state_timeout_periods`` for the
+loop's) and stages it; it takes effect at the next sample boundary -- before the next
+solve or safe command, never during one -- and the report says from which sample
+(``parameter_set``, ``parameter_set_from_ns``, the ``live:`` values).  In lock-step
+``lockstep_hold_s`` > 0 makes the sample at that time wait until a parameter request came
+(`erva run --set`: the change then acts exactly from that sample, as in `erva sim --set`).
 No ROS inside.
 """
 
 from dataclasses import dataclass
 import time
-from typing import Any, Mapping, Optional, Tuple
+from typing import Any, Dict, Mapping, Optional, Tuple
 
 import numpy as np
 
 from erva_ros.core import contract
+from erva_ros.core.controllers.tuning import LIVE_KEYS, LiveSettings, not_live, sample_of
 from erva_ros.core.levels import ERROR, OK, WARN
 from erva_ros.core.loop.prediction import PlanPredictor
 from erva_ros.core.loop.validation import MessageRejected  # noqa: F401 (raised by on_*)
 from erva_ros.core.loop.sample_schedule import Job, SampleScheduler
 from erva_ros.core.loop.timing import DurationStats, PeriodStats
 from erva_ros.core.loop.validation import StampWindow
-from erva_ros.core.reports import NMPCReport, Timing
+from erva_ros.core.node_params import spec_of
+from erva_ros.core.reports import format_value, NMPCReport, Timing
 from erva_ros.core.wire import NS
 
 #: How long (s) a deadline miss or fallback keeps the status at WARN.
@@ -32,6 +42,13 @@ WARN_HOLD_S = 1.0
 #: Scheduler counters the report carries (core/loop/sample_schedule.py).
 SCHEDULER_COUNTS = ('out_of_order', 'superseded_states', 'missed_samples', 'stale_previews',
                     'no_preview', 'state_timeouts')
+#: The loop's own live parameters (besides the controller's, tuning.LIVE_KEYS).
+LOOP_LIVE_KEYS = ('state_timeout_periods', 'lockstep_hold_s')
+#: Every live parameter of nmpc_node.
+NODE_LIVE_KEYS = LIVE_KEYS + LOOP_LIVE_KEYS
+#: Wall time (s) a lock-step hold waits for its parameter request before it solves anyway
+#: (counted ``hold_timeouts``): less than the plant's default lockstep_timeout_s (5 s).
+HOLD_TIMEOUT_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -58,6 +75,7 @@ def build_loop(p: Mapping[str, Any], window: StampWindow, report: NMPCReport) ->
     model = get_model(params, p['model'])
     loop = ControlLoop(controller, settings, p, window, report,
                        model if p['publish_prediction'] else None)
+    loop.hold_s = p['lockstep_hold_s']
     loop.warm_up(model.nx)
     loop.describe = (
         f'{controller.name} on the {p["model"]} model, {p["mode"]}, Ts = {settings.ts:g} '
@@ -103,6 +121,15 @@ class ControlLoop:
         self.tick_phase = DurationStats()   # tick time after the sample grid t_k
         self._warn_until = 0.0
         self.outages_logged = 0
+        #: Live tuning: the controller's settings in force and staged (tuning.LiveSettings),
+        #: the loop's staged ones, and the lock-step hold.
+        self.tuning = LiveSettings(controller, settings, controller.c_e0, self.lockstep)
+        self._loop_staged = None            # {'state_timeout_periods': n} for the next sample
+        self.hold_s = 0.0                   # lock-step: hold the sample at this time (0: never)
+        self.requested = False              # a parameter request came since the last solve
+        self._hold_passed: Optional[int] = None   # the hold's sample, once passed
+        self._announce: Optional[str] = None
+        self._fill_live()
 
     def warm_up(self, n_states: int) -> None:
         """Solve once at rest so the first real sample does not pay for first-call set-up."""
@@ -127,9 +154,99 @@ class ControlLoop:
         preview = contract.decode_preview(data, self.ts_ns, self.n_preview)
         return self.sched.on_preview(preview.stamp_ns, preview.heights, now_ns)
 
+    # -- live tuning -------------------------------------------------------------------
+    def stage(self, changes: Mapping[str, Any]) -> None:
+        """Check a parameter change and stage it for the next sample (ParamError: refused).
+
+        All or nothing: a refused change stages nothing.  Any request that reaches this
+        check, also one it refuses, releases a lock-step hold (the requester reports a
+        refusal; `erva run --set` checks its changes before the run).
+        """
+        self.requested = True
+        ctrl = {k: v for k, v in changes.items() if k in LIVE_KEYS}
+        loop = {k: spec_of(k, 'nmpc_node').check(k, v) for k, v in changes.items()
+                if k in LOOP_LIVE_KEYS}
+        unknown = sorted(set(changes) - set(ctrl) - set(loop))
+        if unknown:
+            raise not_live(unknown[0], NODE_LIVE_KEYS)
+        if ctrl:
+            self.tuning.stage(ctrl)
+        if 'state_timeout_periods' in loop:
+            self._loop_staged = {'state_timeout_periods': loop['state_timeout_periods']}
+        if 'lockstep_hold_s' in loop:          # when to hold: at once, not a setting
+            self.hold_s = loop['lockstep_hold_s']
+
+    def _hold_sample(self) -> Optional[int]:
+        """Return the sample index ``lockstep_hold_s`` names (None: no hold, or passed)."""
+        if not self.lockstep or self.hold_s <= 0:
+            return None
+        k = sample_of(self.hold_s, self.ts)
+        return None if k == self._hold_passed else k
+
+    def _index(self, stamp_ns: int) -> int:
+        return (stamp_ns - self.sched.first_stamp) // self.ts_ns
+
+    def holds(self, job: Job) -> bool:
+        """Lock-step: return True if ``job`` waits for a parameter request (``lockstep_hold_s``).
+
+        Once per hold: the first sample at or after its time, until a request came since
+        the previous sample (also one that came before this sample arrived).
+        """
+        k = self._hold_sample()
+        return k is not None and not self.requested and self._index(job.stamp_ns) >= k
+
+    def give_up_hold(self) -> str:
+        """Solve a held sample without its request (counted ``hold_timeouts``); say so."""
+        self.requested = True
+        self.report.hold_timeouts += 1
+        return (f'no parameter request within {HOLD_TIMEOUT_S:g} s at t = {self.hold_s:g} s; '
+                'solving on')
+
+    def _boundary(self, stamp_ns: int) -> None:
+        """Put staged changes in force: a sample boundary (before its solve or safe command)."""
+        k = self._hold_sample()
+        if k is not None and self._index(stamp_ns) >= k:
+            self._hold_passed = k
+        self.requested = False
+        before = self._live_values()
+        changed = self.tuning.apply()
+        if self._loop_staged is not None:
+            n = self._loop_staged['state_timeout_periods']
+            self.timeout_periods = n
+            self.sched.state_timeout_ns = int(round(n * self.ts * NS))
+            self._loop_staged, changed = None, True
+        if not changed:
+            return
+        after = self._live_values()
+        r = self.report
+        r.parameter_set += 1
+        r.parameter_set_from_ns = stamp_ns
+        self._fill_live()
+        diff = ', '.join(f'{k} {after[k]} (was {before[k]})' for k in after
+                         if after[k] != before[k]) or 'the same values'
+        first = self.sched.first_stamp
+        t = (stamp_ns - (stamp_ns if first is None else first)) * 1e-9
+        self._announce = f'parameter set {r.parameter_set} from t = {t:.3f} s: {diff}'
+
+    def announcement(self) -> Optional[str]:
+        """Return (once) what a change that just took effect changed, for the log."""
+        text, self._announce = self._announce, None
+        return text
+
+    def _live_values(self) -> Dict[str, Any]:
+        return {**self.tuning.values(), 'state_timeout_periods': self.timeout_periods}
+
+    def _fill_live(self) -> None:
+        self.report.time_budget_s = self.tuning.settings.time_budget_s
+        self.report.live = {k: format_value(v) for k, v in self._live_values().items()}
+
     # -- the sample's solve ------------------------------------------------------------
     def solve(self, job: Job) -> Output:
-        """Run the controller on ``job`` (no preview: the passive plan)."""
+        """Run the controller on ``job`` (no preview: the passive plan).
+
+        Changes staged before it take effect first (a sample boundary).
+        """
+        self._boundary(job.stamp_ns)
         if job.preview is None:
             return Output(job.stamp_ns, self.passive_plan, 'no_preview', 0.0)
         t = (job.stamp_ns // self.ts_ns) * self.ts if self.lockstep else job.stamp_ns * 1e-9
@@ -188,6 +305,7 @@ class ControlLoop:
 
     def safe(self, stamp_ns: int) -> Tuple[np.ndarray, str]:
         """Count a safe passive command for ``stamp_ns``; return its plan and ERROR text."""
+        self._boundary(stamp_ns)
         self.report.safe_commands += 1
         if self.predictor is not None:
             self.predictor.commanded(stamp_ns, self.passive_plan)
@@ -232,5 +350,6 @@ class ControlLoop:
         r.tick_phase_ms = Timing.of(self.tick_phase.summary())
 
 
-__all__ = ['WARN_HOLD_S', 'SCHEDULER_COUNTS', 'Output', 'build_loop', 'ControlLoop',
+__all__ = ['WARN_HOLD_S', 'SCHEDULER_COUNTS', 'LOOP_LIVE_KEYS', 'NODE_LIVE_KEYS',
+           'HOLD_TIMEOUT_S', 'Output', 'build_loop', 'ControlLoop',
            'ERROR', 'MessageRejected']
