@@ -167,7 +167,7 @@ def test_grid_and_open_errors(tmp_path):
     with pytest.raises(MapError, match=r'grid 5.0 m: allowed \[0.01, 2\] m'):
         RoadMap.create(str(tmp_path / 'g.db'), 'r', 5.0, 6.0)
     with RoadMap.create(str(tmp_path / 'v.db'), 'r', 0.1, 6.0) as m:
-        m._conn.execute("UPDATE meta SET value = '99' WHERE key = 'schema_version'")
+        m.db.execute("UPDATE meta SET value = '99' WHERE key = 'schema_version'")
     with pytest.raises(MapError, match="schema version '99'"):
         RoadMap.open(str(tmp_path / 'v.db'))
 
