@@ -41,6 +41,13 @@ def _as_server_user(argv):
     return argv
 
 
+def new_base():
+    """Return a new directory for a server: under /tmp, which the postgres user can reach
+    (pytest's own temporary directories are root's only), with a short socket path."""
+    import tempfile
+    return tempfile.mkdtemp(prefix='erva_pg.', dir='/tmp')
+
+
 def uri(base, database='postgres', user='postgres'):
     """Return the URI of the server in ``base`` (its socket directory), database ``database``."""
     return f'postgresql://{user}@/{database}?host={quote(base, safe="/")}&port={PORT}'
@@ -105,7 +112,7 @@ def with_user(db_uri, user):
     return f'{head}://{user}@{rest.split("@", 1)[1]}'
 
 
-def session_server(tmp_path_factory):
+def session_server(tmp_path_factory=None):
     """Yield the URI of a server for this test session (module doc); pytest skips if none."""
     import pytest
     given = os.environ.get(ENV)
@@ -124,7 +131,7 @@ def session_server(tmp_path_factory):
     if bindir() is None:
         pytest.skip('no PostgreSQL server binaries (apt-get install postgresql-15), and '
                     f'${ENV} is not set')
-    base = str(tmp_path_factory.mktemp('pg'))
+    base = new_base()
     try:
         server = start(base)
     except (subprocess.CalledProcessError, RuntimeError) as exc:

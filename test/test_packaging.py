@@ -79,6 +79,7 @@ ROSDEP_KEYS = {
     'mcap': None,                            # no key: pip install mcap
     'foxglove': None, 'websockets': None,    # extra erva_ros[foxglove]
     'distributed': None,                     # extra erva_ros[dask]
+    'psycopg': None,                         # extra erva_ros[fleet] (no rosdep key found)
 }
 
 

@@ -247,10 +247,8 @@ class PostgresDb(Db):
         except ValueError as exc:        # a malformed URI (psycopg.conninfo)
             raise MapError(f'{self.name}: not a valid PostgreSQL URI ({first_line(exc)})') \
                 from None
+        self.user = self.conn.info.user
 
-    @property
-    def user(self) -> str:
-        return self.conn.info.user
 
     def execute(self, sql, params=()):
         cur = self.conn.execute(sql.replace('?', '%s'), tuple(params) or None)

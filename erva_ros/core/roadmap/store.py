@@ -367,6 +367,9 @@ class RoadMap:
     def _open_or_create_server(loc: MapLocation, meta: Dict[str, str]):
         db = connect(loc, LOCK_TIMEOUT_S)
         try:
+            if db.schema_exists():             # the common case: no lock to open a map
+                db.close()
+                return RoadMap.open(loc), False
             db.begin_write(LOCK_TIMEOUT_S)     # two creators: one creates, one waits
             created = not db.schema_exists()
             if created:
@@ -434,7 +437,7 @@ class RoadMap:
             db.close()
             if isinstance(exc, sqlite3.DatabaseError):
                 raise MapError(f'{name}: not a readable road map ({_why(exc)})') from None
-            err = db.map_error(exc, 'not a readable road map')
+            err = db.map_error(exc, 'cannot read the map')
             if err:
                 raise err from None
             raise
