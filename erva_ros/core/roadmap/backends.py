@@ -249,7 +249,6 @@ class PostgresDb(Db):
                 from None
         self.user = self.conn.info.user
 
-
     def execute(self, sql, params=()):
         cur = self.conn.execute(sql.replace('?', '%s'), tuple(params) or None)
         return cur.fetchall() if cur.description else []
