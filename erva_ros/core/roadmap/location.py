@@ -69,6 +69,11 @@ def redact(uri: str) -> str:
     return urlunsplit((parts.scheme, netloc, parts.path, urlencode(query, safe='/'), ''))
 
 
+def redact_text(text: str) -> str:
+    """Return ``text`` with every PostgreSQL URI in it redacted (a command line, a message)."""
+    return re.sub(r'postgres(?:ql)?://\S+', lambda m: redact(m.group(0)), text)
+
+
 def cache_dir() -> str:
     """Return the directory of the local map caches ($ERVA_MAP_CACHE_DIR, ~/.cache/erva/maps)."""
     base = os.environ.get('ERVA_MAP_CACHE_DIR') or os.path.join(
@@ -87,4 +92,5 @@ def cache_path(location: MapLocation) -> str:
     return os.path.join(cache_dir(), f'{name[:40]}_{key}.db')
 
 
-__all__ = ['MapLocation', 'parse_location', 'redact', 'cache_dir', 'cache_path', 'SCHEMES']
+__all__ = ['MapLocation', 'parse_location', 'redact', 'redact_text', 'cache_dir', 'cache_path',
+           'SCHEMES']
