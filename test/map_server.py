@@ -42,8 +42,11 @@ def _as_server_user(argv):
 
 
 def new_base():
-    """Return a new directory for a server: under /tmp, which the postgres user can reach
-    (pytest's own temporary directories are root's only), with a short socket path."""
+    """Return a new directory for a server, under /tmp.
+
+    The postgres user can reach it (pytest's own temporary directories are root's only),
+    and its socket path stays short.
+    """
     import tempfile
     return tempfile.mkdtemp(prefix='erva_pg.', dir='/tmp')
 

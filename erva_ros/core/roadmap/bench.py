@@ -126,7 +126,7 @@ def _drive(fleet: Fleet, start: float, length: float, bias: float, scale: float,
 
 
 def digest(fleet: Fleet, k: int) -> str:
-    """Return drive ``k``'s digest (the survey is -1)."""
+    """Return the digest of drive ``k`` (the survey is -1)."""
     return f'bench-{fleet.seed}-{fleet.route_km:g}-{fleet.drive_km:g}-{k}'
 
 

@@ -31,7 +31,7 @@ class MapLocation:
 
     @property
     def server(self) -> bool:
-        """Return True for a database server (PostgreSQL)."""
+        """Return True for a map on a PostgreSQL database server."""
         return self.kind == 'postgresql'
 
     @property

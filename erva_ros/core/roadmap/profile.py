@@ -47,8 +47,10 @@ def highpass(h: np.ndarray, dx: float, sigma_m: float = HIGHPASS_M) -> np.ndarra
 
 
 def detrend(v: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """Return ``v`` minus its least-squares line over ``x`` (closed form: the hot path of
-    registration and alignment)."""
+    """Return ``v`` minus its least-squares line over ``x``.
+
+    Closed form: it is the hot path of registration and alignment.
+    """
     xc = x - x.mean()
     r = v - v.mean()
     den = float(xc @ xc)
