@@ -78,7 +78,7 @@ def _drive_order(location):
 
 
 def _assert_same_map(a, b):
-    """The nodes and the drives' registrations of two maps, equal to 1e-12 (relative)."""
+    """Assert that two maps' nodes and registrations are equal to 1e-12 (relative)."""
     na, nb = rh.nodes(a), rh.nodes(b)
     assert na.shape == nb.shape and np.array_equal(na[:, 0], nb[:, 0])
     assert np.allclose(na[:, 1:], nb[:, 1:], rtol=1e-12, atol=0)
@@ -366,7 +366,7 @@ def test_a_version_1_file_is_read_and_upgraded_when_written(tmp_path):
 # -- the local cache, offline ---------------------------------------------------------------
 @pytest.fixture
 def own_server():
-    """A server of this test's own (it is stopped and started again here)."""
+    """Start a server of this test's own (the test stops and starts it again)."""
     if map_server.bindir() is None:
         if os.environ.get(map_server.ENV):
             pytest.fail('PostgreSQL binaries missing under .ci/run')

@@ -215,7 +215,9 @@ def test_a_bad_map_stops_erva_run_before_anything_starts(road_map, tmp_path):
 
 
 def test_a_server_map_is_fetched_first_and_the_loop_never_needs_the_server(road_map, tmp_path):
-    """`--preview map:postgresql://...`: the section is fetched into the local cache before
+    """Fetch a server map's section first; the loop never needs the server.
+
+    `--preview map:postgresql://...`: the section is fetched into the local cache before
     anything starts; the server is stopped right after and the run goes on; a second run
     with the server gone from the start uses the cache (one WARN line).  The URI's password
     is in no output, bag or summary.

@@ -75,7 +75,7 @@ CREATE TABLE drives (id BIGSERIAL PRIMARY KEY, digest TEXT UNIQUE NOT NULL,
                      residual_count BIGINT NOT NULL DEFAULT 0,
                      added_by TEXT NOT NULL DEFAULT '');
 CREATE FUNCTION erva_add_drive({ADD_ARGS}) RETURNS bigint
-LANGUAGE plpgsql SECURITY DEFINER SET search_path FROM CURRENT AS $$
+LANGUAGE plpgsql SECURITY DEFINER SET search_path = @SCHEMA@, pg_temp AS $$
 DECLARE new_id bigint;
 BEGIN
   PERFORM {PG_LOCK};
@@ -271,8 +271,17 @@ class PostgresDb(Db):
         return bool(self.execute("SELECT to_regclass('meta') IS NOT NULL")[0][0])
 
     def create_schema(self, meta: Dict[str, str]) -> None:
-        """Create the tables and erva_add_drive (inside the caller's write transaction)."""
-        self.conn.execute(PG_SCHEMA)
+        """Create the tables and erva_add_drive (inside the caller's write transaction).
+
+        The function's search path is the map's schema, then pg_temp (last: a caller's
+        temporary table never stands in for the map's).
+        """
+        from psycopg import sql
+        schema = self.execute('SELECT current_schema()')[0][0]
+        if schema is None:
+            raise MapError(f'{self.name}: no schema to create the map in (search_path)')
+        ident = sql.Identifier(schema).as_string(self.conn)
+        self.conn.execute(PG_SCHEMA.replace('@SCHEMA@', ident))
         with self.conn.cursor() as cur:
             cur.executemany('INSERT INTO meta VALUES (%s, %s)', sorted(meta.items()))
 
