@@ -54,6 +54,8 @@ setup(
         'foxglove': ['foxglove-sdk', 'websockets'],
         # `erva table/pareto --scheduler ADDRESS`: run the jobs on a Dask cluster.
         'dask': ['dask[distributed]'],
+        # Road maps on a PostgreSQL server (`erva map ... postgresql://...`, docs/road.md).
+        'fleet': ['psycopg[binary]'],
         'test': [
             'pytest',
             'pytest-xdist',   # .ci/run: two test processes (each its own DDS domain)

@@ -114,3 +114,14 @@ def sim_delay_args():
     """Return `erva sim`'s options for `erva run`'s default loop: d acts and is modelled."""
     d = repr(shipped_delay_s())
     return ['--actuation-delay', d, '--command-delay', d]
+
+
+@pytest.fixture(scope='session')
+def pg_server(tmp_path_factory):
+    """Return the URI of a PostgreSQL server for the map tests (test/map_server.py).
+
+    .ci/run's ($ERVA_TEST_PG: must answer), else a throw-away one started here, else the
+    PostgreSQL cases skip with the reason.
+    """
+    from map_server import session_server
+    yield from session_server(tmp_path_factory)

@@ -62,11 +62,19 @@ def write_bag(path, run, road_seed=0, speed=20.0, drop=()):
     return path
 
 
-def nodes(path):
-    """Return the map file's nodes table as an array (i, info, info_height, drives)."""
-    import sqlite3
-    with sqlite3.connect(path) as conn:
-        return np.array(conn.execute('SELECT * FROM nodes ORDER BY i').fetchall(), dtype=float)
+def nodes(location):
+    """Return the map's nodes table as an array (i, info, info_height, drives)."""
+    from erva_ros.core.roadmap.store import RoadMap
+    with RoadMap.open(location) as m:
+        return np.array(m.db.execute('SELECT * FROM nodes ORDER BY i'), dtype=float)
+
+
+def table(location, name):
+    """Return every row of a map's table ``name``, ordered by its key, as tuples."""
+    from erva_ros.core.roadmap.store import RoadMap
+    key = {'meta': 'key', 'nodes': 'i', 'drives': 'id'}[name]
+    with RoadMap.open(location) as m:
+        return [tuple(r) for r in m.db.execute(f'SELECT * FROM {name} ORDER BY {key}')]
 
 
 def map_build(bags, out):

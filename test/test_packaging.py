@@ -80,6 +80,7 @@ ROSDEP_KEYS = {
     'foxglove': None,                        # no key: pip install foxglove-sdk
     'websockets': 'python3-websockets',      # extra erva_ros[foxglove]: the bench's viewer
     'distributed': None,                     # extra erva_ros[dask]
+    'psycopg': None,                         # extra erva_ros[fleet] (no rosdep key found)
 }
 
 

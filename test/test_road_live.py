@@ -208,3 +208,63 @@ def test_a_bad_map_stops_erva_run_before_anything_starts(road_map, tmp_path):
         assert not bags.exists()                               # nothing started
     r = _run('--preview', f'map:{road_map}', '--no-record')
     assert r.returncode == 2 and 'needs --ecu virtual' in r.stderr
+
+
+def test_a_server_map_is_fetched_first_and_the_loop_never_needs_the_server(road_map, tmp_path):
+    """Fetch a server map's section first; the loop never needs the server.
+
+    `--preview map:postgresql://...`: the section is fetched into the local cache before
+    anything starts; the server is stopped right after and the run goes on; a second run
+    with the server gone from the start uses the cache (one WARN line).  The URI's password
+    is in no output, bag or summary.
+    """
+    import map_server
+    if map_server.bindir() is None:
+        if os.environ.get(map_server.ENV):
+            pytest.fail('PostgreSQL binaries missing under .ci/run')
+        pytest.skip('no PostgreSQL server binaries (apt-get install postgresql-15)')
+    secret = 'S3cr3tPw'
+    base = map_server.new_base()
+    try:
+        server = map_server.new_database(map_server.start(base))
+        uri = server.replace('postgres@', f'postgres:{secret}@', 1)   # trust: unused
+        r = subprocess.run([sys.executable, '-m', 'erva_ros.cli', 'map', 'migrate', road_map,
+                            uri], capture_output=True, text=True, env=ros_env(), cwd=REPO)
+        assert r.returncode == 0, r.stderr
+        env = {'ERVA_MAP_CACHE_DIR': str(tmp_path / 'cache')}
+        outputs = []
+        for n, up in enumerate((True, False)):
+            proc = subprocess.Popen(
+                [sys.executable, '-m', 'erva_ros.cli', 'run', '--ecu', 'virtual', '--preview',
+                 f'map:{uri}', '--duration', '4', '--namespace', f'/erva_t_road_pg{n}',
+                 '--record', str(tmp_path / f'bags{n}'), '--json'], stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE, text=True, env=ros_env(env), cwd=REPO,
+                start_new_session=True)
+            try:
+                first = proc.stderr.readline()
+                if up:
+                    assert first.startswith('map: fetched '), first
+                    map_server.stop(base, remove=False)          # the loop has not started
+                else:
+                    assert first.startswith('WARN map server unreachable ('), first
+                lines = [first]
+                wait_connected(proc, lines=lines)
+                out, err = proc.communicate(timeout=600)
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+            assert proc.returncode == 0, err[-3000:]
+            err = ''.join(lines) + err
+            warns = sum('map server unreachable' in x for x in err.splitlines())
+            assert warns == (0 if up else 1)
+            s = json.loads(out)
+            assert s['road']['map']['samples'] > 150 and s['road']['map']['alignments'] >= 1
+            outputs += [out, err]
+            for folder, _, files in os.walk(tmp_path / f'bags{n}'):
+                for f in files:
+                    with open(os.path.join(folder, f), 'rb') as fh:
+                        assert secret.encode() not in fh.read(), f
+        assert not any(secret in o for o in outputs)
+        assert all('postgres@' in o or 'postgresql' not in o for o in outputs)
+    finally:
+        map_server.stop(base)

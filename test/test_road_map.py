@@ -1,4 +1,9 @@
-"""`erva map`: drives from HIL bags into an SQLite map; fusion, increments, bad input."""
+"""`erva map`: drives from HIL bags into a map; fusion, increments, bad input.
+
+Every test that does not look at a file itself runs against both databases: an SQLite
+file and a live PostgreSQL server (the ``pg_server`` fixture: .ci/run's, or one started
+here; test/map_server.py).
+"""
 
 import json
 import os
@@ -14,8 +19,18 @@ from erva_ros.core.roadmap.drive import estimate_drive, grid_profile
 from erva_ros.core.roadmap.store import RoadMap
 from erva_ros.core.roadmap.vehicle import OdometryError
 
+import map_server
 import road_helpers as rh
 from conftest import REPO
+
+
+@pytest.fixture(params=['sqlite', 'postgresql'])
+def new_map(request, tmp_path):
+    """Return a function that gives a fresh map location: a file, or a new server database."""
+    if request.param == 'sqlite':
+        return lambda name='m': str(tmp_path / f'{name}.db')
+    server = request.getfixturevalue('pg_server')
+    return lambda name='m': map_server.new_database(server)
 
 
 @pytest.fixture(scope='module')
@@ -44,14 +59,14 @@ def test_a_bag_gives_its_drive(bags):
         20 * 1.004, rel=2e-3)
 
 
-def test_fusion_is_by_inverse_variance(bags, tmp_path):
+def test_fusion_is_by_inverse_variance(bags, new_map):
     """The map's nodes equal Σ(h/v)/Σ(1/v) computed here from each drive on its own.
 
     Each drive is estimated and put on the grid again, placed with the offset and scale
     the map stored for it, and fused with numpy; one drive's variance is made 4 times
     another's so that the weights matter.
     """
-    path = str(tmp_path / 'm.db')
+    path = new_map()
     params = rh.P
     profiles = []
     with RoadMap.create(path, 'r', 0.1, 6.0) as road_map:
@@ -81,8 +96,8 @@ def test_fusion_is_by_inverse_variance(bags, tmp_path):
     assert abs(stored[1]['offset_m'] + 0.4) < 0.1 and abs(stored[2]['offset_m'] - 0.3) < 0.1
 
 
-def test_incremental_equals_batch_and_info(bags, tmp_path):
-    batch, inc = str(tmp_path / 'batch.db'), str(tmp_path / 'inc.db')
+def test_incremental_equals_batch_and_info(bags, new_map):
+    batch, inc = new_map('batch'), new_map('inc')
     assert erva(['map', 'build', bags[0], bags[1], bags[2], '--out', batch]) == 0
     for i in range(3):
         assert erva(['map', 'build', bags[i], '--out', inc]) == 0
@@ -93,8 +108,8 @@ def test_incremental_equals_batch_and_info(bags, tmp_path):
         assert m.route == 'paper:seed=0@20m/s' and len(m.drives()) == 3
 
 
-def test_info_and_compare(bags, tmp_path, capsys):
-    path = str(tmp_path / 'm.db')
+def test_info_and_compare(bags, new_map, capsys):
+    path = new_map()
     assert erva(['map', 'build', bags[0], bags[2], '--out', path, '--json']) == 0
     built = json.loads(capsys.readouterr().out)
     assert [a['segments'] > 0 for a in built['added']] == [False, True]
@@ -116,8 +131,8 @@ def _one_line_exit_2(capsys, argv, needle):
     assert '\n' not in err and needle in err, err
 
 
-def test_bad_input_exits_2_and_leaves_the_map_unchanged(bags, tmp_path, capsys):
-    path = str(tmp_path / 'm.db')
+def test_bad_input_exits_2_and_leaves_the_map_unchanged(bags, new_map, capsys):
+    path = new_map()
     assert erva(['map', 'build', bags[0], '--out', path]) == 0
     capsys.readouterr()
     before = rh.nodes(path)
@@ -131,11 +146,20 @@ def test_bad_input_exits_2_and_leaves_the_map_unchanged(bags, tmp_path, capsys):
                      'matches the map nowhere')
     _one_line_exit_2(capsys, ['map', 'build', bags[0], '--out', path], 'already in the map')
     assert np.array_equal(rh.nodes(path), before)
-    # A failed build of a new map leaves no file behind.
+    # A failed build of a new map leaves no map behind (no file; no tables on the server).
+    new = new_map('new')
+    _one_line_exit_2(capsys, ['map', 'build', bags[0], bags['other_unnamed'], '--out', new],
+                     'matches the map nowhere')
+    assert not RoadMap.exists(new)
+    _one_line_exit_2(capsys, ['map', 'info', new], 'no such map file' if new.endswith('.db')
+                     else 'no road map on this server')
+
+
+def test_corrupt_foreign_and_missing_files(tmp_path, capsys):
     new = str(tmp_path / 'new.db')
-    _one_line_exit_2(capsys, ['map', 'build', sample, '--out', new], 'not a HIL session')
+    _one_line_exit_2(capsys, ['map', 'build', os.path.join(REPO, 'bags', 'sample'), '--out',
+                              new], 'not a HIL session')
     assert not os.path.exists(new)
-    # Corrupt, foreign and missing files.
     bad = tmp_path / 'bad.db'
     bad.write_bytes(b'not a database at all' * 50)
     _one_line_exit_2(capsys, ['map', 'info', str(bad)], 'not a readable road map')
@@ -145,17 +169,25 @@ def test_bad_input_exits_2_and_leaves_the_map_unchanged(bags, tmp_path, capsys):
     _one_line_exit_2(capsys, ['map', 'info', str(tmp_path / 'none.db')], 'no such map file')
 
 
-def test_a_locked_map_is_refused(bags, tmp_path, capsys, monkeypatch):
+def test_a_locked_map_is_refused(bags, new_map, capsys, monkeypatch):
     import erva_ros.core.roadmap.store as store
-    path = str(tmp_path / 'm.db')
+    from erva_ros.core.roadmap.backends import PG_LOCK
+    path = new_map()
     assert erva(['map', 'build', bags[0], '--out', path]) == 0
     monkeypatch.setattr(store, 'LOCK_TIMEOUT_S', 0.2)
-    holder = sqlite3.connect(path, isolation_level=None)
-    holder.execute('BEGIN IMMEDIATE')                  # another writer holds the map
+    if path.endswith('.db'):
+        holder = sqlite3.connect(path, isolation_level=None)
+        holder.execute('BEGIN IMMEDIATE')                  # another writer holds the map
+    else:
+        import psycopg
+        holder = psycopg.connect(path, autocommit=True)
+        holder.execute('BEGIN')
+        holder.execute(f'SELECT {PG_LOCK}')
     try:
         capsys.readouterr()
         _one_line_exit_2(capsys, ['map', 'build', bags[2], '--out', path],
-                         'cannot write the map (database is locked)')
+                         'cannot write the map (database is locked)' if path.endswith('.db')
+                         else 'cannot write the map: another writer holds the map')
     finally:
         holder.execute('ROLLBACK')
         holder.close()
@@ -163,13 +195,16 @@ def test_a_locked_map_is_refused(bags, tmp_path, capsys, monkeypatch):
         assert len(m.drives()) == 1
 
 
-def test_grid_and_open_errors(tmp_path):
+def test_grid_and_open_errors(new_map, capsys):
     with pytest.raises(MapError, match=r'grid 5.0 m: allowed \[0.01, 2\] m'):
-        RoadMap.create(str(tmp_path / 'g.db'), 'r', 5.0, 6.0)
-    with RoadMap.create(str(tmp_path / 'v.db'), 'r', 0.1, 6.0) as m:
-        m._conn.execute("UPDATE meta SET value = '99' WHERE key = 'schema_version'")
+        RoadMap.create(new_map('g'), 'r', 5.0, 6.0)
+    path = new_map('v')
+    with RoadMap.create(path, 'r', 0.1, 6.0) as m:
+        m.db.execute("UPDATE meta SET value = '99' WHERE key = 'schema_version'")
     with pytest.raises(MapError, match="schema version '99'"):
-        RoadMap.open(str(tmp_path / 'v.db'))
+        RoadMap.open(path)
+    _one_line_exit_2(capsys, ['map', 'info', path], "map schema version '99', this erva_ros "
+                                                    'reads 2')
 
 
 def test_a_standstill_adds_nothing_and_reversing_is_refused():

@@ -130,7 +130,10 @@ def add_arguments(parser):
                              '(road/estimate, with odometry) and the NMPC\'s preview comes '
                              'from the road map FILE (erva map build), aligned by profile '
                              'matching (road/alignment); the map is checked first: it must '
-                             'be of this road, seed and speed and cover the drive (default: '
+                             'be of this road, seed and speed and cover the drive; '
+                             'map:postgresql://USER@HOST/DB: a fleet\'s map on a server, its '
+                             'section fetched into a local cache before the start, the cache '
+                             'used (one WARN line) if the server is unreachable (default: '
                              'the scenario road\'s own preview; docs/road.md)')
     parser.add_argument('--foxglove', nargs='?', const=FOXGLOVE_DEFAULT, default=None,
                         metavar='[HOST:]PORT',
@@ -201,10 +204,12 @@ def _bag_size(text: str) -> int:
 
 
 def _preview(text: str) -> str:
-    """Parse ``map:FILE`` into FILE (argparse type)."""
+    """Parse ``map:FILE`` (or ``map:URI``) into FILE (argparse type)."""
+    from erva_ros.core.roadmap.location import redact_text
     kind, _, path = text.partition(':')
     if kind != 'map' or not path:
-        raise argparse.ArgumentTypeError(f'{text!r}: expected map:FILE')
+        raise argparse.ArgumentTypeError(f'{redact_text(text)!r}: expected map:FILE or '
+                                         'map:postgresql://...')
     return path
 
 

@@ -164,8 +164,13 @@ class MapPreviewLoop:
 
     def __init__(self, p: Mapping[str, Any], report: RoadReport):
         from erva_ros.core.roadmap.store import RoadMap
+        from erva_ros.core.roadmap.location import parse_location
         if not p['map_file']:
             raise ParamError('source map needs map_file (a map of erva map build)')
+        if parse_location(p['map_file']).server:    # never the network in the loop
+            raise ParamError('map_file: a local map file; a server map is fetched into its '
+                             'local cache first (erva map fetch, or erva run --preview '
+                             'map:URI does it)')
         try:
             with RoadMap.open(p['map_file']) as road_map:
                 profile = road_map.profile()
@@ -254,6 +259,12 @@ class Streak:
             self.longest, self.from_ns, self.to_ns = self._run, self._start, stamp_ns
 
 
+def session_span(live: Mapping[str, Any]) -> Tuple[float, float]:
+    """Return the part of the route a session drives and previews: (0, end) in m."""
+    drive_m = live['speed_mps'] * live['duration_s']
+    return 0.0, drive_m + live['speed_mps'] * live['preview_steps'] * live['ts']
+
+
 def check_session_map(path: str, live: Mapping[str, Any], margin_m: float = 3.0) -> str:
     """Return ``path`` made absolute once the map serves this session; MapError (one line).
 
@@ -270,7 +281,7 @@ def check_session_map(path: str, live: Mapping[str, Any], margin_m: float = 3.0)
     with RoadMap.open(path) as road_map:
         profile = road_map.profile()
     drive_m = live['speed_mps'] * live['duration_s']
-    end_m = drive_m + live['speed_mps'] * live['preview_steps'] * live['ts']
+    end_m = session_span(live)[1]
     try:
         if profile.valid.any() and profile.start_m >= drive_m:
             raise MapError(f'the map starts at {profile.start_m:.1f} m, after the session\'s '
@@ -283,4 +294,4 @@ def check_session_map(path: str, live: Mapping[str, Any], margin_m: float = 3.0)
 
 
 __all__ = ['RoadEstimatorLoop', 'road_estimator_loop', 'MapPreviewLoop', 'STREAKS', 'Streak',
-           'check_session_map']
+           'check_session_map', 'session_span']

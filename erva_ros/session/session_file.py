@@ -10,8 +10,9 @@ each node, :func:`erva_ros.core.node_params.session_sections`) in a session dire
 from dataclasses import dataclass
 import os
 import secrets
+import sys
 import tempfile
-from typing import Any, Dict, Optional
+from typing import Any, Dict, Optional, Tuple
 
 import yaml
 
@@ -71,7 +72,8 @@ class Session:
     params_file: str
     scenario: str
     ecu: str = 'none'
-    preview_map: str = ''           # the map of --preview map:FILE ('' : the road's preview)
+    preview_map: str = ''           # the map file the preview reads ('' : the road's preview)
+    preview_source: str = ''        # --preview map:MAP as it may be shown (no password)
     steps: tuple = ()               # --set: live changes (session/tuning_schedule.Step)
 
     @property
@@ -179,7 +181,7 @@ def prepare_session(cfg: RunConfig, recording: bool) -> Session:
     from erva_ros.session.tuning_schedule import first_hold_s, plan
     steps = plan(cfg.changes, settings, erva.c_e0, live)
     live['lockstep_hold_s'] = first_hold_s(steps, live)
-    preview_map = _preview_map(cfg, live)
+    preview_map, preview_source = _preview_map(cfg, live)
     if cfg.session_dir is None:
         remove_stale_session_dirs()
     directory = cfg.session_dir or tempfile.mkdtemp(prefix=f'{SESSION_DIR_PREFIX}{os.getpid()}_')
@@ -191,7 +193,7 @@ def prepare_session(cfg: RunConfig, recording: bool) -> Session:
         yaml.safe_dump(session_params(erva.as_dict(), settings, live, preview_map), fh,
                        sort_keys=False)
     return Session(erva.as_dict(), settings, live, directory, path, scenario, cfg.ecu,
-                   preview_map, tuple(steps))
+                   preview_map, preview_source, tuple(steps))
 
 
 def _loop_timing(cfg: RunConfig, live_file: Dict[str, Any]) -> Dict[str, float]:
@@ -219,17 +221,24 @@ def _loop_timing(cfg: RunConfig, live_file: Dict[str, Any]) -> Dict[str, float]:
     return out
 
 
-def _preview_map(cfg: RunConfig, live: Dict[str, Any]) -> str:
-    """Return the checked map of ``--preview map:FILE`` ('' without); CLIError (one line)."""
+def _preview_map(cfg: RunConfig, live: Dict[str, Any]) -> Tuple[str, str]:
+    """Return (the checked map file of ``--preview map:MAP``, MAP as shown); CLIError.
+
+    A server map's section is fetched into its local cache first, and the preview reads
+    only that file (core/roadmap/fleet.session_map); ('', '') without the option.
+    """
     if not cfg.preview_map:
-        return ''
+        return '', ''
     if cfg.ecu == 'none':
         raise CLIError('--preview map:FILE needs --ecu virtual (the road is estimated from '
                        'the ECU\'s sensors)')
-    from erva_ros.core.road_loop import check_session_map
+    from erva_ros.core.road_loop import check_session_map, session_span
     from erva_ros.core.roadmap import MapError
+    from erva_ros.core.roadmap.fleet import session_map
     try:
-        return check_session_map(cfg.preview_map, live)
+        path, shown = session_map(cfg.preview_map, *session_span(live),
+                                  lambda line: print(line, file=sys.stderr, flush=True))
+        return check_session_map(path, live), shown
     except MapError as exc:
         raise CLIError(f'--preview map: {exc}') from None
 
@@ -250,7 +259,7 @@ def session_description(session: Session) -> Dict[str, str]:
         controller=session.settings.controller,
         extra={'mode': session.live['mode'], 'model': session.live['model'],
                'duration_s': session.live['duration_s'], 'ecu': session.ecu,
-               'preview': f'map:{session.preview_map}' if session.preview_map else 'road',
+               'preview': f'map:{session.preview_source}' if session.preview_map else 'road',
                'params_yaml': params_yaml, 'session_id': session.session_id})
 
 

@@ -23,6 +23,7 @@ import sys
 from typing import Any, Dict, List, Mapping, Optional, Sequence
 
 from erva_ros import __version__
+from erva_ros.core.roadmap.location import redact_text
 
 _UNSAFE = re.compile(r'[^A-Za-z0-9_.-]+')
 
@@ -132,9 +133,10 @@ def recorder_session(text: str, recorder: str, bag_dir: str,
 
 
 def command_line(argv: Optional[Sequence[str]] = None) -> str:
-    """Return the command that made the session, without this machine's paths.
+    """Return the command that made the session, without this machine's paths or secrets.
 
-    ``python -m erva_ros.<module>`` shows as that; a console script (``erva``) by its name.
+    ``python -m erva_ros.<module>`` shows as that; a console script (``erva``) by its name;
+    a map server's URI without its password (core/roadmap/location.py).
     """
     argv = list(sys.argv if argv is None else argv)
     if not argv:
@@ -146,7 +148,7 @@ def command_line(argv: Optional[Sequence[str]] = None) -> str:
         first = ['python', '-m', module]
     else:
         first = [os.path.basename(argv[0])]
-    return ' '.join(first + argv[1:])
+    return redact_text(' '.join(first + argv[1:]))
 
 
 def recorder_ros_args(bag_dir: str, metadata: Optional[Mapping[str, Any]] = None,

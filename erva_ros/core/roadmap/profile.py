@@ -47,10 +47,14 @@ def highpass(h: np.ndarray, dx: float, sigma_m: float = HIGHPASS_M) -> np.ndarra
 
 
 def detrend(v: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """Return ``v`` minus its least-squares line over ``x``."""
-    a = np.vstack([np.ones_like(x), x - x.mean()]).T
-    coef, *_ = np.linalg.lstsq(a, v, rcond=None)
-    return v - a @ coef
+    """Return ``v`` minus its least-squares line over ``x``.
+
+    Closed form: it is the hot path of registration and alignment.
+    """
+    xc = x - x.mean()
+    r = v - v.mean()
+    den = float(xc @ xc)
+    return r - (float(xc @ r) / den) * xc if den > 0 else r
 
 
 @dataclass(frozen=True)
@@ -86,7 +90,16 @@ def match(s: np.ndarray, h: np.ndarray, ref_x0: float, ref_dx: float, ref_h: np.
     samp = ref_h[i0c] * (1 - frac) + ref_h[np.minimum(i0c + 1, n - 1)] * frac
     samp = np.where(inside, samp, np.nan)
     rho = np.full(cands.size, -1.0)
-    for j in range(cands.size):
+    full = np.isfinite(samp).all(axis=1) & bool(np.isfinite(h).all()) & (s.size >= 4)
+    if full.any():                   # every point on data: all such candidates at once
+        a = detrend(h, s)
+        xc = s - s.mean()
+        r = samp[full] - samp[full].mean(axis=1, keepdims=True)
+        den = float(xc @ xc)
+        b = r - np.outer(r @ xc / den, xc) if den > 0 else r
+        norm = np.sqrt(float(a @ a) * np.einsum('ij,ij->i', b, b))
+        rho[full] = np.where(norm > 0, (b @ a) / np.where(norm > 0, norm, 1.0), 0.0)
+    for j in np.flatnonzero(~full):
         ok = np.isfinite(samp[j]) & np.isfinite(h)
         if ok.sum() < max(4, 0.8 * s.size):
             continue

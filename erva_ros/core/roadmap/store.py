@@ -1,10 +1,11 @@
-"""The road map: heights and variances on a distance grid, fused over drives, in SQLite.
+"""The road map: heights and variances on a distance grid, fused over drives.
 
-Schema (version :data:`SCHEMA_VERSION`; docs/road.md shows it with the fleet variant)::
+The map lives in an SQLite file or on a PostgreSQL server (:mod:`.location`, the two
+databases: :mod:`.backends`); this module is the same for both.  Schema (version
+:data:`~erva_ros.core.roadmap.backends.SCHEMA_VERSION`; docs/road.md)::
 
     meta(key TEXT PRIMARY KEY, value TEXT NOT NULL)
-        schema_version, route, grid_m, highpass_m, created_utc,
-        residual_sum, residual_count  (the drives' normalised residuals, see below)
+        schema_version, route, grid_m, highpass_m, created_utc
     nodes(i INTEGER PRIMARY KEY,       node i lies at i·grid_m along the route (m)
           info REAL NOT NULL,          Σ 1/v_d over the drives d (1/m²)
           info_height REAL NOT NULL,   Σ h_d/v_d (1/m)
@@ -12,25 +13,29 @@ Schema (version :data:`SCHEMA_VERSION`; docs/road.md shows it with the fleet var
     drives(id INTEGER PRIMARY KEY AUTOINCREMENT, digest TEXT UNIQUE NOT NULL,
            source TEXT, vehicle TEXT, added_utc TEXT, first_node INTEGER,
            last_node INTEGER, offset_m REAL, scale REAL, origin_m REAL,
-           correlation REAL, segments INTEGER, speed_mps REAL)
+           correlation REAL, segments INTEGER, speed_mps REAL,
+           residual_sum REAL, residual_count INTEGER, added_by TEXT)
         a drive's odometry distance s is placed at s + offset_m + scale·(s − origin_m)
 
 Fusion is by inverse variance, node by node: h = info_height / info, var = 1 / info.
 Each drive adds to the two sums, so a new drive updates the map without the old drives
-(incremental), the result does not depend on the order of the drives, and many writers
-can add to one map (the fleet case: the same statements on a database server, docs).
+(incremental), the sums do not depend on the order of the drives, and many writers can
+add to one map at once (:meth:`RoadMap.add_drives`).
 
 Registration.  The first drive defines the map's distance axis.  Every later drive is
 matched to the map before it is fused (:func:`register`): its detail, cut into segments,
 is cross-correlated with the map's within ``search_m``; a line offset + scale·(s − s_0)
 through the segments' offsets corrects its odometry (bias and scale error).  A drive that
-matches nowhere (another route) is refused.
+matches nowhere (another route) is refused.  Registration reads only the drive's section
+of the map (:meth:`DriveItem.span`).
 
 Variance scale.  The estimator's variances are those of the road relative to the car body
 (erva_ros/core/road_estimator.py): right in ratio between drives, not in size.  When a
 drive is added where the map has data, Σ (h_d − h_map)² / (v_d + v_map) over the overlap
-is added to ``residual_sum`` (and the node count to ``residual_count``);
-:attr:`MapProfile.variance_scale` is their ratio, and :meth:`MapProfile.var` is scaled by it.
+is stored with the drive (``residual_sum``, and the node count ``residual_count``; a
+version-1 file kept the totals in meta);
+:attr:`MapProfile.variance_scale` is their ratio over all drives, and :meth:`MapProfile.var`
+is scaled by it.
 """
 
 from dataclasses import dataclass
@@ -39,31 +44,29 @@ import datetime
 import math
 import os
 import sqlite3
-from typing import Dict, List
+import tempfile
+import time
+from typing import Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
 from erva_ros.core.roadmap import MapError
+from erva_ros.core.roadmap.backends import connect, Db, finite_or_none, SCHEMA_VERSION, SqliteDb
 from erva_ros.core.roadmap.drive import GridProfile
+from erva_ros.core.roadmap.location import MapLocation, parse_location
 from erva_ros.core.roadmap.profile import highpass, match
 
-SCHEMA_VERSION = 1
 #: Registration: a segment must correlate at least this well to count, and at least
 #: MIN_MATCHED of the segments must.  Two seeds of the paper road correlate ~0.84 (its
 #: 1.7 Hz sine is the same on every seed); two drives of one route 0.99 and more.
 MIN_CORRELATION = 0.9
 MIN_MATCHED = 0.5
-SCHEMA = """
-CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE TABLE nodes (i INTEGER PRIMARY KEY, info REAL NOT NULL, info_height REAL NOT NULL,
-                    drives INTEGER NOT NULL);
-CREATE TABLE drives (id INTEGER PRIMARY KEY AUTOINCREMENT, digest TEXT UNIQUE NOT NULL,
-                     source TEXT, vehicle TEXT, added_utc TEXT, first_node INTEGER,
-                     last_node INTEGER, offset_m REAL, scale REAL, origin_m REAL,
-                     correlation REAL, segments INTEGER, speed_mps REAL);
-"""
-#: How long a writer waits for another's lock before giving up (s).
-LOCK_TIMEOUT_S = 2.0
+#: How long a writer waits for another's write lock before giving up (s).  The lock is
+#: held for a transaction's sums (ms per drive), not for the registration.
+LOCK_TIMEOUT_S = 10.0
+#: A writer whose section another writer changed since its snapshot starts its add again
+#: (registration without the lock) this many times, then registers under the lock.
+OPTIMISTIC_TRIES = 3
 
 
 @dataclass
@@ -286,58 +289,173 @@ def _utc() -> str:
     return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')
 
 
-class RoadMap:
-    """A map file: open (or create) it, read it as a :class:`MapProfile`, add drives."""
+def _location(location: Union[str, MapLocation]) -> MapLocation:
+    return location if isinstance(location, MapLocation) else parse_location(location)
 
-    def __init__(self, path: str, conn: sqlite3.Connection, meta: Dict[str, str]):
-        self.path = path
-        self._conn = conn
+
+@dataclass(frozen=True)
+class DriveItem:
+    """A drive to add: its profile on the map grid and what the drives table records."""
+
+    profile: GridProfile
+    digest: str
+    source: str = ''
+    vehicle: str = ''
+    route: str = ''              # the drive's route ('' unknown: not checked)
+    speed_mps: float = math.nan
+    search_m: float = 3.0        # registration: odometry error searched, ± m
+
+    def span(self) -> Tuple[int, int]:
+        """Return the nodes registration may read: the drive's ± what it may be moved."""
+        g = self.profile
+        length_m = g.h.size * g.grid_m
+        margin = int(math.ceil((2 * self.search_m + 0.02 * length_m + 20.0) / g.grid_m))
+        return g.first - margin, g.first + g.h.size - 1 + margin
+
+
+class RoadMap:
+    """A map (a file or a server, :mod:`~erva_ros.core.roadmap.location`): read it, add drives.
+
+    Adding is safe with many writers at once (the fleet case, docs/road.md):
+    :meth:`add_drives` registers each drive against a consistent snapshot of its section
+    without holding any lock, then takes the map's write lock, re-registers only if a
+    drive that overlaps the section was added since the snapshot, and adds the sums.  So
+    the result is always that of adding the drives one after another in the order they
+    committed, and the write lock is held for the sums, not for the registration.
+    """
+
+    def __init__(self, db: Db, meta: Dict[str, str]):
+        self.db = db
         self.meta = meta
+
+    @property
+    def location(self) -> MapLocation:
+        return self.db.location
+
+    @property
+    def path(self) -> str:
+        """Return the map's location as it may be shown (a path, or a URI without secret)."""
+        return self.db.name
 
     # -- opening --------------------------------------------------------------------------
     @staticmethod
-    def create(path: str, route: str, grid_m: float, highpass_m: float) -> 'RoadMap':
-        """Create a new, empty map file at ``path`` (refuses an existing file)."""
-        if os.path.exists(path):
-            raise MapError(f'{path}: exists already')
+    def create(location, route: str, grid_m: float, highpass_m: float) -> 'RoadMap':
+        """Create a new, empty map at ``location`` (refuses an existing one)."""
+        loc = _location(location)
         if not (math.isfinite(grid_m) and 0.01 <= grid_m <= 2.0):
             raise MapError(f'grid {grid_m!r} m: allowed [0.01, 2] m')
-        try:
-            conn = sqlite3.connect(path, timeout=LOCK_TIMEOUT_S, isolation_level=None)
-            conn.executescript('BEGIN;' + SCHEMA + 'COMMIT;')
-            meta = {'schema_version': str(SCHEMA_VERSION), 'route': route,
-                    'grid_m': repr(float(grid_m)), 'highpass_m': repr(float(highpass_m)),
-                    'created_utc': _utc(), 'residual_sum': '0.0', 'residual_count': '0'}
-            conn.executemany('INSERT INTO meta VALUES (?, ?)', sorted(meta.items()))
-        except sqlite3.Error as exc:
-            raise MapError(f'{path}: cannot create the map ({exc})') from None
-        return RoadMap(path, conn, meta)
+        meta = {'schema_version': str(SCHEMA_VERSION), 'route': route,
+                'grid_m': repr(float(grid_m)), 'highpass_m': repr(float(highpass_m)),
+                'created_utc': _utc()}
+        if not loc.server:
+            if loc.target != ':memory:' and os.path.exists(loc.target):
+                raise MapError(f'{loc.display}: exists already')
+            db = SqliteDb(loc, LOCK_TIMEOUT_S, create=True)
+            try:
+                db.create_schema(meta)
+            except sqlite3.Error as exc:
+                db.close()
+                raise MapError(f'{loc.display}: cannot create the map ({_why(exc)})') from None
+            return RoadMap(db, meta)
+        road_map, created = RoadMap._open_or_create_server(loc, meta)
+        if not created:
+            road_map.close()
+            raise MapError(f'{loc.display}: exists already')
+        return road_map
 
     @staticmethod
-    def open(path: str) -> 'RoadMap':
-        """Open an existing map; a missing, foreign, corrupt or newer file is a MapError."""
-        if not os.path.isfile(path):
-            raise MapError(f'{path}: no such map file')
+    def _open_or_create_server(loc: MapLocation, meta: Dict[str, str]):
+        db = connect(loc, LOCK_TIMEOUT_S)
         try:
-            conn = sqlite3.connect(f'file:{path}?mode=rw', uri=True, timeout=LOCK_TIMEOUT_S,
-                                   isolation_level=None)
-            rows = conn.execute('SELECT key, value FROM meta').fetchall()
-            conn.execute('SELECT i, info, info_height, drives FROM nodes LIMIT 1').fetchall()
-        except sqlite3.DatabaseError as exc:
-            raise MapError(f'{path}: not a readable road map ({_why(exc)})') from None
+            if db.schema_exists():             # the common case: no lock to open a map
+                db.close()
+                return RoadMap.open(loc), False
+            db.begin_write(LOCK_TIMEOUT_S)     # two creators: one creates, one waits
+            created = not db.schema_exists()
+            if created:
+                db.create_schema(meta)
+            db.commit()
+        except BaseException as exc:
+            db.rollback()
+            db.close()
+            err = db.map_error(exc, 'cannot create the map')
+            if err:
+                raise err from None
+            raise
+        if created:
+            return RoadMap(db, dict(meta)), True
+        db.close()
+        return RoadMap.open(loc), False
+
+    @staticmethod
+    def open_or_create(location, route: str, grid_m: float, highpass_m: float):
+        """Return (the map, created): the map at a server ``location``, created if missing.
+
+        Two vehicles creating one map at once: one creates it, the other waits for the
+        write lock and opens it (SQLite files: :func:`add_to_map`).
+        """
+        loc = _location(location)
+        if not loc.server:
+            raise ValueError('open_or_create is for server maps; files: add_to_map')
+        if not (math.isfinite(grid_m) and 0.01 <= grid_m <= 2.0):
+            raise MapError(f'grid {grid_m!r} m: allowed [0.01, 2] m')
+        meta = {'schema_version': str(SCHEMA_VERSION), 'route': route,
+                'grid_m': repr(float(grid_m)), 'highpass_m': repr(float(highpass_m)),
+                'created_utc': _utc()}
+        return RoadMap._open_or_create_server(loc, meta)
+
+    @staticmethod
+    def exists(location) -> bool:
+        """Return whether a map is at ``location`` (a server must be reachable: else MapError)."""
+        loc = _location(location)
+        if not loc.server:
+            return os.path.exists(loc.target)
+        db = connect(loc, LOCK_TIMEOUT_S)
+        try:
+            return db.schema_exists()
+        finally:
+            db.close()
+
+    @staticmethod
+    def open(location) -> 'RoadMap':
+        """Open an existing map; a missing, foreign, corrupt or newer one is a MapError."""
+        loc = _location(location)
+        name = loc.display
+        if not loc.server and not os.path.isfile(loc.target):
+            raise MapError(f'{name}: no such map file')
+        db = connect(loc, LOCK_TIMEOUT_S)
+        try:
+            if db.kind == 'postgresql' and not db.schema_exists():
+                raise MapError(f'{name}: no road map on this server (erva map build or '
+                               'erva map migrate makes one)')
+            rows = db.execute('SELECT key, value FROM meta')
+            db.execute('SELECT i, info, info_height, drives FROM nodes LIMIT 1')
+        except MapError:
+            db.close()
+            raise
+        except Exception as exc:
+            db.close()
+            if isinstance(exc, sqlite3.DatabaseError):
+                raise MapError(f'{name}: not a readable road map ({_why(exc)})') from None
+            err = db.map_error(exc, 'cannot read the map')
+            if err:
+                raise err from None
+            raise
         meta = dict(rows)
         version = meta.get('schema_version')
-        if version != str(SCHEMA_VERSION):
-            raise MapError(f'{path}: map schema version {version!r}, this erva_ros reads '
-                           f'{SCHEMA_VERSION}')
+        if version not in (str(SCHEMA_VERSION), '1' if db.kind == 'sqlite' else None):
+            db.close()
+            raise MapError(f'{name}: map schema version {version!r}, this erva_ros reads '
+                           f'{SCHEMA_VERSION} (and 1): a newer erva_ros wrote it')
         try:
             float(meta['grid_m']), float(meta['highpass_m'])
         except (KeyError, ValueError):
-            raise MapError(f'{path}: damaged map (meta grid_m / highpass_m)') from None
-        return RoadMap(path, conn, meta)
+            db.close()
+            raise MapError(f'{name}: damaged map (meta grid_m / highpass_m)') from None
+        return RoadMap(db, meta)
 
     def close(self) -> None:
-        self._conn.close()
+        self.db.close()
 
     def __enter__(self) -> 'RoadMap':
         return self
@@ -358,102 +476,277 @@ class RoadMap:
     def highpass_m(self) -> float:
         return float(self.meta['highpass_m'])
 
-    def profile(self) -> MapProfile:
-        """Return the whole map in memory (one read)."""
+    @property
+    def version(self) -> int:
+        return int(self.meta.get('schema_version', SCHEMA_VERSION))
+
+    @contextlib.contextmanager
+    def snapshot(self):
+        """Read the map as one consistent snapshot within the block (nested: the outer one)."""
+        if self.db.in_tx:
+            yield self
+            return
         try:
-            rows = self._conn.execute(
-                'SELECT i, info, info_height, drives FROM nodes ORDER BY i').fetchall()
-            meta = dict(self._conn.execute('SELECT key, value FROM meta').fetchall())
-        except sqlite3.DatabaseError as exc:
-            raise MapError(f'{self.path}: cannot read the map ({_why(exc)})') from None
-        rs, rc = float(meta.get('residual_sum', 0)), int(meta.get('residual_count', 0))
+            self.db.begin_read()
+            yield self
+            self.db.commit()
+        except BaseException as exc:
+            if self.db.in_tx:
+                self.db.rollback()
+            self._raise(exc, 'cannot read the map')
+
+    def _raise(self, exc: BaseException, doing: str):
+        """Re-raise ``exc``, a database error as its one-line MapError."""
+        err = None if isinstance(exc, MapError) else self.db.map_error(exc, doing)
+        if err is not None:
+            raise err from None
+        raise exc
+
+    def profile(self, start_m: Optional[float] = None, end_m: Optional[float] = None
+                ) -> MapProfile:
+        """Return the map in memory, or its section [start_m, end_m] (one snapshot)."""
+        lo = -2 ** 62 if start_m is None else int(math.floor(start_m / self.grid_m))
+        hi = 2 ** 62 if end_m is None else int(math.ceil(end_m / self.grid_m))
+        with self.snapshot():
+            meta = dict(self.db.execute('SELECT key, value FROM meta'))
+            p = self._section(lo, hi)
+            rs, rc = float(meta.get('residual_sum', 0)), int(meta.get('residual_count', 0))
+            if self.version >= 2:
+                s, c = self.db.execute('SELECT SUM(residual_sum), SUM(residual_count) '
+                                       'FROM drives')[0]
+                rs, rc = rs + float(s or 0.0), rc + int(c or 0)
+        p.residual_sum, p.residual_count = rs, rc
+        return p
+
+    def _section(self, lo: int, hi: int) -> MapProfile:
+        """Return nodes lo..hi at the estimator's variance (scale 1), inside a transaction."""
+        rows = self.db.execute('SELECT i, info, info_height, drives FROM nodes '
+                               'WHERE i >= ? AND i <= ? ORDER BY i', (lo, hi))
         if not rows:
             return MapProfile(self.route, self.grid_m, self.highpass_m, 0, np.zeros(0),
-                              np.zeros(0), np.zeros(0, dtype=int), rs, rc)
+                              np.zeros(0), np.zeros(0, dtype=int))
         a = np.array(rows, dtype=float)
-        first, last = int(a[0, 0]), int(a[-1, 0])
+        first, last = int(rows[0][0]), int(rows[-1][0])
         info, ih, dr = np.zeros(last - first + 1), np.zeros(last - first + 1), \
             np.zeros(last - first + 1, dtype=int)
-        idx = a[:, 0].astype(int) - first
+        idx = a[:, 0].astype(np.int64) - first
         info[idx], ih[idx], dr[idx] = a[:, 1], a[:, 2], a[:, 3].astype(int)
-        return MapProfile(self.route, self.grid_m, self.highpass_m, first, info, ih, dr, rs, rc)
+        return MapProfile(self.route, self.grid_m, self.highpass_m, first, info, ih, dr)
 
     def drives(self) -> List[Dict]:
-        cur = self._conn.execute('SELECT * FROM drives ORDER BY id')
-        names = [d[0] for d in cur.description]
-        return [dict(zip(names, row)) for row in cur.fetchall()]
+        with self.snapshot():
+            names, rows = self.db.columns('SELECT * FROM drives ORDER BY id')
+        return [dict(zip(names, row)) for row in rows]
+
+    def has_drive(self, digest: str) -> bool:
+        with self.snapshot():
+            return bool(self.db.execute('SELECT 1 FROM drives WHERE digest = ?', (digest,)))
 
     # -- adding ---------------------------------------------------------------------------
-    @contextlib.contextmanager
-    def transaction(self):
-        """Hold the map's write lock for a block: all of its adds commit, or none.
-
-        The lock is taken first (another writer holds it: MapError after LOCK_TIMEOUT_S),
-        so registration reads the map as it is then and concurrent writers never fuse
-        against a map they did not see.
-        """
-        try:
-            self._conn.execute('BEGIN IMMEDIATE')
-        except sqlite3.OperationalError as exc:
-            raise MapError(f'{self.path}: cannot write the map ({_why(exc)})') from None
-        try:
-            yield self
-            self._conn.execute('COMMIT')
-        except BaseException:
-            self._conn.execute('ROLLBACK')
-            raise
-        finally:
-            self.meta = dict(self._conn.execute('SELECT key, value FROM meta').fetchall())
-
     def add(self, profile: GridProfile, digest: str, source: str = '', vehicle: str = '',
             search_m: float = 3.0, speed_mps: float = math.nan) -> Registration:
         """Register ``profile`` on the map (unless it is the first) and fuse it, atomically."""
-        with self.transaction():
-            return self.add_locked(profile, digest, source, vehicle, search_m, speed_mps)
+        return self.add_drives([DriveItem(profile, digest, source, vehicle, '', speed_mps,
+                                          search_m)])[0]
 
-    def add_locked(self, profile: GridProfile, digest: str, source: str = '', vehicle: str = '',
-                   search_m: float = 3.0, speed_mps: float = math.nan) -> Registration:
-        """Do :meth:`add` inside a :meth:`transaction` the caller holds."""
-        if not self._conn.in_transaction:
-            raise RuntimeError('RoadMap.add_locked needs transaction()')
-        if abs(profile.grid_m - self.grid_m) > 1e-12:
-            raise MapError(f'drive on a {profile.grid_m:g} m grid, the map has {self.grid_m:g} m')
-        if self._conn.execute('SELECT 1 FROM drives WHERE digest = ?', (digest,)).fetchone():
-            raise MapError(f'{source or "drive"}: already in the map {self.path}')
-        current = self.profile()
-        if current.n and current.valid.any():
-            reg = register(profile, current, search_m)
-            placed = profile.shifted(reg.offset_m, reg.scale, reg.origin_m)
-        else:
-            reg, placed = Registration(0.0, 0.0, 0.0, 1.0, 0), profile
-        self._fuse(placed, current)
-        self._conn.execute(
-            'INSERT INTO drives (digest, source, vehicle, added_utc, first_node, last_node, '
-            'offset_m, scale, origin_m, correlation, segments, speed_mps) '
-            'VALUES (?,?,?,?,?,?,?,?,?,?,?,?)',
-            (digest, source, vehicle, _utc(), int(placed.first),
-             int(placed.first + placed.h.size - 1), reg.offset_m, reg.scale, reg.origin_m,
-             reg.correlation, reg.segments, speed_mps))
-        return reg
+    def add_drives(self, items: Sequence[DriveItem], timing: Optional[Dict] = None
+                   ) -> List[Registration]:
+        """Add ``items`` in one transaction (all or none); writers may run at once (class doc).
 
-    def _fuse(self, g: GridProfile, current: MapProfile) -> None:
+        ``timing`` (a dict) gets the stages' wall times in s -- ``read`` (the snapshot),
+        ``register`` (without a lock), ``write`` (waiting for the lock, the sums, the
+        commit), ``again`` (drives registered again under the lock) and ``retries`` (adds
+        started again because another writer changed the section meanwhile).
+        """
+        clock = time.perf_counter
+        times = {'read': 0.0, 'register': 0.0, 'write': 0.0, 'again': 0, 'retries': 0}
+        for it in items:
+            if abs(it.profile.grid_m - self.grid_m) > 1e-12:
+                raise MapError(f'drive on a {it.profile.grid_m:g} m grid, the map has '
+                               f'{self.grid_m:g} m')
+            self._check_route(it)
+        if self.version < SCHEMA_VERSION:
+            try:
+                self.db.upgrade(str(self.version))
+            except Exception as exc:
+                self._raise(exc, 'cannot upgrade the map')
+            self.meta['schema_version'] = str(SCHEMA_VERSION)
+        for attempt in range(OPTIMISTIC_TRIES + 1):
+            t0 = clock()
+            with self.snapshot():                      # 1. what the map is now
+                snap_id = int(self.db.execute('SELECT MAX(id) FROM drives')[0][0] or 0)
+                empty = not self.db.execute('SELECT 1 FROM nodes LIMIT 1')
+                refs = []
+                for it in items:
+                    self._check_new(it)
+                    refs.append(None if empty else self._section(*it.span()))
+            t1 = clock()
+            regs = []                                  # 2. registered without a lock
+            for it, ref in zip(items, refs):
+                try:
+                    regs.append(self._register(it, ref))
+                except MapError:
+                    regs.append(None)                  # again under the lock: it may match then
+            t2 = clock()
+            times['read'] += t1 - t0
+            times['register'] += t2 - t1
+            try:                                       # 3. the sums, under the write lock
+                self.db.begin_write(LOCK_TIMEOUT_S)
+            except Exception as exc:
+                self._raise(exc, 'cannot write the map')
+            try:
+                out = self._add_locked(items, refs, regs, snap_id, empty,
+                                       attempt < OPTIMISTIC_TRIES, times)
+                if out is None:                        # another writer was first: again
+                    self.db.rollback()
+                    times['retries'] += 1
+                    times['write'] += clock() - t2
+                    continue
+                self.db.commit()
+            except BaseException as exc:
+                self.db.rollback()
+                self._raise(exc, 'cannot add to the map')
+            times['write'] += clock() - t2
+            break
+        if timing is not None:
+            timing.update(times)
+        self.meta = dict(self.db.execute('SELECT key, value FROM meta'))
+        return out
+
+    def _add_locked(self, items, refs, regs, snap_id: int, empty: bool, may_retry: bool,
+                    times: Dict) -> Optional[List[Registration]]:
+        """Fuse ``items`` under the write lock; None if a retry is better (add_drives).
+
+        A drive is registered again (here, under the lock) when the map in its section
+        changed since the snapshot: another writer's drive there (then, while
+        ``may_retry``, the whole add starts again without the lock instead), or an
+        earlier drive of this same transaction.
+        """
+        own: List[int] = []
+        out = []
+        for it, ref, reg in zip(items, refs, regs):
+            self._check_new(it)
+            lo, hi = it.span()
+            mine = ' AND id NOT IN (' + ', '.join(map(str, own)) + ')' if own else ''
+            where = '' if empty else ' AND first_node <= ? AND last_node >= ?'
+            others = bool(self.db.execute(f'SELECT 1 FROM drives WHERE id > ?{mine}{where} '
+                                          'LIMIT 1', (snap_id,) + (() if empty else (hi, lo))))
+            if others and may_retry:
+                return None
+            ours = bool(own) and bool(self.db.execute(
+                f'SELECT 1 FROM drives WHERE id IN ({", ".join(map(str, own))}) AND '
+                'first_node <= ? AND last_node >= ? LIMIT 1', (hi, lo)))
+            if others or ours or reg is None or (empty and own):
+                now_empty = not self.db.execute('SELECT 1 FROM nodes LIMIT 1')
+                ref = None if now_empty else self._section(lo, hi)
+                reg = self._register(it, ref)
+                times['again'] += 1
+            own.append(self._fuse(it, reg, ref))
+            out.append(reg)
+        return out
+
+    def drop_if_empty(self) -> bool:
+        """Remove a server map that has no drive (a failed first build); return if removed."""
+        try:
+            self.db.begin_write(LOCK_TIMEOUT_S)
+            gone = not self.db.execute('SELECT 1 FROM drives LIMIT 1')
+            if gone:
+                self.db.drop_schema()
+            self.db.commit()
+            return gone
+        except Exception as exc:
+            self.db.rollback()
+            self._raise(exc, 'cannot remove the empty map')
+
+    def _check_route(self, it: DriveItem) -> None:
+        if it.route and self.route and it.route != self.route:
+            raise MapError(f'{it.source or "drive"}: drive on route {it.route!r}, the map is '
+                           f'of route {self.route!r}')
+
+    def _check_new(self, it: DriveItem) -> None:
+        if self.db.execute('SELECT 1 FROM drives WHERE digest = ?', (it.digest,)):
+            raise MapError(f'{it.source or "drive"}: already in the map {self.path}')
+
+    @staticmethod
+    def _register(it: DriveItem, ref: Optional[MapProfile]) -> Registration:
+        if ref is None:
+            return Registration(0.0, 0.0, 0.0, 1.0, 0)      # the first drive: the axis
+        if not ref.valid.any():
+            raise MapError(f'the drive matches the map nowhere (the map has no data within '
+                           f'{it.search_m:g} m of {it.profile.s[0]:.1f}..'
+                           f'{it.profile.s[-1]:.1f} m): another route, or the map does not '
+                           'cover it')
+        return register(it.profile, ref, it.search_m)
+
+    def _fuse(self, it: DriveItem, reg: Registration, ref: Optional[MapProfile]) -> int:
+        g = it.profile
+        if ref is not None:
+            g = g.shifted(reg.offset_m, reg.scale, reg.origin_m)
         ok = np.isfinite(g.h) & np.isfinite(g.var) & (g.var > 0)
         nodes, h, v = g.nodes[ok], g.h[ok], g.var[ok]
-        if current.n:
-            mh, mv, mok = current.sample(nodes * g.grid_m)
-            mv = mv / current.variance_scale           # back to the estimator's scale
-            both = mok
-            if both.any():
-                r = float(np.sum((h[both] - mh[both]) ** 2 / (v[both] + mv[both])))
-                meta = dict(self._conn.execute('SELECT key, value FROM meta').fetchall())
-                self._conn.executemany('UPDATE meta SET value = ? WHERE key = ?', (
-                    (repr(float(meta['residual_sum']) + r), 'residual_sum'),
-                    (str(int(meta['residual_count']) + int(both.sum())), 'residual_count')))
-        self._conn.executemany(
-            'INSERT INTO nodes (i, info, info_height, drives) VALUES (?, ?, ?, 1) '
-            'ON CONFLICT(i) DO UPDATE SET info = info + excluded.info, '
-            'info_height = info_height + excluded.info_height, drives = drives + 1',
-            [(int(i), float(1.0 / vi), float(hi / vi)) for i, hi, vi in zip(nodes, h, v)])
+        r, count = 0.0, 0
+        if ref is not None and ref.n:
+            mh, mv, mok = ref.sample(nodes * g.grid_m)   # mv: 1/info (scale 1)
+            if mok.any():
+                r = float(np.sum((h[mok] - mh[mok]) ** 2 / (v[mok] + mv[mok])))
+                count = int(mok.sum())
+        row = {'digest': it.digest, 'source': it.source, 'vehicle': it.vehicle,
+               'added_utc': _utc(), 'first_node': int(g.first),
+               'last_node': int(g.first + g.h.size - 1), 'offset_m': reg.offset_m,
+               'scale': reg.scale, 'origin_m': reg.origin_m, 'correlation': reg.correlation,
+               'segments': reg.segments, 'speed_mps': finite_or_none(it.speed_mps),
+               'residual_sum': r, 'residual_count': count}
+        return self.db.add_drive(row, nodes, 1.0 / v, h / v)
+
+
+def add_to_map(location, items: Sequence[DriveItem], route: str, grid_m: float,
+               highpass_m: float) -> Tuple[RoadMap, bool, List[Registration]]:
+    """Add ``items`` to the map at ``location``, created (route, grid, high-pass) if missing.
+
+    Return (the open map, created, registrations).  Race-free: of two builds into a new
+    map, one creates it and the other adds to it.  A new SQLite file is built complete in
+    a temporary file beside it and linked into place only if no other build got there
+    first (then the drives are added to that one); a failed build leaves no file.  A new
+    server map is created under the write lock.
+    """
+    loc = _location(location)
+    if loc.server:
+        road_map, created = RoadMap.open_or_create(loc, route, grid_m, highpass_m)
+        try:
+            return road_map, created, road_map.add_drives(items)
+        except BaseException:
+            if created:
+                road_map.drop_if_empty()
+            road_map.close()
+            raise
+    path = loc.target
+    if path == ':memory:' or os.path.exists(path):
+        road_map = RoadMap.open(loc)
+        try:
+            return road_map, False, road_map.add_drives(items)
+        except BaseException:
+            road_map.close()
+            raise
+    directory = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix='.' + os.path.basename(path) + '.', dir=directory)
+    os.close(fd)
+    os.remove(tmp)
+    try:
+        with RoadMap.create(tmp, route, grid_m, highpass_m) as new:
+            regs = new.add_drives(items)
+        try:
+            os.link(tmp, path)                  # atomic: fails if another build made it
+        except FileExistsError:
+            road_map = RoadMap.open(loc)
+            try:
+                return road_map, False, road_map.add_drives(items)
+            except BaseException:
+                road_map.close()
+                raise
+        return RoadMap.open(loc), True, regs
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
 
 
 def _why(exc: Exception) -> str:
@@ -461,5 +754,5 @@ def _why(exc: Exception) -> str:
     return text[0] if text else type(exc).__name__
 
 
-__all__ = ['SCHEMA', 'SCHEMA_VERSION', 'MIN_CORRELATION', 'MIN_MATCHED', 'MapProfile',
-           'Registration', 'RoadMap', 'register', 'Comparison', 'compare']
+__all__ = ['SCHEMA_VERSION', 'MIN_CORRELATION', 'MIN_MATCHED', 'MapProfile', 'Registration',
+           'RoadMap', 'DriveItem', 'add_to_map', 'register', 'Comparison', 'compare']
