@@ -46,8 +46,10 @@ def child_env(base: Optional[Mapping[str, str]] = None, force_local: bool = Fals
     """Return the environment of a child process (``base``: default os.environ).
 
     Discovery stays on this machine unless the caller set otherwise (``force_local``:
-    always), output is unbuffered, so a log shows what happened up to a crash, and
-    without an AMENT_PREFIX_PATH the packages are looked up in this interpreter's prefix.
+    always), output is unbuffered, so a log shows what happened up to a crash, without
+    an AMENT_PREFIX_PATH the packages are looked up in this interpreter's prefix, and
+    without a Fast DDS profile file of the caller's, writers get config/fastdds_session.xml
+    (a 100 ms heartbeat: a node's final samples are acknowledged at once).
     """
     env = dict(os.environ if base is None else base)
     if force_local:
@@ -56,7 +58,19 @@ def child_env(base: Optional[Mapping[str, str]] = None, force_local: bool = Fals
         env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     env.setdefault('AMENT_PREFIX_PATH', sys.prefix)
     env['PYTHONUNBUFFERED'] = '1'
+    if not any(env.get(k) for k in PROFILE_VARIABLES):
+        env[PROFILE_VARIABLES[0]] = session_profile()
     return env
+
+
+#: Where Fast DDS finds an XML profile file (the name Fast DDS 2.x reads; its newer name).
+PROFILE_VARIABLES = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
+
+
+def session_profile() -> str:
+    """Return config/fastdds_session.xml: a 100 ms writer heartbeat (the file says why)."""
+    from erva_ros.core.config import shipped_config
+    return shipped_config('fastdds_session.xml')
 
 
 def module_argv(module: str, *args: str) -> List[str]:

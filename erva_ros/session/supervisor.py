@@ -11,6 +11,7 @@ SIGKILL after a grace period) and the recorder last, so the bag is finished.
 """
 
 import os
+import shutil
 import signal
 import time
 from typing import Any, Dict, List, Optional
@@ -21,6 +22,7 @@ from erva_ros.core.errors import CLIError
 from erva_ros.session import accounting, hil_summary
 from erva_ros.core.reports import FoxgloveReport, RecorderReport
 from erva_ros.session.accounting import check_recording
+from erva_ros.session.bringup import Timeline
 from erva_ros.session.recording import (PROCESS as RECORDER, RECORDER_PRIORITY_BELOW,
                                         RecorderDrain, start_recorder)
 from erva_ros.session.processes import (ChildProcess, child_env, node_argv, ros_params,
@@ -49,13 +51,10 @@ class Supervisor:
     #: the safe passive command, which is worth seeing.
     HIL_NEEDED = {*HIL_PROCESSES, 'road_preview_node'}
 
-    def __init__(self, cfg: RunConfig, session: Session, recording: bool, log):
-        from erva_ros.ros.context import RosContext
-        from erva_ros.ros.monitor import Monitor
-        from erva_ros.session.observations import Observations
-        from erva_ros.session.start_gate import StartGate
-
+    def __init__(self, cfg: RunConfig, session: Session, recording: bool, log,
+                 timeline: Optional[Timeline] = None):
         self.cfg, self.session, self.recording, self.log = cfg, session, recording, log
+        self.timeline = timeline or Timeline()
         self.procs: Dict[str, ChildProcess] = {}
         self.errors: List[str] = []
         self.dead: set = set()
@@ -73,53 +72,29 @@ class Supervisor:
         self.ended: set = set()     # exited 0 by themselves at the end (the ECU)
         self.scenario_done = False  # every node reported the scenario finished
         self._ecu_done: Optional[float] = None
-        self.ros = RosContext()
-        # The monitor subscribes to the time master's gate topic last (see Monitor): the
-        # time master starts only once that subscription is matched too.
-        gate = (topics.ROAD_PREVIEW,) if session.realtime else (topics.STATE,)
-        self.obs = Observations(session.hil, session.sim_window_ns, cfg.namespace,
-                                session.session_id, ts=session.live['ts'],
-                                n_steps=session.n_steps)
-        self.monitor = self.ros.add(Monitor(self.obs, cfg.namespace, context=self.ros.context,
-                                            gate=gate))
-        self.gate = StartGate(self.monitor, self.obs, cfg.namespace, self.node_names,
-                              session.hil, recording, bool(cfg.foxglove),
-                              [topics.time_master_topics(session.realtime)] * cfg.extra_readers,
-                              road_estimated=session.road_estimated,
-                              prediction=session.live['publish_prediction'])
-        self.drain = RecorderDrain()
         # The managed nodes, in activation order (run_config.ACTIVATION_ORDER).
-        from erva_ros.ros.lifecycle import LifecycleDriver
         self.managed = [n for n in ACTIVATION_ORDER[session.live['mode']]
                         if n in self.node_names]
-        self.lifecycle = LifecycleDriver(self.monitor, self.managed, cfg.namespace)
         self._to_activate: List[str] = []
+        self.drain = RecorderDrain()
+        self.ros = None
 
     def start(self) -> None:
-        """Start the recorder (when recording) and the nodes, slowest first.
+        """Start the Foxglove server and the recorder (when asked) and the nodes, slowest first.
 
-        Unless ``--force``, refuses first (CLIError, exit 2) if another session runs on
-        this domain and namespace: two loops on the same topics merge and each bag holds
-        both.
+        They start at once: whether another session runs here is heard while they start
+        (:meth:`connect`, :class:`~erva_ros.session.start_gate.Contest`), and a session
+        that must not run stops them before any is configured.
         """
-        if not self.cfg.force:
-            from erva_ros.session.start_gate import LOOK_S, other_session
-            others = other_session(self.monitor, self.obs, self.cfg.namespace,
-                                   self.ros.spin_once, self.t_start + LOOK_S)
-            if others:
-                raise CLIError(f'another session runs on ROS_DOMAIN_ID '
-                               f'{os.environ.get("ROS_DOMAIN_ID", "0")} in namespace '
-                               f'{self.cfg.namespace}: {", ".join(others[:6])}; stop it, use '
-                               '--namespace or another ROS_DOMAIN_ID, or --force')
         env = child_env()
         if self.cfg.foxglove:   # first: it listens before the loop runs
             from erva_ros.session import foxglove_process
-            self.procs[foxglove_process.PROCESS] = foxglove_process.start_process(
-                self.cfg, self.session, env, self.log, session_description(self.session))
+            self._spawned(foxglove_process.PROCESS, foxglove_process.start_process(
+                self.cfg, self.session, env, self.log, session_description(self.session)))
         if self.recording:
-            self.procs[RECORDER] = start_recorder(
+            self._spawned(RECORDER, start_recorder(
                 self.session, self.cfg.namespace, self.cfg.record_dir, env, self.log,
-                self.cfg.recorder_overrides)
+                self.cfg.recorder_overrides))
         hil = {}
         if self.session.hil:
             from erva_ros.session.hil_processes import hil_process_specs
@@ -137,9 +112,53 @@ class Supervisor:
                 managed)
             if not self.session.realtime:   # lock-step: the session's own /clock
                 argv += topics.clock_remap(self.cfg.namespace)
-            self.procs[name] = ChildProcess(name, argv, spec.env if spec else env,
-                                            os.path.join(self.session.directory, f'{name}.log'))
+            self._spawned(name, ChildProcess(name, argv, spec.env if spec else env,
+                                             os.path.join(self.session.directory,
+                                                          f'{name}.log')))
+        self.timeline.mark('processes started')
         self.log('started ' + ', '.join(f'{n} (pid {p.pid})' for n, p in self.procs.items()))
+
+    def _spawned(self, name: str, proc: ChildProcess) -> None:
+        self.procs[name] = proc
+        self.timeline.spawn(name)
+
+    def connect(self) -> None:
+        """Join the domain while the nodes start: the monitor, the claim, the lifecycle client."""
+        from erva_ros.ros.context import RosContext
+        from erva_ros.ros.lifecycle import LifecycleDriver
+        from erva_ros.ros.monitor import Monitor
+        from erva_ros.ros.session_claim import ClaimChannel
+        from erva_ros.session.observations import Observations
+        from erva_ros.session.start_gate import Contest, StartGate
+
+        cfg, session = self.cfg, self.session
+        self.ros = RosContext()
+        # The monitor subscribes to the time master's gate topic last (see Monitor): the
+        # time master starts only once that subscription is matched too.
+        gate = (topics.ROAD_PREVIEW,) if session.realtime else (topics.STATE,)
+        self.obs = Observations(session.hil, session.sim_window_ns, cfg.namespace,
+                                session.session_id, ts=session.live['ts'],
+                                n_steps=session.n_steps)
+        self.monitor = self.ros.add(Monitor(self.obs, cfg.namespace, context=self.ros.context,
+                                            gate=gate))
+        self.contest = Contest(session.session_id, cfg.namespace, force=cfg.force)
+        self.claims = ClaimChannel(self.monitor, cfg.namespace, self.contest.hear)
+        self.claims.publish(self.contest.claim())
+        self.gate = StartGate(self.monitor, self.obs, cfg.namespace, self.node_names,
+                              session.hil, recording=self.recording,
+                              foxglove=bool(cfg.foxglove),
+                              extra_readers=[topics.time_master_topics(session.realtime)]
+                              * cfg.extra_readers,
+                              road_estimated=session.road_estimated,
+                              prediction=session.live['publish_prediction'])
+        self.lifecycle = LifecycleDriver(self.monitor, self.managed, cfg.namespace)
+        self.phase = 'looking'
+        self.timeline.mark('joined the domain (rclpy, monitor, claim)')
+
+    def own_node_names(self) -> List[str]:
+        """Return the ROS node names of this session's processes."""
+        names = {RECORDER: 'recorder'}
+        return [names.get(n, n) for n in self.procs]
 
     def observe_at_priority(self) -> None:
         """Run this process (the monitor's DDS threads) at the recorder's priority.
@@ -156,8 +175,10 @@ class Supervisor:
                 max(1, loop - RECORDER_PRIORITY_BELOW), lambda line: None)
 
     def supervise(self) -> None:
-        """Bring up, connect, run and drain, until the scenario ends, a node dies or a signal."""
-        self.phase = 'configuring'
+        """Look, bring up, connect, run, drain: until the scenario ends, a node dies or a signal.
+
+        Raises CLIError (exit 2) if another session runs here (:meth:`_look`).
+        """
         last_progress, last_states, finish_seen, finish_ns = time.monotonic(), 0, 0.0, 0
         while True:
             self.ros.spin_once(0.02)
@@ -165,10 +186,15 @@ class Supervisor:
                 self.errors.append(f'interrupted by {signal.Signals(self.caught[0]).name} '
                                    f'while {self.phase}')
                 return
+            if self.phase == 'looking':
+                self._look()        # before deaths: a refused start is said as such
             if self._check_deaths():
                 return
             now = time.monotonic()
-            if self.phase in ('configuring', 'activating'):
+            if self.phase == 'looking':
+                if self._startup_late(now, 'the nodes\' first statuses'):
+                    return
+            elif self.phase in ('configuring', 'activating'):
                 if self._bring_up(now):
                     return
             elif self.phase == 'connecting':
@@ -178,11 +204,14 @@ class Supervisor:
                     last_progress = now   # the no-progress limit starts when connected
             elif self.phase == 'running':
                 states = self.obs.received[topics.STATE]
+                if states and not last_states:
+                    self.timeline.mark('first sample')
                 if states != last_states:
                     last_states, last_progress = states, now
                 if self._finished(now):
                     self.phase, finish_seen, finish_ns = 'draining', now, time.time_ns()
                     self.scenario_done = True
+                    self.timeline.mark('scenario finished')
                     continue
                 limit = 10.0 + (5.0 if last_states == 0 else 0.0)
                 if now - last_progress > limit + self.session.live['start_delay_s']:
@@ -190,7 +219,53 @@ class Supervisor:
                                        f'({last_states} states received)')
                     return
             elif self._drained(now - finish_seen, finish_ns):
+                self.timeline.mark('drained (final counts in)')
                 return   # drained: the final diagnostics and messages in flight arrived
+
+    def _look(self) -> None:
+        """While the nodes start: refuse if another session beats this one; commit once alone.
+
+        Raises CLIError (exit 2) naming the other session
+        (:class:`~erva_ros.session.start_gate.Contest`).  Commits -- renews the claim as
+        bringing up, and moves on to configuring -- once every managed node reported
+        with this session's id, its lifecycle services are there, and no node or claim
+        of a beaten session is left in the graph.
+        """
+        if not self.cfg.force:
+            winners = self.contest.winners(self.obs.other_sessions)
+            if winners:
+                raise CLIError(f'another session runs on ROS_DOMAIN_ID '
+                               f'{os.environ.get("ROS_DOMAIN_ID", "0")} in namespace '
+                               f'{self.cfg.namespace}: {", ".join(winners[:6])}; stop it, use '
+                               '--namespace or another ROS_DOMAIN_ID, or --force')
+        if any(self.obs.report(n) is None for n in self.managed):
+            return
+        self.timeline.mark('nodes up (first statuses)')
+        if not self.lifecycle.ready():
+            return
+        if self._others_here():
+            return
+        self.claims.publish(self.contest.commit())
+        self.timeline.mark('alone on the namespace (committed)')
+        self.phase = 'configuring'
+
+    def _others_here(self) -> List[str]:
+        """Return the nodes and claims of other sessions in the graph now ([] with --force).
+
+        Raises CLIError if there are nodes of this session's names that no session
+        claims (started by hand, or a --force session's): they would take this
+        session's lifecycle requests.
+        """
+        if self.cfg.force:
+            return []
+        from erva_ros.session.start_gate import extra_nodes
+        extra = extra_nodes(self.monitor.get_node_names_and_namespaces(), self.cfg.namespace,
+                            self.own_node_names())
+        claims = self.claims.others()
+        if extra and not claims and self.phase != 'looking':
+            raise CLIError(f'another program runs nodes in namespace {self.cfg.namespace}: '
+                           f'two of {", ".join(extra)}; the run was not started')
+        return extra + ([f'{claims} other session(s) leaving'] if claims else [])
 
     def _bring_up(self, now: float) -> bool:
         """Configure every managed node, then activate them in order; True: it failed.
@@ -207,6 +282,9 @@ class Supervisor:
                 return True
         if lc.pending():
             return self._startup_late(now, f'{self.phase} {", ".join(lc.pending())}')
+        others = self._others_here()
+        if others:     # a session that leaves: its nodes would take the requests too
+            return self._startup_late(now, 'another session to leave: ' + ', '.join(others))
         if self.phase == 'configuring':
             if not lc.ready():
                 return self._startup_late(now, 'the nodes\' lifecycle services')
@@ -216,11 +294,13 @@ class Supervisor:
                     lc.request(name, 'configure')
                 return False
             self.phase = 'activating'
-            self.log(f'configured {", ".join(self.managed)} in {now - self.t_start:.1f} s; '
+            self.timeline.mark('configured')
+            self.log(f'configured {", ".join(self.managed)} at {self.timeline.now():.1f} s; '
                      f'activating them in this order')
         if self._to_activate:
             lc.request(self._to_activate.pop(0), 'activate')
             return False
+        self.timeline.mark('activated')
         self.phase = 'connecting'
         return False
 
@@ -234,14 +314,10 @@ class Supervisor:
 
     def _connecting(self, now: float) -> bool:
         """One look at the start gate; return True if the run must stop (it never opened)."""
-        twins = self.gate.twins()
-        if twins:   # another session started here too: neither loop may start
-            self.errors.append(f'another session runs in namespace {self.cfg.namespace}: '
-                               f'two of {", ".join(twins)}; the run was not started')
-            return True
         if self.gate.open():
             self.phase = 'running'
-            self.log(f'connected in {now - self.t_start:.1f} s; running '
+            t = self.timeline.mark('running (every writer matched its readers)')
+            self.log(f'connected in {t:.1f} s; running '
                      f'{self.session.live["duration_s"]:g} s ({self.session.live["mode"]})')
         elif now - self.t_start > 10.0 and not getattr(self, '_told_waiting', False):
             self._told_waiting = True     # say once what a slow start waits for
@@ -309,17 +385,22 @@ class Supervisor:
     def stop(self) -> None:
         """Stop the nodes, then the recorder (so it records to the end), then the monitor."""
         ecu = self.procs.get(hil_summary.ECU)
-        if ecu is not None and hil_summary.ECU in self.obs.finished_rx:
+        if ecu is not None and self.ros is not None and hil_summary.ECU in self.obs.finished_rx:
             ecu.wait(STOP_GRACE_S)   # it ends by itself after its last status: let it
             if ecu.poll() == 0:      # print its summary
                 self.ended.add(hil_summary.ECU)
         stop_processes([p for n, p in self.procs.items() if n not in LAST])
+        self.timeline.mark('nodes stopped')
         # Each node published its final status (its final counts) before it exited: take
         # them, so the summary and the bag check count what was really published.
-        self._take_pending()
+        if self.ros is not None:
+            self._take_pending()
+            self.timeline.mark('final statuses taken')
         if any(n in self.procs for n in LAST):
             stop_processes([self.procs[n] for n in LAST if n in self.procs], grace_s=10.0)
-        self.ros.close()
+            self.timeline.mark('recorder stopped (bag finished)')
+        if self.ros is not None:
+            self.ros.close()
 
     def _take_pending(self, quiet_s: float = 0.2, limit_s: float = 3.0) -> None:
         """Spin the monitor until no loop node's message came for ``quiet_s`` (<= ``limit_s``).
@@ -358,6 +439,7 @@ class Supervisor:
         if RECORDER in self.procs:
             summary['bag'] = self.procs[RECORDER].bag_dir
             summary['recording'] = self._check_recording()
+            self.timeline.mark('bag read back and checked')
         if 'foxglove_server' in self.procs:
             from erva_ros.session import foxglove_process
             summary['foxglove'] = foxglove_process.summary(self.obs.reports)
@@ -384,7 +466,22 @@ class Supervisor:
             'wall_time_s': round(time.monotonic() - self.t_start, 3),
             'session_dir': s.directory,
         })
+        self.timeline.mark('summary')
+        summary['timing'] = self.timeline.as_dict(self.process_reports())
         return summary
+
+    def process_reports(self) -> Dict[str, Any]:
+        """Return the newest report of each started process, by its process name."""
+        out = {name: self.obs.report(name) for name in self.procs}
+        if RECORDER in self.procs:
+            out[RECORDER] = accounting.recorder_report(self.obs.reports)
+        return {name: r for name, r in out.items() if r is not None}
+
+    def discard_bag(self) -> None:
+        """Remove the bag of a session that was refused (its recorder stopped)."""
+        rec = self.procs.get(RECORDER)
+        if rec is not None:
+            shutil.rmtree(rec.bag_dir, ignore_errors=True)
 
     def _mark_bag_end(self, bag_dir: str) -> None:
         """Record in the bag whether the session ran to its end (else why not)."""
