@@ -11,11 +11,11 @@ import time
 from conftest import REPO, ros_env
 
 
-def start_run(*args):
-    """Start ``erva run ARGS`` in its own session, stdout and stderr piped."""
+def start_run(*args, env=None):
+    """Start ``erva run ARGS`` in its own session, stdout and stderr piped (``env``: added)."""
     return subprocess.Popen([sys.executable, '-m', 'erva_ros.cli', 'run', *map(str, args)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=ros_env(), cwd=REPO, start_new_session=True)
+                            env=ros_env(env), cwd=REPO, start_new_session=True)
 
 
 def wait_connected(proc, timeout=120.0, lines=None):

@@ -464,6 +464,7 @@ class SessionClaim(NodeReport):
     pid: int = 0
     committed: bool = False
     force: bool = False
+    nodes: str = ''           # the session's node names, comma-separated
 
 
 #: Every report type by its KIND.

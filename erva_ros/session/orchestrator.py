@@ -5,8 +5,9 @@
 1. validates every value in-process first and writes the session's params file
    (:func:`erva_ros.session.session_file.prepare_session`), so a bad option fails with
    one line before any process starts;
-2. compiles what the nodes will load and the cache lacks, one line per part
-   (:mod:`erva_ros.session.warmup`): no node's start-up timeout is spent compiling;
+2. starts the processes below at once, and while they start compiles what the nodes
+   will load and the cache lacks, one line per part (:mod:`erva_ros.session.warmup`):
+   no node is configured before, so no node's start-up timeout is spent compiling;
 3. starts an in-process monitor node (:class:`~erva_ros.ros.monitor.Monitor`), the
    recorder (when recording, :mod:`erva_ros.session.recording`), nmpc_node,
    plant_sim_node and road_preview_node, each as ``python -m erva_ros.nodes.<name>
@@ -77,9 +78,6 @@ def run_session(cfg: RunConfig, log: Callable[[str], None] = lambda s: None,
     session = prepare_session(cfg, recording)
     timeline.mark('options checked, session params file written')
     try:
-        # Before any node starts: no start-up timeout is spent compiling.
-        warm_session(session, log)
-        timeline.mark('compiled functions found in the cache')
         sup = _supervise(cfg, session, recording, log, timeline)
     except (CLIError, ParamError):
         if cfg.session_dir is None:     # refused: nothing to keep
@@ -116,6 +114,12 @@ def _supervise(cfg: RunConfig, session: Session, recording: bool,
     refused = False
     try:
         sup.start()
+        # While the nodes start (imports), not before: none is configured -- none loads
+        # a compiled function -- until this is done, so no node's start-up timeout is
+        # spent compiling, and on a warm cache it costs no wall time.
+        warm_session(session, log)
+        timeline.mark('compiled functions found in the cache')
+        sup.start_rest()
         sup.connect()
         sup.observe_at_priority()
         sup.supervise()

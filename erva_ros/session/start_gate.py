@@ -126,10 +126,11 @@ class Contest:
     """
 
     def __init__(self, session_id: str, namespace: str, force: bool = False,
-                 clock: Callable[[], int] = time.time_ns):
+                 nodes: Sequence[str] = (), clock: Callable[[], int] = time.time_ns):
         ns = namespace.rstrip('/')
         self.own = SessionClaim(node=f'{ns}/{topics.MONITOR_NODE}', session=session_id,
-                                claimed_ns=clock(), pid=os.getpid(), force=force)
+                                claimed_ns=clock(), pid=os.getpid(), force=force,
+                                nodes=','.join(nodes))
         self._clock = clock
         #: The newest claim of every other session heard, by session id.
         self.heard: Dict[str, SessionClaim] = {}
@@ -163,6 +164,11 @@ class Contest:
         return (not session_id or session_id < self.own.session
                 or (claim is not None and (claim.committed or claim.force)))
 
+    def yielded(self) -> List[str]:
+        """Return the ids of sessions heard that stood down for this one (never committed)."""
+        return sorted(sid for sid, c in self.heard.items()
+                      if sid > self.own.session and not (c.committed or c.force))
+
     def winners(self, statuses: Mapping[str, str]) -> List[str]:
         """Return who beats this session: nodes (name -> session id heard) and claims."""
         ns = self.own.node.rsplit('/', 1)[0]
@@ -170,6 +176,7 @@ class Contest:
                for name, sid in sorted(statuses.items()) if self.beats(sid)]
         named = set(statuses.values())
         out += [f'session {sid} (pid {c.pid}{", running" if c.committed else ""})'
+                + ''.join(f' {ns}/{n}' for n in c.nodes.split(',') if n)
                 for sid, c in sorted(self.heard.items())
                 if sid not in named and self.beats(sid)]
         return out

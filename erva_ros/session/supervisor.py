@@ -40,6 +40,9 @@ HIL_DRAIN_S = 1.5
 SIGNAL_EXIT = {signal.SIGINT: 130, signal.SIGTERM: 143}
 #: Processes stopped after the loop's nodes: they take what the nodes published.
 LAST = (RECORDER, 'foxglove_server')
+#: Processes that load their compiled functions as they start, not when configured:
+#: started once the session has compiled what the cache lacked (the others before).
+COMPILE_AT_START = (hil_summary.ECU,)
 
 
 class Supervisor:
@@ -104,8 +107,12 @@ class Supervisor:
                 model=live['model'], ts=live['ts'], env=env, stamp_on_road_grid=True,
                 realtime_priority=live['realtime_priority'], prefix=self.cfg.ecu_prefix,
                 can_log=self.cfg.can_log)}
+        self._later = []
         for name in self.node_names:
             spec = hil.get(name)
+            if name in COMPILE_AT_START:     # after the session's compile (start_rest)
+                self._later.append((name, spec))
+                continue
             managed = {'autostart': False} if name in self.managed else None
             argv = spec.argv + ros_params(managed) if spec else node_argv(
                 name, self.cfg.namespace, [self.session.params_file],
@@ -115,6 +122,12 @@ class Supervisor:
             self._spawned(name, ChildProcess(name, argv, spec.env if spec else env,
                                              os.path.join(self.session.directory,
                                                           f'{name}.log')))
+
+    def start_rest(self) -> None:
+        """Start the processes that build their compiled functions at once (the ECU)."""
+        for name, spec in self._later:
+            self._spawned(name, ChildProcess(name, spec.argv, spec.env, os.path.join(
+                self.session.directory, f'{name}.log')))
         self.timeline.mark('processes started')
         self.log('started ' + ', '.join(f'{n} (pid {p.pid})' for n, p in self.procs.items()))
 
@@ -132,6 +145,7 @@ class Supervisor:
         from erva_ros.session.start_gate import Contest, StartGate
 
         cfg, session = self.cfg, self.session
+        self.t_start = time.monotonic()     # the start-up timeout: from here (compiled)
         self.ros = RosContext()
         # The monitor subscribes to the time master's gate topic last (see Monitor): the
         # time master starts only once that subscription is matched too.
@@ -141,7 +155,8 @@ class Supervisor:
                                 n_steps=session.n_steps)
         self.monitor = self.ros.add(Monitor(self.obs, cfg.namespace, context=self.ros.context,
                                             gate=gate))
-        self.contest = Contest(session.session_id, cfg.namespace, force=cfg.force)
+        self.contest = Contest(session.session_id, cfg.namespace, force=cfg.force,
+                               nodes=self.own_node_names())
         self.claims = ClaimChannel(self.monitor, cfg.namespace, self.contest.hear)
         self.claims.publish(self.contest.claim())
         self.gate = StartGate(self.monitor, self.obs, cfg.namespace, self.node_names,
@@ -238,7 +253,8 @@ class Supervisor:
                                f'{os.environ.get("ROS_DOMAIN_ID", "0")} in namespace '
                                f'{self.cfg.namespace}: {", ".join(winners[:6])}; stop it, use '
                                '--namespace or another ROS_DOMAIN_ID, or --force')
-        if any(self.obs.report(n) is None for n in self.managed):
+        reported = {name.split(':', 1)[0] for name in self.obs.reports}  # (bridge: 3 reports)
+        if not reported.issuperset(self.managed):
             return
         self.timeline.mark('nodes up (first statuses)')
         if not self.lifecycle.ready():
@@ -472,7 +488,9 @@ class Supervisor:
 
     def process_reports(self) -> Dict[str, Any]:
         """Return the newest report of each started process, by its process name."""
-        out = {name: self.obs.report(name) for name in self.procs}
+        out = {name: self.obs.report(name) or next(
+            (r for key, r in sorted(self.obs.reports.items())
+             if key.split(':', 1)[0] == name), None) for name in self.procs}
         if RECORDER in self.procs:
             out[RECORDER] = accounting.recorder_report(self.obs.reports)
         return {name: r for name, r in out.items() if r is not None}
@@ -490,7 +508,8 @@ class Supervisor:
             '' if self.scenario_done else f'stopped while {self.phase}')
         try:
             mark_session_end(bag_dir, completed=self.scenario_done and not self.errors,
-                             reason=why)
+                             reason=why, loop_start_ns=self.obs.first_sample_ns,
+                             yielded=self.contest.yielded())
         except (BagError, OSError) as exc:   # no metadata.yaml: the recorder failed
             self.log(f'could not record the session\'s end in {bag_dir}: {exc}')
 

@@ -1,8 +1,9 @@
 """Is a bag one whole session, and only its own?  The checks behind `erva bag info`'s warnings.
 
 * **The end.**  `erva run` writes how its session ended into the bag's metadata.yaml
-  (custom_data ``erva_session_end``: completed or not, and why) once the recorder has
-  finished the file (:func:`mark_session_end`).  A bag of `erva run` without that record
+  (custom_data ``erva_session_end``: completed or not, and why; ``erva_loop_start``: the
+  stamp of the loop's first sample) once the recorder has finished the file
+  (:func:`mark_session_end`).  A bag of `erva run` without that record
   was cut short: the supervisor was killed before it could say.  A repaired bag says so
   (``erva_repaired``, :mod:`erva_ros.core.bag.repair`).
 * **Only its own.**  A bag records a session's namespace, and ``/diagnostics``, which every
@@ -14,7 +15,7 @@
 """
 
 import json
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Sequence
 
 from erva_ros.core import contract, topics
 from erva_ros.core.bag.metadata import read_metadata, write_metadata
@@ -24,19 +25,53 @@ from erva_ros.core.wire import header_stamp_ns
 #: custom_data keys of metadata.yaml.
 END_KEY = 'erva_session_end'
 REPAIRED_KEY = 'erva_repaired'
+LOOP_KEY = 'erva_loop_start'
 #: Data topics whose stamps a session publishes once each.
 ONCE_PER_STAMP = (topics.STATE, topics.SPRUNG_ACCEL, topics.GENERATOR, topics.ROAD_HEIGHT,
                   topics.ROAD_PREVIEW)
 
 
-def mark_session_end(bag_dir: str, completed: bool, reason: str = '') -> None:
-    """Record in ``bag_dir``'s metadata.yaml how the session ended (``completed`` or why not)."""
+def mark_session_end(bag_dir: str, completed: bool, reason: str = '',
+                     loop_start_ns: Optional[int] = None, yielded: Sequence[str] = ()) -> None:
+    """Record in ``bag_dir``'s metadata.yaml how the session ended (``completed`` or why not).
+
+    ``loop_start_ns``: the stamp of the loop's first sample (t_0 of sample 0, as the
+    session's monitor took it), for ``erva bag play --start-offset loop``;
+    ``yielded``: ids of sessions that started on the namespace too and stood down before
+    any of their nodes was configured (their nodes' statuses are in the bag; no
+    warning for them).
+    """
     meta = read_metadata(bag_dir)
     custom = dict(meta.get('custom_data') or {})
-    custom[END_KEY] = json.dumps({'completed': bool(completed), 'reason': reason},
-                                 sort_keys=True)
+    end = {'completed': bool(completed), 'reason': reason}
+    if yielded:
+        end['yielded'] = sorted(yielded)
+    custom[END_KEY] = json.dumps(end, sort_keys=True)
+    if loop_start_ns is not None:
+        custom[LOOP_KEY] = str(int(loop_start_ns))
     meta['custom_data'] = custom
     write_metadata(bag_dir, meta)
+
+
+def loop_start_ns(bag) -> Optional[int]:
+    """Return the stamp (ns) of the loop's first sample, None if the bag has no mark."""
+    text = ((bag.metadata_yaml or {}).get('custom_data') or {}).get(LOOP_KEY)
+    try:
+        return int(text) if text else None
+    except ValueError:
+        return None
+
+
+def loop_offset_s(bag) -> Optional[float]:
+    """Return how far (s) into the bag the loop's first sample is (None: no mark).
+
+    The offset of ``--start-offset`` (from the bag's first message, as ros2 bag play):
+    playing from it starts with sample 0, the bring-up before it left out.
+    """
+    t0 = loop_start_ns(bag)
+    if t0 is None or bag.start_ns is None:
+        return None
+    return max(0.0, (t0 - bag.start_ns) * 1e-9)
 
 
 def session_end(bag) -> Optional[Dict]:
@@ -57,8 +92,9 @@ def session_warnings(bag) -> List[str]:
     if custom.get(REPAIRED_KEY):
         out.append(f'repaired: {custom[REPAIRED_KEY]}; the session may end early')
     own_id = bag.session.get('session_id', '')
+    end = session_end(bag)
+    yielded = set((end or {}).get('yielded') or ())
     if own_id:                      # recorded by `erva run`
-        end = session_end(bag)
         if end is None:
             out.append('the session was cut short: no end record (erva run was killed '
                        'before it finished the bag)')
@@ -75,7 +111,7 @@ def session_warnings(bag) -> List[str]:
                 for status in contract.decode_diagnostics(m.data)[1]:
                     if status.name.startswith(namespace + '/'):
                         sid = report_from_status(status).session
-                        if own_id and sid and sid != own_id:
+                        if own_id and sid and sid != own_id and sid not in yielded:
                             others.setdefault(sid, set()).add(status.name)
                 continue
             stamp = header_stamp_ns(m.data)
@@ -103,4 +139,5 @@ def _namespace(bag) -> str:
     return topics.NAMESPACE
 
 
-__all__ = ['END_KEY', 'REPAIRED_KEY', 'mark_session_end', 'session_end', 'session_warnings']
+__all__ = ['END_KEY', 'REPAIRED_KEY', 'LOOP_KEY', 'mark_session_end', 'loop_start_ns',
+           'loop_offset_s', 'session_end', 'session_warnings']
