@@ -164,10 +164,18 @@ class Contest:
         return (not session_id or session_id < self.own.session
                 or (claim is not None and (claim.committed or claim.force)))
 
-    def yielded(self) -> List[str]:
-        """Return the ids of sessions heard that stood down for this one (never committed)."""
-        return sorted(sid for sid, c in self.heard.items()
-                      if sid > self.own.session and not (c.committed or c.force))
+    def yielded(self, statuses: Mapping[str, str] = ()) -> List[str]:
+        """Return the ids of the sessions that stood down for this one.
+
+        Those that started later, heard by their claims or by their nodes' statuses
+        (``statuses``: node name -> session id; a session may stand down before its
+        claim reaches this one), and that did not claim to bring nodes up or --force.
+        """
+        ids = set(self.heard) | set(dict(statuses).values())
+        unheard = SessionClaim()
+        return sorted(sid for sid in ids if sid > self.own.session
+                      and not (self.heard.get(sid, unheard).committed
+                               or self.heard.get(sid, unheard).force))
 
     def winners(self, statuses: Mapping[str, str]) -> List[str]:
         """Return who beats this session: nodes (name -> session id heard) and claims."""

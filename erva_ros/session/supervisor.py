@@ -509,7 +509,7 @@ class Supervisor:
         try:
             mark_session_end(bag_dir, completed=self.scenario_done and not self.errors,
                              reason=why, loop_start_ns=self.obs.first_sample_ns,
-                             yielded=self.contest.yielded())
+                             yielded=self.contest.yielded(self.obs.other_sessions))
         except (BagError, OSError) as exc:   # no metadata.yaml: the recorder failed
             self.log(f'could not record the session\'s end in {bag_dir}: {exc}')
 
