@@ -122,13 +122,15 @@ class Supervisor:
             self._spawned(name, ChildProcess(name, argv, spec.env if spec else env,
                                              os.path.join(self.session.directory,
                                                           f'{name}.log')))
+        self.timeline.mark('processes started')
 
     def start_rest(self) -> None:
         """Start the processes that build their compiled functions at once (the ECU)."""
         for name, spec in self._later:
             self._spawned(name, ChildProcess(name, spec.argv, spec.env, os.path.join(
                 self.session.directory, f'{name}.log')))
-        self.timeline.mark('processes started')
+        if self._later:
+            self.timeline.mark('ECU simulator started')
         self.log('started ' + ', '.join(f'{n} (pid {p.pid})' for n, p in self.procs.items()))
 
     def _spawned(self, name: str, proc: ChildProcess) -> None:
@@ -419,21 +421,40 @@ class Supervisor:
             self.ros.close()
 
     def _take_pending(self, quiet_s: float = 0.2, limit_s: float = 3.0) -> None:
-        """Spin the monitor until no loop node's message came for ``quiet_s`` (<= ``limit_s``).
+        """Spin the monitor until it took every stopped node's final status and all queued.
 
-        (The recorder and the Foxglove server, still running, keep reporting: not counted.)
+        Without a final status from each (a node died), until no loop node's message came
+        for ``quiet_s``; at most ``limit_s``.  (The recorder and the Foxglove server,
+        still running, keep reporting: not counted.)
         """
         def loop_arrivals():
             data = sum(n for t, n in self.obs.received.items() if t != topics.DIAGNOSTICS)
             return data, tuple(self.obs.report_rx[n] for n, r in self.obs.reports.items()
                                if not isinstance(r, (RecorderReport, FoxgloveReport)))
+        stopped = [n for n in self.procs if n not in LAST]
         end = time.monotonic() + limit_s
         last, quiet_since = None, time.monotonic()
         while time.monotonic() < end and time.monotonic() - quiet_since < quiet_s:
             self.ros.spin_once(0.02)
+            if self._all_final(stopped):
+                # Each node exited once its readers acknowledged everything: what is
+                # left is in the monitor's queues, taken by spins that wait for nothing.
+                idle = 0
+                while idle < 5 and time.monotonic() < end:
+                    before = loop_arrivals()
+                    self.ros.spin_once(0.0)
+                    idle = idle + 1 if loop_arrivals() == before else 0
+                break
             now = loop_arrivals()
             if now != last:
                 last, quiet_since = now, time.monotonic()
+
+    def _all_final(self, names) -> bool:
+        """Return True once every report of the processes ``names`` is a final one."""
+        reports = [r for key, r in self.obs.reports.items()
+                   if key.split(':', 1)[0] in names]
+        return bool(reports) and all(r.final for r in reports) and {
+            key.split(':', 1)[0] for key in self.obs.reports}.issuperset(names)
 
     def summary(self) -> Dict[str, Any]:
         """Return the run's summary: the monitor's figures plus scenario, nodes and errors."""
