@@ -98,7 +98,8 @@ class NodeReport:
     published: Dict[str, int] = keyed('published:')
     subscribers: Dict[str, int] = keyed('subscribers:')
     #: When each bring-up stage of the node's process ended, s since the process started
-    #: (imported, initialised, constructed, configured, activated: `erva run --timing`).
+    #: (imported, initialised, constructed, configuring, configured, activated: `erva run
+    #: --timing`).
     startup: Dict[str, float] = keyed('startup:', float)
 
     #: Fields that are the status itself, not key/values.

@@ -229,6 +229,7 @@ class LoopNode(LifecycleNode):
     # -- lifecycle ---------------------------------------------------------------------
     def on_configure(self, state) -> TransitionCallbackReturn:
         """Build the node's core, publishers, subscriptions and timers (:meth:`configure`)."""
+        self.report.startup.setdefault('configuring', process_age_s())
         try:
             self.configure()
         except ParamError as exc:       # one line; the node stays unconfigured

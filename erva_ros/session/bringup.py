@@ -4,7 +4,7 @@
 the `erva` process started (:func:`erva_ros.core.startup.process_age_s`: the
 interpreter's start and the imports count too); :func:`node_stages` adds what each node
 process reports of its own bring-up (``NodeReport.startup``: imported, initialised,
-constructed, configured, activated, in seconds since *its* process started, which
+constructed, configuring, configured, activated, in seconds since *its* process started, which
 `erva run` started at a known instant).  A benchmark, never a test's assertion
 (docs/live.md, "Bring-up").
 """
@@ -16,8 +16,8 @@ from erva_ros.core.startup import process_start_monotonic
 
 #: A node's stages as it reports them, in order, with the label printed for each.
 NODE_STAGES = (('imported', 'python + imports'), ('initialised', 'rclpy init'),
-               ('constructed', 'node + parameters'), ('configured', 'configure'),
-               ('activated', 'activate'))
+               ('constructed', 'node + parameters'), ('configuring', 'asked to configure'),
+               ('configured', 'configure'), ('activated', 'activate'))
 
 
 class Timeline:

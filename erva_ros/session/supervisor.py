@@ -26,7 +26,7 @@ from erva_ros.session.bringup import Timeline
 from erva_ros.session.recording import (PROCESS as RECORDER, RECORDER_PRIORITY_BELOW,
                                         RecorderDrain, start_recorder)
 from erva_ros.session.processes import (ChildProcess, child_env, node_argv, ros_params,
-                                        STOP_GRACE_S, stop_processes)
+                                        STOP_GRACE_S, stop_processes, use_session_profile)
 from erva_ros.session.run_config import (ACTIVATION_ORDER, HIL_NODES, HIL_PROCESSES, NODES,
                                          RunConfig)
 from erva_ros.session.session_file import Session, session_description
@@ -148,6 +148,7 @@ class Supervisor:
 
         cfg, session = self.cfg, self.session
         self.t_start = time.monotonic()     # the start-up timeout: from here (compiled)
+        use_session_profile(os.environ)     # as its nodes: heard, and hearing, at once
         self.ros = RosContext()
         # The monitor subscribes to the time master's gate topic last (see Monitor): the
         # time master starts only once that subscription is matched too.
