@@ -73,11 +73,11 @@ def run_session(cfg: RunConfig, log: Callable[[str], None] = lambda s: None,
     recording = cfg.record_dir is not None and recorder_available()
     if cfg.record_dir is not None and not recording:
         log('recorder not available yet: summary only')
-    if recording:
-        check_record_dir(cfg.record_dir)
     session = prepare_session(cfg, recording)
     timeline.mark('options checked, session params file written')
     try:
+        if recording:       # after every other check: a refused run leaves no bags dir
+            check_record_dir(cfg.record_dir)
         sup = _supervise(cfg, session, recording, log, timeline)
     except (CLIError, ParamError):
         if cfg.session_dir is None:     # refused: nothing to keep
