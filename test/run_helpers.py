@@ -11,11 +11,11 @@ import time
 from conftest import REPO, ros_env
 
 
-def start_run(*args):
-    """Start ``erva run ARGS`` in its own session, stdout and stderr piped."""
+def start_run(*args, env=None):
+    """Start ``erva run ARGS`` in its own session, stdout and stderr piped (``env``: added)."""
     return subprocess.Popen([sys.executable, '-m', 'erva_ros.cli', 'run', *map(str, args)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=ros_env(), cwd=REPO, start_new_session=True)
+                            env=ros_env(env), cwd=REPO, start_new_session=True)
 
 
 def wait_connected(proc, timeout=120.0, lines=None):
@@ -160,3 +160,21 @@ def bag_counts(bag_dir, decode=False):
                 for _, channel, _ in make_reader(fh).iter_messages():
                     counts[channel.topic] = counts.get(channel.topic, 0) + 1
     return counts
+
+
+def bag_messages(bag_dir, topics):
+    """Return (topic, log time ns, header stamp ns) of a bag's messages on ``topics``.
+
+    Read and decoded with the mcap and mcap-ros2 packages, in log-time order.
+    """
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+    out = []
+    for name in sorted(f for f in os.listdir(bag_dir) if f.endswith('.mcap')):
+        with open(os.path.join(bag_dir, name), 'rb') as fh:
+            reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+            for _, channel, message, decoded in reader.iter_decoded_messages(topics=topics):
+                stamp = decoded.header.stamp
+                out.append((channel.topic, message.log_time,
+                            stamp.sec * 1_000_000_000 + stamp.nanosec))
+    return sorted(out, key=lambda m: m[1])

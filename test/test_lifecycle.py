@@ -1,9 +1,10 @@
 """Managed (lifecycle) nodes over real DDS: nothing acts before it is active, and on again.
 
 * nmpc_node started with ``autostart:=false`` stays unconfigured and publishes no
-  command; configured it is inactive and still publishes none; active, it answers every
-  state; deactivated it stops (inputs dropped); activated again it answers again; cleaned
-  up and configured again it is a new controller.  Its report names its state.
+  command, and refuses a transition it has none for (activate) without dying;
+  configured it is inactive and still publishes none; active, it answers every state;
+  deactivated it stops (inputs dropped); activated again it answers again; cleaned up
+  and configured again it is a new controller.  Its report names its state.
 * `erva run` configures its nodes, activates them in the documented order, and a
   deactivate of the controller mid-run (as `ros2 lifecycle set` does) sends the plant to
   the plan, then to passive damping; re-activated, commands act again.
@@ -51,6 +52,10 @@ def test_nmpc_node_acts_only_while_active(tmp_path):
         get_state = h.node.create_client(GetState, f'{ns}/nmpc_node/get_state')
         assert h.spin_until(lambda: driver.ready() and get_state.service_is_ready(), 60.0)
         assert _get_state(h, get_state) == 'unconfigured'
+        # A transition its state has none for is refused, and the node lives on (rclpy's
+        # own service raised, which ended the node: two sessions at once crashed so).
+        assert _transition(h, driver, 'nmpc_node', 'activate') is False
+        assert proc.poll() is None and _get_state(h, get_state) == 'unconfigured'
         stamps = []
 
         def tick(k, stamp):

@@ -34,6 +34,7 @@ def test_run_help_lists_the_options(erva):
     (['--nmpc', 'BINARY'], r'not a UTF-8 text file'),
     (['--live', 'BINARY'], r'not a UTF-8 text file'),
     (['--record', 'FILE/bags'], r'--record .*: cannot write bags there \(Not a directory\)'),
+    (['--record', '/proc/x'], r'--record /proc/x/bags: cannot write bags there \('),
     (['--params', 'FOOBAR'], r"erva_paper.yaml: unknown parameter\(s\) foo_bar; known: M_s, "),
     (['--params', 'TYPO'], r"unknown parameter\(s\) M_S; did you mean 'M_s'\?$"),
     (['--nmpc', 'HORIZN'], r"unknown parameter\(s\) horizn; did you mean 'horizon'\?$"),
@@ -86,20 +87,26 @@ def test_bad_input_is_one_line_and_no_node_starts(erva, tmp_path, args, message)
         args[1] = os.path.join(args[1], 'bags')
     else:
         args.append('--no-record')
-    proc = erva('run', *args)
+    tmp = tmp_path / 'tmp'      # where erva run keeps a session's params file and logs
+    tmp.mkdir()
+    proc = erva('run', *args, env={'TMPDIR': str(tmp)})
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and re.search(message, lines[0]), proc.stderr
     assert 'started' not in proc.stderr
+    assert list(tmp.iterdir()) == []      # a refused run leaves nothing behind
 
 
-@pytest.mark.parametrize('domain', ['240', 'seven'])
+@pytest.mark.parametrize('domain', ['240', 'seven', '500'])
 def test_a_bad_ros_domain_is_one_line_and_nothing_is_recorded(erva, tmp_path, domain):
     # Fast DDS would report it as a port error deep in start-up; erva says what it is
     # before a node or a bag exists.  A node started by hand says the same.
-    bags = tmp_path / 'bags'
-    proc = erva('run', '--duration', 0.2, '--record', bags, env={'ROS_DOMAIN_ID': domain})
+    bags, tmp = tmp_path / 'bags', tmp_path / 'tmp'
+    tmp.mkdir()
+    proc = erva('run', '--duration', 0.2, '--record', bags,
+                env={'ROS_DOMAIN_ID': domain, 'TMPDIR': str(tmp)})
     assert proc.returncode == 2
+    assert list(tmp.iterdir()) == []      # no erva_run_* directory left behind
     lines = proc.stderr.strip().splitlines()
     assert lines == [f"erva run: error: ROS_DOMAIN_ID='{domain}' is not a ROS domain: an "
                      "integer 0..232 (Fast DDS maps it to UDP ports; 0..101 stay clear of "

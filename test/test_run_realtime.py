@@ -11,8 +11,8 @@ import pytest
 import yaml
 
 from conftest import fifo_permitted, sim_delay_args
-from run_helpers import bag_counts, run_with_node_killed, run_with_node_stopped, SampleWatch
-from run_helpers import start_run as _start
+from run_helpers import (bag_counts, bag_messages, run_with_node_killed, run_with_node_stopped,
+                         SampleWatch, start_run as _start)
 from run_helpers import wait_connected as _wait_connected
 
 
@@ -106,6 +106,28 @@ def test_erva_run_realtime_records_and_summarises(tmp_path, erva):
     assert params['/**']['ros__parameters']['session_id'] == info['session']['session_id']
     assert params['/**/nmpc_node']['ros__parameters']['controller'] == 'preview'
     assert 'params_file' not in info['session']
+    # The bag marks the loop's first sample (metadata.yaml): the stamp of its first road
+    # height and state as the mcap reader reads them, after the bring-up.  `bag info`
+    # shows it; `bag play --start-offset loop` starts there: every sample, and of the
+    # statuses only those logged from then on.
+    meta = yaml.safe_load(open(os.path.join(bag, 'metadata.yaml'), encoding='utf-8'))
+    t0 = int(meta['rosbag2_bagfile_information']['custom_data']['erva_loop_start'])
+    msgs = bag_messages(bag, ['/erva/road/height', '/erva/state', '/diagnostics'])
+    first = {t: next(stamp for topic, _, stamp in msgs if topic == t)
+             for t in ('/erva/road/height', '/erva/state')}
+    assert first == {'/erva/road/height': t0, '/erva/state': t0}
+    info = json.loads(erva('bag', 'info', bag, '--json', check=True).stdout)
+    assert info['loop_start_ns'] == t0 and info['loop_offset_s'] > 0
+    assert info['loop_offset_s'] == pytest.approx((t0 - info['start_ns']) * 1e-9, abs=1e-9)
+    play = json.loads(erva('bag', 'play', bag, '--start-offset', 'loop', '--rate', '20',
+                           '--topics', '/erva/road/height', '/diagnostics', '--json',
+                           check=True).stdout)
+    assert play['start_offset_s'] == info['loop_offset_s']
+    start = info['start_ns'] + round(info['loop_offset_s'] * 1e9)
+    diagnostics = [log for topic, log, _ in msgs if topic == '/diagnostics']
+    assert play['published'] == {'/erva/road/height': published['road/height'],
+                                 '/diagnostics': sum(log >= start for log in diagnostics)}
+    assert play['published']['/diagnostics'] < len(diagnostics)     # the bring-up's: cut
 
 
 def test_killed_nmpc_plant_holds_plan_then_passive_and_run_fails(tmp_path):

@@ -4,8 +4,10 @@
   what its own nodes published, each summary's figures are its own loop's (its own
   seed, its own plant's energy), and each saw the other's reports as foreign only.
 * A second session on a namespace where one runs is refused (exit 2, naming the other's
-  nodes) before it starts anything; with --force it runs, and its bag says it holds
-  another session's messages.
+  nodes) before any of its nodes is configured; with --force it runs, and its bag says
+  it holds another session's messages.
+* Two sessions started at once on one namespace: the first to start runs, the other is
+  refused (exit 2) and leaves no bag and no temporary directory behind.
 
 Real processes over real DDS; bags read back with the mcap reader (run_helpers).
 """
@@ -70,6 +72,36 @@ def test_a_second_session_on_the_same_namespace_is_refused(tmp_path, erva):
     summary = json.loads(out)
     assert code == 130 and summary['errors'] == ['interrupted by SIGINT while running'], err
     assert summary['messages']['foreign_total'] == 0
+
+
+def test_two_sessions_started_at_once_on_one_namespace_give_one_run_and_one_refusal(
+        tmp_path, erva):
+    # Started together, each hears the other while its nodes start: the one that started
+    # first runs, the other refuses (exit 2) before any of its nodes is configured, and
+    # leaves no bag and no temporary directory.  (Both crashed before: each one's
+    # lifecycle requests reached the other's nodes of the same names.)
+    tmp = tmp_path / 'tmp'
+    tmp.mkdir()
+    env = {'TMPDIR': str(tmp)}
+    runs = [start_run('--duration', 1, '--record', tmp_path / f'bags{i}', '--json', env=env)
+            for i in range(2)]
+    results = [_finish(p) for p in runs]
+    codes = [code for code, _, _ in results]
+    assert sorted(codes) == [0, 2], [err[-2000:] for _, _, err in results]
+    won, lost = (results[0], results[1]) if codes[0] == 0 else (results[1], results[0])
+    line = lost[2].strip().splitlines()[-1]
+    assert 'another session runs on ROS_DOMAIN_ID' in line and '--force' in line, lost[2]
+    assert lost[1] == ''                             # no summary: it did not run
+    s = json.loads(won[1])
+    assert s['ok'] and s['errors'] == [] and s['commands']['received'] > 0
+    assert s['recording']['lost'] == 0 and s['messages']['foreign_total'] == 0
+    # The winner's bag is one whole session of its own: the other's nodes were never
+    # configured, so its statuses there are not "another session on the same topics".
+    info = json.loads(erva('bag', 'info', s['bag'], '--json', check=True).stdout)
+    assert info['warnings'] == [], info['warnings']
+    bags = [b for i in range(2) for b in (tmp_path / f'bags{i}').glob('*') if b.is_dir()]
+    assert [str(b) for b in bags] == [s['bag']]
+    assert list(tmp.iterdir()) == []
 
 
 def test_two_lockstep_sessions_keep_their_own_clocks(tmp_path, erva):

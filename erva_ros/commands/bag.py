@@ -373,6 +373,10 @@ def _info(args) -> int:
             ('Start', format_time_point(start)),
             ('End', format_time_point(end)),
             ('Messages', str(info['message_count']))]
+    if info['loop_offset_s'] is not None:     # erva run: where the loop's sample 0 is
+        rows.append(('Loop start', f'{info["loop_offset_s"]:.3f} s into the bag, sample 0 '
+                                   f'stamped {info["loop_start_ns"]} (bag play '
+                                   '--start-offset loop)'))
     for key, value in rows:
         print(f'{key + ":":<19}{value}')
     for i, t in enumerate(info['topics']):

@@ -1,5 +1,6 @@
 """``erva replay``: publish a session bag with its original timing, or drive a what-if run."""
 
+import argparse
 import contextlib
 import os
 import sys
@@ -77,8 +78,10 @@ def add_play_arguments(parser) -> None:
                                            '(default 40 when given without a value)')
     parser.add_argument('-d', '--delay', type=float, default=0.0, metavar='S',
                         help='wait S seconds before the first message (discovery)')
-    parser.add_argument('--start-offset', type=float, default=0.0, metavar='S',
-                        help='start S seconds after the bag\'s first message (default 0)')
+    parser.add_argument('--start-offset', type=_start_offset, default=0.0, metavar='S|loop',
+                        help='start S seconds after the bag\'s first message (default 0); '
+                             'loop: at the loop\'s first sample (a bag of erva run: its '
+                             'bring-up left out; erva bag info shows where)')
     parser.add_argument('--playback-duration', type=float, default=None, metavar='S',
                         help='play only S seconds of the bag from the start point')
     parser.add_argument('-p', '--start-paused', action='store_true',
@@ -96,6 +99,32 @@ def add_play_arguments(parser) -> None:
                         help='also serve the messages to Foxglove on this address (default '
                              f'{FOXGLOVE_DEFAULT}: this machine only; PORT 0 = any free '
                              'port); playing starts when a viewer subscribes')
+
+
+#: --start-offset's word for the loop's first sample (erva run marks it in the bag).
+LOOP_START = 'loop'
+
+
+def _start_offset(text: str):
+    """Parse --start-offset: seconds, or 'loop' (argparse type)."""
+    if text == LOOP_START:
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r}: seconds (>= 0) or {LOOP_START}') from None
+
+
+def resolve_start_offset(value, bag) -> float:
+    """Return --start-offset in seconds; 'loop' is where the bag marks sample 0."""
+    if value != LOOP_START:
+        return value
+    from erva_ros.core.bag.session_check import loop_offset_s
+    offset = loop_offset_s(bag)
+    if offset is None:
+        raise CLIError(f'--start-offset loop: {bag.path} does not mark the loop\'s first '
+                       'sample (erva run marks it); give seconds instead')
+    return offset
 
 
 def _bag_topics(prefix, parsed_args, **_):
@@ -338,6 +367,8 @@ def check_play_options(args, bag=None) -> None:
     """Raise CLIError for play options out of range (before anything starts)."""
     for name in ('delay', 'wait_for_subscribers', 'start_offset'):
         value = getattr(args, name)
+        if value == LOOP_START:     # resolved once the bag is open
+            continue
         if not value >= 0 or value == float('inf'):
             raise CLIError(f'--{name.replace("_", "-")} {value:g} must be >= 0 and finite')
     if args.playback_duration is not None and not args.playback_duration > 0:
@@ -345,6 +376,8 @@ def check_play_options(args, bag=None) -> None:
     if args.wait_for_all_acked < 0:
         raise CLIError(f'--wait-for-all-acked {args.wait_for_all_acked} must be >= 0 ms')
     _remaps(args.remap)
+    if bag is not None:
+        args.start_offset = resolve_start_offset(args.start_offset, bag)
     if bag is not None and args.start_offset > bag.duration_s:
         raise CLIError(f'--start-offset {args.start_offset:g} is past the end of the bag '
                        f'({bag.duration_s:.3f} s long)')

@@ -165,6 +165,11 @@ def add_arguments(parser):
                              'time master: road/height and road/preview in real time, state '
                              'in lock-step; started before the run, they get sample 0 '
                              '(default 0)')
+    parser.add_argument('-v', '--timing', action='store_true',
+                        help='print when each stage of the bring-up and the stop ended '
+                             '(s since the command started: imports, domain, each node\'s '
+                             'start, configure, matching, first sample, stop, bag, summary; '
+                             'docs/live.md) on stderr after the summary')
     add_json_option(parser)
 
 
@@ -268,6 +273,10 @@ def _check_namespace(namespace: str) -> str:
 
 
 def main(args) -> int:
+    """Run the session, print its summary and end the process with its exit status."""
+    from erva_ros.session.bringup import Timeline
+    timeline = Timeline()
+    timeline.mark('options parsed')
     from erva_ros.session.orchestrator import run_session
     from erva_ros.session.run_config import ensure_ecu_available
     from erva_ros.session.report import format_summary, jsonable
@@ -278,10 +287,18 @@ def main(args) -> int:
         from erva_ros.session.foxglove_process import check_address
         check_address(args.foxglove)
     cfg = run_config(args, None if args.no_record else args.record)
-    result = run_session(cfg, log=lambda line: print(f'erva run: {line}', file=sys.stderr,
-                                                     flush=True))
+    log = lambda line: print(f'erva run: {line}', file=sys.stderr, flush=True)  # noqa: E731
+    result = run_session(cfg, log=log, timeline=timeline)
     if args.json:
         print_json(jsonable(result.summary))
     else:
         print(format_summary(result.summary), flush=True)
-    return result.exit_code
+    if args.timing:
+        timeline.mark('summary printed')
+        for line in timeline.lines(result.summary['timing']['nodes']):
+            log(line)
+    # Everything is done and said: the interpreter's own exit would only join the
+    # middleware's threads (0.4-0.9 s of timed sleeps), as a node's would (ros/runtime.py).
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(result.exit_code)

@@ -133,6 +133,10 @@ class NodeReport:
     lifecycle: str = ''       # managed nodes: unconfigured | inactive | active
     published: Dict[str, int] = keyed('published:')
     subscribers: Dict[str, int] = keyed('subscribers:')
+    #: When each bring-up stage of the node's process ended, s since the process started
+    #: (imported, initialised, constructed, configuring, configured, activated: `erva run
+    #: --timing`).
+    startup: Dict[str, float] = keyed('startup:', float)
 
     #: Fields that are the status itself, not key/values.
     HEADER: ClassVar[tuple] = ('node', 'level', 'message', 'hardware_id')
@@ -512,11 +516,30 @@ class EcuSimReport(NodeReport):
     actuation_jitter_ms: Timing = field(default_factory=Timing)
 
 
+# -- the session itself ---------------------------------------------------------------------
+@dataclass
+class SessionClaim(NodeReport):
+    """`erva run`'s claim on its namespace (``session``: its id), for the other sessions.
+
+    Of two sessions that claim one namespace, the one that claimed first runs
+    (``claimed_ns``, then the id); one that brings its nodes up (``committed``) or runs
+    with ``--force`` never yields (erva_ros/session/start_gate.py).
+    """
+
+    KIND: ClassVar[str] = 'session_claim'
+
+    claimed_ns: int = 0
+    pid: int = 0
+    committed: bool = False
+    force: bool = False
+    nodes: str = ''           # the session's node names, comma-separated
+
+
 #: Every report type by its KIND.
 REPORT_TYPES: Dict[str, Type[NodeReport]] = {
     cls.KIND: cls for cls in (NodeReport, RoadReport, PlantReport, NMPCReport, RecorderReport,
                               FoxgloveReport, EstimatorReport, BridgeCommandReport,
-                              BridgeBusReport, BridgeEcuReport, EcuSimReport)}
+                              BridgeBusReport, BridgeEcuReport, EcuSimReport, SessionClaim)}
 
 
 #: The type of a status without a ``report`` value (bags recorded before it existed), by
@@ -558,4 +581,5 @@ def field_default(cls: Type[NodeReport], name: str) -> Any:
 __all__ = ['KIND_KEY', 'Timing', 'keyed', 'format_value', 'NodeReport', 'RoadReport',
            'PlantReport', 'NMPCReport', 'RecorderReport', 'FoxgloveReport', 'EstimatorReport',
            'BridgeCommandReport', 'BridgeBusReport', 'BridgeEcuReport', 'EcuSimReport',
-           'REPORT_TYPES', 'KIND_OF_NAME', 'report_from_status', 'report_status', 'field_default']
+           'SessionClaim', 'REPORT_TYPES', 'KIND_OF_NAME', 'report_from_status',
+           'report_status', 'field_default']

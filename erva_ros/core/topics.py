@@ -45,6 +45,9 @@ road/alignment geometry_msgs/PointStamped        the map preview's position corr
 NAMESPACE = '/erva'
 #: The node name of `erva run`'s monitor (the time master waits for its readers).
 MONITOR_NODE = 'erva_run_monitor'
+#: Where each `erva run` claims its namespace (hidden, transient local: a session that
+#: joins later gets the claims of those already there; erva_ros/session/start_gate.py).
+SESSION_CLAIM = '_session_claim'
 
 STATE = 'state'
 SPRUNG_ACCEL = 'sprung_accel'

@@ -32,7 +32,6 @@ from erva_ros.core.loop.road_source import RoadSample, RoadSource
 from erva_ros.core.loop.timing import next_grid_delay_ns
 from erva_ros.core.loop.validation import MessageRejected
 from erva_ros.core.reports import RoadReport
-from erva_ros.core.road_loop import MapPreviewLoop
 from erva_ros.ros.loop_node import LoopNode
 from erva_ros.ros.runtime import run_node
 from erva_ros.ros.time_master import readers_ready, Settling
@@ -53,7 +52,12 @@ class RoadPreviewNode(LoopNode):
         if self.p['mode'] == 'lockstep':
             # Subscribed before the publishers exist: the plant waits for them to appear.
             self.subscribe(ClockMsg, topics.CLOCK, self._on_clock)
-        self.map = MapPreviewLoop(self.p, self.report) if self.p['source'] == 'map' else None
+        self.map = None
+        if self.p['source'] == 'map':
+            # Imported only here: the map preview brings the road EKF, the vehicle loop
+            # and the CAN codec, ~40 % of this node's start-up (docs/live.md, Bring-up).
+            from erva_ros.core.road_loop import MapPreviewLoop
+            self.map = MapPreviewLoop(self.p, self.report)
         self.pub_preview = self.publisher(JointTrajectory, topics.ROAD_PREVIEW)
         self.pub_height = self.publisher(PointStamped, topics.ROAD_HEIGHT)
         if self.map is not None:

@@ -40,6 +40,7 @@ from typing import Callable, List, Optional, Type
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 
 from erva_ros.core import topics
@@ -49,6 +50,7 @@ from erva_ros.core.params import ParamError
 from erva_ros.core.loop.validation import Rejections, StampWindow
 from erva_ros.core.node_params import SCHEMAS
 from erva_ros.core.reports import NodeReport
+from erva_ros.core.startup import process_age_s
 from erva_ros.ros import qos as ros_qos
 from erva_ros.ros.parameters import declare_node_parameters, on_set_callback
 
@@ -88,6 +90,7 @@ class LoopNode(LifecycleNode):
     def __init__(self, name: str = '', hardware_id: str = '', namespace: Optional[str] = None):
         name = name or self.NAME
         super().__init__(name, **({'namespace': namespace} if namespace else {}))
+        self._refuse_unavailable_transitions()
         self.p = declare_node_parameters(self, name)
         if SCHEMAS[name].live():     # after declaring: rclpy calls these on every set
             self.add_on_set_parameters_callback(on_set_callback(SCHEMAS[name],
@@ -103,8 +106,12 @@ class LoopNode(LifecycleNode):
         self.scheduling = 'off'
         self.report = self.REPORT(node=self.get_fully_qualified_name(), hardware_id=hardware_id,
                                   session=self.p.get('session_id', ''))
+        # A status goes out whenever a reader of it or of a counted publisher matches:
+        # `erva run` learns that the node is up, and that its writers have their
+        # readers, as soon as discovery says so, not at the next period.
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
-                                              ros_qos.diagnostics_qos())
+                                              ros_qos.diagnostics_qos(),
+                                              event_callbacks=self._matched_events())
         self.status = StatusReporter(self.report, self.pub_diag.publish, self.now_ns,
                                      self._refresh)
         self.rejections = Rejections(self.get_logger().warning, time.monotonic,
@@ -120,6 +127,30 @@ class LoopNode(LifecycleNode):
         if 'diagnostics_period_s' in self.p:    # seen in every state; configure may refine it
             self.status_timer()
 
+    def _refuse_unavailable_transitions(self) -> None:
+        """Answer a change_state request the current state has no transition for with failure.
+
+        rclpy's own service raises in the executor for one (RCLError: "Transition is not
+        registered"), which ends the node: a stray ``ros2 lifecycle set`` -- or another
+        session's request to a node of the same name -- would kill it.  rclcpp answers
+        success = false; so does this.
+        """
+        service = getattr(self, '_service_change_state', None)
+        if service is None:
+            return
+        answer = service.callback
+
+        def change_state(request, response):
+            available = {t[0] for t in self._state_machine.available_transitions}
+            if not request.transition.label and request.transition.id not in available:
+                self.get_logger().warning(
+                    f'refused lifecycle transition {request.transition.id}: not available '
+                    f'in state {self._state_machine.current_state[1]}')
+                response.success = False
+                return response
+            return answer(request, response)
+        service.callback = change_state
+
     # -- building blocks ---------------------------------------------------------------
     def now_ns(self) -> int:
         """Return the node's clock (ns): wall time, or simulated time under use_sim_time."""
@@ -132,13 +163,21 @@ class LoopNode(LifecycleNode):
         """
         if qos is None:
             qos = ros_qos.publisher_qos(self.p['publisher_history_s'], self.p['ts'])
-        raw = self.create_lifecycle_publisher(msg_type, topic, qos)
+        raw = self.create_lifecycle_publisher(msg_type, topic, qos,
+                                              event_callbacks=self._matched_events())
         if self.active:               # made while active (a legacy node): enabled too
             raw.on_activate(None)
         pub = CountedPublisher(raw)
         self.status.publishers.append(pub)
         self._built.append((self._destroy_publisher, pub))
         return pub
+
+    def _matched_events(self) -> PublisherEventCallbacks:
+        """Return event callbacks that publish the status when a reader matches."""
+        def on_matched(info) -> None:
+            if info.current_count_change > 0 and hasattr(self, 'status'):
+                self.status.publish()
+        return PublisherEventCallbacks(matched=on_matched)
 
     def subscribe(self, msg_type, topic: str, callback: Callable[[bytes, int], None],
                   qos=None):
@@ -197,6 +236,7 @@ class LoopNode(LifecycleNode):
     # -- lifecycle ---------------------------------------------------------------------
     def on_configure(self, state) -> TransitionCallbackReturn:
         """Build the node's core, publishers, subscriptions and timers (:meth:`configure`)."""
+        self.report.startup.setdefault('configuring', process_age_s())
         try:
             self.configure()
         except ParamError as exc:       # one line; the node stays unconfigured
@@ -210,6 +250,7 @@ class LoopNode(LifecycleNode):
         gc.collect()
         gc.freeze()
         self.configured = True
+        self.report.startup['configured'] = process_age_s()
         self._state('inactive')
         return TransitionCallbackReturn.SUCCESS
 
@@ -221,6 +262,7 @@ class LoopNode(LifecycleNode):
             self.prioritise()
         self.active = True
         self.activate()
+        self.report.startup.setdefault('activated', process_age_s())
         self._state('active')
         return result
 

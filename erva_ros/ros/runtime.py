@@ -30,6 +30,7 @@ import time
 from typing import List, Optional, Type
 
 from erva_ros.core.params import ParamError
+from erva_ros.core.startup import process_age_s
 from erva_ros.ros.context import check_domain_id
 
 #: Exit status of a node stopped by a bad parameter or option.
@@ -50,6 +51,7 @@ def run_node(node_class: Type, args: Optional[List[str]] = None) -> int:
     Returns the exit status of a start-up failure (:data:`EXIT_BAD_PARAMETER`); a node
     that ran ends the process itself, with the status its :meth:`stop` returns.
     """
+    imported = process_age_s()      # the interpreter and the node's imports
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
@@ -75,10 +77,13 @@ def run_node(node_class: Type, args: Optional[List[str]] = None) -> int:
     except Exception as exc:  # bad domain, malformed --ros-args: one line
         print(f'{name}: error: {str(exc).splitlines()[0]}', file=sys.stderr)
         return EXIT_BAD_PARAMETER
+    initialised = process_age_s()
     node = None
     code = 0
     try:
         node = node_class()
+        node.report.startup.update(imported=imported, initialised=initialised,
+                                   constructed=process_age_s())
         if node.autostart:      # else `erva run` or `ros2 lifecycle set` drive it
             node.start_up()
         executor = SingleThreadedExecutor()

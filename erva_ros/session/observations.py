@@ -74,6 +74,8 @@ class Observations:
         #: The first MAX_EVENTS status changes: (rx_ns, node, level, message).
         self.events: List[Tuple[int, str, int, str]] = []
         self.finished_rx: Dict[str, int] = {}    # node -> arrival of its first `finished`
+        #: The stamp of the loop's first sample (its first road height), None before.
+        self.first_sample_ns: Optional[int] = None
         #: HIL: the bridge's command timeouts that began before the ECU finished.
         self.bridge_timeouts = 0
         self._bridge_error = False
@@ -126,6 +128,8 @@ class Observations:
         elif topic == topics.GENERATOR:
             s.add_power(row.stamp_ns, row.power)
         elif topic == topics.ROAD_HEIGHT:
+            if self.first_sample_ns is None:    # sample 0: the loop starts with the road
+                self.first_sample_ns = row.stamp_ns
             s.add_height(row.stamp_ns, row.height_m)
         elif topic == topics.DAMPING_CMD:
             s.add_command(row.stamp_ns, rx_ns, float(row.plan[0]))

@@ -12,6 +12,7 @@ import os
 import secrets
 import sys
 import tempfile
+import time
 from typing import Any, Dict, Optional, Tuple
 
 import yaml
@@ -109,15 +110,23 @@ class Session:
         return 0, int((self.live['duration_s'] + 10.0) * 1e9)   # simulated time from 0
 
 
+def new_session_id() -> str:
+    """Return a new session id: 16 hex digits, the start in ms since 1970, then 20 random bits.
+
+    The nodes report it, so another session on the same DDS domain (or a stale node of an
+    earlier one) is never counted as this one's; and ids sort by start, so of two sessions
+    that start on one namespace the earlier one runs (erva_ros/session/start_gate.py).
+    """
+    return f'{time.time_ns() // 1_000_000:011x}{secrets.randbits(20):05x}'
+
+
 def live_values(cfg: RunConfig, settings, recording: bool) -> Dict[str, Any]:
     """Return the session's validated live parameters: the live file, then the options."""
     live_path = cfg.live_file or default_config_file('live.yaml')
     values = read_live_file(live_path)
     values['ts'] = settings.ts
     values['command_delay_s'] = settings.command_delay_s
-    # A 64-bit nonce: the nodes report it, so another session on the same DDS domain
-    # (or a stale node of an earlier one) is never counted as this one's.
-    values['session_id'] = secrets.token_hex(8)
+    values['session_id'] = new_session_id()
     options = {key: value for key, value in (
         ('mode', cfg.mode), ('model', cfg.model), ('road', cfg.road), ('seed', cfg.seed),
         ('duration_s', cfg.duration_s)) if value is not None}
@@ -264,5 +273,5 @@ def session_description(session: Session) -> Dict[str, str]:
 
 
 __all__ = ['HIL_START_DELAY_S', 'PARAMS_FILE', 'Session', 'default_config_file',
-           'read_live_file', 'validate_live', 'live_values', 'session_params',
+           'read_live_file', 'validate_live', 'new_session_id', 'live_values', 'session_params',
            'prepare_session', 'session_description']

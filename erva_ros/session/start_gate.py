@@ -1,4 +1,7 @@
-"""When an `erva run` session may start: every writer matched every reader it will have.
+"""When an `erva run` session may start: alone here, and every writer matched every reader.
+
+Of sessions started on one namespace, the first runs and the others refuse
+(:class:`Contest`).
 
 The time master starts sample 0 once its topics have ``wait_for_subscribers`` readers,
 one of them the monitor's (``wait_for_reader``, :mod:`erva_ros.ros.time_master`);
@@ -9,10 +12,13 @@ records (:mod:`erva_ros.session.accounting`).  In HIL mode the ROS graph must al
 the whole loop (:meth:`StartGate.graph_ready`).
 """
 
+import os
 import time
-from typing import Callable, Dict, List, Sequence
+from typing import Callable, Dict, List, Mapping, Sequence, Tuple
 
 from erva_ros.core import topics
+from erva_ros.core.contract import decode_diagnostics, encode_diagnostics, MessageRejected
+from erva_ros.core.reports import report_from_status, report_status, SessionClaim
 from erva_ros.session import accounting, hil_summary
 from erva_ros.session.accounting import recorder_report
 from erva_ros.session.recording import record_topics, record_writers
@@ -69,16 +75,6 @@ class StartGate:
         self.unmatched = missing
         return not missing
 
-    def twins(self) -> List[str]:
-        """Return the session nodes the ROS graph shows twice in the namespace.
-
-        Another session started here after this one looked for it.
-        """
-        ns = self.namespace.rstrip('/') or '/'
-        names = [name for name, node_ns in self.monitor.get_node_names_and_namespaces()
-                 if node_ns == ns]
-        return [f'{ns.rstrip("/")}/{n}' for n in SESSION_NODES if names.count(n) > 1]
-
     def graph_ready(self) -> bool:
         """HIL: return True once the ROS graph shows the whole loop (always True otherwise).
 
@@ -111,37 +107,100 @@ class StartGate:
 SESSION_NODES = ('nmpc_node', 'plant_sim_node', 'road_preview_node', 'ecu_bridge_node',
                  'state_estimator_node', 'ecu_sim', 'recorder', 'foxglove_server',
                  topics.MONITOR_NODE)
-#: How long `erva run` looks for another session before it starts its own (s), from the
-#: moment its monitor joined the domain: discovery on one host took up to 1.3 s on a
-#: loaded 2-core machine, and a session's nodes report on /diagnostics every 0.5 s.
-LOOK_S = 3.0
 
 
-def other_session(monitor, obs, namespace: str, spin: Callable[[float], None],
-                  until: float) -> List[str]:
-    """Return the nodes of another live session on this domain and namespace ([]: none).
+class Contest:
+    """Which of the sessions that start on one namespace runs: the one that started first.
 
-    Looks at the ROS graph (nodes with a session's names in ``namespace``) and at
-    /diagnostics (statuses from ``namespace`` with another session's id:
-    :attr:`Observations.other_sessions`) until monotonic time ``until``.
+    There is no fixed look for another session: `erva run` starts its processes at once
+    and, while they start, hears what the domain says -- every node's status names its
+    session (ids sort by start, :func:`erva_ros.session.session_file.new_session_id`),
+    and every session claims its namespace (:class:`erva_ros.ros.session_claim.ClaimChannel`,
+    transient local: heard as soon as discovery matches it).  Another session *beats*
+    this one if it started earlier, if it already brings its nodes up or runs
+    (``committed``), if it runs with ``--force``, or if it is no session at all (nodes
+    started by hand report the id '').  A beaten session refuses (exit 2) and stops what
+    it started; the other waits until the beaten one's nodes and claim are gone before
+    it asks its own nodes for any lifecycle transition -- two nodes of one name share
+    the request -- and then commits.
+    """
+
+    def __init__(self, session_id: str, namespace: str, force: bool = False,
+                 nodes: Sequence[str] = (), clock: Callable[[], int] = time.time_ns):
+        ns = namespace.rstrip('/')
+        self.own = SessionClaim(node=f'{ns}/{topics.MONITOR_NODE}', session=session_id,
+                                claimed_ns=clock(), pid=os.getpid(), force=force,
+                                nodes=','.join(nodes))
+        self._clock = clock
+        #: The newest claim of every other session heard, by session id.
+        self.heard: Dict[str, SessionClaim] = {}
+
+    def claim(self) -> bytes:
+        """Return this session's claim as a DiagnosticArray (CDR)."""
+        self.own.status_seq += 1
+        return encode_diagnostics(self._clock(), [report_status(self.own)])
+
+    def commit(self) -> bytes:
+        """Mark this session as bringing its nodes up; return its renewed claim."""
+        self.own.committed = True
+        return self.claim()
+
+    def hear(self, data: bytes) -> None:
+        """Take a claim heard on the claim topic (this session's own is ignored)."""
+        try:
+            _, statuses = decode_diagnostics(data)
+        except MessageRejected:
+            return
+        for status in statuses:
+            claim = report_from_status(status)
+            if isinstance(claim, SessionClaim) and claim.session != self.own.session:
+                self.heard[claim.session] = claim
+
+    def beats(self, session_id: str) -> bool:
+        """Return True if the session ``session_id`` runs rather than this one (class doc)."""
+        if self.own.force or self.own.committed:
+            return False
+        claim = self.heard.get(session_id)
+        return (not session_id or session_id < self.own.session
+                or (claim is not None and (claim.committed or claim.force)))
+
+    def yielded(self, statuses: Mapping[str, str] = ()) -> List[str]:
+        """Return the ids of the sessions that stood down for this one.
+
+        Those that started later, heard by their claims or by their nodes' statuses
+        (``statuses``: node name -> session id; a session may stand down before its
+        claim reaches this one), and that did not claim to bring nodes up or --force.
+        """
+        ids = set(self.heard) | set(dict(statuses).values())
+        unheard = SessionClaim()
+        return sorted(sid for sid in ids if sid > self.own.session
+                      and not (self.heard.get(sid, unheard).committed
+                               or self.heard.get(sid, unheard).force))
+
+    def winners(self, statuses: Mapping[str, str]) -> List[str]:
+        """Return who beats this session: nodes (name -> session id heard) and claims."""
+        ns = self.own.node.rsplit('/', 1)[0]
+        out = [f'{ns}/{name} (session {sid or "none"})'
+               for name, sid in sorted(statuses.items()) if self.beats(sid)]
+        named = set(statuses.values())
+        out += [f'session {sid} (pid {c.pid}{", running" if c.committed else ""})'
+                + ''.join(f' {ns}/{n}' for n in c.nodes.split(',') if n)
+                for sid, c in sorted(self.heard.items())
+                if sid not in named and self.beats(sid)]
+        return out
+
+
+def extra_nodes(graph: Sequence[Tuple[str, str]], namespace: str, own: Sequence[str]
+                ) -> List[str]:
+    """Return the session nodes the graph shows in ``namespace`` beyond this session's own.
+
+    ``graph`` is (name, namespace) of every node; ``own`` the node names of this session.
     """
     ns = namespace.rstrip('/') or '/'
-    end = until
-    seen = None
-    while True:
-        found = sorted({f'{node_ns.rstrip("/")}/{name}'
-                        for name, node_ns in monitor.get_node_names_and_namespaces()
-                        if node_ns == ns and name in SESSION_NODES
-                        and name != topics.MONITOR_NODE})
-        found += [f'{ns.rstrip("/")}/{name} (session {sid or "?"})'
-                  for name, sid in sorted(obs.other_sessions.items())
-                  if f'{ns.rstrip("/")}/{name}' not in found]
-        now = time.monotonic()
-        if found and seen is None:      # name all of them: discovery comes in pieces
-            seen, end = now, min(end, now + 0.5)
-        if now > end:
-            return found
-        spin(0.05)
+    names = [name for name, node_ns in graph if node_ns == ns and name in SESSION_NODES
+             and name != topics.MONITOR_NODE]
+    return [f'{ns.rstrip("/")}/{n}' for n in sorted(set(names))
+            if names.count(n) > (1 if n in own else 0)]
 
 
-__all__ = ['StartGate', 'SESSION_NODES', 'other_session']
+__all__ = ['StartGate', 'SESSION_NODES', 'Contest', 'extra_nodes']

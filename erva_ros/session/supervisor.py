@@ -11,6 +11,7 @@ SIGKILL after a grace period) and the recorder last, so the bag is finished.
 """
 
 import os
+import shutil
 import signal
 import time
 from typing import Any, Dict, List, Optional
@@ -20,10 +21,11 @@ from erva_ros.core.errors import CLIError
 from erva_ros.session import accounting, hil_summary
 from erva_ros.core.reports import FoxgloveReport, RecorderReport
 from erva_ros.session.accounting import check_recording
+from erva_ros.session.bringup import Timeline
 from erva_ros.session.recording import (PROCESS as RECORDER, RECORDER_PRIORITY_BELOW,
                                         RecorderDrain, start_recorder)
 from erva_ros.session.processes import (ChildProcess, child_env, node_argv, ros_params,
-                                        STOP_GRACE_S, stop_processes)
+                                        STOP_GRACE_S, stop_processes, use_session_profile)
 from erva_ros.session.run_config import (ACTIVATION_ORDER, HIL_NODES, HIL_PROCESSES, NODES,
                                          RunConfig)
 from erva_ros.session.session_file import Session, session_description
@@ -37,6 +39,9 @@ HIL_DRAIN_S = 1.5
 SIGNAL_EXIT = {signal.SIGINT: 130, signal.SIGTERM: 143}
 #: Processes stopped after the loop's nodes: they take what the nodes published.
 LAST = (RECORDER, 'foxglove_server')
+#: Processes that load their compiled functions as they start, not when configured:
+#: started once the session has compiled what the cache lacked (the others before).
+COMPILE_AT_START = (hil_summary.ECU,)
 
 
 class Supervisor:
@@ -48,13 +53,10 @@ class Supervisor:
     #: the safe passive command, which is worth seeing.
     HIL_NEEDED = {*HIL_PROCESSES, 'road_preview_node'}
 
-    def __init__(self, cfg: RunConfig, session: Session, recording: bool, log):
-        from erva_ros.ros.context import RosContext
-        from erva_ros.ros.monitor import Monitor
-        from erva_ros.session.observations import Observations
-        from erva_ros.session.start_gate import StartGate
-
+    def __init__(self, cfg: RunConfig, session: Session, recording: bool, log,
+                 timeline: Optional[Timeline] = None):
         self.cfg, self.session, self.recording, self.log = cfg, session, recording, log
+        self.timeline = timeline or Timeline()
         self.procs: Dict[str, ChildProcess] = {}
         self.errors: List[str] = []
         self.dead: set = set()
@@ -72,26 +74,9 @@ class Supervisor:
         self.ended: set = set()     # exited 0 by themselves at the end (the ECU)
         self.scenario_done = False  # every node reported the scenario finished
         self._ecu_done: Optional[float] = None
-        self.ros = RosContext()
-        # The monitor subscribes to the time master's gate topic last (see Monitor): the
-        # time master starts only once that subscription is matched too.
-        gate = (topics.ROAD_PREVIEW,) if session.realtime else (topics.STATE,)
-        self.obs = Observations(session.hil, session.sim_window_ns, cfg.namespace,
-                                session.session_id, ts=session.live['ts'],
-                                n_steps=session.n_steps)
-        self.monitor = self.ros.add(Monitor(self.obs, cfg.namespace, context=self.ros.context,
-                                            gate=gate))
-        self.gate = StartGate(self.monitor, self.obs, cfg.namespace, self.node_names,
-                              session.hil, recording, bool(cfg.foxglove),
-                              [topics.time_master_topics(session.realtime)] * cfg.extra_readers,
-                              road_estimated=session.road_estimated,
-                              prediction=session.live['publish_prediction'])
-        self.drain = RecorderDrain()
         # The managed nodes, in activation order (run_config.ACTIVATION_ORDER).
-        from erva_ros.ros.lifecycle import LifecycleDriver
         self.managed = [n for n in ACTIVATION_ORDER[session.live['mode']]
                         if n in self.node_names]
-        self.lifecycle = LifecycleDriver(self.monitor, self.managed, cfg.namespace)
         self._to_activate: List[str] = []
         self.scheduled = None        # --set: live changes sent at their samples
         if session.steps:
@@ -100,32 +85,25 @@ class Supervisor:
             self.scheduled = ScheduledChanges(
                 session.steps, RemoteParameters(self.monitor, f'{cfg.namespace}/nmpc_node'),
                 not session.realtime, session.live['ts'])
+        self.drain = RecorderDrain()
+        self.ros = None
 
     def start(self) -> None:
-        """Start the recorder (when recording) and the nodes, slowest first.
+        """Start the Foxglove server and the recorder (when asked) and the nodes, slowest first.
 
-        Unless ``--force``, refuses first (CLIError, exit 2) if another session runs on
-        this domain and namespace: two loops on the same topics merge and each bag holds
-        both.
+        They start at once: whether another session runs here is heard while they start
+        (:meth:`connect`, :class:`~erva_ros.session.start_gate.Contest`), and a session
+        that must not run stops them before any is configured.
         """
-        if not self.cfg.force:
-            from erva_ros.session.start_gate import LOOK_S, other_session
-            others = other_session(self.monitor, self.obs, self.cfg.namespace,
-                                   self.ros.spin_once, self.t_start + LOOK_S)
-            if others:
-                raise CLIError(f'another session runs on ROS_DOMAIN_ID '
-                               f'{os.environ.get("ROS_DOMAIN_ID", "0")} in namespace '
-                               f'{self.cfg.namespace}: {", ".join(others[:6])}; stop it, use '
-                               '--namespace or another ROS_DOMAIN_ID, or --force')
         env = child_env()
         if self.cfg.foxglove:   # first: it listens before the loop runs
             from erva_ros.session import foxglove_process
-            self.procs[foxglove_process.PROCESS] = foxglove_process.start_process(
-                self.cfg, self.session, env, self.log, session_description(self.session))
+            self._spawned(foxglove_process.PROCESS, foxglove_process.start_process(
+                self.cfg, self.session, env, self.log, session_description(self.session)))
         if self.recording:
-            self.procs[RECORDER] = start_recorder(
+            self._spawned(RECORDER, start_recorder(
                 self.session, self.cfg.namespace, self.cfg.record_dir, env, self.log,
-                self.cfg.recorder_overrides)
+                self.cfg.recorder_overrides))
         hil = {}
         if self.session.hil:
             from erva_ros.session.hil_processes import hil_process_specs
@@ -135,17 +113,76 @@ class Supervisor:
                 model=live['model'], ts=live['ts'], env=env, stamp_on_road_grid=True,
                 realtime_priority=live['realtime_priority'], prefix=self.cfg.ecu_prefix,
                 can_log=self.cfg.can_log)}
+        self._later = []
         for name in self.node_names:
             spec = hil.get(name)
+            if name in COMPILE_AT_START:     # after the session's compile (start_rest)
+                self._later.append((name, spec))
+                continue
             managed = {'autostart': False} if name in self.managed else None
             argv = spec.argv + ros_params(managed) if spec else node_argv(
                 name, self.cfg.namespace, [self.session.params_file],
                 managed)
             if not self.session.realtime:   # lock-step: the session's own /clock
                 argv += topics.clock_remap(self.cfg.namespace)
-            self.procs[name] = ChildProcess(name, argv, spec.env if spec else env,
-                                            os.path.join(self.session.directory, f'{name}.log'))
+            self._spawned(name, ChildProcess(name, argv, spec.env if spec else env,
+                                             os.path.join(self.session.directory,
+                                                          f'{name}.log')))
+        self.timeline.mark('processes started')
+
+    def start_rest(self) -> None:
+        """Start the processes that build their compiled functions at once (the ECU)."""
+        for name, spec in self._later:
+            self._spawned(name, ChildProcess(name, spec.argv, spec.env, os.path.join(
+                self.session.directory, f'{name}.log')))
+        if self._later:
+            self.timeline.mark('ECU simulator started')
         self.log('started ' + ', '.join(f'{n} (pid {p.pid})' for n, p in self.procs.items()))
+
+    def _spawned(self, name: str, proc: ChildProcess) -> None:
+        self.procs[name] = proc
+        self.timeline.spawn(name)
+
+    def connect(self) -> None:
+        """Join the domain while the nodes start: the monitor, the claim, the lifecycle client."""
+        from erva_ros.ros.context import RosContext
+        from erva_ros.ros.lifecycle import LifecycleDriver
+        from erva_ros.ros.monitor import Monitor
+        from erva_ros.ros.session_claim import ClaimChannel
+        from erva_ros.session.observations import Observations
+        from erva_ros.session.start_gate import Contest, StartGate
+
+        cfg, session = self.cfg, self.session
+        self.t_start = time.monotonic()     # the start-up timeout: from here (compiled)
+        use_session_profile(os.environ)     # as its nodes: heard, and hearing, at once
+        self.ros = RosContext()
+        # The monitor subscribes to the time master's gate topic last (see Monitor): the
+        # time master starts only once that subscription is matched too.
+        gate = (topics.ROAD_PREVIEW,) if session.realtime else (topics.STATE,)
+        self.obs = Observations(session.hil, session.sim_window_ns, cfg.namespace,
+                                session.session_id, ts=session.live['ts'],
+                                n_steps=session.n_steps)
+        self.monitor = self.ros.add(Monitor(self.obs, cfg.namespace, context=self.ros.context,
+                                            gate=gate))
+        self.contest = Contest(session.session_id, cfg.namespace, force=cfg.force,
+                               nodes=self.own_node_names())
+        self.claims = ClaimChannel(self.monitor, cfg.namespace, self.contest.hear)
+        self.claims.publish(self.contest.claim())
+        self.gate = StartGate(self.monitor, self.obs, cfg.namespace, self.node_names,
+                              session.hil, recording=self.recording,
+                              foxglove=bool(cfg.foxglove),
+                              extra_readers=[topics.time_master_topics(session.realtime)]
+                              * cfg.extra_readers,
+                              road_estimated=session.road_estimated,
+                              prediction=session.live['publish_prediction'])
+        self.lifecycle = LifecycleDriver(self.monitor, self.managed, cfg.namespace)
+        self.phase = 'looking'
+        self.timeline.mark('joined the domain (rclpy, monitor, claim)')
+
+    def own_node_names(self) -> List[str]:
+        """Return the ROS node names of this session's processes."""
+        names = {RECORDER: 'recorder'}
+        return [names.get(n, n) for n in self.procs]
 
     def observe_at_priority(self) -> None:
         """Run this process (the monitor's DDS threads) at the recorder's priority.
@@ -162,8 +199,10 @@ class Supervisor:
                 max(1, loop - RECORDER_PRIORITY_BELOW), lambda line: None)
 
     def supervise(self) -> None:
-        """Bring up, connect, run and drain, until the scenario ends, a node dies or a signal."""
-        self.phase = 'configuring'
+        """Look, bring up, connect, run, drain: until the scenario ends, a node dies or a signal.
+
+        Raises CLIError (exit 2) if another session runs here (:meth:`_look`).
+        """
         last_progress, last_states, finish_seen, finish_ns = time.monotonic(), 0, 0.0, 0
         while True:
             self.ros.spin_once(0.02)
@@ -171,10 +210,15 @@ class Supervisor:
                 self.errors.append(f'interrupted by {signal.Signals(self.caught[0]).name} '
                                    f'while {self.phase}')
                 return
+            if self.phase == 'looking':
+                self._look()        # before deaths: a refused start is said as such
             if self._check_deaths():
                 return
             now = time.monotonic()
-            if self.phase in ('configuring', 'activating'):
+            if self.phase == 'looking':
+                if self._startup_late(now, 'the nodes\' first statuses'):
+                    return
+            elif self.phase in ('configuring', 'activating'):
                 if self._bring_up(now):
                     return
             elif self.phase == 'connecting':
@@ -187,11 +231,14 @@ class Supervisor:
                     st = self.obs.streams.state_stamp
                     self.scheduled.poll(st.first, st.last)
                 states = self.obs.received[topics.STATE]
+                if states and not last_states:
+                    self.timeline.mark('first sample')
                 if states != last_states:
                     last_states, last_progress = states, now
                 if self._finished(now):
                     self.phase, finish_seen, finish_ns = 'draining', now, time.time_ns()
                     self.scenario_done = True
+                    self.timeline.mark('scenario finished')
                     continue
                 limit = 10.0 + (5.0 if last_states == 0 else 0.0)
                 if now - last_progress > limit + self.session.live['start_delay_s']:
@@ -199,7 +246,54 @@ class Supervisor:
                                        f'({last_states} states received)')
                     return
             elif self._drained(now - finish_seen, finish_ns):
+                self.timeline.mark('drained (final counts in)')
                 return   # drained: the final diagnostics and messages in flight arrived
+
+    def _look(self) -> None:
+        """While the nodes start: refuse if another session beats this one; commit once alone.
+
+        Raises CLIError (exit 2) naming the other session
+        (:class:`~erva_ros.session.start_gate.Contest`).  Commits -- renews the claim as
+        bringing up, and moves on to configuring -- once every managed node reported
+        with this session's id, its lifecycle services are there, and no node or claim
+        of a beaten session is left in the graph.
+        """
+        if not self.cfg.force:
+            winners = self.contest.winners(self.obs.other_sessions)
+            if winners:
+                raise CLIError(f'another session runs on ROS_DOMAIN_ID '
+                               f'{os.environ.get("ROS_DOMAIN_ID", "0")} in namespace '
+                               f'{self.cfg.namespace}: {", ".join(winners[:6])}; stop it, use '
+                               '--namespace or another ROS_DOMAIN_ID, or --force')
+        reported = {name.split(':', 1)[0] for name in self.obs.reports}  # (bridge: 3 reports)
+        if not reported.issuperset(self.managed):
+            return
+        self.timeline.mark('nodes up (first statuses)')
+        if not self.lifecycle.ready():
+            return
+        if self._others_here():
+            return
+        self.claims.publish(self.contest.commit())
+        self.timeline.mark('alone on the namespace (committed)')
+        self.phase = 'configuring'
+
+    def _others_here(self) -> List[str]:
+        """Return the nodes and claims of other sessions in the graph now ([] with --force).
+
+        Raises CLIError if there are nodes of this session's names that no session
+        claims (started by hand, or a --force session's): they would take this
+        session's lifecycle requests.
+        """
+        if self.cfg.force:
+            return []
+        from erva_ros.session.start_gate import extra_nodes
+        extra = extra_nodes(self.monitor.get_node_names_and_namespaces(), self.cfg.namespace,
+                            self.own_node_names())
+        claims = self.claims.others()
+        if extra and not claims and self.phase != 'looking':
+            raise CLIError(f'another program runs nodes in namespace {self.cfg.namespace}: '
+                           f'two of {", ".join(extra)}; the run was not started')
+        return extra + ([f'{claims} other session(s) leaving'] if claims else [])
 
     def _bring_up(self, now: float) -> bool:
         """Configure every managed node, then activate them in order; True: it failed.
@@ -216,6 +310,9 @@ class Supervisor:
                 return True
         if lc.pending():
             return self._startup_late(now, f'{self.phase} {", ".join(lc.pending())}')
+        others = self._others_here()
+        if others:     # a session that leaves: its nodes would take the requests too
+            return self._startup_late(now, 'another session to leave: ' + ', '.join(others))
         if self.phase == 'configuring':
             if not lc.ready():
                 return self._startup_late(now, 'the nodes\' lifecycle services')
@@ -225,11 +322,13 @@ class Supervisor:
                     lc.request(name, 'configure')
                 return False
             self.phase = 'activating'
-            self.log(f'configured {", ".join(self.managed)} in {now - self.t_start:.1f} s; '
+            self.timeline.mark('configured')
+            self.log(f'configured {", ".join(self.managed)} at {self.timeline.now():.1f} s; '
                      f'activating them in this order')
         if self._to_activate:
             lc.request(self._to_activate.pop(0), 'activate')
             return False
+        self.timeline.mark('activated')
         self.phase = 'connecting'
         return False
 
@@ -243,15 +342,11 @@ class Supervisor:
 
     def _connecting(self, now: float) -> bool:
         """One look at the start gate; return True if the run must stop (it never opened)."""
-        twins = self.gate.twins()
-        if twins:   # another session started here too: neither loop may start
-            self.errors.append(f'another session runs in namespace {self.cfg.namespace}: '
-                               f'two of {", ".join(twins)}; the run was not started')
-            return True
         if self.gate.open():
             self.phase = 'running'
             self._begin_bag_end()
-            self.log(f'connected in {now - self.t_start:.1f} s; running '
+            t = self.timeline.mark('running (every writer matched its readers)')
+            self.log(f'connected in {t:.1f} s; running '
                      f'{self.session.live["duration_s"]:g} s ({self.session.live["mode"]})')
         elif now - self.t_start > 10.0 and not getattr(self, '_told_waiting', False):
             self._told_waiting = True     # say once what a slow start waits for
@@ -320,34 +415,58 @@ class Supervisor:
     def stop(self) -> None:
         """Stop the nodes, then the recorder (so it records to the end), then the monitor."""
         ecu = self.procs.get(hil_summary.ECU)
-        if ecu is not None and hil_summary.ECU in self.obs.finished_rx:
+        if ecu is not None and self.ros is not None and hil_summary.ECU in self.obs.finished_rx:
             ecu.wait(STOP_GRACE_S)   # it ends by itself after its last status: let it
             if ecu.poll() == 0:      # print its summary
                 self.ended.add(hil_summary.ECU)
         stop_processes([p for n, p in self.procs.items() if n not in LAST])
+        self.timeline.mark('nodes stopped')
         # Each node published its final status (its final counts) before it exited: take
         # them, so the summary and the bag check count what was really published.
-        self._take_pending()
+        if self.ros is not None:
+            self._take_pending()
+            self.timeline.mark('final statuses taken')
         if any(n in self.procs for n in LAST):
             stop_processes([self.procs[n] for n in LAST if n in self.procs], grace_s=10.0)
-        self.ros.close()
+            self.timeline.mark('recorder stopped (bag finished)')
+        if self.ros is not None:
+            self.ros.close()
 
     def _take_pending(self, quiet_s: float = 0.2, limit_s: float = 3.0) -> None:
-        """Spin the monitor until no loop node's message came for ``quiet_s`` (<= ``limit_s``).
+        """Spin the monitor until it took every stopped node's final status and all queued.
 
-        (The recorder and the Foxglove server, still running, keep reporting: not counted.)
+        Without a final status from each (a node died), until no loop node's message came
+        for ``quiet_s``; at most ``limit_s``.  (The recorder and the Foxglove server,
+        still running, keep reporting: not counted.)
         """
         def loop_arrivals():
             data = sum(n for t, n in self.obs.received.items() if t != topics.DIAGNOSTICS)
             return data, tuple(self.obs.report_rx[n] for n, r in self.obs.reports.items()
                                if not isinstance(r, (RecorderReport, FoxgloveReport)))
+        stopped = [n for n in self.procs if n not in LAST]
         end = time.monotonic() + limit_s
         last, quiet_since = None, time.monotonic()
         while time.monotonic() < end and time.monotonic() - quiet_since < quiet_s:
             self.ros.spin_once(0.02)
+            if self._all_final(stopped):
+                # Each node exited once its readers acknowledged everything: what is
+                # left is in the monitor's queues, taken by spins that wait for nothing.
+                idle = 0
+                while idle < 5 and time.monotonic() < end:
+                    before = loop_arrivals()
+                    self.ros.spin_once(0.0)
+                    idle = idle + 1 if loop_arrivals() == before else 0
+                break
             now = loop_arrivals()
             if now != last:
                 last, quiet_since = now, time.monotonic()
+
+    def _all_final(self, names) -> bool:
+        """Return True once every report of the processes ``names`` is a final one."""
+        reports = [r for key, r in self.obs.reports.items()
+                   if key.split(':', 1)[0] in names]
+        return bool(reports) and all(r.final for r in reports) and {
+            key.split(':', 1)[0] for key in self.obs.reports}.issuperset(names)
 
     def summary(self) -> Dict[str, Any]:
         """Return the run's summary: the monitor's figures plus scenario, nodes and errors."""
@@ -370,6 +489,7 @@ class Supervisor:
         if RECORDER in self.procs:
             summary['bag'] = self.procs[RECORDER].bag_dir
             summary['recording'] = self._check_recording()
+            self.timeline.mark('bag read back and checked')
         if 'foxglove_server' in self.procs:
             from erva_ros.session import foxglove_process
             summary['foxglove'] = foxglove_process.summary(self.obs.reports)
@@ -396,6 +516,8 @@ class Supervisor:
             'wall_time_s': round(time.monotonic() - self.t_start, 3),
             'session_dir': s.directory,
         })
+        self.timeline.mark('summary')
+        summary['timing'] = self.timeline.as_dict(self.process_reports())
         return summary
 
     def _begin_bag_end(self) -> None:
@@ -423,13 +545,29 @@ class Supervisor:
             self.errors += self.scheduled.errors(out['hold_timeouts'])
         return out
 
+    def process_reports(self) -> Dict[str, Any]:
+        """Return the newest report of each started process, by its process name."""
+        out = {name: self.obs.report(name) or next(
+            (r for key, r in sorted(self.obs.reports.items())
+             if key.split(':', 1)[0] == name), None) for name in self.procs}
+        if RECORDER in self.procs:
+            out[RECORDER] = accounting.recorder_report(self.obs.reports)
+        return {name: r for name, r in out.items() if r is not None}
+
+    def discard_bag(self) -> None:
+        """Remove the bag of a session that was refused (its recorder stopped)."""
+        rec = self.procs.get(RECORDER)
+        if rec is not None:
+            shutil.rmtree(rec.bag_dir, ignore_errors=True)
+
     def _mark_bag_end(self, bag_dir: str) -> None:
         """Record in the bag whether the session ran to its end (else why not)."""
         from erva_ros.core.bag.session_check import mark_session_end
         why = self.errors[0] if self.errors else (
             '' if self.scenario_done else f'stopped while {self.phase}')
         for line in mark_session_end(bag_dir, completed=self.scenario_done and not self.errors,
-                                     reason=why):
+                                     reason=why, loop_start_ns=self.obs.first_sample_ns,
+                                     yielded=self.contest.yielded(self.obs.other_sessions)):
             self.log(f'could not record the session\'s end: {line}')
 
     def _check_rejections(self, summary: Dict[str, Any]) -> None:

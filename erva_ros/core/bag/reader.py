@@ -407,7 +407,8 @@ class Bag:
 
     def info(self) -> Dict:
         """Return what ``erva bag info`` shows, as plain data."""
-        from erva_ros.core.bag.session_check import session_warnings
+        from erva_ros.core.bag.session_check import (loop_offset_s, loop_start_ns,
+                                                     session_warnings)
 
         def iso(ns):
             if ns is None:
@@ -440,6 +441,7 @@ class Bag:
             'start_ns': self.start_ns, 'end_ns': self.end_ns,
             'duration_s': round(dur, 9), 'message_count': self.message_count,
             'topics': topics, 'session': dict(self.session),
+            'loop_start_ns': loop_start_ns(self), 'loop_offset_s': loop_offset_s(self),
             'warnings': self.warnings() + session_warnings(self),
         }
 
