@@ -96,11 +96,32 @@ def erva_terms(p: ERVAParams, x) -> NonlinearTerms:
     return NonlinearTerms(h, g, A, B, C, D, E)
 
 
-def _erva_symbolic(p: ERVAParams):
-    """ẋ, P and stored energy of the nonlinear ERVA (paper eq. (11))."""
-    x = ca.SX.sym('x', 6)
-    u = ca.SX.sym('u')
-    w = ca.SX.sym('w')
+@dataclass(frozen=True)
+class ErvaCorner:
+    """One ERVA corner of paper eq. (11), in its local state [z_s, ż_s, z_us, ż_us, z_d, ż_d].
+
+    z_s is the body point the strut holds: the quarter car's sprung mass, or a point of a
+    whole car's body (erva_ros/core/vehicle.py).  The rows of Φ(x)·ẋ = f are
+    (M_s + m_b)·z̈_s − m_b·z̈_us + g·z̈_d = f2, −m_b·z̈_s + (M_us + m_b)·z̈_us − g·z̈_d = f4
+    and E·(z̈_s − z̈_us) + A·z̈_d = f6.
+    """
+
+    terms: NonlinearTerms
+    f2: ca.SX
+    f4: ca.SX
+    f6: ca.SX
+    v_gen: ca.SX            # rotor relative to screw, l·φ̇ (m/s)
+    position: ca.SX         # rotor relative to screw, z_d − (z_s − z_us) (m)
+    deflection: ca.SX       # z_s − z_us (m)
+    power: ca.SX            # harvested, u·v_gen² (W)
+    #: 2 × the kinetic energy of the wheel, screw and rotor: four terms, in the order the
+    #: quarter car adds them after the sprung mass's M_s·ż_s² (kept, so its graph is unchanged).
+    kinetic2: Tuple[ca.SX, ca.SX, ca.SX, ca.SX]
+    potential: ca.SX        # springs k_s, k_t, k_d (J)
+
+
+def erva_corner(p: ERVAParams, x, u, w) -> ErvaCorner:
+    """Return one corner's right-hand sides, generator, power and energy (paper eq. (11))."""
     t = erva_terms(p, x)
     v24 = x[1] - x[3]           # suspension velocity ż_s - ż_us
     d13 = x[0] - x[2]           # suspension deflection z_s - z_us
@@ -109,6 +130,26 @@ def _erva_symbolic(p: ERVAParams):
     f4 = t.h * x[5] * (x[5] - v24) + p.c * v24 + p.k_s * d13 - p.k_t * x[2] + p.k_t * w
     f6 = (-t.B * x[5] ** 2 - t.C * x[5] * v24 - t.D * v24 ** 2
           - u * v_gen - p.k_d * (x[4] - d13))
+    power = u * v_gen ** 2
+    position = x[4] - d13       # rotor relative to screw, z_d - (z_s - z_us)
+    # Kinetic energy of eq. (1) in the paper's translational variables (eq. (10)):
+    # m r² ψ̇² → m_d (1+εr_1)² ż_d², m (r'φ̇)² → m_d ε² r_1'² v_gen², J_b θ̇² → m_b v24².
+    r1 = ((x[4] - d13) / p.l) ** 2
+    r1p = 2 * (x[4] - d13) / p.l
+    kinetic2 = (p.M_us * x[3] ** 2, p.m_b * v24 ** 2,
+                (p.m_r + p.m_d * (1 + p.epsilon * r1) ** 2) * x[5] ** 2,
+                p.m_d * p.epsilon ** 2 * r1p ** 2 * v_gen ** 2)
+    potential = 0.5 * (p.k_s * d13 ** 2 + p.k_t * (x[2] - w) ** 2 + p.k_d * (x[4] - d13) ** 2)
+    return ErvaCorner(t, f2, f4, f6, v_gen, position, d13, power, kinetic2, potential)
+
+
+def _erva_symbolic(p: ERVAParams):
+    """ẋ, P and stored energy of the nonlinear ERVA (paper eq. (11))."""
+    x = ca.SX.sym('x', 6)
+    u = ca.SX.sym('u')
+    w = ca.SX.sym('w')
+    k = erva_corner(p, x, u, w)
+    t = k.terms
     mass = ca.SX(3, 3)
     mass[0, 0] = p.M_s + p.m_b
     mass[0, 1] = -p.m_b
@@ -119,19 +160,12 @@ def _erva_symbolic(p: ERVAParams):
     mass[2, 0] = t.E
     mass[2, 1] = -t.E
     mass[2, 2] = t.A
-    acc = _solve3(mass, ca.vertcat(f2, f4, f6))
+    acc = _solve3(mass, ca.vertcat(k.f2, k.f4, k.f6))
     xdot = ca.vertcat(x[1], acc[0], x[3], acc[1], x[5], acc[2])
-    power = u * v_gen ** 2
-    position = x[4] - d13       # rotor relative to screw, z_d - (z_s - z_us)
-    # Kinetic energy of eq. (1) in the paper's translational variables (eq. (10)):
-    # m r² ψ̇² → m_d (1+εr_1)² ż_d², m (r'φ̇)² → m_d ε² r_1'² v_gen², J_b θ̇² → m_b v24².
-    r1 = ((x[4] - d13) / p.l) ** 2
-    r1p = 2 * (x[4] - d13) / p.l
-    kinetic = 0.5 * (p.M_s * x[1] ** 2 + p.M_us * x[3] ** 2 + p.m_b * v24 ** 2
-                     + (p.m_r + p.m_d * (1 + p.epsilon * r1) ** 2) * x[5] ** 2
-                     + p.m_d * p.epsilon ** 2 * r1p ** 2 * v_gen ** 2)
-    potential = 0.5 * (p.k_s * d13 ** 2 + p.k_t * (x[2] - w) ** 2 + p.k_d * (x[4] - d13) ** 2)
-    return x, u, w, xdot, power, kinetic + potential, v_gen, position, d13
+    kinetic = 0.5 * (p.M_s * x[1] ** 2 + k.kinetic2[0] + k.kinetic2[1] + k.kinetic2[2]
+                     + k.kinetic2[3])
+    return (x, u, w, xdot, k.power, kinetic + k.potential, k.v_gen, k.position,
+            k.deflection)
 
 
 def _benchmark_symbolic(p: ERVAParams):
