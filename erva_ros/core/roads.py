@@ -277,13 +277,28 @@ def paper_noise(times: np.ndarray, rms_m: float, cutoff_hz: float,
     return lfilter2(b, a, white)
 
 
-def iso8608_profile(times: np.ndarray, road_class: str, speed_mps: float,
-                    rng: np.random.Generator) -> np.ndarray:
-    """ISO 8608 displacement profile (m) driven at ``speed_mps`` on the time grid."""
+@dataclass(frozen=True)
+class Iso8608Lines:
+    """The spectral lines an ISO 8608 profile of ``m`` grid samples is synthesised from.
+
+    ``n`` are the spatial frequencies (cycle/m) of the ``nfft``-point FFT of the profile by
+    distance, ``amp`` the cosine amplitude of each line (m; zero outside 0.011-2.83
+    cycle/m), ``phase`` its random phase (rad): the line k is amp_k·cos(2π·n_k·x + phase_k).
+    """
+
+    m: int
+    nfft: int
+    n: np.ndarray
+    amp: np.ndarray
+    phase: np.ndarray
+
+
+def iso8608_amplitudes(m: int, road_class: str,
+                       speed_mps: float) -> Tuple[int, np.ndarray, np.ndarray]:
+    """Return (nfft, n, amp): the FFT size, line frequencies and amplitudes of ``m`` samples."""
     i = ISO_CLASSES.index(road_class)
     gd_n0 = 16e-6 * 4 ** i            # m³, geometric mean of the class
     n0, n_lo, n_hi = 0.1, 0.011, 2.83  # cycle/m
-    m = times.size
     nfft = 1 << int(math.ceil(math.log2(max(m, 2))))
     dx = speed_mps * GRID_S
     n = np.fft.rfftfreq(nfft, d=dx)
@@ -291,10 +306,38 @@ def iso8608_profile(times: np.ndarray, road_class: str, speed_mps: float,
     band = (n >= n_lo) & (n <= n_hi)
     amp = np.zeros_like(n)
     amp[band] = np.sqrt(2.0 * gd_n0 * (n[band] / n0) ** -2 * dn)
+    return nfft, n, amp
+
+
+def iso8608_lines(m: int, road_class: str, speed_mps: float,
+                  rng: np.random.Generator) -> Iso8608Lines:
+    """Return the lines of an ISO 8608 profile of ``m`` samples on the time grid.
+
+    The phases are ``rng``'s first draw (what :func:`make_road` uses for the road of a
+    seed; :mod:`erva_ros.core.two_track` builds its right track on them).
+    """
+    nfft, n, amp = iso8608_amplitudes(m, road_class, speed_mps)
     phase = rng.uniform(0.0, 2 * math.pi, n.size)
-    spec = 0.5 * nfft * amp * np.exp(1j * phase)
-    z = np.fft.irfft(spec, nfft)[:m]
+    return Iso8608Lines(m, nfft, n, amp, phase)
+
+
+def profile_from_lines(lines: Iso8608Lines, phasor: np.ndarray,
+                       amp: Optional[np.ndarray] = None) -> np.ndarray:
+    """Return the profile Σ_k amp_k·Re(phasor_k·e^{i2π·n_k·x}) (m), starting at 0.
+
+    ``phasor`` is e^{i·phase} for a profile of its own; ``amp`` defaults to the lines'.
+    """
+    amp = lines.amp if amp is None else amp
+    spec = 0.5 * lines.nfft * amp * phasor
+    z = np.fft.irfft(spec, lines.nfft)[:lines.m]
     return z - z[0]  # start at 0 like the quarter car's rest state
+
+
+def iso8608_profile(times: np.ndarray, road_class: str, speed_mps: float,
+                    rng: np.random.Generator) -> np.ndarray:
+    """ISO 8608 displacement profile (m) driven at ``speed_mps`` on the time grid."""
+    lines = iso8608_lines(times.size, road_class, speed_mps, rng)
+    return profile_from_lines(lines, np.exp(1j * lines.phase))
 
 
 def make_road(kind: str, duration_s: float, ts: float = 0.02, seed: int = 0,
@@ -366,4 +409,5 @@ def make_road(kind: str, duration_s: float, ts: float = 0.02, seed: int = 0,
 
 
 __all__ = ['ROAD_KINDS', 'ISO_CLASSES', 'MAX_ROAD_FILE_BYTES', 'Road', 'RoadError',
-           'read_road_csv', 'make_road', 'butter2_lowpass', 'lfilter2']
+           'read_road_csv', 'make_road', 'butter2_lowpass', 'lfilter2', 'Iso8608Lines',
+           'iso8608_amplitudes', 'iso8608_lines', 'profile_from_lines']
