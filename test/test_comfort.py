@@ -110,18 +110,19 @@ def test_seat_acceleration_from_heave_pitch_and_roll():
     heave, pitch, roll = rng.standard_normal((3, t.size))
     x, y = 0.4, 0.37                               # driver's seat: ahead of and left of the CG
     z = point_vertical_acceleration(heave, pitch, roll, x, y)
-    np.testing.assert_array_equal(z, heave + x * pitch + y * roll)
+    np.testing.assert_array_equal(z, heave - x * pitch + y * roll)   # ISO 8855: nose down
     # a_w is linear in the motion: pure pitch at x is |x| × the pitch's weighted RMS
     zero = np.zeros_like(t)
     assert point_weighted_rms(zero, pitch, zero, fs, x, y) == pytest.approx(
         x * weighted_rms(pitch, fs), rel=1e-12)
     assert point_weighted_rms(heave, zero, zero, fs, x, y) == pytest.approx(
         weighted_rms(heave, fs), rel=1e-12)
-    # heave and pitch in phase at 2 Hz (on a bin): amplitudes add at the seat, cancel at -x
+    # heave and nose-up pitch in phase at 2 Hz (on a bin): amplitudes add at the seat
+    # ahead of the CG, cancel behind it at -x
     s = np.sin(2 * math.pi * 2.0 * t)
     gain = abs(WEIGHTINGS['k'].response(2.0)) / math.sqrt(2)
-    assert point_weighted_rms(s, s, zero, fs, x, 0.0) == pytest.approx((1 + x) * gain, rel=1e-12)
-    assert point_weighted_rms(s, s / x, zero, fs, -x, 0.0) == pytest.approx(0.0, abs=1e-12)
+    assert point_weighted_rms(s, -s, zero, fs, x, 0.0) == pytest.approx((1 + x) * gain, rel=1e-12)
+    assert point_weighted_rms(s, -s / x, zero, fs, -x, 0.0) == pytest.approx(0.0, abs=1e-12)
 
 
 @pytest.mark.parametrize('args, match', [

@@ -28,8 +28,8 @@ to apply it to.
 
 For the body of a car, :func:`point_vertical_acceleration` gives the vertical
 acceleration at a point (x forward, y left of the centre of gravity) from the body's
-heave, pitch and roll accelerations, z̈_p = z̈_c + x·θ̈ + y·φ̈ (small angles; θ pitch,
-positive when the front rises; φ roll, positive when the left side rises), and
+heave, pitch and roll accelerations, z̈_p = z̈_c − x·θ̈ + y·φ̈ (small angles, the car
+model's ISO 8855 axes: θ pitch, positive nose down; φ roll, positive left side up), and
 :func:`point_weighted_rms` its a_w with W_k: the driver's seat comfort figure.
 """
 
@@ -137,10 +137,11 @@ def weighted_rms(acc, fs: float, weighting='k') -> float:
 
 def point_vertical_acceleration(heave_acc, pitch_acc, roll_acc, x_m: float,
                                 y_m: float) -> np.ndarray:
-    """Return z̈ = z̈_c + x·θ̈ + y·φ̈ (m/s²) at the body point (x_m forward, y_m left, m).
+    """Return z̈ = z̈_c − x·θ̈ + y·φ̈ (m/s²) at the body point (x_m forward, y_m left, m).
 
     ``heave_acc`` z̈_c (m/s²), ``pitch_acc`` θ̈ and ``roll_acc`` φ̈ (rad/s²) of the body at
-    its centre of gravity, sampled alike; θ positive front up, φ positive left side up.
+    its centre of gravity, sampled alike; the axes of the car model (core/vehicle.py,
+    ISO 8855): θ positive nose down, φ positive left side up.
     """
     arrays = [np.asarray(v, dtype=float) for v in (heave_acc, pitch_acc, roll_acc)]
     if len({a.shape for a in arrays}) != 1 or arrays[0].ndim != 1:
@@ -149,7 +150,7 @@ def point_vertical_acceleration(heave_acc, pitch_acc, roll_acc, x_m: float,
     for name, v in (('x_m', x_m), ('y_m', y_m)):
         if not math.isfinite(float(v)):
             raise ComfortError(f'seat position {name}={v!r} must be finite (m)')
-    return arrays[0] + float(x_m) * arrays[1] + float(y_m) * arrays[2]
+    return arrays[0] - float(x_m) * arrays[1] + float(y_m) * arrays[2]
 
 
 def point_weighted_rms(heave_acc, pitch_acc, roll_acc, fs: float, x_m: float,
