@@ -78,6 +78,11 @@ def test_rejected_inputs_that_cost_samples_fail_the_run():
     assert accounting.rejections_cost(2, NMPCReport(
         missed_samples=5, superseded_states=1)).startswith('4 samples')
     assert accounting.rejections_cost(2, None) is None
+    # Under load, samples without a command while only another publisher's (foreign)
+    # message was refused: the refusal took no sample (its message was an extra one).
+    busy = NMPCReport(missed_samples=0, superseded_states=0, safe_commands=3)
+    assert accounting.rejections_cost(1, busy, foreign_total=1) is None
+    assert accounting.rejections_cost(2, busy, foreign_total=1).startswith('3 samples')
 
 
 def test_published_counts_sum_the_nodes_and_the_recorder_catches_up():

@@ -100,17 +100,21 @@ def unmatched(reports: Mapping[str, NodeReport], nodes: Sequence[str],
     return missing
 
 
-def rejections_cost(rejected_total: int, nmpc: Optional[NMPCReport]) -> Optional[str]:
+def rejections_cost(rejected_total: int, nmpc: Optional[NMPCReport],
+                    foreign_total: int = 0) -> Optional[str]:
     """Return why rejected inputs cost the loop samples of control (None if they did not).
 
     Samples whose state never became the controller's: those it missed (a busy
     controller's superseded states are load, not rejection) and those it gave the passive
     command for want of a state -- every state refused, as after a wrong first stamp.
+    Rejected messages of other publishers (``foreign_total``: stamped outside the session
+    or repeating a stamp) are extra messages, not the loop's samples: refusing them takes
+    no sample away, so only the session's own rejected messages count.
     """
     if nmpc is None:
         return None
     unseen = nmpc.missed_samples - nmpc.superseded_states + nmpc.safe_commands
-    if rejected_total and unseen > 0:
+    if rejected_total > foreign_total and unseen > 0:
         return (f'{unseen} samples went without a command of their own while '
                 f'{rejected_total} input messages were rejected')
     return None

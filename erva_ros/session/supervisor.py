@@ -572,8 +572,9 @@ class Supervisor:
 
     def _check_rejections(self, summary: Dict[str, Any]) -> None:
         """Fail the run if rejected inputs cost the loop a sample of control."""
-        error = accounting.rejections_cost(summary['messages']['rejected_total'],
-                                           self.obs.report('nmpc_node'))
+        m = summary['messages']
+        error = accounting.rejections_cost(m['rejected_total'], self.obs.report('nmpc_node'),
+                                           m['foreign_total'])
         if error:
             self.errors.append(error)
 
