@@ -98,10 +98,12 @@ def test_erva_run_realtime_records_and_summarises(tmp_path, erva):
     # The summary also counts the bag as erva bag info does: the loop's topics and
     # /diagnostics; and the bag keeps the params file every node read (not its path).
     info = json.loads(erva('bag', 'info', bag, '--json', check=True).stdout)
+    others = {t: n for t, n in counts.items() if t not in rec['topics']}
+    assert set(others) == {'/diagnostics', '/parameter_events'}
     assert rec['in_bag'] == {'messages': sum(counts.values()), 'topics': len(counts),
-                             'diagnostics': counts['/diagnostics']}
+                             'other_topics': others}
     assert rec['in_bag']['messages'] == info['message_count'] == \
-        sum(c['recorded'] for c in rec['topics'].values()) + counts['/diagnostics']
+        sum(c['recorded'] for c in rec['topics'].values()) + sum(others.values())
     params = yaml.safe_load(info['session']['params_yaml'])
     assert params['/**']['ros__parameters']['session_id'] == info['session']['session_id']
     assert params['/**/nmpc_node']['ros__parameters']['controller'] == 'preview'

@@ -169,7 +169,8 @@ def check_bag(bag_path: str, published: Mapping[str, Optional[int]],
     another session (``session``: this one's id).  Returns ``{'topics': {topic:
     {published, recorded, lost, foreign}}, 'lost': total, 'unknown': [topics],
     'diagnostics_missing': {status name: [seq, ...]}, 'foreign_statuses': n, 'in_bag':
-    {messages, topics, diagnostics}}`` (``in_bag``: the whole bag, as `erva bag info` counts).
+    {messages, topics, other_topics: {topic: messages}}}`` (``in_bag``: the whole bag, as
+    `erva bag info` counts; ``other_topics``: those not checked against a publisher).
     """
     from erva_ros.core.bag.reader import open_bag
     from erva_ros.core.contract import decode_diagnostics
@@ -195,10 +196,11 @@ def check_bag(bag_path: str, published: Mapping[str, Optional[int]],
             foreign[msg.topic] += 1
         else:
             recorded[msg.topic] += 1
-    # What the bag holds in all, as `erva bag info` counts it (its /diagnostics included).
+    # What the bag holds in all, as `erva bag info` counts it: the loop's topics checked
+    # above, and the others (/diagnostics, /parameter_events) by their counts.
     in_bag = {'messages': bag.message_count, 'topics': len(bag.topics),
-              'diagnostics': bag.topics[topics.DIAGNOSTICS].count
-              if topics.DIAGNOSTICS in bag.topics else 0}
+              'other_topics': {t: info.count for t, info in sorted(bag.topics.items())
+                               if t not in published}}
     out = {'topics': {}, 'lost': 0, 'unknown': [], 'diagnostics_missing': {},
            'foreign_statuses': foreign_statuses, 'in_bag': in_bag}
     for topic, n in published.items():

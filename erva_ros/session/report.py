@@ -178,9 +178,10 @@ def _recording_lines(r: Dict[str, Any]) -> List[str]:
     if not bag:
         return [line]
     # The count `erva bag info` gives: the loop's topics, /diagnostics and anything else.
+    others = ' and '.join(f'{n} on {t}' for t, n in bag['other_topics'].items())
     return [line, f'            the bag holds {bag["messages"]} messages on {bag["topics"]} '
-                  f'topics as erva bag info counts them, {bag["diagnostics"]} on /diagnostics '
-                  'included']
+                  f'topics as erva bag info counts them' + (f', {others} included' if others
+                                                            else '')]
 
 
 def _hil_lines(h: Dict[str, Any]) -> List[str]:

@@ -78,13 +78,7 @@ class Supervisor:
         self.managed = [n for n in ACTIVATION_ORDER[session.live['mode']]
                         if n in self.node_names]
         self._to_activate: List[str] = []
-        self.scheduled = None        # --set: live changes sent at their samples
-        if session.steps:
-            from erva_ros.ros.param_client import RemoteParameters
-            from erva_ros.session.tuning_schedule import ScheduledChanges
-            self.scheduled = ScheduledChanges(
-                session.steps, RemoteParameters(self.monitor, f'{cfg.namespace}/nmpc_node'),
-                not session.realtime, session.live['ts'])
+        self.scheduled = None        # --set: live changes sent at their samples (connect)
         self.drain = RecorderDrain()
         self.ros = None
 
@@ -176,6 +170,12 @@ class Supervisor:
                               road_estimated=session.road_estimated,
                               prediction=session.live['publish_prediction'])
         self.lifecycle = LifecycleDriver(self.monitor, self.managed, cfg.namespace)
+        if session.steps:
+            from erva_ros.ros.param_client import RemoteParameters
+            from erva_ros.session.tuning_schedule import ScheduledChanges
+            self.scheduled = ScheduledChanges(
+                session.steps, RemoteParameters(self.monitor, f'{cfg.namespace}/nmpc_node'),
+                not session.realtime, session.live['ts'])
         self.phase = 'looking'
         self.timeline.mark('joined the domain (rclpy, monitor, claim)')
 

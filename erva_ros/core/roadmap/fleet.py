@@ -158,7 +158,7 @@ def migrate(source, target) -> Dict[str, int]:
         meta['schema_version'] = dst.meta['schema_version']
         db.copy_rows('meta', ('key', 'value'), sorted(meta.items()))
         db.copy_rows('nodes', ('i', 'info', 'info_height', 'drives'), nodes)
-        db.copy_rows('drives', cols, ([d.get(c, _DEFAULTS.get(c)) for c in cols]
+        db.copy_rows('drives', cols, ([d.get(c, _V1_FILL.get(c)) for c in cols]
                                       for d in drives))
         if isinstance(db, PostgresDb) and drives:
             db.execute("SELECT setval(pg_get_serial_sequence('drives', 'id'), ?)",
@@ -175,7 +175,8 @@ def migrate(source, target) -> Dict[str, int]:
     return {'meta': len(meta), 'nodes': len(nodes), 'drives': len(drives)}
 
 
-_DEFAULTS = {'residual_sum': 0.0, 'residual_count': 0, 'added_by': ''}
+#: The drive columns a version-1 map lacks, as schema 2 fills them in an upgrade.
+_V1_FILL = {'residual_sum': 0.0, 'residual_count': 0, 'added_by': ''}
 
 
 def grant_roles(location, group: str, vehicles: Sequence[str],
