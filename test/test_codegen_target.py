@@ -186,3 +186,31 @@ def test_ctrl_c_stops_a_compile_in_one_line_and_keeps_what_finished(tmp_path):
     # Nothing half-written: every file in the cache is a whole library or a record.
     leftovers = [f for f in os.listdir(tmp_path) if f.endswith(('.tmp', '.c'))]
     assert not leftovers
+
+
+def test_a_solver_built_once_is_loaded_without_building_it(tmp_path, monkeypatch):
+    # A node's start-up: the libraries found by what the solver is built from, not by
+    # building it symbolically and hashing its C.  Bit for bit the same solver.
+    from erva_ros.core.controllers import ControllerSettings, make_controller, sqp
+    monkeypatch.setenv('ERVA_CACHE_DIR', str(tmp_path))
+    s = ControllerSettings(time_budget_s=10.0, horizon=4)
+    first = make_controller('preview', paper_params(), s)
+    sqp.build_rti.cache_clear()                    # as another process finds it
+    monkeypatch.setattr(sqp, '_sqp_parts', lambda *a: pytest.fail('built again'))
+    again = make_controller('preview', paper_params(), s)
+    x = np.array([0.01, -0.1, 0.002, 0.2, 0.003, -0.3])
+    preview = 0.002 * np.sin(np.arange(5))
+    for c in (first, again):
+        c.reset()
+    for k in range(5):
+        a, b = first.compute(x, preview, k * s.ts), again.compute(x, preview, k * s.ts)
+        np.testing.assert_array_equal(a.plan, b.plan)
+    # Another configuration (here the Hessian) is built, and so is one whose library went.
+    sqp.build_rti.cache_clear()
+    with pytest.raises(pytest.fail.Exception, match='built again'):
+        make_controller('preview', paper_params(), s.with_(hessian='gauss_newton'))
+    for lib in tmp_path.glob('sqp_step_*.so'):
+        lib.unlink()
+    sqp.build_rti.cache_clear()
+    with pytest.raises(pytest.fail.Exception, match='built again'):
+        make_controller('preview', paper_params(), s)

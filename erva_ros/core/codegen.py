@@ -405,6 +405,11 @@ def compile_functions(fns, what: str = '', note: Optional[Callable[[str], None]]
     against other processes compiling the same function, a failure retried once), saying
     so through ``note`` (default: a line on stderr); later processes load the libraries.
     """
+    return _compile_functions(fns, what, note)[0]
+
+
+def _compile_functions(fns, what: str = '', note: Optional[Callable[[str], None]] = None):
+    """Return (the compiled ``fns``, their libraries): :func:`compile_functions`."""
     libs, jobs = plan_functions(fns)
     if _collected is None:
         check_runs_here(toolchain())
@@ -412,13 +417,70 @@ def compile_functions(fns, what: str = '', note: Optional[Callable[[str], None]]
         _collected.libs.extend(libs)
         _collected.jobs.extend(jobs)
         if jobs:
-            return list(fns)
+            return list(fns), libs
     elif jobs:
         note = note or _stderr
         note(f'compiling {what or ", ".join(j.name for j in jobs)} (first run on this '
              f'machine; cached in {codegen_cache_dir()})')
         run_jobs(jobs)
-    return [ca.external(fn.name(), lib) for fn, lib in zip(fns, libs)]
+    return [ca.external(fn.name(), lib) for fn, lib in zip(fns, libs)], libs
+
+
+#: Where the cache keeps what each build produced (:func:`load_or_build`).
+BUILDS = 'builds'
+
+
+@functools.lru_cache(maxsize=None)
+def code_fingerprint() -> str:
+    """Return a hash of the core ring's source: a changed model or solver builds anew."""
+    root = os.path.dirname(os.path.abspath(__file__))
+    h = hashlib.sha1()
+    for base, dirs, files in os.walk(root):
+        dirs.sort()
+        for name in sorted(files):
+            if name.endswith('.py'):
+                path = os.path.join(base, name)
+                h.update(os.path.relpath(path, root).encode())
+                with open(path, 'rb') as fh:
+                    h.update(fh.read())
+    return h.hexdigest()
+
+
+def load_or_build(setting: str, key: str, build: Callable[[], Sequence[ca.Function]],
+                  what: str) -> List[ca.Function]:
+    """Return ``build()``'s functions compiled as ``codegen`` = setting asks (compile_for).
+
+    Building a solver symbolically and generating its C only to find its library by the
+    source's hash costs most of a node's start-up (the NMPC: 1.2 of 1.7 s).  So a build
+    is recorded under ``key`` -- what the caller builds from (its parameters), with the
+    core ring's source (:func:`code_fingerprint`), CasADi's version and the target's
+    flags -- and a later process with the same key loads the libraries without building.
+    Not while :func:`collecting` (erva compile plans by building).
+    """
+    if not use_codegen(setting) or _collected is not None:
+        return compile_for(setting, build(), what)
+    tc = toolchain()
+    digest = hashlib.sha1('|'.join((key, tc.salt, ca.__version__, code_fingerprint())).encode())
+    path = os.path.join(codegen_cache_dir(), BUILDS, f'{digest.hexdigest()[:20]}.json')
+    try:
+        with open(path, encoding='utf-8') as fh:
+            built = json.load(fh)
+        libs = [os.path.join(codegen_cache_dir(), lib) for _, lib in built]
+        if all(os.path.isfile(lib) for lib in libs):
+            check_runs_here(tc)
+            return [ca.external(name, lib) for (name, _), lib in zip(built, libs)]
+    except (OSError, ValueError, TypeError):
+        pass                          # not built before (or unreadable): build it
+    fns = list(build())
+    compiled, libs = _compile_for(setting, fns, what)
+    if libs is None:
+        return compiled
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    tmp = f'{path}.{os.getpid()}.{threading.get_ident()}.tmp'
+    with open(tmp, 'w', encoding='utf-8') as fh:
+        json.dump([[fn.name(), os.path.basename(lib)] for fn, lib in zip(fns, libs)], fh)
+    os.replace(tmp, path)
+    return compiled
 
 
 def _stderr(line: str) -> None:
@@ -542,17 +604,22 @@ def compile_for(setting: str, fns, what: str):
     ParamError.  A target this CPU cannot run is an error either way (TargetError):
     running uncompiled, several times slower, would hide it.
     """
+    return _compile_for(setting, fns, what)[0]
+
+
+def _compile_for(setting: str, fns, what: str):
+    """Return (``fns`` as :func:`compile_for` gives them, their libraries or None)."""
     if not use_codegen(setting):
-        return list(fns)
+        return list(fns), None
     try:
-        return compile_functions(fns, what)
+        return _compile_functions(fns, what)
     except TargetError:
         raise
     except ParamError as exc:
         if setting != 'auto':
             raise
         warnings.warn(f'{exc}; running {what} uncompiled')
-        return list(fns)
+        return list(fns), None
 
 
 class BufferedCall:
@@ -622,6 +689,6 @@ __all__ = ['CODEGEN_FLAGS', 'TARGET_ENV', 'NATIVE', 'codegen_cache_dir', 'c_comp
            'TargetError', 'codegen_target', 'target_flags', 'cpu_features', 'ISA_FLAGS',
            'TargetRecord', 'native_tag_suffix', 'read_record', 'ensure_record', 'cached_records',
            'Toolchain', 'toolchain',
-           'check_runs_here', 'library_flags', 'use_codegen', 'CompileJob', 'CompileError', 'Plan',
+           'check_runs_here', 'code_fingerprint', 'load_or_build', 'library_flags', 'use_codegen', 'CompileJob', 'CompileError', 'Plan',
            'plan_functions', 'collecting',
            'compile_functions', 'run_jobs', 'compile_for', 'BufferedCall']

@@ -214,21 +214,6 @@ class WarmResult:
                 'targets': [t.as_dict() for t in self.targets]}
 
 
-def _code_fingerprint() -> str:
-    """Return a hash of the core ring's source: a changed model or solver is a new target."""
-    root = os.path.dirname(os.path.abspath(__file__))
-    h = hashlib.sha1()
-    for base, dirs, files in os.walk(root):
-        dirs.sort()
-        for name in sorted(files):
-            if name.endswith('.py'):
-                path = os.path.join(base, name)
-                h.update(os.path.relpath(path, root).encode())
-                with open(path, 'rb') as fh:
-                    h.update(fh.read())
-    return h.hexdigest()
-
-
 #: Settings that are values of the NMPC's compiled functions (OCP parameters) or of the
 #: Python loop around them, not part of their code: a sweep of them is one target.  Only
 #: whether a command delay is modelled changes the OCP, not its value.  (Were one of them
@@ -251,7 +236,7 @@ def _target_key(target: Target, salt: str) -> str:
             target.settings, controller=controller,
             command_delay_s=float(target.settings.command_delay_s > 0),
             **{k: getattr(defaults, k) for k in NOT_COMPILED_IN}))
-    text = f'{target!r}|{salt}|{ca.__version__}|{_code_fingerprint()}'
+    text = f'{target!r}|{salt}|{ca.__version__}|{codegen.code_fingerprint()}'
     return hashlib.sha1(text.encode()).hexdigest()[:20]
 
 

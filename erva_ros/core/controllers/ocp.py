@@ -206,6 +206,7 @@ class OCP:
     prefix: ca.Function          # (xt, v, k, wv, h) -> (defects, phi): the delay
     terminal: ca.Function        # (x_B, w_end, alpha) -> terminal cost
     road: ca.Function            # p -> (road per interval, w_end, prefix road, d, v_acting)
+    key: str = ''                # what it is built from: model and spec (codegen.load_or_build)
 
     @property
     def horizon(self) -> int:
@@ -500,7 +501,8 @@ def build_ocp(model: QuarterCarModel, spec: OCPSpec) -> OCP:
     rollout = ca.Function('rollout', [x0, a_prev, ub, q], [ca.vertcat(*zr)],
                           ['x0', 'a_prev', 'u', 'q'], ['z'])
     return OCP(nlp, rollout, tuple(blocks), nx, degree, with_acc, float(u_min), float(u_max),
-               xs, float(ts), bool(delayed), interval, prefix, terminal, road)
+               xs, float(ts), bool(delayed), interval, prefix, terminal, road,
+               f'{model.kind}|{model.params!r}|{spec!r}')
 
 
 __all__ = ['COLLOCATION_DEGREE', 'OCP', 'OCPSpec', 'ROLLOUT_SUBSTEP_S', 'StageSlices', 'U_SCALE',

@@ -59,7 +59,7 @@ from functools import lru_cache
 import casadi as ca
 import numpy as np
 
-from erva_ros.core.codegen import compile_for
+from erva_ros.core.codegen import compile_for, load_or_build
 from erva_ros.core.controllers.linalg import (convexify, lu_factor, lu_solve, SparseLU,
                                               symmetric)
 from erva_ros.core.controllers.settings import HESSIANS
@@ -604,7 +604,9 @@ def build_rti(ocp, max_iter: int, tol: float = 1e-4, codegen: str = 'off',
     iterated until the step is below ``tol`` or ``max_iter`` iterations.
     """
     nb, nz = len(ocp.blocks), ocp.nz
-    starts, step = compile_for(codegen, _sqp_parts(ocp, n_alt, hessian), 'the NMPC solver')
+    # Loaded without building when a process built this solver before (a node's start-up).
+    starts, step = load_or_build(codegen, f'sqp|{ocp.key}|{n_alt}|{hessian}',
+                                 lambda: _sqp_parts(ocp, n_alt, hessian), 'the NMPC solver')
     ns = starts.size1_out(0)                    # state = [z; f; ‖g‖₁; done; iterations]
     x0, a_prev, p = ca.MX.sym('x0', ocp.nx), ca.MX.sym('a_prev'), ca.MX.sym('p', ocp.n_pb)
     u_guess, u_alt = ca.MX.sym('u_guess', nb), ca.MX.sym('u_alt', nb, n_alt)
