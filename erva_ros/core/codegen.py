@@ -689,6 +689,7 @@ __all__ = ['CODEGEN_FLAGS', 'TARGET_ENV', 'NATIVE', 'codegen_cache_dir', 'c_comp
            'TargetError', 'codegen_target', 'target_flags', 'cpu_features', 'ISA_FLAGS',
            'TargetRecord', 'native_tag_suffix', 'read_record', 'ensure_record', 'cached_records',
            'Toolchain', 'toolchain',
-           'check_runs_here', 'code_fingerprint', 'load_or_build', 'library_flags', 'use_codegen', 'CompileJob', 'CompileError', 'Plan',
+           'check_runs_here', 'code_fingerprint', 'load_or_build', 'library_flags',
+           'use_codegen', 'CompileJob', 'CompileError', 'Plan',
            'plan_functions', 'collecting',
            'compile_functions', 'run_jobs', 'compile_for', 'BufferedCall']
