@@ -16,6 +16,7 @@ from erva_ros.core import topics as contract
 from erva_ros.core.bag.writer import BagWriter
 from erva_ros.core.controllers import ControllerSettings, make_controller
 from erva_ros.core.hil import topics as hil_topics
+from erva_ros.core.model import make_model
 from erva_ros.core.params import paper_params
 from erva_ros.core.roadmap.vehicle import OdometryError, Route, simulate_vehicle
 from erva_ros.core.roads import make_road
@@ -23,6 +24,7 @@ from erva_ros.core.roads import make_road
 from conftest import REPO, ros_env
 
 P = paper_params()
+M = make_model(P)
 TS = 0.02
 T0_NS = 1_800_000_000 * 10 ** 9
 
@@ -34,8 +36,8 @@ def route(seed=0, speed=20.0, seconds=12.0):
 
 def drive(rt, sensor_seed, seconds=5.0, speed=20.0, odometry=OdometryError(), start_m=0.0):
     """Return one passive drive along route ``rt`` (VehicleRun)."""
-    passive = make_controller('passive', P, ControllerSettings())
-    return simulate_vehicle(P, passive, rt.drive(speed, start_m), seconds, start_m=start_m,
+    passive = make_controller('passive', M, ControllerSettings())
+    return simulate_vehicle(M, passive, rt.drive(speed, start_m), seconds, start_m=start_m,
                             sensor_seed=sensor_seed, odometry=odometry)
 
 

@@ -18,6 +18,7 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from erva_ros.core import contract, topics
+from erva_ros.core.model import STATE_NAMES
 
 NS = 1_000_000_000
 #: Tolerance on time_from_start of trajectory points (ns): a point off the Ts grid is rejected.
@@ -48,7 +49,7 @@ def s_to_ns(seconds: float) -> int:
 
 def state_joint_names(kind: str) -> Tuple[str, ...]:
     """Return the JointState names of the state of model ``kind`` (benchmark: no z_d)."""
-    return topics.STATE_JOINTS if kind == 'erva' else topics.STATE_JOINTS[:2]
+    return STATE_NAMES[kind][0::2]
 
 
 # -- builders ------------------------------------------------------------------------------
@@ -149,7 +150,7 @@ def _bytes(msg) -> bytes:
 # node does with what it receives.
 def parse_state(msg: JointState, kind: str) -> Tuple[int, np.ndarray]:
     """Return (stamp_ns, x) of a state message; reject wrong joints or bad values."""
-    row = contract.decode_state(_bytes(msg), kind)
+    row = contract.decode_state(_bytes(msg), state_joint_names(kind))
     return row.stamp_ns, row.x
 
 

@@ -6,12 +6,14 @@ import pytest
 from erva_ros.core.closed_loop import closed_loop_cost, evaluation_objective, simulate_closed_loop
 from erva_ros.core.controllers import ControllerSettings, make_controller
 from erva_ros.core.metrics import comfort_power
+from erva_ros.core.model import make_model
 from erva_ros.core.params import paper_params
 from erva_ros.core.plant import PlantSimulator
 from erva_ros.core.preview import PreviewErrorModel
 from erva_ros.core.roads import make_road
 
 P = paper_params()
+M = make_model(P)
 # Quality tests: no real-time budget, so a loaded CI machine cannot change results.
 S = ControllerSettings(time_budget_s=10.0)
 
@@ -20,15 +22,15 @@ S = ControllerSettings(time_budget_s=10.0)
 def test_simulate_closed_loop_follows_the_documented_step_semantics(name):
     road = make_road('paper', 0.6, seed=2)
     model = PreviewErrorModel(snr_db=10.0, delay_s=0.02, seed=3, ts=S.ts)
-    run = simulate_closed_loop(P, make_controller(name, P, S), road, 0.6, preview_model=model)
+    run = simulate_closed_loop(M, make_controller(name, M, S), road, 0.6, preview_model=model)
     # The same loop written out by hand, as the live lock-step mode runs it: the same
     # computation, so the same numbers bit for bit on any CPU.  (The SQP turns a last-bit
     # change of an input into ~1e-6 Ns/m of command: t_k + Ts instead of (k + 1)·Ts for
     # the next road sample, which differ in the last bit at 8 of these 30 samples, gave
     # 1.4e-6 Ns/m and 7e-12 m/s² here, more than the tolerance this test once had on a
     # CPU with AVX-512.)
-    ctrl = make_controller(name, P, S)
-    plant = PlantSimulator(P, 'erva', S.ts)
+    ctrl = make_controller(name, M, S)
+    plant = PlantSimulator(M, S.ts)
     accels, cmds = [], []
     for k in range(30):
         t_k = k * S.ts
@@ -48,7 +50,7 @@ def test_simulate_closed_loop_follows_the_documented_step_semantics(name):
 
 def test_metrics_and_costs():
     road = make_road('sine', 1.0)
-    run = simulate_closed_loop(P, make_controller('passive', P, S), road, 1.0)
+    run = simulate_closed_loop(M, make_controller('passive', M, S), road, 1.0)
     m = run.metrics
     assert run.t.size == 50 and run.duration_s == pytest.approx(1.0)
     assert set(m['solve_ms']) == {'p50', 'p99', 'max', 'samples'}
@@ -65,4 +67,4 @@ def test_metrics_and_costs():
     assert closed_loop_cost(run, 1.0, 0.0, 'continuous') == pytest.approx(
         m['acc_rms_continuous'] ** 2 * run.t.size)
     with pytest.raises(ValueError, match='shorter than one sample'):
-        simulate_closed_loop(P, make_controller('passive', P, S), road, 0.001)
+        simulate_closed_loop(M, make_controller('passive', M, S), road, 0.001)

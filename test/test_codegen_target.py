@@ -13,10 +13,10 @@ import pytest
 
 from conftest import REPO, ros_env, run_erva
 from erva_ros.core import codegen
-from erva_ros.core.model import get_model
+from erva_ros.core.model import make_model
 from erva_ros.core.params import paper_params
 
-MODEL = get_model(paper_params(), 'erva')
+MODEL = make_model(paper_params(), 'erva')
 #: -march names of which at least one is beyond any CPU: knl has AVX512ER/PF (only
 #: Knights Landing), the others AVX-512 (not on AMD before Zen 4) or SSE4A (AMD only).
 BEYOND = ('x86-64-v4', 'sapphirerapids', 'znver1', 'knl')
@@ -194,10 +194,10 @@ def test_a_solver_built_once_is_loaded_without_building_it(tmp_path, monkeypatch
     from erva_ros.core.controllers import ControllerSettings, make_controller, sqp
     monkeypatch.setenv('ERVA_CACHE_DIR', str(tmp_path))
     s = ControllerSettings(time_budget_s=10.0, horizon=4)
-    first = make_controller('preview', paper_params(), s)
+    first = make_controller('preview', make_model(paper_params()), s)
     sqp.build_rti.cache_clear()                    # as another process finds it
     monkeypatch.setattr(sqp, '_sqp_parts', lambda *a: pytest.fail('built again'))
-    again = make_controller('preview', paper_params(), s)
+    again = make_controller('preview', make_model(paper_params()), s)
     x = np.array([0.01, -0.1, 0.002, 0.2, 0.003, -0.3])
     preview = 0.002 * np.sin(np.arange(5))
     for c in (first, again):
@@ -208,9 +208,9 @@ def test_a_solver_built_once_is_loaded_without_building_it(tmp_path, monkeypatch
     # Another configuration (here the Hessian) is built, and so is one whose library went.
     sqp.build_rti.cache_clear()
     with pytest.raises(pytest.fail.Exception, match='built again'):
-        make_controller('preview', paper_params(), s.with_(hessian='gauss_newton'))
+        make_controller('preview', make_model(paper_params()), s.with_(hessian='gauss_newton'))
     for lib in tmp_path.glob('sqp_step_*.so'):
         lib.unlink()
     sqp.build_rti.cache_clear()
     with pytest.raises(pytest.fail.Exception, match='built again'):
-        make_controller('preview', paper_params(), s)
+        make_controller('preview', make_model(paper_params()), s)

@@ -18,9 +18,12 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
 
 from erva_ros.core import contract as c  # noqa: E402
+from erva_ros.core.loop.validation import MessageRejected  # noqa: E402
+from erva_ros.core.model import make_model  # noqa: E402
+from erva_ros.core.params import paper_params  # noqa: E402
+from erva_ros.core.topics import STATE_JOINTS  # noqa: E402
 from erva_ros.core.wire import CdrError, MAX_ELEMENTS  # noqa: E402
 from erva_ros.ros.bag_messages import encoded_size  # noqa: E402
-from erva_ros.core.loop.validation import MessageRejected  # noqa: E402
 
 serialize = rclpy_serialization.serialize_message
 deserialize = rclpy_serialization.deserialize_message
@@ -54,19 +57,20 @@ def _trajectory(joint, values, ts_ns=TS_NS, first_ns=0):
 
 @pytest.mark.parametrize('kind', ['erva', 'benchmark'])
 def test_state(kind):
-    names = c.state_joint_names(kind)
+    names = make_model(paper_params(), kind).joints
+    assert names == ('z_s', 'z_us', 'z_d')[:len(names)]     # the model's joints
     x = np.arange(2 * len(names)) * 0.01 - 0.02
     msg = _stamp(JointState(name=list(names), position=list(x[0::2]), velocity=list(x[1::2])))
-    _same_bytes(c.encode_state(STAMP, x, kind), msg)
-    for row in (c.decode_state(serialize(msg)), c.decode_state(serialize(msg), kind)):
+    _same_bytes(c.encode_state(STAMP, x, names), msg)
+    for row in (c.decode_state(serialize(msg)), c.decode_state(serialize(msg), names)):
         assert row.stamp_ns == STAMP and np.array_equal(row.x, x)
-    other = 'benchmark' if kind == 'erva' else 'erva'
+    other = make_model(paper_params(), 'benchmark' if kind == 'erva' else 'erva').joints
     with pytest.raises(MessageRejected, match='joint names'):
         c.decode_state(serialize(msg), other)
     msg.position[0] = math.nan
     c.decode_state(serialize(msg))              # an observer records what was sent
     with pytest.raises(MessageRejected, match='not finite'):
-        c.decode_state(serialize(msg), kind)
+        c.decode_state(serialize(msg), names)
 
 
 def test_accel_generator_road_clock():
@@ -198,7 +202,7 @@ def test_measurements_strict_and_observed():
 
 
 def test_every_truncation_and_corruption_is_rejected():
-    samples = [c.encode_state(STAMP, np.zeros(6), 'erva'), c.encode_accel(STAMP, 1.0),
+    samples = [c.encode_state(STAMP, np.zeros(6), STATE_JOINTS), c.encode_accel(STAMP, 1.0),
                c.encode_preview(STAMP, [0.0] * 11, TS_NS),
                c.encode_command(STAMP, [1.0, 2.0], TS_NS), c.encode_road_height(STAMP, 1, 0),
                c.encode_diagnostics(STAMP, [c.Status('n', 0, 'm', 'h', {'k': 'v'})])]
@@ -209,7 +213,7 @@ def test_every_truncation_and_corruption_is_rejected():
         for cut in range(len(data)):
             with pytest.raises(MessageRejected):
                 decode(data[:cut])
-    huge = bytearray(c.encode_state(STAMP, np.zeros(6), 'erva'))
+    huge = bytearray(c.encode_state(STAMP, np.zeros(6), STATE_JOINTS))
     huge[20:24] = (MAX_ELEMENTS + 1).to_bytes(4, 'little')      # the name count
     with pytest.raises(CdrError, match='limit'):
         c.decode_state(bytes(huge))

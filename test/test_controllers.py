@@ -9,9 +9,11 @@ import pytest
 from erva_ros.core.controllers import (CONTROLLER_NAMES, ControllerSettings,
                                        load_controller_settings, make_controller, STATUSES)
 from erva_ros.core.controllers import settings as settings_mod
+from erva_ros.core.model import make_model
 from erva_ros.core.params import paper_params, ParamError
 
 P = paper_params()
+M = make_model(P)
 
 
 def test_controller_names_and_status_values():
@@ -66,7 +68,7 @@ def test_settings_file_errors_name_the_file(tmp_path):
 
 @pytest.mark.parametrize('name', CONTROLLER_NAMES)
 def test_make_controller_interface(name):
-    c = make_controller(name, P, ControllerSettings())
+    c = make_controller(name, M, ControllerSettings())
     assert c.name == name
     assert (c.ts, c.u_min, c.u_max) == (0.02, 0.0, 20000.0)
     res = c.compute(np.zeros(6), np.zeros(c.horizon + 1), 0.0)
@@ -75,26 +77,26 @@ def test_make_controller_interface(name):
     assert res.status in STATUSES and res.solve_time_s >= 0
     assert c.counters['steps'] == 1
     with pytest.raises(ParamError, match='unknown controller'):
-        make_controller('lqr', P)
+        make_controller('lqr', M)
 
 
 def test_passive_and_skyhook_laws():
     s = ControllerSettings()
-    passive = make_controller('passive', P, s)
+    passive = make_controller('passive', M, s)
     assert passive.compute(np.ones(6), np.zeros(11), 0).damping_cmd == P.c_e0
-    sky = make_controller('skyhook', P, s)
+    sky = make_controller('skyhook', M, s)
     # body moving up and away from the wheel: damp hard; moving towards it: soft.
     up_apart = np.array([0, 0.1, 0, 0.0, 0, 0])
     up_closing = np.array([0, 0.1, 0, 0.3, 0, 0])
     assert sky.compute(up_apart, np.zeros(11), 0).damping_cmd == s.u_max
     assert sky.compute(up_closing, np.zeros(11), 0).damping_cmd == s.u_min
     # c_e0 outside a narrow box is clipped into it
-    narrow = make_controller('passive', P, s.with_(u_min=12000.0, u_max=15000.0))
+    narrow = make_controller('passive', M, s.with_(u_min=12000.0, u_max=15000.0))
     assert narrow.compute(np.zeros(6), np.zeros(11), 0).damping_cmd == 12000.0
 
 
 def test_non_finite_measurement_falls_back_and_is_counted():
-    c = make_controller('skyhook', P, ControllerSettings())
+    c = make_controller('skyhook', M, ControllerSettings())
     ok = c.compute(np.array([0, 0.1, 0, 0, 0, 0]), np.zeros(11), 0.0)
     bad = c.compute(np.full(6, np.nan), np.zeros(11), 0.02)
     assert bad.status == 'fallback_plan'
@@ -109,7 +111,7 @@ def test_non_finite_measurement_falls_back_and_is_counted():
 
 
 def test_short_preview_is_a_programming_error():
-    c = make_controller('passive', P, ControllerSettings())
+    c = make_controller('passive', M, ControllerSettings())
     with pytest.raises(ValueError, match='needs 11 road heights'):
         c.compute(np.zeros(6), np.zeros(3), 0.0)
 

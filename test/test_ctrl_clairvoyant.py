@@ -7,10 +7,12 @@ from erva_ros.core.closed_loop import evaluation_objective, simulate_closed_loop
 from erva_ros.core.controllers import ControllerSettings, make_controller
 from erva_ros.core.controllers.clairvoyant import (clairvoyant_bound, plant_run, polish,
                                                    ReplayController)
+from erva_ros.core.model import make_model
 from erva_ros.core.params import paper_params
 from erva_ros.core.roads import make_road
 
 P = paper_params()
+M = make_model(P)
 # Quality tests: no real-time budget, so a loaded CI machine cannot change results.
 S = ControllerSettings(time_budget_s=10.0)
 DURATION = 1.0   # 50 samples: every start of the bound and each causal run
@@ -23,9 +25,9 @@ def test_bound_is_never_beaten_by_a_causal_controller(alpha):
     # more than the road (or a plant that differs) would show up here.
     road = make_road('paper', DURATION, seed=5)
     s = S.with_(alpha1=alpha[0], alpha2=alpha[1])
-    runs = {name: simulate_closed_loop(P, make_controller(name, P, s), road, DURATION)
+    runs = {name: simulate_closed_loop(M, make_controller(name, M, s), road, DURATION)
             for name in ('passive', 'skyhook', 'no_preview', 'preview', 'preview_long')}
-    bound = clairvoyant_bound(P, road, DURATION, S.ts, alpha, S.u_min, S.u_max,
+    bound = clairvoyant_bound(M, road, DURATION, S.ts, alpha, S.u_min, S.u_max,
                               {k: r.u for k, r in runs.items() if k != 'passive'})
     for name, run in runs.items():
         assert bound.objective < evaluation_objective(run.metrics, alpha), name
@@ -35,7 +37,7 @@ def test_bound_is_never_beaten_by_a_causal_controller(alpha):
     assert np.all((bound.run.u >= S.u_min) & (bound.run.u <= S.u_max))
     # The polish optimises the plant's own discretisation: its prediction is the plant's.
     assert bound.agreement < 1e-9
-    again = plant_run(P, bound.run.u, road.height(S.ts * np.arange(bound.run.u.size + 1)),
+    again = plant_run(M, bound.run.u, road.height(S.ts * np.arange(bound.run.u.size + 1)),
                       S.ts)
     assert evaluation_objective(again.metrics, alpha) == pytest.approx(bound.objective,
                                                                        rel=1e-12)
@@ -43,9 +45,9 @@ def test_bound_is_never_beaten_by_a_causal_controller(alpha):
 
 def test_replay_controller_reproduces_a_run():
     road = make_road('paper', 1.0, seed=1)
-    run = simulate_closed_loop(P, make_controller('skyhook', P, S), road, 1.0)
+    run = simulate_closed_loop(M, make_controller('skyhook', M, S), road, 1.0)
     replay = ReplayController(run.u, S.ts, S.u_min, S.u_max, P.c_e0)
-    again = simulate_closed_loop(P, replay, road, 1.0)
+    again = simulate_closed_loop(M, replay, road, 1.0)
     np.testing.assert_array_equal(again.u, run.u)
     np.testing.assert_allclose(again.sprung_accel, run.sprung_accel, rtol=1e-12)
     assert again.harvested_j == pytest.approx(run.harvested_j, rel=1e-12)
@@ -54,9 +56,9 @@ def test_replay_controller_reproduces_a_run():
 def test_replay_on_the_closed_loop_equals_the_open_loop_plant_run():
     road = make_road('paper', 1.0, seed=3)
     u = np.where(np.arange(50) % 3 == 0, S.u_max, S.u_min)
-    closed = simulate_closed_loop(P, ReplayController(u, S.ts, S.u_min, S.u_max, P.c_e0),
+    closed = simulate_closed_loop(M, ReplayController(u, S.ts, S.u_min, S.u_max, P.c_e0),
                                   road, 1.0)
-    opened = plant_run(P, u, road.height(S.ts * np.arange(51)), S.ts)
+    opened = plant_run(M, u, road.height(S.ts * np.arange(51)), S.ts)
     np.testing.assert_allclose(opened.sprung_accel, closed.sprung_accel, rtol=1e-12)
     for key in ('acc_2norm', 'acc_rms', 'power_w', 'acc_rms_continuous'):
         assert opened.metrics[key] == pytest.approx(closed.metrics[key], rel=1e-12), key

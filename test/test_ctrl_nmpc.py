@@ -7,7 +7,7 @@ from erva_ros.core.closed_loop import simulate_closed_loop
 from erva_ros.core.controllers import ControllerSettings, make_controller
 from erva_ros.core.controllers.ocp import build_ocp, OCPSpec, stable_rollout_substep, U_SCALE
 from erva_ros.core.controllers.sqp import build_rti, plan_value_function
-from erva_ros.core.model import get_model
+from erva_ros.core.model import make_model
 from erva_ros.core.params import paper_params
 from erva_ros.core.plant import PlantSimulator
 from erva_ros.core.roads import make_road
@@ -15,7 +15,7 @@ from erva_ros.core.roads import make_road
 P = paper_params()
 # Quality tests: no real-time budget, so a loaded CI machine cannot change results.
 S = ControllerSettings(time_budget_s=10.0)
-MODEL = get_model(P, 'erva')
+MODEL = make_model(P)
 
 
 def _collocation_solution(ocp, x0, u, w, p):
@@ -46,7 +46,7 @@ def test_prediction_matches_the_plant_over_the_whole_box(plan, degree, tol):
          'u_min': np.full(n, S.u_min)}[plan]
     road = make_road('paper', 2.0, seed=2)
     t0 = 0.6
-    plant = PlantSimulator(P, 'erva', S.ts)
+    plant = PlantSimulator(MODEL, S.ts)
     for k in range(int(t0 / S.ts)):           # a moving, non-rest initial state
         plant.step(P.c_e0, road.height(k * S.ts), road.height((k + 1) * S.ts))
     x0, e0 = plant.x.copy(), plant.harvested_j
@@ -76,7 +76,8 @@ def test_commands_and_plans_stay_in_the_box_at_every_step():
                              ('preview_long', (2000.0, 30000.0), (1.0, 0.01))]:
         s = S.with_(u_min=box[0], u_max=box[1], alpha1=alpha[0], alpha2=alpha[1],
                     time_budget_s=1.0)
-        run = simulate_closed_loop(P, make_controller(name, P, s), road, 1.5, keep_plans=True)
+        run = simulate_closed_loop(MODEL, make_controller(name, MODEL, s), road, 1.5,
+                                   keep_plans=True)
         assert np.all(run.u >= box[0]) and np.all(run.u <= box[1]), name
         assert np.all(run.plans >= box[0]) and np.all(run.plans <= box[1]), name
         assert run.status.count('ok') == len(run.status), name
@@ -87,10 +88,10 @@ def test_commands_and_plans_stay_in_the_box_at_every_step():
 def test_warm_start_reduces_iterations():
     road = make_road('paper', 0.5, seed=0)
     s = S.with_(solver='ipopt', alpha1=1.0, alpha2=0.0)
-    warm = simulate_closed_loop(P, make_controller('preview', P, s), road, 0.5)
+    warm = simulate_closed_loop(MODEL, make_controller('preview', MODEL, s), road, 0.5)
     from erva_ros.core.controllers.nmpc import NMPCController
-    cold = simulate_closed_loop(P, NMPCController(P, s.with_(controller='preview'),
-                                                  warm_start=False), road, 0.5)
+    cold = simulate_closed_loop(MODEL, NMPCController(MODEL, s.with_(controller='preview'),
+                                                      warm_start=False), road, 0.5)
     assert np.mean(warm.iterations) < 0.8 * np.mean(cold.iterations)
 
 
@@ -101,13 +102,13 @@ def test_preview_long_has_its_own_iteration_cap():
     s = S.with_(alpha1=0.0, alpha2=1.0, max_iter=3, long_max_iter=2)
     for name, cap in (('preview_long', 2), ('preview', 3)):
         assert s.iteration_cap(name) == cap
-        run = simulate_closed_loop(P, make_controller(name, P, s), road, 0.4)
+        run = simulate_closed_loop(MODEL, make_controller(name, MODEL, s), road, 0.4)
         assert np.max(run.iterations) == cap, name
 
 
 @pytest.mark.parametrize('hessian', ['exact', 'gauss_newton'])
 def test_real_time_sqp_never_increases_the_objective(hessian):
-    ocp = make_controller('preview', P, S).ocp
+    ocp = make_controller('preview', MODEL, S).ocp
     rti = build_rti(ocp, 2, hessian=hessian)
     value = plan_value_function(ocp)
     road = make_road('paper', 2.0, seed=3)
@@ -134,8 +135,8 @@ def test_a_late_solve_publishes_its_own_plan_not_an_older_one():
     # for failures.  The same loop without a budget gives the very same commands.
     road = make_road('paper', 1.0, seed=0)
     x = np.array([1e-3, 2e-2, 0.0, -1e-2, 3e-3, 4e-2])
-    on_time = make_controller('preview', P, S.with_(alpha1=0.0, alpha2=1.0))
-    late = make_controller('preview', P, S.with_(alpha1=0.0, alpha2=1.0))
+    on_time = make_controller('preview', MODEL, S.with_(alpha1=0.0, alpha2=1.0))
+    late = make_controller('preview', MODEL, S.with_(alpha1=0.0, alpha2=1.0))
     on_time.time_budget_s = float('inf')   # never late, however loaded the machine
     late.time_budget_s = 0.0               # every real solve is now over budget
     for k in range(12):
@@ -152,14 +153,14 @@ def test_solver_failure_is_counted_and_falls_back_inside_the_box():
     # A real IPOPT failure: one iteration cannot converge.
     s = S.with_(solver='ipopt', ipopt_max_iter=1, u_min=2000.0, u_max=18000.0)
     road = make_road('paper', 0.4, seed=0)
-    run = simulate_closed_loop(P, make_controller('preview', P, s), road, 0.4)
+    run = simulate_closed_loop(MODEL, make_controller('preview', MODEL, s), road, 0.4)
     assert run.counters['failures'] == run.t.size
     assert set(run.status) == {'fallback_passive'}
     assert np.all(run.u == P.c_e0)
 
 
 def test_nan_state_is_rejected_not_solved():
-    c = make_controller('no_preview', P, S)
+    c = make_controller('no_preview', MODEL, S)
     res = c.compute(np.array([np.nan, 0, 0, 0, 0, 0]), np.zeros(11), 0.0)
     assert res.status == 'fallback_passive' and c.counters['nan_rejections'] == 1
     assert S.u_min <= res.damping_cmd <= S.u_max
@@ -171,18 +172,18 @@ def test_preview_beats_no_preview_on_comfort_averaged_over_seeds():
     for seed in range(3):
         road = make_road('paper', 4.0, seed=seed)
         for name in acc:
-            run = simulate_closed_loop(P, make_controller(name, P, s), road, 4.0)
+            run = simulate_closed_loop(MODEL, make_controller(name, MODEL, s), road, 4.0)
             acc[name].append(run.metrics['acc_2norm'])
     assert np.mean(acc['preview']) < 0.9 * np.mean(acc['no_preview'])
 
 
 def test_no_preview_holds_the_measured_road_height():
-    c = make_controller('no_preview', P, S)
+    c = make_controller('no_preview', MODEL, S)
     preview = np.linspace(0.001, 0.002, 11)
     np.testing.assert_array_equal(c.road_prediction(preview), np.full(11, 0.001))
-    z = make_controller('no_preview', P, S.with_(road_prediction='zero'))
+    z = make_controller('no_preview', MODEL, S.with_(road_prediction='zero'))
     np.testing.assert_array_equal(z.road_prediction(preview)[1:], np.zeros(10))
-    assert make_controller('preview', P, S).road_prediction(preview) is preview
+    assert make_controller('preview', MODEL, S).road_prediction(preview) is preview
 
 
 def test_compiled_function_matches_and_is_cached(tmp_path, monkeypatch):
@@ -218,9 +219,9 @@ def test_codegen_auto_follows_the_c_compiler(monkeypatch, tmp_path):
 
 def test_reference_gap_judges_the_real_time_solver_against_a_better_solve():
     road = make_road('paper', 0.6, seed=2)
-    c = make_controller('preview', P, S.with_(time_budget_s=1.0))
+    c = make_controller('preview', MODEL, S.with_(time_budget_s=1.0))
     c.recorded_problems = []
-    simulate_closed_loop(P, c, road, 0.6)
+    simulate_closed_loop(MODEL, c, road, 0.6)
     assert len(c.recorded_problems) == 30
     gaps = np.array([c.reference_gap(pr) for pr in c.recorded_problems[::3]])
     # IPOPT also starts from the real-time solution, so it is never worse ...

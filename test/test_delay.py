@@ -7,12 +7,13 @@ from erva_ros.core.closed_loop import simulate_closed_loop
 from erva_ros.core.controllers import ControllerSettings, make_controller
 from erva_ros.core.controllers.delay import DelayCompensation
 from erva_ros.core.controllers.skyhook import SkyhookController
-from erva_ros.core.model import get_model
+from erva_ros.core.model import make_model
 from erva_ros.core.params import paper_params
 from erva_ros.core.plant import PlantSimulator
 from erva_ros.core.roads import make_road
 
 P = paper_params()
+M = make_model(P)
 S = ControllerSettings(time_budget_s=10.0)
 TS, D = 0.02, 0.008
 
@@ -27,15 +28,15 @@ def test_the_controller_plans_from_the_state_when_its_command_acts():
             return super()._compute(x, preview, t)
 
     ctrl = Recording(10, TS, 0.0, 20000.0, P.c_e0)
-    ctrl.predict_delay(get_model(P), D)
+    ctrl.predict_delay(M, D)
     road = make_road('paper', 1.0, seed=1)
-    plant = PlantSimulator(P, ts=TS, x0=np.array([0.01, -0.1, 0.002, 0.2, 0.003, -0.3]))
+    plant = PlantSimulator(M, ts=TS, x0=np.array([0.01, -0.1, 0.002, 0.2, 0.003, -0.3]))
     acting = P.c_e0
     for k in range(5):
         t_k = k * TS
         res = ctrl.compute(plant.x, road.preview(t_k, 10, TS), t_k)
         # the true state at t_k + d: the plant over d with the acting command
-        probe = PlantSimulator(P, ts=D, x0=plant.x)
+        probe = PlantSimulator(M, ts=D, x0=plant.x)
         w_d = road.height(t_k) + (road.height(t_k + TS) - road.height(t_k)) * D / TS
         x_true = probe.step(acting, road.height(t_k), w_d)
         x_seen, preview_seen, t_seen = seen[-1]
@@ -51,7 +52,7 @@ def test_the_controller_plans_from_the_state_when_its_command_acts():
 
 
 def test_delay_compensation_rejects_a_delay_outside_the_period():
-    model = get_model(P)
+    model = M
     for bad in (0.0, -0.001, TS, 0.05):
         with pytest.raises(ValueError, match='command delay'):
             DelayCompensation(model, TS, bad)
@@ -61,8 +62,8 @@ def test_delay_compensation_rejects_a_delay_outside_the_period():
 
 def test_a_constant_command_does_not_care_about_the_delay():
     road = make_road('paper', 1.0, seed=0)
-    now = simulate_closed_loop(P, make_controller('passive', P, S), road, 1.0)
-    late = simulate_closed_loop(P, make_controller('passive', P, S), road, 1.0,
+    now = simulate_closed_loop(M, make_controller('passive', M, S), road, 1.0)
+    late = simulate_closed_loop(M, make_controller('passive', M, S), road, 1.0,
                                 actuation_delay_s=D)
     np.testing.assert_allclose(late.x, now.x, rtol=1e-9, atol=1e-14)
     assert late.harvested_j == pytest.approx(now.harvested_j, rel=1e-9)
@@ -70,20 +71,20 @@ def test_a_constant_command_does_not_care_about_the_delay():
 
 def test_a_delay_changes_a_switching_law_and_vanishes_continuously():
     road = make_road('paper', 1.0, seed=0)
-    runs = {d: simulate_closed_loop(P, make_controller('skyhook', P, S), road, 1.0,
+    runs = {d: simulate_closed_loop(M, make_controller('skyhook', M, S), road, 1.0,
                                     actuation_delay_s=d) for d in (0.0, 1e-7, D)}
     assert not np.allclose(runs[D].u, runs[0.0].u)
     np.testing.assert_allclose(runs[1e-7].x, runs[0.0].x, rtol=1e-4, atol=1e-7)
     with pytest.raises(ValueError, match='actuation delay'):
-        simulate_closed_loop(P, make_controller('skyhook', P, S), road, 1.0,
+        simulate_closed_loop(M, make_controller('skyhook', M, S), road, 1.0,
                              actuation_delay_s=TS)
 
 
 def test_continuous_comfort_integral_matches_a_fine_quadrature():
     """∫ z̈_s² dt of the plant's step against the trapezoid rule on a 50 µs grid."""
-    model = get_model(P)
+    model = M
     x0 = np.array([0.01, -0.1, 0.002, 0.2, 0.003, -0.3])
-    plant = PlantSimulator(P, ts=TS, x0=x0)
+    plant = PlantSimulator(M, ts=TS, x0=x0)
     u, w0, w1 = 15000.0, 0.001, 0.0015
     plant.step(u, w0, w1)
     n = 400
@@ -97,7 +98,7 @@ def test_continuous_comfort_integral_matches_a_fine_quadrature():
 
 def test_the_continuous_rms_is_reported_and_equals_the_sampled_one_for_passive():
     road = make_road('paper', 2.0, seed=0)
-    m = simulate_closed_loop(P, make_controller('passive', P, S), road, 2.0).metrics
+    m = simulate_closed_loop(M, make_controller('passive', M, S), road, 2.0).metrics
     # constant damping: no switching, the samples represent the whole signal
     assert m['acc_rms_continuous'] == pytest.approx(m['acc_rms'], rel=0.02)
 
@@ -117,7 +118,7 @@ def test_erva_sim_reports_the_delay_options(erva):
 
 
 def test_a_diverging_prediction_falls_back_instead_of_reaching_the_law():
-    ctrl = make_controller('skyhook', P, S.with_(command_delay_s=D))
+    ctrl = make_controller('skyhook', M, S.with_(command_delay_s=D))
     x_absurd = np.array([1e300, 1e300, -1e300, 1e300, 1e300, -1e300])
     res = ctrl.compute(x_absurd, np.zeros(11), 0.0)
     assert res.status == 'fallback_passive' and 'delay compensation' in res.reason

@@ -7,23 +7,24 @@ from erva_ros.core.controllers import ControllerSettings, make_controller
 from erva_ros.core.estimator import EstimatorNoise, ExtendedKalmanFilter, validate_noise
 from erva_ros.core.hil.ecu_sim import SensorNoise
 from erva_ros.core.hil.evaluation import evaluate_estimator, QUANTUM
-from erva_ros.core.model import get_model
+from erva_ros.core.model import make_model
 from erva_ros.core.params import paper_params, ParamError
 from erva_ros.core.plant import PlantSimulator
 from erva_ros.core.roads import make_road
 
 P = paper_params()
+M = make_model(P)
 X = np.array([0.004, 0.05, 0.001, -0.08, 0.002, 0.03])
 
 
 @pytest.fixture(scope='module')
 def ekf():
-    return ExtendedKalmanFilter(P)
+    return ExtendedKalmanFilter(M)
 
 
 def test_prediction_is_the_shared_model_and_its_exact_jacobian(ekf):
     # The EKF's step is QuarterCarModel.rk4_step itself, stable up to the hardware's c_e.
-    step = get_model(P).rk4_step(ekf.ts, ekf.substeps)
+    step = M.rk4_step(ekf.ts, ekf.substeps)
     xn, a = ekf._pred(X, 15000.0, 1e-3, 1.2e-3)
     assert np.allclose(np.asarray(xn).ravel(), np.asarray(step(X, 15000.0, 1e-3, 1.2e-3)).ravel(),
                        rtol=0, atol=1e-15)
@@ -36,7 +37,7 @@ def test_prediction_is_the_shared_model_and_its_exact_jacobian(ekf):
                     - np.asarray(step(X - d, 15000.0, 1e-3, 1.2e-3)).ravel()) / 2e-7
     assert np.allclose(np.asarray(a), fd, rtol=1e-5, atol=1e-7)
     # Outputs: the model's sprung acceleration, the deflection, the rotor speed v_gen / l.
-    model = get_model(P)
+    model = M
     y = ekf._meas(X, 15000.0, 1e-3)[0]
     assert np.allclose(np.asarray(y).ravel(), [float(model.sprung_accel(X, 15000.0, 1e-3)),
                                                X[0] - X[2],
@@ -44,7 +45,7 @@ def test_prediction_is_the_shared_model_and_its_exact_jacobian(ekf):
 
 
 def test_sequential_rows_equal_the_batch_update():
-    a, b = ExtendedKalmanFilter(P), ExtendedKalmanFilter(P)
+    a, b = ExtendedKalmanFilter(M), ExtendedKalmanFilter(M)
     y = np.array([0.5, 0.004, 0.2])
     for e in (a, b):
         e.reset(X)
@@ -55,7 +56,7 @@ def test_sequential_rows_equal_the_batch_update():
     assert np.allclose(a.x, b.x, atol=1e-14) and np.allclose(a.P, b.P, atol=1e-14)
     assert nis == pytest.approx(res.nis)
     # A missing row (lost CAN frame) is a NaN: only the others are used.
-    c = ExtendedKalmanFilter(P)
+    c = ExtendedKalmanFilter(M)
     c.reset(X)
     r = c.update([np.nan, 0.004, np.nan], 12000.0, 0.0)
     assert list(r.used) == [False, True, False] and r.innovation.shape == (1,)
@@ -63,7 +64,7 @@ def test_sequential_rows_equal_the_batch_update():
 
 def test_one_call_cycle_equals_predict_then_update(ekf):
     # The node's per-cycle path (one compiled call), with rows missing (NaN) too.
-    a, b = ExtendedKalmanFilter(P), ekf
+    a, b = ExtendedKalmanFilter(M), ekf
     for y in ([0.5, 0.004, 0.2], [np.nan, 0.004, 0.2], [np.nan] * 3):
         a.reset(X)
         b.reset(X)
@@ -76,8 +77,8 @@ def test_one_call_cycle_equals_predict_then_update(ekf):
 
 def test_converges_from_a_wrong_initial_state_with_consistent_innovations():
     road = make_road('paper', 5.0, seed=3)
-    plant = PlantSimulator(P, ts=0.02)
-    ekf = ExtendedKalmanFilter(P, noise=EstimatorNoise())
+    plant = PlantSimulator(M, ts=0.02)
+    ekf = ExtendedKalmanFilter(M, noise=EstimatorNoise())
     ekf.reset(np.array([0.008, -0.05, 0.004, 0.05, -0.006, 0.05]))   # plant starts at rest
     sensor = SensorNoise()
     rng = np.random.default_rng(1)
@@ -110,9 +111,9 @@ def test_noise_parameters_are_validated():
 
 def test_skyhook_on_estimated_state_stays_within_margins():
     """Comfort and power within ±10 % of the same law on the true state, on every seed."""
-    controller = make_controller('skyhook', P, ControllerSettings())
+    controller = make_controller('skyhook', M, ControllerSettings())
     for seed in range(3):
-        r = evaluate_estimator(P, controller, make_road('paper', 4.0, seed=seed), 4.0,
+        r = evaluate_estimator(M, controller, make_road('paper', 4.0, seed=seed), 4.0,
                                sensor=SensorNoise(seed=seed))
         assert abs(r['change_pct']['acc_2norm']) < 10.0, r
         assert abs(r['change_pct']['power_w']) < 10.0, r
@@ -130,8 +131,8 @@ def test_nmpc_on_estimated_state_stays_within_margins_on_average():
     mean over seeds, and the estimated-state run is compared with that sensitivity.
     """
     settings = ControllerSettings().with_(alpha1=1.0, alpha2=0.0, time_budget_s=10.0)
-    controller = make_controller('preview', P, settings)
-    runs = [evaluate_estimator(P, controller, make_road('paper', 4.0, seed=seed), 4.0,
+    controller = make_controller('preview', M, settings)
+    runs = [evaluate_estimator(M, controller, make_road('paper', 4.0, seed=seed), 4.0,
                                sensor=SensorNoise(seed=seed)) for seed in range(3)]
     acc = np.mean([r['change_pct']['acc_2norm'] for r in runs])
     assert abs(acc) < 15.0, [r['change_pct'] for r in runs]

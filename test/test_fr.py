@@ -7,16 +7,17 @@ import numpy as np
 import pytest
 
 from erva_ros.core import fr
-from erva_ros.core.model import get_model
+from erva_ros.core.model import make_model
 from erva_ros.core.params import paper_params
 
 P = paper_params()
+M = make_model(P)
 
 
 @pytest.mark.parametrize('kind,band', [('erva', (1.4, 2.0)), ('erva', (5.4, 6.3)),
                                        ('benchmark', (3.8, 4.8))])
 def test_nonlinear_peaks_agree_with_linearisation_at_1mm(kind, band):
-    m = get_model(P, kind)
+    m = make_model(P, kind)
     freqs = np.round(np.arange(band[0], band[1] + 1e-9, 0.05), 3)
     curve = fr.sweep(m, freqs, 1e-3, P.c_e0)
     lin = fr.linear_response(m, freqs, 1e-3, P.c_e0)
@@ -30,7 +31,7 @@ def test_nonlinear_peaks_agree_with_linearisation_at_1mm(kind, band):
 def test_nonlinearity_shows_at_large_amplitude():
     # A test of the comparison above: the inertia nonlinearity (ε·r_1 = ε·φ²) is weak
     # at road amplitudes of millimetres but detunes the first resonance at 10 cm.
-    m = get_model(P, 'erva')
+    m = M
     freqs = np.array([1.7])
     big = fr.sweep(m, freqs, 0.1, P.c_e0)
     lin = fr.linear_response(m, freqs, 0.1, P.c_e0)

@@ -21,6 +21,7 @@ from erva_ros.core.hil.codec import (Chassis, Command, CommandMode, E2EReceiver,
 from erva_ros.core.hil.ecu_sim import EcuSimConfig, EcuSimCore, run_realtime, SensorNoise
 from erva_ros.core.hil.hardware import GeneratorHardware
 from erva_ros.core.hil.transport import free_udp_ports, open_bus
+from erva_ros.core.model import make_model
 from erva_ros.core.params import paper_params
 
 _channels = itertools.count()
@@ -65,7 +66,7 @@ def test_round_trip_bridge_to_simulated_ecu_and_back(codec, channel):
     # Real threads on a real bus: what is checked holds however this machine schedules
     # them.  Timeouts are not what this test is about (tested with explicit times below):
     # both sides get one no stall of the test's threads can reach.
-    ecu = EcuSimCore(paper_params(), HW, codec, lambda: open_bus(channel),
+    ecu = EcuSimCore(make_model(paper_params()), HW, codec, lambda: open_bus(channel),
                      lambda t: 1e-3 * math.sin(2 * math.pi * 1.7 * t),
                      EcuSimConfig(c_e_safe=C_E0, command_timeout_s=60.0), SensorNoise.none())
     bridge = _bridge(codec, channel, command_timeout_s=60.0)
@@ -231,8 +232,8 @@ def test_bad_sensor_frames_are_dropped_and_counted(codec, channel):
 
 
 def _ecu(codec, channel, **cfg):
-    return EcuSimCore(paper_params(), HW, codec, lambda: open_bus(channel), lambda t: 0.0,
-                      EcuSimConfig(c_e_safe=C_E0, **cfg), SensorNoise.none())
+    return EcuSimCore(make_model(paper_params()), HW, codec, lambda: open_bus(channel),
+                      lambda t: 0.0, EcuSimConfig(c_e_safe=C_E0, **cfg), SensorNoise.none())
 
 
 def _command(codec, tx, at, c_e=None, duty=None, mode=CommandMode.CONTROLLED, saturate=True):
@@ -594,7 +595,7 @@ def _road(t):
 
 
 def _ecu_on_road(codec, channel):
-    return EcuSimCore(paper_params(), HW, codec, lambda: open_bus(channel), _road,
+    return EcuSimCore(make_model(paper_params()), HW, codec, lambda: open_bus(channel), _road,
                       EcuSimConfig(c_e_safe=C_E0), SensorNoise.none())
 
 

@@ -24,6 +24,7 @@ from erva_ros.core.hil.ecu_sim import EcuSimConfig, EcuSimCore, SensorNoise
 from erva_ros.core.hil.hardware import GeneratorHardware
 from erva_ros.core.hil.transport import open_bus
 from erva_ros.core.loop.command_hold import CommandHold
+from erva_ros.core.model import make_model
 from erva_ros.core.params import paper_params
 from erva_ros.core.plant import PlantSimulator
 
@@ -53,8 +54,9 @@ class _Ecu:
         name = f'erva_let_{next(_channels)}'
         self.codec = codec
         self.bus = can.Bus(interface='virtual', channel=name, preserve_timestamps=True)
-        self.core = EcuSimCore(paper_params(), HW, codec, lambda: open_bus(f'virtual:{name}'),
-                               road, EcuSimConfig(c_e_safe=C_E0, command_delay_s=D, **cfg),
+        self.core = EcuSimCore(make_model(paper_params()), HW, codec,
+                               lambda: open_bus(f'virtual:{name}'), road,
+                               EcuSimConfig(c_e_safe=C_E0, command_delay_s=D, **cfg),
                                SensorNoise.none())
         self.tx = codec.sender(Kind.COMMAND)
         self.core.start(T0)
@@ -116,7 +118,7 @@ def test_each_command_acts_at_its_cycle_instant_as_the_shared_model(codec):
     # Commands arrive 6.5 ms after their sample; each acts at t_k + 10 ms: the cycle is
     # PlantSimulator.step_delayed's (plant_sim_node's) to rounding.
     e = _Ecu(codec, _road)
-    ref = PlantSimulator(paper_params(), 'erva', TS)
+    ref = PlantSimulator(make_model(paper_params()), TS)
     acting = HW.c_e_from_duty(HW.duty_from_c_e(C_E0))
     try:
         for k in range(8):

@@ -18,6 +18,7 @@ from erva_ros.core.controllers import ControllerSettings, make_controller
 from erva_ros.core.controllers.excite import PRBS_PERIOD
 from erva_ros.core.hil.ecu_sim import SensorNoise
 from erva_ros.core.identify_study import perturbed_params, simulate_session
+from erva_ros.core.model import make_model
 from erva_ros.core.params import load_erva_params, paper_params, ParamError
 from erva_ros.core.roads import make_road
 from erva_ros.core.identify_bag import load_recording, write_recording
@@ -56,7 +57,7 @@ def _cli(capsys, *args):
 
 
 def test_excite_drives_c_e_over_the_box_deterministically():
-    prbs = make_controller('excite', paper_params(), EXCITE)
+    prbs = make_controller('excite', make_model(paper_params()), EXCITE)
     plans = [prbs.compute(np.full(6, np.nan) if k == 3 else np.zeros(6), np.zeros(11),
                           1.7e9 + 0.02 * k) for k in range(60)]
     u = np.array([p.damping_cmd for p in plans])
@@ -67,8 +68,8 @@ def test_excite_drives_c_e_over_the_box_deterministically():
     assert np.array_equal(prbs.values(np.arange(5) + PRBS_PERIOD), values[:5])
     # A maximum-length sequence: 1024 ones in its 2047 bits.
     assert np.mean(prbs.values(np.arange(PRBS_PERIOD))) == 20000.0 * 1024 / PRBS_PERIOD
-    chirp = make_controller('excite', paper_params(), EXCITE.with_(excite_signal='chirp',
-                                                                   u_min=2000.0))
+    chirp = make_controller('excite', make_model(paper_params()),
+                            EXCITE.with_(excite_signal='chirp', u_min=2000.0))
     c = chirp.values(np.arange(3000))
     assert c.min() >= 2000.0 and c.max() <= 20000.0 and c.max() - c.min() > 17000.0
     for bad, match in (({'excite_bit_s': 0.03}, 'whole multiple of ts'),
@@ -160,7 +161,8 @@ def test_bad_input_is_one_line_and_exit_2(hil_bag, tmp_path, capsys, repo_root):
 def test_a_full_state_session_identifies_and_says_what_it_cannot(tmp_path, capsys):
     from erva_ros.session.offline_bag import run_and_record
     bag = tmp_path / 'full_state'
-    run_and_record(str(bag), TRUTH, make_controller('excite', TRUTH, EXCITE),
+    truth = make_model(TRUTH)
+    run_and_record(str(bag), truth, make_controller('excite', truth, EXCITE),
                    make_road('iso8608', 8.0, seed=3), 8.0)
     code, stdout, err = _cli(capsys, bag, '--json')
     assert code == 0, err

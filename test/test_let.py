@@ -13,6 +13,7 @@ from erva_ros.core.closed_loop import simulate_closed_loop
 from erva_ros.core.controllers import make_controller
 from erva_ros.core.controllers.settings import ControllerSettings
 from erva_ros.core.loop.plant_loop import PlantLoop
+from erva_ros.core.model import make_model
 from erva_ros.core.params import ERVAParams
 from erva_ros.core.reports import PlantReport
 from erva_ros.core.roads import make_road
@@ -29,13 +30,14 @@ def _cfg(mode, delay=D):
 
 def _controller(delay=D):
     settings = ControllerSettings().with_(command_delay_s=delay)
-    return make_controller('skyhook', ERVAParams(), settings)
+    return make_controller('skyhook', make_model(ERVAParams()), settings)
 
 
 def _drive(mode, arrival_ns, delay=D):
     """Run PlantLoop over the bump road; command k arrives arrival_ns(k) after t_k."""
     params, road = ERVAParams(), make_road('bump', DURATION + 1, TS)
-    loop, ctrl = PlantLoop(params, _cfg(mode, delay), PlantReport()), _controller(delay)
+    loop = PlantLoop(make_model(params), _cfg(mode, delay), PlantReport())
+    ctrl = _controller(delay)
     ctrl.reset()
     t0 = T0 if mode == 'realtime' else 0
     xs, us = [], []
@@ -58,7 +60,7 @@ def _drive(mode, arrival_ns, delay=D):
 
 def _offline(delay=D):
     road = make_road('bump', DURATION + 1, TS)
-    return simulate_closed_loop(ERVAParams(), _controller(delay), road, DURATION,
+    return simulate_closed_loop(make_model(ERVAParams()), _controller(delay), road, DURATION,
                                 actuation_delay_s=delay)
 
 
@@ -94,7 +96,7 @@ def test_passive_before_any_command_acted_is_a_warning_and_after_an_outage_an_er
     # acts and there is no earlier plan: passive c_e0 by design, a WARN.  Once a command
     # has acted, passive damping means the commands stopped and the plan ran out: ERROR.
     from erva_ros.core.levels import ERROR, WARN
-    loop = PlantLoop(ERVAParams(), _cfg('realtime'), PlantReport())
+    loop = PlantLoop(make_model(ERVAParams()), _cfg('realtime'), PlantReport())
     loop.on_height(T0, 0.0)
     loop.on_command(T0, np.full(2, 3000.0), T0 + D_NS + 1000)           # late
     decisions = [s.decision for s in loop.on_height(T0 + TS_NS, 0.0)]

@@ -4,10 +4,11 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from erva_ros.core.model import erva_terms, get_model, linearize, rk4_stable_substeps
+from erva_ros.core.model import erva_terms, linearize, make_model, rk4_stable_substeps
 from erva_ros.core.params import paper_params
 
 P = paper_params()
+M = make_model(P)
 
 
 def terms_at(x):
@@ -50,7 +51,7 @@ def linear_erva_by_hand(p, u):
 
 @pytest.mark.parametrize('u', [0.0, 1e4, 5e4])
 def test_linearisation_at_rest_is_the_linear_erva(u):
-    a, bu, bw = linearize(get_model(P, 'erva'), u0=u)
+    a, bu, bw = linearize(M, u0=u)
     np.testing.assert_allclose(a, linear_erva_by_hand(P, u), rtol=1e-12, atol=1e-9)
     assert np.all(bu == 0)                      # u enters only through v_gen, zero at rest
     assert bw[3, 0] == pytest.approx(P.k_t * (P.M_s + 0) / (  # tyre force on z_us row
@@ -60,7 +61,7 @@ def test_linearisation_at_rest_is_the_linear_erva(u):
 
 def test_fastest_eigenvalues_are_as_documented():
     # docs/model.md: fastest eigenvalue ≈ -250, -520, -1300 1/s at 10, 20, 50 kNs/m.
-    m = get_model(P, 'erva')
+    m = M
     for u, lam in [(1e4, 250), (2e4, 520), (5e4, 1300)]:
         ev = np.linalg.eigvals(linearize(m, u0=u)[0])
         assert np.max(np.abs(ev.real)) == pytest.approx(lam, rel=0.03)
@@ -68,7 +69,7 @@ def test_fastest_eigenvalues_are_as_documented():
 
 
 def test_no_nan_over_physical_range():
-    m = get_model(P, 'erva')
+    m = M
     rng = np.random.default_rng(1)
     n = 20000
     x = np.column_stack([rng.uniform(-0.2, 0.2, n), rng.uniform(-5, 5, n),
@@ -87,7 +88,7 @@ def stored_energy(model, xs, w=0.0):
 @pytest.mark.parametrize('kind', ['erva', 'benchmark'])
 def test_energy_conserved_without_damping(kind):
     # c = 0, u = 0, no road: RK4 at 0.5 ms keeps energy to 1e-6 (relative) over 10 s.
-    m = get_model(P.with_(c=0.0), kind)
+    m = make_model(P.with_(c=0.0), kind)
     x0 = np.array([0.01, 0.0, 0.0, 0.1, 0.03, 0.3])[:m.nx]
     n = 20000
     xs = m.simulate(x0, np.zeros(n), np.zeros(n + 1), 5e-4)
@@ -102,7 +103,7 @@ def test_energy_conserved_without_damping(kind):
 @pytest.mark.parametrize('switching,tol', [(False, 1e-4), (True, 3e-3)])
 def test_energy_balance_with_damping_and_road(kind, switching, tol):
     """Road work = Δ stored energy + dissipated in c + harvested (docs/model.md)."""
-    m = get_model(P, kind)
+    m = make_model(P, kind)
     dt, n = 5e-4, 8000
     t = dt * np.arange(n + 1)
     om = 2 * np.pi * 1.7
@@ -124,7 +125,7 @@ def test_energy_balance_with_damping_and_road(kind, switching, tol):
 
 
 def test_energy_decays_with_damping():
-    m = get_model(P, 'erva')
+    m = M
     xs = m.simulate(np.array([0.01, 0, 0, 0.1, 0.03, 0.3]), np.full(4000, P.c_e0),
                     np.zeros(4001), 5e-4)
     e = stored_energy(m, xs)
@@ -134,7 +135,7 @@ def test_energy_decays_with_damping():
 
 def test_plant_integrator_converges():
     """Halving the 0.5 ms plant sub-step changes a 1 s bang-bang run by < 1e-6 relative."""
-    m = get_model(P, 'erva')
+    m = M
     dt = 0.02
     t = dt * np.arange(51)
     w = 0.01 * np.sin(2 * np.pi * 1.7 * t)
@@ -148,7 +149,7 @@ def test_plant_integrator_converges():
 
 
 def test_benchmark_matches_its_equations():
-    m = get_model(P, 'benchmark')
+    m = make_model(P, 'benchmark')
     x = np.array([0.01, 0.2, -0.003, -0.4])
     u, w = 5e3, 0.002
     mx = P.m_x
@@ -164,7 +165,7 @@ def test_benchmark_matches_its_equations():
 
 def test_plant_simulator_matches_model_and_integrates_energy():
     from erva_ros.core.plant import PlantSimulator
-    plant = PlantSimulator(P, 'erva', ts=0.02)
+    plant = PlantSimulator(M, ts=0.02)
     assert plant.substeps == 40
     dt = 0.02
     t = dt * np.arange(101)
@@ -172,13 +173,13 @@ def test_plant_simulator_matches_model_and_integrates_energy():
     u = np.full(100, 2e4)
     for k in range(100):
         plant.step(u[k], w[k], w[k + 1])
-    ref = get_model(P, 'erva').simulate(np.zeros(6), u, w, dt, substeps=40)
+    ref = M.simulate(np.zeros(6), u, w, dt, substeps=40)
     np.testing.assert_allclose(plant.x, ref[-1], rtol=1e-12, atol=1e-15)
     # harvested energy vs a fine trapezoid of the sampled power
     # (same piecewise-linear road as the plant sees)
     w_fine = np.interp(2.5e-4 * np.arange(8001), t, w)
-    fine = get_model(P, 'erva').simulate(np.zeros(6), np.full(8000, 2e4), w_fine, 2.5e-4)
-    vgen = np.asarray(get_model(P, 'erva').generator_velocity.map(8001)(fine.T)).ravel()
+    fine = M.simulate(np.zeros(6), np.full(8000, 2e4), w_fine, 2.5e-4)
+    vgen = np.asarray(M.generator_velocity.map(8001)(fine.T)).ravel()
     assert plant.harvested_j == pytest.approx(np.trapezoid(2e4 * vgen ** 2, dx=2.5e-4),
                                               rel=1e-4)
     assert plant.t == pytest.approx(2.0)
@@ -189,7 +190,7 @@ def test_compiled_plant_step_equals_the_casadi_vm_one():
     if not (shutil.which('cc') or shutil.which('gcc')):
         pytest.skip('no C compiler')
     from erva_ros.core.plant import PlantSimulator
-    compiled, vm = PlantSimulator(P, codegen='on'), PlantSimulator(P, codegen='off')
+    compiled, vm = PlantSimulator(M, codegen='on'), PlantSimulator(M, codegen='off')
     assert compiled._step.fn.name() == vm._step.fn.name()
     assert compiled._step.fn.class_name() == 'External' != vm._step.fn.class_name()
     for k in range(300):   # a command switching across the box, a 1 mm road

@@ -12,7 +12,7 @@ import pytest
 from erva_ros.core import contract, topics
 from erva_ros.core.loop.prediction import (PlanPredictor, prediction_errors,
                                            prediction_joint_names, prediction_steps, Predictor)
-from erva_ros.core.model import get_model
+from erva_ros.core.model import make_model
 from erva_ros.core.params import load_erva_params
 from erva_ros.core.plant import PlantSimulator
 
@@ -22,7 +22,7 @@ TS, N = 0.02, 10
 def _case(kind, seed=1):
     params = load_erva_params(None)
     rng = np.random.default_rng(seed)
-    model = get_model(params, kind)
+    model = make_model(params, kind)
     x0 = rng.normal(0.0, 0.01, model.nx)
     plan = rng.uniform(0.0, 5000.0, N)
     road = rng.uniform(-0.02, 0.02, N + 1)
@@ -31,7 +31,7 @@ def _case(kind, seed=1):
 
 def _plant(params, kind, x0, acting, plan, road, delay, codegen):
     """Step PlantSimulator over the plan as the plant node would; return x, z̈_s, P."""
-    sim = PlantSimulator(params, kind, TS, x0=x0, codegen=codegen)
+    sim = PlantSimulator(make_model(params, kind), TS, x0=x0, codegen=codegen)
     sim.prepare_delay(delay)
     xs, acc, pw, before = [x0.copy()], [], [], acting
     for j in range(N + 1):

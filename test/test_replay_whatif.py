@@ -6,6 +6,7 @@ import os
 import numpy as np
 import pytest
 
+from erva_ros.core.model import make_model
 from erva_ros.session.offline_bag import run_and_record
 from erva_ros.core.closed_loop import simulate_closed_loop
 from erva_ros.core.bag.reader import open_bag
@@ -20,7 +21,8 @@ from erva_ros.core.roads import make_road
 def passive_session(tmp_path_factory):
     params = load_erva_params(None)
     bag = str(tmp_path_factory.mktemp('whatif') / 'passive')
-    result, _ = run_and_record(bag, params, make_controller('passive', params),
+    model = make_model(params)
+    result, _ = run_and_record(bag, model, make_controller('passive', model),
                                make_road('paper', 2.0, seed=5), 2.0,
                                session={'scenario': 'paper', 'controller': 'passive'})
     return bag, result
@@ -38,7 +40,8 @@ def test_the_recorded_road_with_the_same_controller_reproduces_the_session(
     # which the bag holds exactly.
     assert out['what_if']['duration_s'] == pytest.approx(2.0 - 0.02)
     params = load_erva_params(None)
-    short = simulate_closed_loop(params, make_controller('passive', params),
+    model = make_model(params)
+    short = simulate_closed_loop(model, make_controller('passive', model),
                                  make_road('paper', 2.0, seed=5), 2.0 - 0.02)
     for key in ('acc_2norm', 'acc_rms', 'power_w'):
         assert out['what_if'][key] == pytest.approx(short.metrics[key], rel=1e-9), key
@@ -80,15 +83,16 @@ def test_recorded_states_and_previews_reproduce_the_nmpc_commands(tmp_path):
                                                'time_budget_s': 10.0})
     bag = str(tmp_path / 'nmpc')
     steps = 12
-    run_and_record(bag, params, make_controller('preview', params, settings),
+    model = make_model(params)
+    run_and_record(bag, model, make_controller('preview', model, settings),
                    make_road('paper', steps * settings.ts, seed=2), steps * settings.ts)
     data = load_session(open_bag(bag))
-    again = reevaluate(data, make_controller('preview', params, settings))
+    again = reevaluate(data, make_controller('preview', make_model(params), settings))
     assert len(again.recorded) == steps and set(again.statuses) == {'ok'}
     # The same inputs (the bag's doubles) to the same compiled solver: bit for bit.
     assert again.max_abs_difference() == 0.0
     # The check can fail: other weights give other commands.
-    other = reevaluate(data, make_controller('preview', params,
+    other = reevaluate(data, make_controller('preview', make_model(params),
                                              settings.with_(alpha1=1.0, alpha2=1.0)),
                        max_commands=4)
     assert other.max_abs_difference() > 1.0

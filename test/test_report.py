@@ -10,6 +10,7 @@ import pytest
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from erva_ros.core.model import make_model
 from erva_ros.session.offline_bag import run_and_record
 
 from erva_ros.ros.bag_messages import write_message
@@ -27,7 +28,8 @@ def offline_session(tmp_path_factory):
     """Return a 2 s passive session on the paper road, from the offline closed loop."""
     params = load_erva_params(None)
     bag = str(tmp_path_factory.mktemp('report') / 'passive')
-    result, _ = run_and_record(bag, params, make_controller('passive', params),
+    model = make_model(params)
+    result, _ = run_and_record(bag, model, make_controller('passive', model),
                                make_road('paper', 2.0, seed=3), 2.0,
                                session={'scenario': 'paper', 'controller': 'passive',
                                         'seed': '3'})

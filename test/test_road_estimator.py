@@ -5,12 +5,14 @@ import math
 import numpy as np
 import pytest
 
+from erva_ros.core.model import make_model
 from erva_ros.core.params import paper_params, ParamError
 from erva_ros.core.road_estimator import (ROAD_MEASUREMENTS, RoadEKF, RoadModel, RoadSensors,
                                           road_noise)
 from erva_ros.core.roadmap.accuracy import accuracy
 
 P = paper_params()
+M = make_model(P)
 
 
 def test_road_models_and_sensors():
@@ -35,7 +37,7 @@ def test_rts_equals_the_batch_posterior_on_the_linear_model():
     batch solution stacks every cycle's dynamics and measurements and solves them at once,
     so an error in the backward recursion (gain, covariance update, indexing) shows.
     """
-    ekf = RoadEKF(P, 'benchmark', keep_history=True, codegen='off')
+    ekf = RoadEKF(make_model(P, 'benchmark'), keep_history=True, codegen='off')
     rng = np.random.default_rng(4)
     n, u = 12, 8000.0
     ys = []
@@ -88,7 +90,7 @@ def test_rts_equals_the_batch_posterior_on_the_linear_model():
 
 
 def test_cycles_without_measurements_and_bad_rows():
-    ekf = RoadEKF(P)
+    ekf = RoadEKF(M)
     ekf.start([0.0, 0.0, 0.0, 0.0, np.nan], P.c_e0)
     est = ekf.cycle([np.nan] * 5, P.c_e0, P.c_e0)          # a lost cycle: predicted only
     assert est.rows == 0 and est.nis == 0.0 and np.all(np.isfinite(est.x))
@@ -126,11 +128,11 @@ def test_the_period_is_predicted_as_the_ecu_applied_it():
     assert damping_profile(5000.0, 5000.0, 5000.0, ts) == (5000.0, 5000.0, 0.0)
     assert damping_profile(30000.0, 0.0, 20000.0, ts) == (30000.0, 30000.0, 0.0)  # no fit
     x0 = np.array([0.004, 0.05, 0.001, -0.3, 0.002, 0.4])
-    plant = PlantSimulator(P, ts=ts, x0=x0)
+    plant = PlantSimulator(M, ts=ts, x0=x0)
     plant.step_delayed(u_prev, u_now, d, 0.0, 0.0)
     errors = []
     for prev in (u_prev, None):
-        ekf = RoadEKF(P, codegen='off')
+        ekf = RoadEKF(M, codegen='off')
         ekf.reset(x0)
         ekf.cycle([np.nan] * 5, u_mean, u_now, prev)           # prediction only
         errors.append(np.abs(ekf.x - plant.x).max())

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from erva_ros.cli import main as erva
+from erva_ros.core.model import make_model
 from erva_ros.core.roadmap import MapError
 from erva_ros.core.roadmap.bag_drive import read_bag_drive
 from erva_ros.core.roadmap.drive import estimate_drive, grid_profile
@@ -72,7 +73,7 @@ def test_fusion_is_by_inverse_variance(bags, new_map):
     with RoadMap.create(path, 'r', 0.1, 6.0) as road_map:
         for i in range(3):
             rec = read_bag_drive(bags[i]).record
-            g = grid_profile(estimate_drive(rec, params), 0.1, 6.0)
+            g = grid_profile(estimate_drive(rec, make_model(params)), 0.1, 6.0)
             if i == 2:
                 g.var = 4 * g.var
             profiles.append(g)

@@ -11,7 +11,7 @@ import os
 import numpy as np
 import pytest
 
-from erva_ros.core.model import get_model
+from erva_ros.core.model import make_model
 from erva_ros.core.params import load_erva_params
 
 from conftest import REPO, shipped_delay_s
@@ -64,7 +64,7 @@ def test_the_bag_holds_the_benchmark_state_and_its_generator(session):
     # The generator topic is the model's generator of the recorded state and command
     # (for the linear benchmark: the suspension deflection and its rate).
     params = load_erva_params(os.path.join(REPO, 'config', 'erva_paper.yaml'))
-    model = get_model(params, 'benchmark')
+    model = make_model(params, 'benchmark')
     # The damping acting at t_k itself: u_k with d = 0; with d > 0 (shipped) u_k acts from
     # t_k + d, so at t_k the one before acts (passive c_e0 at t_0).
     stamps = sorted(u)

@@ -18,6 +18,7 @@ from erva_ros.commands._closed_loop_options import (load_settings, make_road_fro
                                                     preview_model_from_args)
 from erva_ros.commands.run import run_config
 from erva_ros.core.controllers import make_controller
+from erva_ros.core.model import make_model
 from erva_ros.session.orchestrator import run_session
 from erva_ros.core.params import load_erva_params
 
@@ -51,10 +52,10 @@ def _offline(sim_args, delay=0.0):
     """Run the offline closed loop exactly as `erva sim` builds it."""
     params = load_erva_params(sim_args.params)
     settings = load_settings(sim_args, alpha1=sim_args.alpha[0], alpha2=sim_args.alpha[1])
-    ctrl = make_controller(settings.controller, params, settings)
+    ctrl = make_controller(settings.controller, make_model(params), settings)
     road = make_road_from_args(sim_args, sim_args.duration, sim_args.seed)
     preview = preview_model_from_args(sim_args, sim_args.seed, settings.ts)
-    return simulate_closed_loop(params, ctrl, road, sim_args.duration, settings.ts,
+    return simulate_closed_loop(make_model(params), ctrl, road, sim_args.duration, settings.ts,
                                 preview_model=preview, actuation_delay_s=delay)
 
 

@@ -21,6 +21,7 @@ from erva_ros.commands.run import run_config
 from erva_ros.core.closed_loop import simulate_closed_loop
 from erva_ros.core.controllers import make_controller
 from erva_ros.core.controllers.tuning import parse_change, ScheduledTuning
+from erva_ros.core.model import make_model
 from erva_ros.core.params import load_erva_params
 from erva_ros.session.orchestrator import run_session
 
@@ -37,9 +38,10 @@ SET = [a for c in CHANGES for a in ('--set', c)]
 def _offline(args):
     params = load_erva_params(args.params)
     settings = load_settings(args, alpha1=args.alpha[0], alpha2=args.alpha[1])
-    ctrl = make_controller(settings.controller, params, settings)
+    ctrl = make_controller(settings.controller, make_model(params), settings)
     tuner = ScheduledTuning(ctrl, settings, params.c_e0, [parse_change(c) for c in args.set])
-    return simulate_closed_loop(params, ctrl, make_road_from_args(args, args.duration, args.seed),
+    road = make_road_from_args(args, args.duration, args.seed)
+    return simulate_closed_loop(make_model(params), ctrl, road,
                                 args.duration, settings.ts,
                                 preview_model=preview_model_from_args(args, args.seed,
                                                                       settings.ts),

@@ -13,7 +13,7 @@ from erva_ros.core.config import shipped_defaults
 from erva_ros.core.controllers.settings import ControllerSettings
 from erva_ros.core.hil import settings as hs
 from erva_ros.core.hil.ecu_sim import SensorNoise
-from erva_ros.core.model import get_model
+from erva_ros.core.model import make_model
 from erva_ros.core.params import ERVA_SPECS, ERVAParams, ParamError, Spec
 from erva_ros.core import node_params as np_
 from erva_ros.core.specs import check_all, Choice, Flag, Integer, Number, Text
@@ -296,7 +296,7 @@ def test_launch_arguments_session_file_and_cli_come_from_the_schemas(tmp_path):
 
 @pytest.mark.parametrize('kind', ['erva', 'benchmark'])
 def test_deflection_and_measurements_come_from_the_model(kind):
-    model = get_model(ERVAParams(), kind)
+    model = make_model(ERVAParams(), kind)
     rng = np.random.default_rng(3)
     x = rng.normal(scale=0.01, size=model.nx)
     u, w = 12000.0, 0.003

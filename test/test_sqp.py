@@ -12,14 +12,14 @@ from erva_ros.core.controllers.ocp import build_ocp, OCPSpec, stable_rollout_sub
 from erva_ros.core.controllers.sqp import (box_qp_function, plan_value_function,
                                            projection_function, qp_model_function,
                                            start_function, step_function)
-from erva_ros.core.model import get_model
+from erva_ros.core.model import make_model
 from erva_ros.core.params import paper_params
 from erva_ros.core.plant import PlantSimulator
 from erva_ros.core.roads import make_road
 
 P = paper_params()
 S = ControllerSettings(time_budget_s=10.0)
-MODEL = get_model(P, 'erva')
+MODEL = make_model(P)
 X0 = np.array([1e-3, 1e-2, 5e-4, -2e-2, 2e-3, 3e-2])
 
 
@@ -263,7 +263,7 @@ def test_the_delayed_ocp_predicts_the_delayed_plant():
     d, u_acting = 0.008, 14000.0
     road = make_road('paper', 2.0, seed=2)
     t0 = 0.6
-    plant = PlantSimulator(P, 'erva', S.ts)
+    plant = PlantSimulator(MODEL, S.ts)
     for k in range(int(t0 / S.ts)):
         plant.step(P.c_e0, road.height(k * S.ts), road.height((k + 1) * S.ts))
     x0 = plant.x.copy()
@@ -273,10 +273,10 @@ def test_the_delayed_ocp_predicts_the_delayed_plant():
     z = np.asarray(plan_value_function(ocp)(x0, 0.0, u / U_SCALE, p)[0]).ravel()
     nodes = ocp.nodes(z)
     truth, acting = [], u_acting
-    probe = PlantSimulator(P, 'erva', S.ts, x0=x0)
+    probe = PlantSimulator(MODEL, S.ts, x0=x0)
     for k in range(10):
         w0, w1 = w[k], w[k + 1]
-        half = PlantSimulator(P, 'erva', d, x0=probe.x)      # the state at t_k + d
+        half = PlantSimulator(MODEL, d, x0=probe.x)      # the state at t_k + d
         truth.append(half.step(acting, w0, w0 + (w1 - w0) * d / S.ts).copy())
         probe.step_delayed(acting, u[k], d, w0, w1)
         acting = u[k]
@@ -292,13 +292,13 @@ def test_the_delayed_ocp_predicts_the_delayed_plant():
 
 
 def test_the_delay_is_set_per_solve_without_rebuilding():
-    c = make_controller('preview', P, S.with_(cost='continuous', command_delay_s=0.008))
+    c = make_controller('preview', MODEL, S.with_(cost='continuous', command_delay_s=0.008))
     solver = c._solver
     assert c.ocp.delayed and c.delay is None        # modelled, not predicted outside
     road = make_road('paper', 0.4, seed=0)
-    first = simulate_closed_loop(P, c, road, 0.4, actuation_delay_s=0.008)
+    first = simulate_closed_loop(MODEL, c, road, 0.4, actuation_delay_s=0.008)
     c.command_delay_s = 0.004
-    second = simulate_closed_loop(P, c, road, 0.4, actuation_delay_s=0.004)
+    second = simulate_closed_loop(MODEL, c, road, 0.4, actuation_delay_s=0.004)
     assert c._solver is solver and not np.allclose(first.u, second.u)
     assert set(first.status) == set(second.status) == {'ok'}
     with pytest.raises(ValueError, match='command delay'):
@@ -310,9 +310,9 @@ def test_real_time_sqp_reaches_ipopt_on_a_hard_sample():
     # what IPOPT finds from the same starts, within 0.5 %, on the continuous cost.
     road = make_road('paper', 1.0, seed=0)
     s = S.with_(cost='continuous', max_iter=30, sqp_tol=1e-7)
-    c = make_controller('preview', P, s)
+    c = make_controller('preview', MODEL, s)
     c.recorded_problems = []
-    run = simulate_closed_loop(P, c, road, 0.3)
+    run = simulate_closed_loop(MODEL, c, road, 0.3)
     assert np.max(run.iterations) < 30
     gaps = [c.reference_gap(pr) for pr in c.recorded_problems[::3]]
     assert max(gaps) < 5e-3
@@ -324,7 +324,7 @@ def test_passive_tail_is_the_cost_beyond_the_horizon_under_c_e0():
     from erva_ros.core.controllers.ocp import passive_tail
     q_acc, q_pow = (np.array(m) for m in passive_tail(MODEL, P.c_e0))
     x0 = np.array([2e-3, -1e-2, 5e-4, 3e-2, 1e-3, -2e-2])
-    plant = PlantSimulator(P, 'erva', 0.02, x0=x0)
+    plant = PlantSimulator(MODEL, 0.02, x0=x0)
     # 30 s: the absorber mode (σ ≈ −0.28 1/s, energy ∝ e^{2σt}) has died out; 5 s leaves 6 %
     for _ in range(1500):
         plant.step(P.c_e0, 0.0, 0.0)
@@ -333,7 +333,7 @@ def test_passive_tail_is_the_cost_beyond_the_horizon_under_c_e0():
     # only the continuous cost gets it, and only when asked
     for cost, terminal, has_tail in [('continuous', 'passive', True),
                                      ('continuous', 'none', False), ('paper', 'passive', False)]:
-        c = make_controller('preview', P, S.with_(cost=cost, terminal_cost=terminal))
+        c = make_controller('preview', MODEL, S.with_(cost=cost, terminal_cost=terminal))
         value = float(c.ocp.terminal(np.r_[x0 / c.ocp.x_scale, [0.0] * c.ocp.with_acc], 0.0,
                                      [1.0, 0.0]))
         assert (value == pytest.approx(x0 @ q_acc @ x0 / S.ts)) if has_tail else value == 0.0
@@ -345,9 +345,9 @@ def test_longer_steps_after_a_full_step_save_iterations(monkeypatch):
     # all and a final cost as low on average (relative, 1e-4).
     from erva_ros.core.controllers import sqp
     s = S.with_(cost='continuous', alpha1=0.0, alpha2=1.0, codegen='off')
-    c = make_controller('preview', P, s)
+    c = make_controller('preview', MODEL, s)
     c.recorded_problems = []
-    simulate_closed_loop(P, c, make_road('paper', 0.6, seed=1), 0.6)
+    simulate_closed_loop(MODEL, c, make_road('paper', 0.6, seed=1), 0.6)
     results = {}
     for name, steps in (('longer', sqp.EXTRAPOLATION_STEPS), ('without', ())):
         monkeypatch.setattr(sqp, 'EXTRAPOLATION_STEPS', steps)

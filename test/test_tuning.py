@@ -17,13 +17,16 @@ from erva_ros.core.controllers.tuning import (Built, check_schedule, LIVE_KEYS, 
                                               ScheduledTuning)
 from erva_ros.core.loop.control_loop import build_loop, NODE_LIVE_KEYS
 from erva_ros.core.loop.validation import StampWindow
+from erva_ros.core.model import make_model
 from erva_ros.core.node_params import SCHEMAS
 from erva_ros.core.params import paper_params, ParamError
 from erva_ros.core.reports import NMPCReport
 from erva_ros.core.roads import make_road
+from erva_ros.core.topics import STATE_JOINTS
 from erva_ros.session import segments
 
 P = paper_params()
+M = make_model(P)
 S = ControllerSettings()
 TS_NS = 20_000_000
 
@@ -71,7 +74,7 @@ def test_settings_a_law_does_not_have_are_refused():
 
 
 def test_live_settings_take_effect_only_when_applied():
-    ctrl = make_controller('skyhook', P, S)
+    ctrl = make_controller('skyhook', M, S)
     live = LiveSettings(ctrl, S, P.c_e0)
     with pytest.raises(ParamError):
         live.stage({'u_max': 1.0})
@@ -102,10 +105,10 @@ def test_erva_sim_set_changes_the_commands_from_that_sample_on():
     # The offline loop's sample boundary: up to the sample before T the commands are the
     # unchanged run's, bit for bit; from the sample at T on, the new weight's.
     road = make_road('paper', 0.6, seed=1)
-    ref = simulate_closed_loop(P, make_controller('preview', P, S), road, 0.6)
-    ctrl = make_controller('preview', P, S)
+    ref = simulate_closed_loop(M, make_controller('preview', M, S), road, 0.6)
+    ctrl = make_controller('preview', M, S)
     tuner = ScheduledTuning(ctrl, S, P.c_e0, [(0.3, 'alpha2', 1.0)])
-    run = simulate_closed_loop(P, ctrl, road, 0.6, before_sample=tuner.before_sample)
+    run = simulate_closed_loop(M, ctrl, road, 0.6, before_sample=tuner.before_sample)
     k = 15
     assert np.array_equal(run.u[:k], ref.u[:k]) and np.array_equal(run.x[:k + 1], ref.x[:k + 1])
     assert not np.allclose(run.u[k:], ref.u[k:])
@@ -130,7 +133,7 @@ def _loop(mode, controller='passive', **extra):
 def _job(loop, k, now=0):
     x = np.zeros(6)
     t = k * TS_NS
-    loop.on_state(contract.encode_state(t, x, 'erva'), now)
+    loop.on_state(contract.encode_state(t, x, STATE_JOINTS), now)
     return loop.on_preview(contract.encode_preview(t, np.zeros(11), TS_NS), now)
 
 

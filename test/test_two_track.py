@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pytest
 
+from erva_ros.core.model import make_model
 from erva_ros.core.roads import make_road, RoadError
 from erva_ros.core.two_track import (bessel_k1, CORNERS, delayed_road, isotropic_coherency,
                                      make_two_track_road)
@@ -173,7 +174,8 @@ def test_a_corner_road_drives_the_closed_loop():
     from erva_ros.core.params import paper_params
     params = paper_params()
     car = make_two_track_road(2.0, track_m=TRACK, wheelbase_m=WHEELBASE, seed=2)
-    run = simulate_closed_loop(params, make_controller('passive', params, ControllerSettings()),
+    model = make_model(params)
+    run = simulate_closed_loop(model, make_controller('passive', model, ControllerSettings()),
                                car.rr, 1.0)
     np.testing.assert_array_equal(run.w, car.rr.height(run.t))
     late = run.t >= car.rear_delay_s

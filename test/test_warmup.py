@@ -20,9 +20,9 @@ pytestmark = pytest.mark.skipif(CC is None, reason='no C compiler')
 #: Functions to compile (the model's own equations, a few kB of C each; B the larger).
 FUNCTIONS = textwrap.dedent('''
     import casadi as ca
-    from erva_ros.core.model import get_model
+    from erva_ros.core.model import make_model
     from erva_ros.core.params import paper_params
-    m = get_model(paper_params(), 'erva')
+    m = make_model(paper_params(), 'erva')
     x, u = ca.SX.sym('x', 6), ca.SX.sym('u')
     A = ca.Function('warmup_probe_a', [x, u], [m.power(x, u)])
     B = ca.Function('warmup_probe_b', [x, u], [ca.jacobian(m.ode(x, u, 0.001), x)])

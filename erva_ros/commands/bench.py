@@ -224,20 +224,22 @@ def bench_seed(args, params, settings, seed: int, samples=None) -> dict:
     """
     from erva_ros.core.closed_loop import closed_loop_cost, simulate_closed_loop
     from erva_ros.core.controllers import make_controller
+    from erva_ros.core.model import make_model
     from erva_ros.core.roads import make_road
 
     name = settings.controller
+    model = make_model(params)
     cost_kind = settings.long_cost if name == 'preview_long' else settings.cost
     duration = args.steps * settings.ts
     road = make_road('paper', duration, seed=seed)
 
     def run(s, record=False):
-        ctrl = make_controller(name, params, s)
+        ctrl = make_controller(name, model, s)
         if record:
             ctrl.recorded_problems = []
         progress = Progress(f'erva bench: seed {seed}, {s.solver}, samples',
                             enabled=not args.json)
-        r = simulate_closed_loop(params, ctrl, road, duration, s.ts, progress=progress)
+        r = simulate_closed_loop(model, ctrl, road, duration, s.ts, progress=progress)
         progress.close()
         if samples is not None:
             samples.setdefault(f'{name} / {s.solver}', []).append(r.solve_time_s * 1e3)

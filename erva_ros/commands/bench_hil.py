@@ -121,10 +121,11 @@ def _evaluate(args):
     from erva_ros.core.hil.evaluation import evaluate_estimator
     from erva_ros.core.hil.settings import (load_ecu_sim_section, load_estimator_section,
                                             noise_of)
+    from erva_ros.core.model import make_model
     from erva_ros.core.params import load_erva_params
     from erva_ros.core.roads import make_road
 
-    params = load_erva_params(args.params)
+    model = make_model(load_erva_params(args.params))
     est = load_estimator_section(args.hil_config)
     sim = load_ecu_sim_section(args.hil_config)
     noise = noise_of(est)
@@ -146,14 +147,14 @@ def _evaluate(args):
     total = len(runs) * args.seeds
     done = 0
     for name, w, settings in runs:
-        ctrl = make_controller(name, params, settings)
+        ctrl = make_controller(name, model, settings)
         per_seed = []
         for seed in range(args.seeds):
             sensor = SensorNoise(sim['noise_sprung_accel'], sim['noise_deflection'],
                                  sim['noise_speed'], sim['noise_current'],
                                  sim['noise_voltage'], seed)
             road = make_road('paper', args.eval_duration, seed=seed)
-            per_seed.append(evaluate_estimator(params, ctrl, road, args.eval_duration,
+            per_seed.append(evaluate_estimator(model, ctrl, road, args.eval_duration,
                                                settings.ts, noise, sensor,
                                                u_max=est['u_max']))
             done += 1

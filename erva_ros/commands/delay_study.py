@@ -53,18 +53,19 @@ def run_seed(job):
     """Run the four variants on one seed; return {variant: metrics}."""
     from erva_ros.core.closed_loop import simulate_closed_loop
     from erva_ros.core.controllers import make_controller
-    from erva_ros.core.model import get_model
+    from erva_ros.core.model import make_model
     from erva_ros.core.roads import make_road
 
     params, settings, seed, duration, delay = job
+    model = make_model(params)
     road = make_road('paper', duration, seed=seed)
     out = {}
     for variant in VARIANTS:
         s = settings.with_(command_delay_s=delay if variant == 'modelled' else 0.0)
-        ctrl = make_controller(s.controller, params, s)
+        ctrl = make_controller(s.controller, model, s)
         if variant == 'predicted':
-            ctrl.predict_delay(get_model(params), delay)
-        run = simulate_closed_loop(params, ctrl, road, duration, s.ts,
+            ctrl.predict_delay(model, delay)
+        run = simulate_closed_loop(model, ctrl, road, duration, s.ts,
                                    actuation_delay_s=0.0 if variant == 'no_delay' else delay)
         m = run.metrics
         out[variant] = {'acc_rms_continuous': m['acc_rms_continuous'],

@@ -8,6 +8,7 @@ from erva_ros.commands._common import (add_json_option, add_params_option, live_
                                        positive_float, print_json, realtime_priority)
 from erva_ros.core import topics
 from erva_ros.core.errors import CLIError
+from erva_ros.core.model import MODEL_KINDS
 
 COMMAND = 'ecu-sim'
 HELP = 'simulated generator ECU on a CAN bus: applies damping frames to the plant, sends sensors'
@@ -53,7 +54,7 @@ def add_arguments(parser):
                         help='HIL params file (default: the shipped config/hil.yaml); the '
                              'ecu_bridge_node section gives the hardware and timeout, the '
                              'ecu_sim section the sensor noise')
-    parser.add_argument('--model', choices=('erva', 'benchmark'), default='erva',
+    parser.add_argument('--model', choices=MODEL_KINDS, default=MODEL_KINDS[0],
                         help='plant model (default erva, paper eq. (11))')
     parser.add_argument('--ts', type=positive_float, default=0.02, metavar='S',
                         help='ECU cycle Ts (s, default 0.02)')
@@ -149,6 +150,7 @@ def _build_core(args, road, delay_s: float):
     from erva_ros.core.hil.ecu_sim import EcuSimConfig, EcuSimCore, SensorNoise
     from erva_ros.core.hil.settings import hardware_of, load_bridge_section, load_ecu_sim_section
     from erva_ros.core.hil.transport import open_bus
+    from erva_ros.core.model import make_model
     from erva_ros.core.params import load_erva_params
 
     from erva_ros.core.node_params import SCHEMAS
@@ -165,8 +167,9 @@ def _build_core(args, road, delay_s: float):
                            command_timeout_s=bridge['command_timeout_periods'] * args.ts,
                            c_e_safe=params.c_e0, max_delta_counter=bridge['max_delta_counter'],
                            command_delay_s=delay_s)
-        return EcuSimCore(params, hardware_of(bridge), EcuCodec(bridge['dbc_file'] or None),
-                          lambda: open_bus(args.bus), road, cfg, noise, args.model)
+        return EcuSimCore(make_model(params, args.model), hardware_of(bridge),
+                          EcuCodec(bridge['dbc_file'] or None), lambda: open_bus(args.bus), road,
+                          cfg, noise)
     except (ValueError, FileNotFoundError) as exc:
         raise CLIError(str(exc)) from None
 
@@ -299,8 +302,7 @@ def main(args) -> int:
     try:
         if use_ros:
             from erva_ros.ros.ecu_sim_ros import EcuSimRos
-            ros = EcuSimRos(args.namespace, args.model,
-                            hardware_of(load_bridge_section(args.hil_config)),
+            ros = EcuSimRos(args.namespace, hardware_of(load_bridge_section(args.hil_config)),
                             known_road=known, ts=args.ts,
                             publisher_history_s=_session_value(args.params,
                                                                'publisher_history_s'),

@@ -48,7 +48,7 @@ def main(args) -> int:
     import numpy as np
 
     from erva_ros.core import fr
-    from erva_ros.core.model import get_model, MODEL_KINDS
+    from erva_ros.core.model import make_model, MODEL_KINDS
     from erva_ros.core.params import load_erva_params
 
     if args.f_max < args.f_min:
@@ -67,7 +67,7 @@ def main(args) -> int:
     curves = {}
     for kind in models:
         with Progress(f'erva fr: {kind}, tones', len(freqs), enabled=not args.json) as progress:
-            curves[kind] = fr.sweep(get_model(params, kind), freqs, args.amplitude, damping,
+            curves[kind] = fr.sweep(make_model(params, kind), freqs, args.amplitude, damping,
                                     progress=progress)
     elapsed = time.perf_counter() - t0
 

@@ -99,6 +99,7 @@ def _split(recs, fraction):
 def main(args) -> int:
     from erva_ros.core.identify import identify, MAX_REL_STD
     from erva_ros.core.identify_report import as_dict, params_yaml, table
+    from erva_ros.core.model import make_model
     from erva_ros.core.params import load_erva_params
     from erva_ros.core.identify_bag import load_recordings
 
@@ -117,7 +118,7 @@ def main(args) -> int:
         if not args.json:
             print(f'erva identify: {text}', flush=True)
 
-    result = identify(fit, prior, heldout=held, segment_s=args.segment, fix=args.fix,
+    result = identify(fit, make_model(prior), heldout=held, segment_s=args.segment, fix=args.fix,
                       estimate=args.estimate, max_rel_std=args.max_rel_std or MAX_REL_STD,
                       progress=say)
     sources = [os.path.basename(os.path.normpath(b)) for b in args.bags]

@@ -169,7 +169,7 @@ def main(args) -> int:
 
 
 # -- build ------------------------------------------------------------------------------
-def _drive_items(args, bags, road_map, params):
+def _drive_items(args, bags, road_map, model):
     """Return the DriveItems of ``bags`` (each read, checked and estimated; no map lock)."""
     from erva_ros.core.roadmap.bag_drive import read_bag_drive
     from erva_ros.core.roadmap.drive import estimate_drive, grid_profile
@@ -194,7 +194,7 @@ def _drive_items(args, bags, road_map, params):
     highpass_m = road_map.highpass_m if road_map else args.highpass
     items = []
     for d in drives:
-        est = estimate_drive(d.record, params, d.ts)
+        est = estimate_drive(d.record, model, d.ts)
         items.append(DriveItem(grid_profile(est, grid, highpass_m, ts=d.ts), d.record.digest(),
                                d.record.source, args.vehicle, d.record.route,
                                d.record.speed_mps, args.search))
@@ -202,6 +202,7 @@ def _drive_items(args, bags, road_map, params):
 
 
 def _build(args) -> int:
+    from erva_ros.core.model import make_model
     from erva_ros.core.params import load_erva_params
     from erva_ros.core.roadmap.store import add_to_map, RoadMap
 
@@ -209,7 +210,7 @@ def _build(args) -> int:
     road_map = RoadMap.open(args.out) if RoadMap.exists(args.out) else None
     try:
         drives, items, route, grid, highpass_m = _drive_items(args, args.bags, road_map,
-                                                              params)
+                                                              make_model(params))
     finally:
         if road_map is not None:
             road_map.close()
@@ -252,12 +253,13 @@ def _bag_paths(args_bags):
 
 
 def _sync(args) -> int:
+    from erva_ros.core.model import make_model
     from erva_ros.core.params import load_erva_params
     from erva_ros.core.roadmap.bag_drive import read_bag_drive
     from erva_ros.core.roadmap.drive import estimate_drive, grid_profile
     from erva_ros.core.roadmap.store import DriveItem, RoadMap
 
-    params = load_erva_params(args.params)
+    model = make_model(load_erva_params(args.params))
     paths = _bag_paths(args.bags)
     road_map = RoadMap.open(args.map)
     added, present, skipped, refused = [], [], [], []
@@ -276,7 +278,7 @@ def _sync(args) -> int:
                 present.append(path)
                 continue
             try:
-                g = grid_profile(estimate_drive(rec, params, d.ts), road_map.grid_m,
+                g = grid_profile(estimate_drive(rec, model, d.ts), road_map.grid_m,
                                  road_map.highpass_m, ts=d.ts)
                 reg = road_map.add_drives([DriveItem(g, rec.digest(), rec.source, args.vehicle,
                                                      rec.route, rec.speed_mps,

@@ -55,10 +55,12 @@ def run_point(job):
     """Return (acc RMS, power) of one controller, weighting and seed (a pure function)."""
     from erva_ros.core.closed_loop import simulate_closed_loop
     from erva_ros.core.controllers import make_controller
+    from erva_ros.core.model import make_model
     from erva_ros.core.roads import make_road
 
     params, settings, name, seed, duration = job
-    run = simulate_closed_loop(params, make_controller(name, params, settings),
+    model = make_model(params)
+    run = simulate_closed_loop(model, make_controller(name, model, settings),
                                make_road('paper', duration, seed=seed), duration, settings.ts)
     return run.metrics['acc_rms'], run.metrics['power_w']
 

@@ -187,6 +187,7 @@ def _drive_plant(args, bag) -> int:
     from erva_ros.session.report import jsonable
     from erva_ros.core.bag.session import new_bag_dir
     from erva_ros.core.controllers import load_controller_settings
+    from erva_ros.core.model import make_model
     from erva_ros.core.params import load_erva_params
 
     params = load_erva_params(args.params)
@@ -198,10 +199,10 @@ def _drive_plant(args, bag) -> int:
     before = compute_report(data)
     out_dir = new_bag_dir(args.record_dir, f'whatif-{name}')
     with _native_stdout_to_stderr():   # the plant and the controller: the recorded model
-        result, meta = drive_plant(bag, out_dir, name, params, settings,
-                                   session_extra={'alpha1': settings.alpha1,
-                                                  'alpha2': settings.alpha2},
-                                   kind=data.model, duration_s=args.duration)
+        result, meta = drive_plant(bag, out_dir, name, make_model(params, data.model),
+                                   settings, session_extra={'alpha1': settings.alpha1,
+                                                            'alpha2': settings.alpha2},
+                                   duration_s=args.duration)
     m = result.metrics
     summary = {'bag': bag.path, 'new_bag': out_dir, 'controller': name,
                'weights': [settings.alpha1, settings.alpha2],
@@ -236,11 +237,13 @@ def _reevaluate(args, bag) -> int:
     from erva_ros.session.bag_report import load_session
     from erva_ros.session.report import jsonable
     from erva_ros.core.controllers import make_controller
+    from erva_ros.core.model import make_model
 
     params, settings = controller_from_session(bag, args.controller)
     data = load_session(bag)
     with _native_stdout_to_stderr():
-        controller = make_controller(settings.controller, params, settings, kind=data.model)
+        controller = make_controller(settings.controller, make_model(params, data.model),
+                                     settings)
         total = len(data.cmd.stamp_ns[:args.max_commands])
         with Progress('erva replay --reevaluate: commands', total,
                       enabled=not args.json) as progress:

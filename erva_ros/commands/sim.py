@@ -10,6 +10,7 @@ from erva_ros.commands._common import (add_json_option, add_out_option, add_para
                                        add_set_option, compile_first, ensure_out_dir,
                                        print_json)
 from erva_ros.core.errors import CLIError
+from erva_ros.core.model import MODEL_KINDS
 
 COMMAND = 'sim'
 HELP = 'offline closed loop of a controller on a road (paper Figs. 5-7), no ROS'
@@ -41,7 +42,7 @@ Example: erva sim --controller preview --alpha 0,1 --seed 3 --out out/sim"""
 def add_arguments(parser):
     add_params_option(parser)
     add_settings_options(parser, alpha=True)
-    parser.add_argument('--model', choices=('erva', 'benchmark'), default='erva',
+    parser.add_argument('--model', choices=MODEL_KINDS, default=MODEL_KINDS[0],
                         help='plant and prediction model (default erva)')
     parser.add_argument('--actuation-delay', type=float, default=0.0, metavar='S',
                         help='the plant applies each command S seconds after its sample '
@@ -55,6 +56,7 @@ def add_arguments(parser):
 def main(args) -> int:
     from erva_ros.core.closed_loop import simulate_closed_loop
     from erva_ros.core.controllers import make_controller
+    from erva_ros.core.model import make_model
     from erva_ros.core.params import load_erva_params
 
     from erva_ros.core.controllers.tuning import (Built, check_schedule, parse_change,
@@ -65,13 +67,14 @@ def main(args) -> int:
     changes = [parse_change(text) for text in args.set]
     check_schedule(Built.of(settings, params.c_e0), settings, changes)   # before anything
     compile_first(COMMAND, params, settings, args.model, not args.json)
-    controller = make_controller(settings.controller, params, settings, kind=args.model)
+    model = make_model(params, args.model)
+    controller = make_controller(settings.controller, model, settings)
     road = make_road_from_args(args, args.duration, args.seed)
     preview = preview_model_from_args(args, args.seed, settings.ts)
     tuner = ScheduledTuning(controller, settings, params.c_e0, changes) if changes else None
     try:
-        run = simulate_closed_loop(params, controller, road, args.duration, settings.ts,
-                                   preview_model=preview, kind=args.model,
+        run = simulate_closed_loop(model, controller, road, args.duration, settings.ts,
+                                   preview_model=preview,
                                    actuation_delay_s=args.actuation_delay,
                                    before_sample=tuner.before_sample if tuner else None)
     except ValueError as exc:
@@ -101,7 +104,7 @@ def main(args) -> int:
         with open(csv_path, 'w', newline='', encoding='utf-8') as fh:
             wr = csv.writer(fh)
             wr.writerow(['t_s', 'road_m', 'damping_ns_per_m', 'sprung_accel_m_s2', 'power_w',
-                         'solve_ms', 'status'] + [f'x_{n}' for n in controller_states(run)])
+                         'solve_ms', 'status'] + [f'x_{n}' for n in model.state_names])
             for k in range(run.t.size):
                 wr.writerow([f'{run.t[k]:.4f}', f'{run.w[k]:.6g}', f'{run.u[k]:.6g}',
                              f'{run.sprung_accel[k]:.6g}', f'{run.power[k]:.6g}',
@@ -135,9 +138,3 @@ def main(args) -> int:
         for f in result.get('files', []):
             print(f'wrote {f}')
     return 0
-
-
-def controller_states(run):
-    """Return the state names of a run's model (for CSV headers)."""
-    from erva_ros.core.model import STATE_NAMES
-    return STATE_NAMES['erva' if run.x.shape[1] == 6 else 'benchmark']

@@ -102,9 +102,11 @@ def run_seed(job):
     from erva_ros.core.closed_loop import simulate_closed_loop
     from erva_ros.core.controllers import make_controller
     from erva_ros.core.controllers.clairvoyant import BoundSettings, clairvoyant_bound
+    from erva_ros.core.model import make_model
     from erva_ros.core.roads import make_road
 
     params, settings, seed, duration, weights, controllers, bound = job
+    model = make_model(params)
     road = make_road('paper', duration, seed=seed)
     out, bounds = {}, {}
     for alpha in weights:
@@ -112,7 +114,7 @@ def run_seed(job):
         rows, starts = {}, {}
         for name in controllers:
             t0 = time.perf_counter()
-            run = simulate_closed_loop(params, make_controller(name, params, s), road,
+            run = simulate_closed_loop(model, make_controller(name, model, s), road,
                                        duration, s.ts)
             m = run.metrics
             rows[name] = _row(m, alpha, time.perf_counter() - t0)
@@ -123,7 +125,7 @@ def run_seed(job):
                 starts[name] = run.u
         if bound:
             starts.update({f'bound{tuple(a)}': u for a, u in bounds.items()})
-            b = clairvoyant_bound(params, road, duration, s.ts, alpha, s.u_min, s.u_max,
+            b = clairvoyant_bound(model, road, duration, s.ts, alpha, s.u_min, s.u_max,
                                   starts, settings=BoundSettings(codegen=s.codegen, **bound),
                                   seed=seed)
             bounds[alpha] = b.run.u

@@ -2,7 +2,7 @@
 
 Per-step semantics (the live lock-step mode reproduces them exactly):
 
-    plant = PlantSimulator(params, kind, ts)
+    plant = PlantSimulator(model, ts)          # the plant's model (the controller has its own)
     for k in range(n):  t_k = k·Ts,  w_k = road.height(t_k)
         preview = error_model(road.preview(t_k, N, Ts))      # or the perfect preview
         if before_sample is not None:
@@ -11,7 +11,7 @@ Per-step semantics (the live lock-step mode reproduces them exactly):
         res = controller.compute(plant.x, preview, t_k)
         solve_cpu[k] = (time.thread_time_ns() - cpu0) * 1e-9
         s = plant.sample(res.damping_cmd, w_k)             # z̈_s(t_k), P(t_k) with u_k
-        plant.step(res.damping_cmd, w_k, road.height(t_k + Ts))
+        plant.step(res.damping_cmd, w_k, road.height((k + 1)·Ts))   # not t_k + Ts: last bit
     metrics = comfort_power(accels, plant.harvested_j, n·Ts)
 
 With ``actuation_delay_s`` = d > 0 the plant is an actuator behind a delay (as the ECU in
@@ -28,7 +28,7 @@ import numpy as np
 
 from erva_ros.core.controllers.base import Controller
 from erva_ros.core.metrics import comfort_power, evaluation_objective, percentiles_ms
-from erva_ros.core.params import ERVAParams
+from erva_ros.core.model import QuarterCarModel
 from erva_ros.core.plant import PlantSimulator
 from erva_ros.core.preview import PreviewErrorModel
 from erva_ros.core.roads import Road
@@ -67,15 +67,15 @@ class ClosedLoopResult:
         return self.t.size * self.ts
 
 
-def simulate_closed_loop(params: ERVAParams, controller: Controller, road: Road,
+def simulate_closed_loop(model: QuarterCarModel, controller: Controller, road: Road,
                          duration_s: float, ts: Optional[float] = None,
                          preview_model: Optional[PreviewErrorModel] = None,
-                         kind: str = 'erva', keep_plans: bool = False,
+                         keep_plans: bool = False,
                          progress: Optional[Callable[[int, int], None]] = None,
                          actuation_delay_s: float = 0.0,
                          before_sample: Optional[Callable[[int], None]] = None
                          ) -> ClosedLoopResult:
-    """Run ``controller`` on the plant over ``road`` for ``duration_s`` (see module doc).
+    """Run ``controller`` on ``model``'s plant over ``road`` for ``duration_s`` (module doc).
 
     ``ts`` defaults to the controller's; the controller is reset first.
     ``before_sample(k)`` runs before the controller computes sample k: a sample boundary,
@@ -87,7 +87,7 @@ def simulate_closed_loop(params: ERVAParams, controller: Controller, road: Road,
         raise ValueError(f'duration {duration_s} s is shorter than one sample of {ts} s')
     big_n = controller.horizon
     controller.reset()
-    plant = PlantSimulator(params, kind, ts)
+    plant = PlantSimulator(model, ts)
     t = ts * np.arange(n)
     xs = np.empty((n, plant.model.nx))
     u = np.empty(n)

@@ -15,6 +15,7 @@ sample by exact stamp equality.
 """
 
 from dataclasses import dataclass
+import functools
 import math
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
@@ -36,11 +37,6 @@ MEASUREMENT_LIMITS = {'accel': 100.0, 'deflection': 0.5, 'speed': 1e3, 'applied'
 def s_to_ns(seconds: float) -> int:
     """Return ``seconds`` as integer nanoseconds (rounded)."""
     return int(round(float(seconds) * NS))
-
-
-def state_joint_names(kind: str) -> Tuple[str, ...]:
-    """Return the JointState names of the state of model ``kind`` (benchmark: no z_d)."""
-    return topics.STATE_JOINTS if kind == 'erva' else topics.STATE_JOINTS[:2]
 
 
 # -- rows ----------------------------------------------------------------------------------
@@ -234,16 +230,18 @@ class JointStateEncoder:
         return w.bytes()
 
 
-_STATE_ENCODERS = {kind: JointStateEncoder(state_joint_names(kind))
-                   for kind in ('erva', 'benchmark')}
+@functools.lru_cache(maxsize=None)
+def _state_encoder(joints: Tuple[str, ...]) -> JointStateEncoder:
+    return JointStateEncoder(joints)
 
 
-def decode_state(data: bytes, kind: Optional[str] = None) -> State:
-    """Return a state; with ``kind`` (a node acting on it) its joints and values are checked."""
+def decode_state(data: bytes, joints: Optional[Sequence[str]] = None) -> State:
+    """Return a state; with ``joints`` (a node acting on it: its model's ``joints``) the
+    joints and values are checked."""
     j = decode_joints(data)
     n = len(j.position)
-    if kind is not None:
-        names = state_joint_names(kind)
+    if joints is not None:
+        names = tuple(joints)
         if j.names != names:
             raise MessageRejected(f'joint names {list(j.names)} are not {list(names)}')
         if n != len(names) or len(j.velocity) != len(names):
@@ -258,10 +256,13 @@ def decode_state(data: bytes, kind: Optional[str] = None) -> State:
     return State(j.stamp_ns, x)
 
 
-def encode_state(stamp_ns: int, x: Sequence[float], kind: str) -> bytes:
-    """Return the state x = [z_s, ż_s, z_us, ż_us(, z_d, ż_d)] as a JointState (m, m/s)."""
+def encode_state(stamp_ns: int, x: Sequence[float], joints: Sequence[str]) -> bytes:
+    """Return the state x = [z_s, ż_s, z_us, ż_us(, z_d, ż_d)] as a JointState (m, m/s).
+
+    ``joints``: the model's (``QuarterCarModel.joints``), one per position/velocity pair.
+    """
     x = np.asarray(x, dtype=float)
-    return _STATE_ENCODERS[kind].encode(stamp_ns, x[0::2].tolist(), x[1::2].tolist())
+    return _state_encoder(tuple(joints)).encode(stamp_ns, x[0::2].tolist(), x[1::2].tolist())
 
 
 _GENERATOR = JointStateEncoder((topics.GENERATOR_JOINT,))
@@ -607,7 +608,7 @@ DECODERS = {
 }
 
 
-__all__ = ['GRID_TOL_NS', 'MEASUREMENT_LIMITS', 'NS', 's_to_ns', 'state_joint_names', 'State',
+__all__ = ['GRID_TOL_NS', 'MEASUREMENT_LIMITS', 'NS', 's_to_ns', 'State',
            'Accel', 'Generator', 'RoadHeight', 'RoadEstimate', 'Alignment', 'Preview', 'Command',
            'Status', 'Measurements',
            'Joints', 'decode_joints', 'JointStateEncoder', 'MEASUREMENTS_ENCODER',

@@ -48,9 +48,8 @@ import casadi as ca
 import numpy as np
 
 from erva_ros.core.codegen import BufferedCall, compile_for
-from erva_ros.core.model import get_model, rk4_stable_substeps
+from erva_ros.core.model import QuarterCarModel, rk4_stable_substeps
 from erva_ros.core.config import shipped_defaults
-from erva_ros.core.params import ERVAParams
 from erva_ros.core.specs import Number
 
 #: Measurement names, in the order of y.
@@ -105,12 +104,11 @@ class UpdateResult:
 class ExtendedKalmanFilter:
     """Discrete EKF on ``QuarterCarModel.rk4_step`` (paper eq. (11)) with the ECU's sensors."""
 
-    def __init__(self, params: ERVAParams, kind: str = 'erva', ts: float = 0.02,
+    def __init__(self, model: QuarterCarModel, ts: float = 0.02,
                  noise: EstimatorNoise = EstimatorNoise(), u_max: float = 22800.0,
                  substeps: Optional[int] = None, codegen: str = 'auto'):
-        self.model = get_model(params, kind)
-        self.params = params
-        self.kind = kind
+        self.model = model
+        self.params = model.params
         self.ts = float(ts)
         self.noise = noise
         nx = self.model.nx

@@ -49,7 +49,7 @@ import casadi as ca
 import numpy as np
 
 from erva_ros.core.errors import CLIError
-from erva_ros.core.model import rk4, symbolic
+from erva_ros.core.model import QuarterCarModel, rk4
 from erva_ros.core.params import ERVA_SPECS, ERVAParams, validate_erva
 
 #: Parameters in the equations of motion, in the order of the symbolic vector p.
@@ -205,14 +205,16 @@ class ParametricModel:
     once per structure.
     """
 
-    def __init__(self, channels: Sequence[str], ts: float, substeps: int):
+    def __init__(self, structure: QuarterCarModel, channels: Sequence[str], ts: float,
+                 substeps: int):
         self.channels = tuple(channels)
         self.ts = float(ts)
         self.substeps = int(substeps)
         npar = len(PARAMETERS)
         self.npar = npar
         p = ca.SX.sym('p', npar)
-        sym = symbolic(ERVAParams(**{k: p[i] for i, k in enumerate(PARAMETERS)}), 'erva')
+        # The model's own equations with its parameters as symbols.
+        sym = structure.symbolic_with(ERVAParams(**{k: p[i] for i, k in enumerate(PARAMETERS)}))
         ode = ca.Function('ode', [sym.x, sym.u, sym.w, p], [sym.xdot])
         x, u, w = sym.x, sym.u, sym.w
         outputs = {'sprung_accel': sym.xdot[1], 'deflection': sym.deflection,
@@ -301,11 +303,12 @@ class ParametricModel:
 _MODELS: Dict[Tuple, ParametricModel] = {}
 
 
-def parametric_model(channels: Sequence[str], ts: float, substeps: int) -> ParametricModel:
+def parametric_model(structure: QuarterCarModel, channels: Sequence[str], ts: float,
+                     substeps: int) -> ParametricModel:
     """Return the shared :class:`ParametricModel` of this structure (built once)."""
-    key = (tuple(channels), float(ts), int(substeps))
+    key = (structure.kind, tuple(channels), float(ts), int(substeps))
     if key not in _MODELS:
-        _MODELS[key] = ParametricModel(channels, ts, substeps)
+        _MODELS[key] = ParametricModel(structure, channels, ts, substeps)
     return _MODELS[key]
 
 
@@ -634,14 +637,16 @@ def check_data(recs: Sequence[Recording], min_fit_s: float = MIN_FIT_S) -> None:
                 raise IdentifyError(f'{r.name}: channel {name} has no measured sample')
 
 
-def identify(recs: Sequence[Recording], prior: ERVAParams, *,
+def identify(recs: Sequence[Recording], prior_model: QuarterCarModel, *,
              heldout: Sequence[Recording] = (), sigma0: Optional[Dict[str, float]] = None,
              segment_s: float = 1.0, substeps: Optional[int] = None,
              max_rel_std: float = MAX_REL_STD, prior_rel_std: float = PRIOR_REL_STD,
              fix: Sequence[str] = (),
              estimate: Optional[Sequence[str]] = None, max_iter: int = 40,
              truth: Optional[ERVAParams] = None, progress=None) -> FitResult:
-    """Identify the parameters from ``recs`` (see the module doc); hold out ``heldout``.
+    """Identify ``prior_model``'s parameters from ``recs`` (module doc); hold out ``heldout``.
+
+    ``prior_model``: the model identified, its parameters the prior.
 
     ``fix`` keeps parameters at the prior (known: e.g. a weighed mass); ``estimate`` names
     the only parameters to fit (no automatic fixing: an undetermined one is an
@@ -651,6 +656,10 @@ def identify(recs: Sequence[Recording], prior: ERVAParams, *,
     channel's RMS).  ``truth`` (a simulated plant) is only reported next to the result.
     """
     say = progress or (lambda text: None)
+    if prior_model.nx != NX:
+        raise IdentifyError(f'identification fits the ERVA model\'s {NX} states; the '
+                            f'{prior_model.kind} model has {prior_model.nx}')
+    prior = prior_model.params
     check_data(recs)
     channels = recs[0].channels
     ts = recs[0].ts
@@ -661,7 +670,7 @@ def identify(recs: Sequence[Recording], prior: ERVAParams, *,
         if key not in ERVA_SPECS:
             raise IdentifyError(f'unknown parameter {key!r}; known: {", ".join(ERVA_SPECS)}')
     substeps = substeps or default_substeps(ts)
-    model = parametric_model(channels, ts, substeps)
+    model = parametric_model(prior_model, channels, ts, substeps)
     length = max(2, int(round(segment_s / ts)))
     segs = make_segments(recs, length)
     if not segs:

@@ -80,10 +80,11 @@ def simulate_session(params: ERVAParams, road, duration_s: float, settings, *,
     from erva_ros.core.closed_loop import simulate_closed_loop
     from erva_ros.core.controllers import make_controller
     from erva_ros.core.hil.ecu_sim import SensorNoise
-    from erva_ros.core.model import get_model
+    from erva_ros.core.model import make_model
     noise = noise or SensorNoise()
-    ctrl = make_controller(settings.controller, params, settings)
-    run = simulate_closed_loop(params, ctrl, road, duration_s, settings.ts,
+    model = make_model(params)
+    ctrl = make_controller(settings.controller, model, settings)
+    run = simulate_closed_loop(model, ctrl, road, duration_s, settings.ts,
                                actuation_delay_s=delay_s)
     ts = run.ts
     n = run.t.size
@@ -91,7 +92,6 @@ def simulate_session(params: ERVAParams, road, duration_s: float, settings, *,
     acting = np.concatenate([[ctrl.c_e0], run.u[:-1]]) if delay_s > 0 else run.u.copy()
     before = np.concatenate([[ctrl.c_e0], acting[:-1]])
     mean = (delay_s * before + (ts - delay_s) * acting) / ts
-    model = get_model(params)
     rng = np.random.default_rng(noise.seed)
     frames = _ecu_frames()
     y = np.empty((n, 3))
@@ -145,6 +145,7 @@ def study_plant(job) -> Dict:
     from erva_ros.core.controllers import make_controller
     from erva_ros.core.hil.ecu_sim import SensorNoise
     from erva_ros.core.identify_report import as_dict
+    from erva_ros.core.model import make_model
     from erva_ros.core.metrics import evaluation_objective
 
     cfg, settings, index = job
@@ -161,7 +162,8 @@ def study_plant(job) -> Dict:
     sigma0 = {'sprung_accel': noise.sprung_accel, 'deflection': noise.deflection,
               'generator_speed': noise.speed}
     t0 = time.process_time()
-    result = identify([fit], paper_params(), heldout=[held], sigma0=sigma0, truth=truth)
+    result = identify([fit], make_model(paper_params()), heldout=[held], sigma0=sigma0,
+                      truth=truth)
     fit_cpu = time.process_time() - t0
     road = _road(cfg.eval_road, cfg.eval_s, base + 2, cfg.road_class)
     # The floor: the true model with every parameter moved by ±floor_rel (random signs),
@@ -178,9 +180,10 @@ def study_plant(job) -> Dict:
     for alpha in cfg.weights:
         s = settings.with_(alpha1=alpha[0], alpha2=alpha[1])
         row: Dict = {'weights': list(alpha)}
-        for label, model in models:
-            run = simulate_closed_loop(truth, make_controller(cfg.controller, model, s), road,
-                                       cfg.eval_s, s.ts)
+        for label, believed in models:
+            run = simulate_closed_loop(make_model(truth),
+                                       make_controller(cfg.controller, make_model(believed), s),
+                                       road, cfg.eval_s, s.ts)
             m = run.metrics
             cont = dict(m, acc_rms=m['acc_rms_continuous'])
             row[label] = {'J_sampled': evaluation_objective(m, alpha),

@@ -44,6 +44,26 @@ STATE_NAMES = {
 }
 
 
+def state_names_of(n_states: int) -> Tuple[str, ...]:
+    """Return the state names of the model whose state has ``n_states`` values (recorded data)."""
+    for names in STATE_NAMES.values():
+        if len(names) == n_states:
+            return names
+    raise ValueError(f'no model has {n_states} states')
+
+
+def kind_of_joints(joints) -> str:
+    """Return the model kind whose state has these JointState names (a recorded state)."""
+    for kind, names in STATE_NAMES.items():
+        if tuple(joints) == names[0::2]:
+            return kind
+    raise ValueError(f'no model has the state joints {list(joints)}')
+
+
+#: Scales of the states in the NMPC's decision variables (positions m, velocities m/s).
+STATE_SCALES = {'erva': (1e-2, 0.1, 1e-2, 0.1, 1e-2, 0.1), 'benchmark': (1e-2, 0.1, 1e-2, 0.1)}
+
+
 def _solve3(m, b):
     """Solve a 3x3 linear system by the adjugate.
 
@@ -237,9 +257,12 @@ def rk4(rhs, z, w0, w1, h, substeps: int):
 
 
 class QuarterCarModel:
-    """Numeric CasADi functions of one model kind, built once per parameter set.
+    """The quarter car of one kind and parameter set: its states and CasADi functions.
 
-    Use :func:`get_model` to share instances (the functions are immutable).
+    The one model object every user takes (do-mpc's shape): the plant, the NMPC's OCP,
+    the EKF and the road EKF, the predictor, identification, the bound and the studies.
+    Build it with :func:`make_model`, the one place a model is chosen by name (the
+    functions are immutable, so one instance per (params, kind) is shared).
     """
 
     def __init__(self, params: ERVAParams, kind: str = 'erva'):
@@ -253,6 +276,10 @@ class QuarterCarModel:
         v_gen, position, deflection = sym.v_gen, sym.position, sym.deflection
         self.nx = int(x.shape[0])
         self.state_names = STATE_NAMES[kind]
+        #: The JointState names of the state: one joint (position, velocity) per body.
+        self.joints = self.state_names[0::2]
+        #: Scales of the states in the NMPC's decision variables.
+        self.x_scale = STATE_SCALES[kind]
         #: Symbolic primitives, for users that build bigger graphs (NMPC, estimator).
         self.x_sym, self.u_sym, self.w_sym, self.xdot_sym = x, u, w, xdot
         self.ode = ca.Function('ode', [x, u, w], [xdot], ['x', 'u', 'w'], ['xdot'])
@@ -276,6 +303,18 @@ class QuarterCarModel:
         #: [sprung_accel, power] for many samples at once: columns are samples.
         self.outputs = ca.Function('outputs', [x, u, w], [xdot[1], power],
                                    ['x', 'u', 'w'], ['sprung_accel', 'power'])
+
+    def with_params(self, params: ERVAParams) -> 'QuarterCarModel':
+        """Return the same kind of model with other parameters (an identified device)."""
+        return make_model(params, self.kind)
+
+    def symbolic_with(self, params: ERVAParams) -> SymbolicModel:
+        """Return this model's expressions for ``params``, which may be CasADi symbols.
+
+        How identification (erva_ros/core/identify.py) differentiates the model with
+        respect to its parameters: the same equations, the parameters as inputs.
+        """
+        return symbolic(params, self.kind)
 
     def rk4_step(self, dt: float, substeps: int = 1) -> ca.Function:
         """Discrete step x⁺ = F_d(x, u, w0, w1) over ``dt`` with ``substeps`` RK4 stages.
@@ -404,9 +443,17 @@ def _outputs_map(model: QuarterCarModel, n: int) -> ca.Function:
     return model.outputs.map(n)
 
 
+def make_model(params: ERVAParams, kind: str = 'erva') -> QuarterCarModel:
+    """Return the model ``kind`` (MODEL_KINDS: ``--model``) for ``params``, built once.
+
+    The one place a model is chosen by its name; everything else takes the object.
+    """
+    return _shared_model(params, kind)
+
+
 @lru_cache(maxsize=16)
-def get_model(params: ERVAParams, kind: str = 'erva') -> QuarterCarModel:
-    """Shared model instance for (params, kind); CasADi functions are built once."""
+def _shared_model(params: ERVAParams, kind: str) -> QuarterCarModel:
+    # One key per (params, kind), however the caller spelled the call.
     return QuarterCarModel(params, kind)
 
 

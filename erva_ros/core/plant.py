@@ -20,8 +20,7 @@ import casadi as ca
 import numpy as np
 
 from erva_ros.core.codegen import BufferedCall, compile_for
-from erva_ros.core.model import get_model, PLANT_SUBSTEP_S
-from erva_ros.core.params import ERVAParams
+from erva_ros.core.model import PLANT_SUBSTEP_S, QuarterCarModel
 
 
 @dataclass
@@ -49,13 +48,13 @@ class ProfileStep:
 class PlantSimulator:
     """Integrates the quarter car by whole control periods with the command held."""
 
-    def __init__(self, params: ERVAParams, kind: str = 'erva', ts: float = 0.02,
+    def __init__(self, model: QuarterCarModel, ts: float = 0.02,
                  substep: float = PLANT_SUBSTEP_S, x0: Optional[np.ndarray] = None,
                  codegen: str = 'auto'):
         if not ts > 0:
             raise ValueError(f'sample time ts must be > 0, got {ts}')
-        self.model = get_model(params, kind)
-        self.params = params
+        self.model = model
+        self.params = model.params
         self.ts = float(ts)
         self.substep = float(substep)
         self.substeps = max(1, int(math.ceil(self.ts / substep - 1e-9)))

@@ -55,8 +55,8 @@ import numpy as np
 from erva_ros.core.codegen import BufferedCall, compile_for
 from erva_ros.core.estimator import acceleration_noise, EstimatorNoise, sequential_update
 from erva_ros.core.hil.hardware import GeneratorHardware
-from erva_ros.core.model import get_model, rk4_stable_substeps
-from erva_ros.core.params import ERVAParams, ParamError
+from erva_ros.core.model import QuarterCarModel, rk4_stable_substeps
+from erva_ros.core.params import ParamError
 from erva_ros.core.roads import DEFAULT_SPEED_MPS, ISO_CLASSES
 
 #: Measurement rows, in the order of y (NaN = not measured this cycle, or no such sensor).
@@ -217,12 +217,12 @@ class _History:
 class RoadEKF:
     """EKF on ``QuarterCarModel.rk4_step`` with the road at the tyre as a state."""
 
-    def __init__(self, params: ERVAParams, kind: str = 'erva', ts: float = 0.02,
+    def __init__(self, model: QuarterCarModel, ts: float = 0.02,
                  noise: Optional[EstimatorNoise] = None, road: RoadModel = RoadModel(),
                  sensors: Optional[RoadSensors] = None, u_max: float = 22800.0,
                  codegen: str = 'auto', keep_history: bool = False):
-        self.model = get_model(params, kind)
-        self.params = params
+        self.model = model
+        self.params = model.params
         self.ts = float(ts)
         self.noise = noise or road_noise()
         self.road = road

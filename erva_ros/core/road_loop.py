@@ -146,16 +146,16 @@ class _Std:
         return self._std
 
 
-def road_estimator_loop(params, p: Mapping[str, Any], noise, report: EstimatorReport
+def road_estimator_loop(model, p: Mapping[str, Any], noise, report: EstimatorReport
                         ) -> RoadEstimatorLoop:
-    """Return the RoadEstimatorLoop of state_estimator_node's parameters ``p``."""
+    """Return the RoadEstimatorLoop on ``model`` of state_estimator_node's parameters ``p``."""
     from erva_ros.core.road_estimator import RoadModel, RoadSensors, road_noise
     sensors = RoadSensors.of(noise)
-    ekf = RoadEKF(params, p['model'], p['ts'], road_noise(), RoadModel('random_walk',
-                  p['road_sigma_m']), sensors, u_max=p['u_max'])
+    ekf = RoadEKF(model, p['ts'], road_noise(), RoadModel('random_walk', p['road_sigma_m']),
+                  sensors, u_max=p['u_max'])
     odo = OdometryError(p['odometry_bias_m'], p['odometry_scale'],
                         p['odometry_speed_noise_mps'], p['odometry_seed'])
-    return RoadEstimatorLoop(ekf, p['ts'], params.c_e0, p['max_gap_periods'], odo,
+    return RoadEstimatorLoop(ekf, p['ts'], model.params.c_e0, p['max_gap_periods'], odo,
                              p['speed_mps'], report)
 
 

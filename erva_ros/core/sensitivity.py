@@ -51,14 +51,16 @@ def run_one(job) -> Dict:
     from erva_ros.core.closed_loop import simulate_closed_loop
     from erva_ros.core.controllers import make_controller
     from erva_ros.core.metrics import evaluation_objective
+    from erva_ros.core.model import make_model
     from erva_ros.core.preview import PreviewErrorModel
     from erva_ros.core.roads import make_road
 
     params, settings, run, duration, road_kind = job
     s = settings.with_(alpha1=run.alpha[0], alpha2=run.alpha[1])
-    model, preview, delay = params, None, 0.0
+    believed, preview, delay = params, None, 0.0
     if run.factor in PARAMETERS:
-        model = params.with_(**{run.factor: getattr(params, run.factor) * (1 + run.level / 100)})
+        believed = params.with_(**{run.factor: getattr(params, run.factor)
+                                   * (1 + run.level / 100)})
     elif run.factor == 'preview_snr':
         preview = PreviewErrorModel(snr_db=run.level, seed=run.seed, ts=s.ts)
     elif run.factor == 'preview_delay':
@@ -66,8 +68,10 @@ def run_one(job) -> Dict:
     elif run.factor == 'command_delay':
         delay = run.level
     road = make_road(road_kind, duration, seed=run.seed)
-    res = simulate_closed_loop(params, make_controller(s.controller, model, s), road, duration,
-                               s.ts, preview_model=preview, actuation_delay_s=delay)
+    # The plant is the true device; the NMPC's model, the believed one.
+    res = simulate_closed_loop(make_model(params),
+                               make_controller(s.controller, make_model(believed), s), road,
+                               duration, s.ts, preview_model=preview, actuation_delay_s=delay)
     m = res.metrics
     comfort = m['acc_rms_continuous'] if s.cost == 'continuous' else m['acc_rms']
     return {'factor': run.factor, 'level': run.level, 'alpha': list(run.alpha),

@@ -32,12 +32,13 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Set, 
 
 from erva_ros.core import codegen
 from erva_ros.core.controllers.settings import ControllerSettings, load_controller_settings
+from erva_ros.core.model import make_model, MODEL_KINDS
 from erva_ros.core.params import ERVAParams, load_erva_params, ParamError, validate_erva
 
 #: Controllers built on the real-time SQP: the only controllers with compiled functions.
 NMPC_CONTROLLERS = ('no_preview', 'preview', 'preview_long')
-#: The models of the shipped configurations.
-MODELS = ('erva', 'benchmark')
+#: The models of the shipped configurations: every one.
+MODELS = MODEL_KINDS
 #: The command delay (a share of Ts) the "with a command delay" NMPCs are built with: any
 #: d > 0 gives the same functions.
 DELAYED_S = 0.25
@@ -95,20 +96,20 @@ class Target:
 
     def build(self) -> Any:
         """Build the core as its process does (compiling or loading its functions)."""
+        model = make_model(self.params, self.model)
         if self.role == 'nmpc':
             from erva_ros.core.controllers import make_controller
-            return make_controller(self.settings.controller, self.params, self.settings,
-                                   self.model)
+            return make_controller(self.settings.controller, model, self.settings)
         if self.role == 'ekf':
             from erva_ros.core.estimator import ExtendedKalmanFilter
-            return ExtendedKalmanFilter(self.params, self.model, self.ts, u_max=self.u_max)
+            return ExtendedKalmanFilter(model, self.ts, u_max=self.u_max)
         if self.role == 'road_ekf':
             # Its functions depend on the road model's kind, not on its noise levels: the
             # node's random walk (core/road_loop.py) is RoadEKF's default.
             from erva_ros.core.road_estimator import RoadEKF
-            return RoadEKF(self.params, self.model, self.ts, u_max=self.u_max)
+            return RoadEKF(model, self.ts, u_max=self.u_max)
         from erva_ros.core.plant import PlantSimulator
-        plant = PlantSimulator(self.params, self.model, self.ts)
+        plant = PlantSimulator(model, self.ts)
         if self.role == 'ecu_plant':    # as EcuSimCore: one period of latch_s pieces
             n = int(round(self.ts / self.latch_s))
             plant.integrate_profile([self.params.c_e0] * n, [0.0] * (n + 1))

@@ -21,6 +21,7 @@ from erva_ros.core import contract, topics
 from erva_ros.core.levels import OK, WARN
 from erva_ros.core.loop.plant_loop import PlantLoop
 from erva_ros.core.loop.validation import MessageRejected
+from erva_ros.core.model import make_model
 from erva_ros.core.params import ERVA_SPECS, validate_erva
 from erva_ros.core.reports import PlantReport
 from erva_ros.ros.loop_node import LoopNode
@@ -36,8 +37,9 @@ class PlantSimNode(LoopNode):
 
     def configure(self) -> None:
         p = self.p
-        self.loop = PlantLoop(validate_erva({k: p[k] for k in ERVA_SPECS}), p, self.report)
-        self.report.hardware_id = f'plant:{self.loop.kind}'
+        model = make_model(validate_erva({k: p[k] for k in ERVA_SPECS}), p['model'])
+        self.loop = PlantLoop(model, p, self.report)
+        self.report.hardware_id = f'plant:{model.kind}'
         self.lockstep = self.loop.lockstep
         # A road height or command stamped far from this node's clock is foreign or corrupt:
         # one from the future would otherwise make the plant integrate up to it, or hold
@@ -57,7 +59,7 @@ class PlantSimNode(LoopNode):
         self.status_timer(2 * p['ts'])
         if self.lockstep:   # wall-clock timer: sim time stands still while the plant waits
             self.timer(0.05, self._on_lockstep_timer, clock=self.steady)
-        self.get_logger().info(f'{self.loop.kind} plant, {p["mode"]}, Ts = {p["ts"]:g} s, '
+        self.get_logger().info(f'{model.kind} plant, {p["mode"]}, Ts = {p["ts"]:g} s, '
                                f'd = {p["command_delay_s"]:g} s, {self.loop.n_steps} steps '
                                f'({p["duration_s"]:g} s)')
 
@@ -98,7 +100,7 @@ class PlantSimNode(LoopNode):
         self.status.after_sample()
 
     def _publish_state(self, stamp_ns: int, x) -> None:
-        self.pub_state.publish(contract.encode_state(stamp_ns, x, self.loop.kind))
+        self.pub_state.publish(contract.encode_state(stamp_ns, x, self.loop.model.joints))
         self._state_pub_ns = time.time_ns()
         self.report.states += 1
         self._asked_since = time.monotonic()

@@ -29,6 +29,7 @@ from erva_ros.core.hil import topics as hil_topics
 from erva_ros.core.hil.settings import noise_of
 from erva_ros.core.levels import OK, WARN
 from erva_ros.core.loop.estimator_loop import EstimatorLoop, ROAD_WAIT_PERIODS
+from erva_ros.core.model import make_model
 from erva_ros.core.params import ERVA_SPECS, validate_erva
 from erva_ros.core.reports import EstimatorReport
 from erva_ros.core.road_loop import road_estimator_loop
@@ -50,19 +51,19 @@ class StateEstimatorNode(LoopNode):
 
     def configure(self) -> None:
         p = self.p
-        self.kind = p['model']
-        params = validate_erva({k: p[k] for k in ERVA_SPECS})
+        self.model = make_model(validate_erva({k: p[k] for k in ERVA_SPECS}), p['model'])
         self.estimated = p['road_at_tyre'] == 'estimated'
         if self.estimated:          # the road is a state: no road topic is read
-            self.loop = road_estimator_loop(params, p, noise_of(p), self.report)
+            self.loop = road_estimator_loop(self.model, p, noise_of(p), self.report)
             self.pub_road = self.publisher(PoseWithCovarianceStamped, topics.ROAD_ESTIMATE)
         else:
-            ekf = ExtendedKalmanFilter(params, self.kind, p['ts'], noise_of(p),
-                                       u_max=p['u_max'])
-            self.loop = EstimatorLoop(ekf, p['ts'], params.c_e0, p['max_gap_periods'],
+            ekf = ExtendedKalmanFilter(self.model, p['ts'], noise_of(p), u_max=p['u_max'])
+            self.loop = EstimatorLoop(ekf, p['ts'], self.model.params.c_e0,
+                                      p['max_gap_periods'],
                                       p['stamp_on_road_grid'], self.report)
             self.subscribe(PointStamped, topics.ROAD_HEIGHT, self._on_road)
-        self.report.hardware_id = f'{"road_ekf" if self.estimated else "ekf"}:{self.kind}'
+        self.report.hardware_id = (f'{"road_ekf" if self.estimated else "ekf"}:'
+                                   f'{self.model.kind}')
         self.pub_state = self.publisher(JointState, topics.STATE)
         # The road (executor thread) and the measurements (their own thread) share the
         # filter's inputs and counters: one lock (re-entrant: a cycle may publish a status).
@@ -76,7 +77,7 @@ class StateEstimatorNode(LoopNode):
         self.warm_after_s = max(p['ts'] - WARM_LEAD_S, 0.5 * p['ts'])
         self.status_timer()
         self.get_logger().info(
-            f'{type(self.loop.ekf).__name__} on the {self.kind} model, road at the tyre '
+            f'{type(self.loop.ekf).__name__} on the {self.model.kind} model, road at the tyre '
             f'{p["road_at_tyre"]}, Ts = {p["ts"]:g} s, noise {noise_of(p)}')
 
     def activate(self) -> None:
@@ -123,7 +124,7 @@ class StateEstimatorNode(LoopNode):
             if loop.grid_ns is not None and not loop.road_at(stamp):
                 self._wait_for_road(lambda: loop.road_at(stamp))
             x = loop.step(stamp, m)
-            self.pub_state.publish(contract.encode_state(stamp, x, self.kind))
+            self.pub_state.publish(contract.encode_state(stamp, x, self.model.joints))
             if self.estimated:
                 self.pub_road.publish(contract.encode_road_estimate(stamp,
                                                                     *loop.road_message()))
@@ -141,7 +142,7 @@ class StateEstimatorNode(LoopNode):
 
     def _warm(self) -> None:
         with self.lock:
-            self.loop.warm(lambda stamp, x: contract.encode_state(stamp, x, self.kind))
+            self.loop.warm(lambda stamp, x: contract.encode_state(stamp, x, self.model.joints))
 
     def refresh_report(self) -> None:
         # Only the snapshot holds the lock: a long run's percentiles never delay a cycle.

@@ -41,7 +41,7 @@ from erva_ros.core.hil.road_buffer import KnownRoad, RoadBuffer
 class EcuSimRos:
     """The ``ecu_sim`` node with its own context and executor."""
 
-    def __init__(self, namespace: str, kind: str, hardware: GeneratorHardware,
+    def __init__(self, namespace: str, hardware: GeneratorHardware,
                  diagnostics_period_s: float = 0.5, known_road: Optional[KnownRoad] = None,
                  ts: float = 0.02, publisher_history_s: float = 10.0, session_id: str = ''):
         import rclpy
@@ -52,7 +52,6 @@ class EcuSimRos:
         from sensor_msgs.msg import JointState
         from erva_ros.ros.loop_node import CountedPublisher
 
-        self.kind = kind
         self.hw = hardware
         self.scheduling = 'off'            # set by `erva ecu-sim` (ros/realtime.py)
         self.context = rclpy.Context()
@@ -159,7 +158,7 @@ class EcuSimRos:
             stamp = t0 + int(round(s.t * NS / ts_ns)) * ts_ns
         self.pub_accel.publish(contract.encode_accel(stamp, s.sprung_accel))
         self.pub_gen.publish(contract.encode_generator(stamp, s.gen_position, s.v_gen, s.c_e))
-        self.pub_state.publish(contract.encode_state(stamp, s.x, self.kind))
+        self.pub_state.publish(contract.encode_state(stamp, s.x, core.plant.model.joints))
         self.published += 1
         t_k = core.t0 + s.t
         if s.sent_at is not None:

@@ -119,7 +119,7 @@ class ContractTraffic(Node):
         # not wait for this node's other publications.
         state_ns = time.time_ns()
         self._publish(contract.STATE, wire.encode_state(
-            state_ns, [w, 0.01, 0.5 * w, 0.02, 0.1 * w, 0.03], 'erva'))
+            state_ns, [w, 0.01, 0.5 * w, 0.02, 0.1 * w, 0.03], contract.STATE_JOINTS))
         if not self.echo:
             self._publish(contract.DAMPING_CMD,
                           wire.encode_command(state_ns, [1e4] * HORIZON, self.ts_ns))
@@ -242,7 +242,7 @@ def _flood(args) -> int:
         if period and now < start + count * period:
             time.sleep(min(start + count * period - now, 0.001))
             continue
-        pub.publish(wire.encode_state(time.time_ns(), [0.0] * 6, 'erva'))
+        pub.publish(wire.encode_state(time.time_ns(), [0.0] * 6, contract.STATE_JOINTS))
         count += 1
     elapsed = time.monotonic() - start
     acked = _wait_acked([pub], 10.0)

@@ -39,6 +39,7 @@ from erva_ros.core.bag import BagError
 from erva_ros.core.bag.reader import Bag
 from erva_ros.core.levels import ERROR
 from erva_ros.core.metrics import comfort_power, percentiles_ms
+from erva_ros.core.model import kind_of_joints, STATE_NAMES
 from erva_ros.core.reports import (EcuSimReport, NMPCReport, NodeReport, PlantReport,
                                    report_from_status, Timing)
 
@@ -94,7 +95,7 @@ class SessionData:
     def x(self, i: int) -> np.ndarray:
         """Return the i-th recorded state as the model's x = [z_s, ż_s, z_us, ż_us(, z_d, ż_d)]."""
         v = self.state.values[i]
-        n = len(wire.state_joint_names(self.model))
+        n = len(STATE_NAMES[self.model]) // 2
         x = np.empty(2 * n)
         x[0::2], x[1::2] = v[:n], v[3:3 + n]
         return x
@@ -179,7 +180,10 @@ def load_session(bag: Bag, namespace: Optional[str] = None) -> SessionData:
             raise BagError(f'{bag.path}: a {m.type} message on {m.topic} at '
                            f'{m.log_time_ns} ns does not decode ({exc})') from None
         rows[name].append((row[0], m.log_time_ns, m.publish_time_ns, row[1]))
-    model = 'benchmark' if joints == wire.state_joint_names('benchmark') else 'erva'
+    try:
+        model = kind_of_joints(joints) if joints else 'erva'
+    except ValueError as exc:
+        raise BagError(f'{bag.path}: {exc}') from None
     return SessionData(bag, ns, _series(rows[contract.STATE], 6),
                        _series(rows[contract.SPRUNG_ACCEL], 1),
                        _series(rows[contract.GENERATOR], 3),

@@ -118,6 +118,7 @@ def run_core_bench(samples: int = 2000) -> Dict:
     from erva_ros.core.contract import (decode_measurements, encode_state,
                                         MEASUREMENTS_ENCODER as measurements)
     from erva_ros.core.hil.transport import free_udp_ports, open_bus
+    from erva_ros.core.model import make_model
     from erva_ros.core.params import paper_params
 
     codec = EcuCodec()
@@ -127,8 +128,8 @@ def run_core_bench(samples: int = 2000) -> Dict:
                       lambda: open_bus(f'udp:{a}:{b}'))
     core.open()
     tx = codec.sender(Kind.CHASSIS)
-    params = paper_params()
-    ekf = ExtendedKalmanFilter(params)
+    model = make_model(paper_params())
+    ekf = ExtendedKalmanFilter(model)
     send, recv, est = [], [], []
     ecu_prepare, ecu_sample = _ecu_core_bench(samples, codec)
     try:
@@ -148,7 +149,7 @@ def run_core_bench(samples: int = 2000) -> Dict:
             t0 = time.perf_counter()
             m = decode_measurements(data)
             x, _ = ekf.cycle(m.sensors, m.c_e_mean, m.c_e, 1e-3, 1.1e-3)
-            encode_state(k * 20_000_000, x, 'erva')
+            encode_state(k * 20_000_000, x, model.joints)
             est.append(time.perf_counter() - t0)
     finally:
         core.close()

@@ -150,15 +150,17 @@ def hil_block(report: Reports, error: PairedError,
                          for stage, (name, timing) in CHAIN.items()}}
 
 
-#: Coordinates of the estimation error with the road at the tyre estimated: the
-#: absolute heights z_s, z_us carry the road's unobservable offset, which drifts
-#: (docs/road.md), so their error relative to their RMS means nothing; the deflection
-#: z_s - z_us takes their place.  The velocities are observable up to a common vertical
-#: velocity the road model's prior bounds.
-ROAD_ESTIMATED = {'erva': ('z_s - z_us', 'zdot_s', 'zdot_us', 'z_d', 'zdot_d'),
-                  'benchmark': ('z_s - z_us', 'zdot_s', 'zdot_us')}
-#: The state's coordinates left out then.
+#: The state's coordinates left out of the estimation error with the road at the tyre
+#: estimated: the absolute heights z_s, z_us carry the road's unobservable offset, which
+#: drifts (docs/road.md), so their error relative to their RMS means nothing; the
+#: deflection z_s - z_us takes their place.  The velocities are observable up to a common
+#: vertical velocity the road model's prior bounds.
 NOT_OBSERVABLE = ('z_s', 'z_us')
+
+
+def road_estimated_coordinates(state_names) -> tuple:
+    """Return the coordinates shown with the road estimated (NOT_OBSERVABLE replaced)."""
+    return ('z_s - z_us',) + tuple(n for n in state_names if n not in NOT_OBSERVABLE)
 
 
 def estimation_error(error: PairedError, road_estimated: bool = False) -> Dict[str, Any]:
@@ -167,17 +169,17 @@ def estimation_error(error: PairedError, road_estimated: bool = False) -> Dict[s
     Each estimate is paired with the ECU's truth of its sample (monitor_stats.PairedError);
     the first ``WARMUP`` pairs are left out (``error.warmup``).  ``relative_rms`` is that
     RMS over the truth's own RMS (the coordinate's size).  With ``road_estimated`` the
-    coordinates are :data:`ROAD_ESTIMATED`, and ``not_observable`` names the state's
-    coordinates left out.
+    coordinates are :func:`road_estimated_coordinates`, and ``not_observable`` names the
+    state's coordinates left out.
     """
-    from erva_ros.core.model import STATE_NAMES
+    from erva_ros.core.model import state_names_of
     from erva_ros.session.monitor_stats import DERIVED
     n = error.matched
     if not n:
         return {'matched': 0}
-    model = 'erva' if error.err2.shape[0] == 6 + len(DERIVED) else 'benchmark'
-    names = STATE_NAMES[model] + tuple(name for name, _, _ in DERIVED)
-    shown = ROAD_ESTIMATED[model] if road_estimated else STATE_NAMES[model]
+    states = state_names_of(error.err2.shape[0] - len(DERIVED))
+    names = states + tuple(name for name, _, _ in DERIVED)
+    shown = road_estimated_coordinates(states) if road_estimated else states
     rms = dict(zip(names, np.sqrt(error.err2 / n).tolist()))
     scale = dict(zip(names, np.sqrt(error.true2 / n).tolist()))
     out: Dict[str, Any] = {
@@ -226,6 +228,6 @@ def _sum(report: Optional[NodeReport], names) -> Optional[int]:
     return None if report is None else sum(getattr(report, n) for n in names)
 
 
-__all__ = ['ECU', 'ESTIMATOR', 'PERIODIC', 'CHAIN', 'STAMPED_STAGES', 'ROAD_ESTIMATED',
-           'NOT_OBSERVABLE', 'published', 'plant_equivalents', 'hil_block', 'estimation_error',
-           'from_sample_instant']
+__all__ = ['ECU', 'ESTIMATOR', 'PERIODIC', 'CHAIN', 'STAMPED_STAGES',
+           'road_estimated_coordinates', 'NOT_OBSERVABLE', 'published', 'plant_equivalents',
+           'hil_block', 'estimation_error', 'from_sample_instant']

@@ -25,7 +25,7 @@ cumulative energy per step comes from re-running the plant with the recorded com
 from dataclasses import dataclass
 import dataclasses
 import time
-from typing import Dict, List, Mapping, Optional
+from typing import Dict, List, Mapping, Optional, Sequence
 
 import numpy as np
 
@@ -33,6 +33,7 @@ from erva_ros.core import contract as wire, topics as contract
 from erva_ros.core.bag.writer import BagWriter
 from erva_ros.core.metrics import percentiles_ms
 from erva_ros.core.reports import NMPCReport, PlantReport, report_status, Timing
+from erva_ros.core.topics import STATE_JOINTS
 
 TOPIC = {name: f'{contract.NAMESPACE}/{name}' for name in (
     contract.STATE, contract.SPRUNG_ACCEL, contract.GENERATOR, contract.ROAD_HEIGHT,
@@ -81,13 +82,17 @@ class _CapturingController:
         return self._inner.compute(x, preview, t)
 
 
-def step_messages(step: StepLog, stamp_ns: int, ts: float, kind: str = 'erva') -> List:
-    """Return [(topic, CDR bytes)] of one step of a ``kind`` model in causal order (module doc)."""
+def step_messages(step: StepLog, stamp_ns: int, ts: float,
+                  joints: Sequence[str] = STATE_JOINTS) -> List:
+    """Return [(topic, CDR bytes)] of one step in causal order (module doc).
+
+    ``joints``: the model's state joints (``QuarterCarModel.joints``).
+    """
     ts_ns = wire.s_to_ns(ts)
     return [(TOPIC[contract.ROAD_HEIGHT], wire.encode_road_height(stamp_ns, step.distance_m,
                                                                   step.w)),
             (TOPIC[contract.ROAD_PREVIEW], wire.encode_preview(stamp_ns, step.preview, ts_ns)),
-            (TOPIC[contract.STATE], wire.encode_state(stamp_ns, step.x, kind)),
+            (TOPIC[contract.STATE], wire.encode_state(stamp_ns, step.x, joints)),
             (TOPIC[contract.DAMPING_CMD], wire.encode_command(stamp_ns, step.plan, ts_ns)),
             (TOPIC[contract.SPRUNG_ACCEL], wire.encode_accel(stamp_ns, step.accel)),
             (TOPIC[contract.GENERATOR], wire.encode_generator(stamp_ns, step.gen_position,
@@ -116,8 +121,8 @@ def write_session(bag_dir: str, steps: List[StepLog], ts: float, controller: str
                   session: Optional[Mapping[str, str]] = None, t0_ns: Optional[int] = None,
                   diagnostics_period_s: float = 1.0,
                   final_counters: Optional[Mapping[str, int]] = None,
-                  kind: str = 'erva') -> Dict:
-    """Write ``steps`` (of a ``kind`` model) as a session bag at ``bag_dir``; return its metadata.
+                  joints: Sequence[str] = STATE_JOINTS) -> Dict:
+    """Write ``steps`` (of a model with state ``joints``) as a session bag; return its metadata.
 
     The controller counters on /diagnostics count step statuses as they go; the last
     message carries ``final_counters`` (the controller's own, e.g. late) too.
@@ -138,7 +143,7 @@ def write_session(bag_dir: str, steps: List[StepLog], ts: float, controller: str
         solve: List[float] = []
         for k, step in enumerate(steps):
             stamp = t0_ns + int(round(step.t * 1e9))
-            for topic, data in step_messages(step, stamp, ts, kind):
+            for topic, data in step_messages(step, stamp, ts, joints):
                 writer.write(topic, data, stamp, stamp)
             counters['steps'] += 1
             if step.status in counters:
@@ -155,27 +160,29 @@ def write_session(bag_dir: str, steps: List[StepLog], ts: float, controller: str
         raise
 
 
-def run_and_record(bag_dir: str, params, controller, road, duration_s: float,
-                   preview_model=None, kind: str = 'erva',
-                   session: Optional[Mapping[str, str]] = None,
+def run_and_record(bag_dir: str, model, controller, road, duration_s: float,
+                   preview_model=None, session: Optional[Mapping[str, str]] = None,
                    t0_ns: Optional[int] = None):
-    """Run the offline closed loop and write it as a session; return (result, metadata)."""
+    """Run the offline closed loop on ``model``'s plant and write it as a session.
+
+    Returns (result, metadata).
+    """
     from erva_ros.core.closed_loop import simulate_closed_loop
     from erva_ros.core.plant import PlantSimulator
 
-    session = {'model': kind, **(session or {})}
+    session = {'model': model.kind, **(session or {})}
     capture = _CapturingController(controller)
-    result = simulate_closed_loop(params, capture, road, duration_s,
-                                  preview_model=preview_model, kind=kind, keep_plans=True)
+    result = simulate_closed_loop(model, capture, road, duration_s,
+                                  preview_model=preview_model, keep_plans=True)
     # Energy harvested up to t_k + Ts: re-run the plant with the commands applied.
-    plant = PlantSimulator(params, kind, result.ts)
+    plant = PlantSimulator(model, result.ts)
     energy = np.empty(result.t.size)
     gen = np.empty((result.t.size, 2))
     for k, t_k in enumerate(result.t):
         if not np.allclose(plant.x, result.x[k], rtol=0, atol=1e-12):
             raise RuntimeError(f'plant re-run diverged from the closed loop at t = {t_k:g} s')
         gen[k] = plant.generator(result.x[k], result.u[k])[:2]
-        plant.step(result.u[k], road.height(t_k), road.height(t_k + result.ts))
+        plant.step(result.u[k], road.height(t_k), road.height((k + 1) * result.ts))
         energy[k] = plant.harvested_j
     steps = [StepLog(float(result.t[k]), result.x[k], float(result.w[k]),
                      float(road.distance(result.t[k])), capture.previews[k],
@@ -183,7 +190,7 @@ def run_and_record(bag_dir: str, params, controller, road, duration_s: float,
                      float(result.solve_time_s[k]), result.status[k], *map(float, gen[k]))
              for k in range(result.t.size)]
     meta = write_session(bag_dir, steps, result.ts, result.controller, session, t0_ns,
-                         final_counters=result.counters, kind=kind)
+                         final_counters=result.counters, joints=model.joints)
     return result, meta
 
 
@@ -200,6 +207,7 @@ def main(argv=None) -> int:
     from erva_ros.core.bag.session import session_metadata
     from erva_ros.core.controllers import load_controller_settings, make_controller
     from erva_ros.core.controllers.settings import NUMERIC_SPECS
+    from erva_ros.core.model import make_model
     from erva_ros.core.params import load_erva_params, ParamError
     from erva_ros.core.roads import make_road, RoadError
 
@@ -226,12 +234,13 @@ def main(argv=None) -> int:
             overrides['time_budget_s'] = NUMERIC_SPECS['time_budget_s'].hi
         settings = load_controller_settings(args.settings, overrides)
         road = make_road(args.road, args.duration, settings.ts, seed=args.seed)
-        controller = make_controller(settings.controller, params, settings)
+        model = make_model(params)
+        controller = make_controller(settings.controller, model, settings)
         session = session_metadata(args.road, parameters={
             'erva': dataclasses.asdict(params), 'controller': settings.as_dict(),
             'road': {'kind': args.road, 'duration_s': args.duration}},
             seed=args.seed, controller=settings.controller)
-        result, meta = run_and_record(args.bag_dir, params, controller, road, args.duration,
+        result, meta = run_and_record(args.bag_dir, model, controller, road, args.duration,
                                       session=session)
     except (BagError, ParamError, RoadError) as exc:
         print(f'error: {exc}', file=sys.stderr)

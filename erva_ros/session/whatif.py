@@ -36,10 +36,9 @@ def recorded_road(bag: Bag, namespace: Optional[str] = None):
     return t[keep], h[keep]
 
 
-def drive_plant(bag: Bag, out_bag_dir: str, controller_name: str, params, settings,
-                session_extra: Optional[Dict] = None, kind: str = 'erva',
-                duration_s: Optional[float] = None):
-    """Run ``controller_name`` on the road recorded in ``bag``; record it at ``out_bag_dir``.
+def drive_plant(bag: Bag, out_bag_dir: str, controller_name: str, model, settings,
+                session_extra: Optional[Dict] = None, duration_s: Optional[float] = None):
+    """Run ``controller_name`` on ``model`` over the road recorded in ``bag``; record it.
 
     Returns (ClosedLoopResult, metadata of the new bag).  The preview is the recorded
     road itself (what the tyre met), so a preview controller sees the road perfectly.
@@ -57,17 +56,16 @@ def drive_plant(bag: Bag, out_bag_dir: str, controller_name: str, params, settin
     duration = length if duration_s is None else min(float(duration_s), length)
     road = make_road('recorded', duration, ts=settings.ts, times=times, heights=heights,
                      name=f'recorded({bag.path})')
-    controller = make_controller(controller_name, params, settings, kind=kind)
+    controller = make_controller(controller_name, model, settings)
     session = session_metadata(
         f'what-if:{bag.session.get("scenario", "recorded")}',
-        parameters={'erva': dataclasses.asdict(params),
+        parameters={'erva': dataclasses.asdict(model.params),
                     'controller': dataclasses.asdict(settings)},
         seed=bag.session.get('seed') or None, controller=controller_name,
         extra={'source': 'offline closed loop (what-if replay)', 'based_on': bag.path,
                'based_on_controller': bag.session.get('controller', ''),
                **(session_extra or {})})
-    return run_and_record(out_bag_dir, params, controller, road, duration, kind=kind,
-                          session=session)
+    return run_and_record(out_bag_dir, model, controller, road, duration, session=session)
 
 
 __all__ = ['recorded_road', 'drive_plant']

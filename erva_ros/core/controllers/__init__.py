@@ -20,30 +20,30 @@ from typing import Optional
 from erva_ros.core.controllers.base import ControlResult, Controller, SolveFailure, STATUSES
 from erva_ros.core.controllers.settings import (CONTROLLER_NAMES, ControllerSettings,
                                                 EXCITATION_NAMES, load_controller_settings)
-from erva_ros.core.params import ERVAParams, ParamError
+from erva_ros.core.model import QuarterCarModel
+from erva_ros.core.params import ParamError
 
 
-def make_controller(name: Optional[str], params: ERVAParams,
-                    settings: Optional[ControllerSettings] = None, kind: str = 'erva'
-                    ) -> Controller:
-    """Build the controller ``name`` (default settings.controller) for the model ``kind``.
+def make_controller(name: Optional[str], model: QuarterCarModel,
+                    settings: Optional[ControllerSettings] = None) -> Controller:
+    """Build the controller ``name`` (default settings.controller) on ``model``.
 
     Its live settings (:meth:`Controller.retune`: the fallback...) are those of ``settings``.
     """
     settings = settings or ControllerSettings()
-    ctrl = _build(name, params, settings, kind)
+    ctrl = _build(name, model, settings)
     ctrl.fallback = settings.fallback
     return ctrl
 
 
-def _build(name: Optional[str], params: ERVAParams, settings: ControllerSettings,
-           kind: str) -> Controller:
+def _build(name: Optional[str], model: QuarterCarModel, settings: ControllerSettings
+           ) -> Controller:
     name = name or settings.controller
     if name not in CONTROLLER_NAMES + EXCITATION_NAMES:
         raise ParamError(f'unknown controller {name!r}; choose one of '
                          f'{", ".join(CONTROLLER_NAMES + EXCITATION_NAMES)}')
     common = dict(horizon=settings.horizon, ts=settings.ts, u_min=settings.u_min,
-                  u_max=settings.u_max, c_e0=params.c_e0)
+                  u_max=settings.u_max, c_e0=model.params.c_e0)
     # The command delay (settings.command_delay_s) is applied here, once per law.
     if name == 'passive':
         from erva_ros.core.controllers.passive import PassiveController
@@ -57,12 +57,11 @@ def _build(name: Optional[str], params: ERVAParams, settings: ControllerSettings
     if name != 'skyhook':
         from erva_ros.core.controllers.nmpc import NMPCController
         # models the delay in its OCP
-        return NMPCController(params, settings.with_(controller=name), kind=kind)
+        return NMPCController(model, settings.with_(controller=name))
     from erva_ros.core.controllers.skyhook import SkyhookController
     ctrl = SkyhookController(**common)
     if settings.command_delay_s > 0:         # predicted outside the law
-        from erva_ros.core.model import get_model
-        ctrl.predict_delay(get_model(params, kind), settings.command_delay_s)
+        ctrl.predict_delay(model, settings.command_delay_s)
     return ctrl
 
 

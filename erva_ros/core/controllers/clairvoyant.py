@@ -49,8 +49,7 @@ from erva_ros.core.controllers.base import Controller
 from erva_ros.core.controllers.ocp import build_ocp, OCPSpec, stable_rollout_substep, U_SCALE
 from erva_ros.core.controllers.reference import build_ipopt
 from erva_ros.core.metrics import comfort_power, evaluation_objective
-from erva_ros.core.model import get_model, PLANT_SUBSTEP_S, QuarterCarModel
-from erva_ros.core.params import ERVAParams
+from erva_ros.core.model import PLANT_SUBSTEP_S, QuarterCarModel
 from erva_ros.core.plant import PlantSimulator
 from erva_ros.core.roads import Road
 
@@ -104,12 +103,11 @@ class PlantRun:
     metrics: Dict = field(default_factory=dict)
 
 
-def plant_run(params: ERVAParams, u: np.ndarray, w: np.ndarray, ts: float,
-              kind: str = 'erva') -> PlantRun:
+def plant_run(model: QuarterCarModel, u: np.ndarray, w: np.ndarray, ts: float) -> PlantRun:
     """Play ``u`` (n commands) on the plant with road heights ``w`` (n + 1 samples)."""
     u = np.asarray(u, dtype=float).ravel()
     n = u.size
-    plant = PlantSimulator(params, kind, ts)
+    plant = PlantSimulator(model, ts)
     acc, pw = np.empty(n), np.empty(n)
     for k in range(n):
         s = plant.sample(u[k], w[k])
@@ -237,9 +235,9 @@ class BoundResult:
         return float(max(vals) - min(vals)) if vals else float('nan')
 
 
-def clairvoyant_bound(params: ERVAParams, road: Road, duration_s: float, ts: float,
+def clairvoyant_bound(model: QuarterCarModel, road: Road, duration_s: float, ts: float,
                       alpha: Tuple[float, float], u_min: float, u_max: float,
-                      starts: Optional[Mapping[str, np.ndarray]] = None, kind: str = 'erva',
+                      starts: Optional[Mapping[str, np.ndarray]] = None,
                       settings: Optional[BoundSettings] = None, seed: int = 0) -> BoundResult:
     """Search the whole-run OCP (module doc); return the best plan, evaluated in the plant.
 
@@ -249,7 +247,7 @@ def clairvoyant_bound(params: ERVAParams, road: Road, duration_s: float, ts: flo
     """
     cfg = settings or BoundSettings()
     n = int(round(duration_s / ts))
-    model = get_model(params, kind)
+    params = model.params
     w = road.height(ts * np.arange(n + 1))
     alpha = (float(alpha[0]), float(alpha[1]))
     all_starts = {'u_min': np.full(n, u_min), 'c_e0': np.full(n, params.c_e0),
@@ -276,7 +274,7 @@ def clairvoyant_bound(params: ERVAParams, road: Road, duration_s: float, ts: flo
         return np.clip(np.asarray(sol['x']).ravel()[ocp.u_index] * U_SCALE, u_min, u_max)
 
     def judge(u):
-        run = plant_run(params, u, w, ts, kind)
+        run = plant_run(model, u, w, ts)
         return evaluation_objective(run.metrics, alpha), run
 
     best: Optional[Tuple[float, str, PlantRun]] = None

@@ -44,8 +44,8 @@ from erva_ros.core.controllers.ocp import (build_ocp, OCPSpec, passive_tail,
 from erva_ros.core.controllers.reference import IpoptReference, RecordedProblem, reference_gap
 from erva_ros.core.controllers.settings import ControllerSettings
 from erva_ros.core.controllers.sqp import build_rti
-from erva_ros.core.model import get_model
-from erva_ros.core.params import ERVAParams, ParamError
+from erva_ros.core.model import QuarterCarModel
+from erva_ros.core.params import ParamError
 
 #: Other starts the real-time SQP compares with the warm start (NMPCController._alternatives).
 N_ALTERNATIVES = 3
@@ -63,14 +63,15 @@ def nmpc_blocks(settings: ControllerSettings, name: str) -> Tuple[int, ...]:
 class NMPCController(Controller):
     """Paper NMPC (``no_preview``/``preview``) and the long-horizon ``preview_long``."""
 
-    def __init__(self, params: ERVAParams, settings: ControllerSettings, kind: str = 'erva',
+    def __init__(self, model: QuarterCarModel, settings: ControllerSettings,
                  warm_start: bool = True):
         name = settings.controller
         if name not in ('no_preview', 'preview', 'preview_long'):
             raise ParamError(f'NMPCController cannot run controller {name!r}')
         self.name = name
         self.settings = settings
-        self.model = get_model(params, kind)
+        self.model = model
+        params = model.params
         self.warm_start = bool(warm_start)
         self.blocks = nmpc_blocks(settings, name)
         self.cost = settings.long_cost if name == 'preview_long' else settings.cost

@@ -52,9 +52,8 @@ import numpy as np
 from erva_ros.core.model import linearize, QuarterCarModel
 from erva_ros.core.params import ParamError
 
-#: Scales of the decision variables (u in Ns/m; positions m; velocities m/s).
+#: Scale of the input in the decision variables (Ns/m; the states': the model's x_scale).
 U_SCALE = 1e4
-X_SCALE = {'erva': (1e-2, 0.1, 1e-2, 0.1, 1e-2, 0.1), 'benchmark': (1e-2, 0.1, 1e-2, 0.1)}
 #: Radau IIA collocation degree of the prediction model (order 2·d − 1 = 5, L-stable).
 COLLOCATION_DEGREE = 3
 #: Longest RK4 sub-step of the rollout (s); shortened if needed for stability at u_max.
@@ -134,7 +133,7 @@ def _interval(model: QuarterCarModel, cost: str, ts: float, xt_s, v, k_s, wv, h,
     nx = model.nx
     degree = wv.numel() - 1
     c_mat, d_vec, b_vec, _ = _collocation(degree)
-    xs_col = ca.DM(X_SCALE[model.kind])
+    xs_col = ca.DM(model.x_scale)
     x = xt_s[:nx] * xs_col
     u = U_SCALE * v
     k = ca.reshape(k_s, nx, degree)
@@ -379,7 +378,7 @@ def build_ocp(model: QuarterCarModel, spec: OCPSpec) -> OCP:
     delayed, tail = spec.delayed, spec.tail
     nx = model.nx
     horizon = int(sum(blocks))
-    xs = np.array(X_SCALE[model.kind])
+    xs = np.array(model.x_scale)
     xs_col = ca.DM(xs)
     taus = _collocation(degree)[3]
     with_acc = cost in ('paper', 'bound')
@@ -506,4 +505,4 @@ def build_ocp(model: QuarterCarModel, spec: OCPSpec) -> OCP:
 
 
 __all__ = ['COLLOCATION_DEGREE', 'OCP', 'OCPSpec', 'ROLLOUT_SUBSTEP_S', 'StageSlices', 'U_SCALE',
-           'X_SCALE', 'build_ocp', 'passive_tail', 'stable_rollout_substep']
+           'build_ocp', 'passive_tail', 'stable_rollout_substep']

@@ -53,7 +53,7 @@ from erva_ros.core.hil.codec import (Chassis, CommandMode, cycle_of, E2EReceiver
 from erva_ros.core.hil.hardware import GeneratorHardware
 from erva_ros.core.hil.settings import ECU_SIM_DEFAULTS as _SIM
 from erva_ros.core.loop.timing import DurationStats, PeriodStats
-from erva_ros.core.params import ERVAParams
+from erva_ros.core.model import QuarterCarModel
 from erva_ros.core.plant import PlantSimulator, ProfileStep
 
 
@@ -157,10 +157,9 @@ MODE_LOG_SIZE = 64
 class EcuSimCore:
     """The ECU side of the CAN link with the quarter car behind it."""
 
-    def __init__(self, params: ERVAParams, hardware: GeneratorHardware, codec: EcuCodec,
+    def __init__(self, model: QuarterCarModel, hardware: GeneratorHardware, codec: EcuCodec,
                  bus_factory: Callable[[], can.BusABC], road: Callable[[float], float],
-                 config: EcuSimConfig = EcuSimConfig(), noise: SensorNoise = SensorNoise(),
-                 kind: str = 'erva'):
+                 config: EcuSimConfig = EcuSimConfig(), noise: SensorNoise = SensorNoise()):
         n = config.period_s / config.latch_s
         if abs(n - round(n)) > 1e-6 or n < 1:
             raise ValueError(f'period_s {config.period_s} must be a whole number of latch_s '
@@ -171,7 +170,7 @@ class EcuSimCore:
         self.cfg = config
         self.hw = hardware
         self.codec = codec
-        self.params = params
+        self.params = model.params
         self.road = road
         self.noise = noise
         self._n_latch = int(round(n))
@@ -180,7 +179,7 @@ class EcuSimCore:
         #: step ``act_latch`` of the cycle: d on the latch grid, else the next latch instant.
         self.let = config.command_delay_s > 0
         self.act_latch = int(math.ceil(config.command_delay_s / config.latch_s - 1e-9))
-        self.plant = PlantSimulator(params, kind, ts=config.period_s)
+        self.plant = PlantSimulator(model, ts=config.period_s)
         # Built (and compiled or loaded) now, not in the first cycle: that costs ms.
         self.plant.integrate_profile([config.c_e_safe] * self._n_latch,
                                      [0.0] * (self._n_latch + 1))

@@ -32,7 +32,7 @@ import numpy as np
 from erva_ros.core.estimator import EstimatorNoise, ExtendedKalmanFilter
 from erva_ros.core.hil.ecu_sim import SensorNoise
 from erva_ros.core.metrics import comfort_power
-from erva_ros.core.params import ERVAParams
+from erva_ros.core.model import QuarterCarModel
 from erva_ros.core.plant import PlantSimulator
 
 #: DBC resolution of the measured signals (config/erva_ecu.dbc): accel, deflection, speed.
@@ -52,13 +52,12 @@ class RunResult:
     x_hat: Optional[np.ndarray] = None
 
 
-def _run(params: ERVAParams, controller, road, duration_s: float, ts: float,
+def _run(model: QuarterCarModel, controller, road, duration_s: float, ts: float,
          estimator: Optional[ExtendedKalmanFilter], sensor: SensorNoise,
-         kind: str, perturb: Optional[np.ndarray] = None) -> RunResult:
+         perturb: Optional[np.ndarray] = None) -> RunResult:
     n = int(round(duration_s / ts))
     controller.reset()
-    plant = PlantSimulator(params, kind, ts)
-    model = plant.model
+    plant = PlantSimulator(model, ts)
     rng = np.random.default_rng(sensor.seed)
     sig = np.array([sensor.sprung_accel, sensor.deflection, sensor.speed])
     xs, xh, us, acc = [], [], [], []
@@ -84,18 +83,17 @@ def _run(params: ERVAParams, controller, road, duration_s: float, ts: float,
         xs.append(s.x)
         us.append(u)
         acc.append(s.sprung_accel)
-        plant.step(u, w_k, road.height(t_k + ts))
+        plant.step(u, w_k, road.height((k + 1) * ts))
         u_prev, w_prev = u, w_k
     metrics = comfort_power(acc, plant.harvested_j, n * ts)
     return RunResult(metrics, np.array(acc), np.array(us), np.array(xs),
                      np.array(xh) if estimator is not None else None)
 
 
-def evaluate_estimator(params: ERVAParams, controller, road, duration_s: float,
+def evaluate_estimator(model: QuarterCarModel, controller, road, duration_s: float,
                        ts: float = 0.02, noise: EstimatorNoise = EstimatorNoise(),
-                       sensor: SensorNoise = SensorNoise(), kind: str = 'erva',
-                       u_max: Optional[float] = None, x0_error: Optional[np.ndarray] = None
-                       ) -> Dict:
+                       sensor: SensorNoise = SensorNoise(), u_max: Optional[float] = None,
+                       x0_error: Optional[np.ndarray] = None) -> Dict:
     """Run ``controller`` with full state and with the EKF; return metrics and their ratios.
 
     ``x0_error`` starts the EKF away from the true initial state (default: at rest, as
@@ -103,14 +101,14 @@ def evaluate_estimator(params: ERVAParams, controller, road, duration_s: float,
     'perturbed': metrics, 'perturbed_change_pct': {...}, 'estimation_rms': {state: rms
     error}, 'state_rms': {state: rms of the true state}}``.
     """
-    full = _run(params, controller, road, duration_s, ts, None, sensor, kind)
-    ekf = ExtendedKalmanFilter(params, kind, ts, noise,
+    full = _run(model, controller, road, duration_s, ts, None, sensor)
+    ekf = ExtendedKalmanFilter(model, ts, noise,
                                u_max=u_max if u_max is not None else controller.u_max)
     if x0_error is not None:
         ekf.reset(np.asarray(x0_error, dtype=float))
-    est = _run(params, controller, road, duration_s, ts, ekf, sensor, kind)
+    est = _run(model, controller, road, duration_s, ts, ekf, sensor)
     sig = np.tile(PERTURBATION, ekf.nx // 2)
-    perturbed = _run(params, controller, road, duration_s, ts, None, sensor, kind, sig)
+    perturbed = _run(model, controller, road, duration_s, ts, None, sensor, sig)
     names = ekf.model.state_names
     err = est.x_hat - est.x
     skip = min(len(err) // 4, int(round(0.5 / ts)))     # after the initial transient

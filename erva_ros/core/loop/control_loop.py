@@ -65,16 +65,15 @@ def build_loop(p: Mapping[str, Any], window: StampWindow, report: NMPCReport) ->
     """Return nmpc_node's loop from its parameters ``p`` (controller, model, predictor)."""
     from erva_ros.core.controllers import make_controller
     from erva_ros.core.controllers.settings import NUMERIC_SPECS, SPECS, validate_settings
-    from erva_ros.core.model import get_model
+    from erva_ros.core.model import make_model
     from erva_ros.core.params import ERVA_SPECS, validate_erva
     settings = validate_settings({k: p[k] for k in SPECS})
     if p['mode'] == 'lockstep':    # simulated time: no wall-clock budget
         settings = settings.with_(time_budget_s=NUMERIC_SPECS['time_budget_s'].hi)
-    params = validate_erva({k: p[k] for k in ERVA_SPECS})
-    controller = make_controller(settings.controller, params, settings, p['model'])
-    model = get_model(params, p['model'])
-    loop = ControlLoop(controller, settings, p, window, report,
-                       model if p['publish_prediction'] else None)
+    model = make_model(validate_erva({k: p[k] for k in ERVA_SPECS}), p['model'])
+    controller = make_controller(settings.controller, model, settings)
+    loop = ControlLoop(controller, settings, p, window, report, model,
+                       p['publish_prediction'])
     loop.hold_s = p['lockstep_hold_s']
     loop.warm_up(model.nx)
     loop.describe = (
@@ -89,18 +88,18 @@ class ControlLoop:
     """Schedule, solve and count the NMPC's samples (see the module doc)."""
 
     def __init__(self, controller, settings, cfg: Mapping[str, Any], window: StampWindow,
-                 report: NMPCReport, model=None):
+                 report: NMPCReport, model, predict: bool = False):
         self.controller = controller
         self.ts = settings.ts
         self.ts_ns = int(round(settings.ts * NS))
         self.delay_ns = int(round(settings.command_delay_s * NS))   # commands act at t_k + d
         #: The plan's trajectory on ``model`` after each command (None: not published).
-        self.predictor = None if model is None else PlanPredictor(
+        self.predictor = None if not predict else PlanPredictor(
             model, settings.ts, controller.horizon, settings.command_delay_s,
             controller.c_e0, settings.codegen)
         self.predict_time = DurationStats()
         self.lockstep = cfg['mode'] == 'lockstep'
-        self.kind = cfg['model']
+        self.joints = model.joints          # the state's, as a state message names them
         self.describe = ''                  # what the node logs at start (build_loop)
         self.n_preview = controller.horizon + 1
         self.passive_plan = np.full(controller.horizon, controller.c_e0)
@@ -146,7 +145,7 @@ class ControlLoop:
     # -- inputs (MessageRejected: a bad one never reaches a solve) ------------------------
     def on_state(self, data: bytes, now_ns: int) -> Tuple[int, Optional[Job]]:
         """Take a ``state`` message; return its stamp and the job to solve now, if any."""
-        state = contract.decode_state(data, self.kind)
+        state = contract.decode_state(data, self.joints)
         return state.stamp_ns, self.sched.on_state(state.stamp_ns, state.x, now_ns)
 
     def on_preview(self, data: bytes, now_ns: int) -> Optional[Job]:

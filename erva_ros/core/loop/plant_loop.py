@@ -28,6 +28,7 @@ from erva_ros.core.levels import ERROR, OK, WARN
 from erva_ros.core.loop.command_hold import CommandHold
 from erva_ros.core.loop.timing import DurationStats, PeriodStats
 from erva_ros.core.loop.validation import MessageRejected
+from erva_ros.core.model import QuarterCarModel
 from erva_ros.core.plant import PlantSimulator
 from erva_ros.core.reports import PlantReport, Timing
 from erva_ros.core.wire import NS
@@ -49,8 +50,9 @@ class Step:
 class PlantLoop:
     """The plant's samples, commands and report (see the module doc)."""
 
-    def __init__(self, params, cfg: Mapping[str, Any], report: PlantReport):
-        self.kind = cfg['model']
+    def __init__(self, model: QuarterCarModel, cfg: Mapping[str, Any], report: PlantReport):
+        params = model.params
+        self.model = model
         self.ts = cfg['ts']
         self.ts_ns = int(round(self.ts * NS))
         self.lockstep = cfg['mode'] == 'lockstep'
@@ -60,7 +62,7 @@ class PlantLoop:
             raise ValueError(f'command_delay_s = {self.delay_s:g} s must be below ts = '
                              f'{self.ts:g} s')
         self.n_steps = int(round(cfg['duration_s'] / self.ts))
-        self.plant = PlantSimulator(params, self.kind, self.ts)
+        self.plant = PlantSimulator(model, self.ts)
         self.plant.prepare_delay(self.delay_s)
         self.hold = CommandHold(self.ts_ns, params.c_e0,
                                 int(round(cfg['command_timeout_s'] * NS)))
@@ -71,7 +73,7 @@ class PlantLoop:
         self.acting = params.c_e0        # the damping acting at t_k (before t_k + d)
         self.sample = None               # plant outputs at t_k with u_k
         self.report = report
-        report.mode, report.model, report.steps_total = cfg['mode'], self.kind, self.n_steps
+        report.mode, report.model, report.steps_total = cfg['mode'], model.kind, self.n_steps
         report.command_delay_ms = self.delay_s * 1e3
         self.late_on_arrival = 0             # commands for an already integrated sample
         self.road_latency = DurationStats()   # road sample time -> height received

@@ -20,6 +20,7 @@ from typing import Dict, Optional
 import numpy as np
 
 from erva_ros.core.estimator import EstimatorNoise
+from erva_ros.core.model import make_model, QuarterCarModel
 from erva_ros.core.params import ERVAParams
 from erva_ros.core.road_estimator import RoadEKF, RoadModel, RoadSensors, road_noise
 from erva_ros.core.roadmap import MapError
@@ -53,8 +54,8 @@ VARIANTS = {
 }
 
 
-def _estimator(params: ERVAParams, variant: EstimatorVariant, road_class: Optional[str],
-               speed: float, ts: float) -> RoadEKF:
+def _estimator(quarter_car: QuarterCarModel, variant: EstimatorVariant,
+               road_class: Optional[str], speed: float, ts: float) -> RoadEKF:
     noise = EstimatorNoise() if variant.known_road_noise else road_noise()
     if variant.road_model == 'iso_matched':
         model = RoadModel.iso8608(road_class or 'A', speed, ts)
@@ -64,7 +65,8 @@ def _estimator(params: ERVAParams, variant: EstimatorVariant, road_class: Option
         model = RoadModel()
     sensors = RoadSensors.of(noise, current_a=0.01 if variant.current else None,
                              unsprung_accel=WHEEL_ACCEL if variant.wheel else None)
-    return RoadEKF(params, ts=ts, noise=noise, road=model, sensors=sensors, keep_history=True)
+    return RoadEKF(quarter_car, ts=ts, noise=noise, road=model, sensors=sensors,
+                   keep_history=True)
 
 
 def accuracy(params: ERVAParams, road: str, seed: int, variant: str = 'shipped',
@@ -90,9 +92,10 @@ def accuracy(params: ERVAParams, road: str, seed: int, variant: str = 'shipped',
             return np.full(self.horizon, 18000.0 if (k // 7) % 2 else 4000.0), 0
 
     ctrl = Switching(1, ts, 0.0, 22800.0, params.c_e0)
-    ekf = _estimator(params, v, cls, speed_mps, ts)
+    model = make_model(params)
+    ekf = _estimator(model, v, cls, speed_mps, ts)
     sensors = EcuSensors(unsprung_accel=WHEEL_ACCEL if v.wheel else None)
-    run = simulate_vehicle(params, ctrl, r, duration_s, sensors=sensors,
+    run = simulate_vehicle(model, ctrl, r, duration_s, sensors=sensors,
                            sensor_seed=seed + 31, preview=lambda *a: np.zeros(2))
     ekf.reset()
     ekf.start(run.y[0], run.u_now[0])

@@ -79,16 +79,17 @@ def calibrate(seed: int = 0, seconds: float = 8.0) -> Tuple[float, float]:
     18 m (3 high-pass σ) from either end.
     """
     from erva_ros.core.controllers import ControllerSettings, make_controller
+    from erva_ros.core.model import make_model
     from erva_ros.core.params import paper_params
     from erva_ros.core.roadmap.drive import estimate_drive, grid_profile
     from erva_ros.core.roadmap.vehicle import Route, simulate_vehicle
     from erva_ros.core.roads import make_road
 
-    params = paper_params()
+    model = make_model(paper_params())
     route = Route.of(make_road('paper', seconds + 5, seed=seed, speed_mps=SPEED_MPS))
-    passive = make_controller('passive', params, ControllerSettings())
-    run = simulate_vehicle(params, passive, route.drive(SPEED_MPS), seconds, sensor_seed=7)
-    g = grid_profile(estimate_drive(run.record('calibration', route.name, SPEED_MPS), params),
+    passive = make_controller('passive', model, ControllerSettings())
+    run = simulate_vehicle(model, passive, route.drive(SPEED_MPS), seconds, sensor_seed=7)
+    g = grid_profile(estimate_drive(run.record('calibration', route.name, SPEED_MPS), model),
                      0.1, 6.0)
     true = highpass(route.height(g.s), 0.1, 6.0)
     # Away from the drive's ends by 3 high-pass σ: there the finite high-pass bends both.

@@ -15,7 +15,7 @@ from typing import Optional
 
 import numpy as np
 
-from erva_ros.core.params import ERVAParams
+from erva_ros.core.model import QuarterCarModel
 from erva_ros.core.road_estimator import ROAD_MEASUREMENTS, RoadEKF
 from erva_ros.core.roadmap import MapError
 from erva_ros.core.roadmap.profile import highpass
@@ -68,14 +68,14 @@ class DriveEstimate:
     w_filtered: np.ndarray   # m, the causal estimate
 
 
-def estimate_drive(record: DriveRecord, params: ERVAParams, ts: float = 0.02,
-                   estimator: Optional[RoadEKF] = None, kind: str = 'erva') -> DriveEstimate:
-    """Return the RTS-smoothed road estimate of ``record`` (the default RoadEKF)."""
-    ekf = estimator or RoadEKF(params, kind, ts, keep_history=True)
+def estimate_drive(record: DriveRecord, model: QuarterCarModel, ts: float = 0.02,
+                   estimator: Optional[RoadEKF] = None) -> DriveEstimate:
+    """Return the RTS-smoothed road estimate of ``record`` (the default RoadEKF on ``model``)."""
+    ekf = estimator or RoadEKF(model, ts, keep_history=True)
     if not ekf.keep_history:
         raise ValueError('estimate_drive needs a RoadEKF with keep_history=True')
     ekf.reset()
-    u_now = _held(record.u_now, params.c_e0)
+    u_now = _held(record.u_now, model.params.c_e0)
     u_mean = np.where(np.isfinite(record.u_mean), record.u_mean, u_now)
     ekf.start(record.y[0], u_now[0])
     for k in range(1, len(record.t)):

@@ -35,7 +35,7 @@ from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
-from erva_ros.core.params import ERVAParams
+from erva_ros.core.model import make_model, QuarterCarModel
 from erva_ros.core.roadmap import MapError
 
 #: Road seeds of the study: nothing was tuned on them (development used 0-2).
@@ -103,7 +103,7 @@ def variants(cfg: StudyConfig) -> List[Variant]:
     return out
 
 
-def _maps(params: ERVAParams, cfg: StudyConfig, seed: int, route, ts: float,
+def _maps(model: QuarterCarModel, cfg: StudyConfig, seed: int, route, ts: float,
           codegen: str = 'auto'):
     """Return {(drives, e): MapProfile} and the map drives' own estimation errors."""
     from erva_ros.core.controllers import ControllerSettings, make_controller
@@ -113,15 +113,15 @@ def _maps(params: ERVAParams, cfg: StudyConfig, seed: int, route, ts: float,
     from erva_ros.core.roadmap.store import RoadMap
     from erva_ros.core.roadmap.vehicle import Odometry, OdometryError, simulate_vehicle
 
-    passive = make_controller('passive', params, ControllerSettings())
-    ekf = RoadEKF(params, ts=ts, keep_history=True, codegen=codegen)
+    passive = make_controller('passive', model, ControllerSettings())
+    ekf = RoadEKF(model, ts=ts, keep_history=True, codegen=codegen)
     n_max = max(cfg.drives)
     duration = cfg.route_m / cfg.map_speed
     estimates, errors = [], []
     for d in range(n_max):
-        run = simulate_vehicle(params, passive, route.drive(cfg.map_speed), duration,
+        run = simulate_vehicle(model, passive, route.drive(cfg.map_speed), duration,
                                sensor_seed=seed * 1000 + d)
-        est = estimate_drive(run.record(f'drive {d}', route.name, cfg.map_speed), params,
+        est = estimate_drive(run.record(f'drive {d}', route.name, cfg.map_speed), model,
                              ts, ekf)
         estimates.append((run, est))
         g = grid_profile(est, cfg.grid_m, cfg.highpass_m, ts=ts)
@@ -162,8 +162,9 @@ def run_seed(job) -> Tuple[int, Dict]:
     ts = settings.ts
     route = Route.of(make_road('paper', cfg.route_m / cfg.map_speed, seed=seed,
                                speed_mps=cfg.map_speed))
-    maps, drive_errors, refused = _maps(params, cfg, seed, route, ts, settings.codegen)
-    ekf = RoadEKF(params, ts=ts, codegen=settings.codegen)
+    model = make_model(params)
+    maps, drive_errors, refused = _maps(model, cfg, seed, route, ts, settings.codegen)
+    ekf = RoadEKF(model, ts=ts, codegen=settings.codegen)
     controllers = {}
     rows = []
     for var in variants(cfg):
@@ -172,7 +173,7 @@ def run_seed(job) -> Tuple[int, Dict]:
         if key not in controllers:
             s = settings.with_(alpha1=var.alpha[0], alpha2=var.alpha[1],
                                command_delay_s=cfg.delay_s if var.delay else 0.0)
-            controllers[key] = make_controller(name, params, s)
+            controllers[key] = make_controller(name, model, s)
         road = route.drive(var.speed, cfg.start_m)
         est = None if var.name in ('oracle', 'no_preview') else ekf
         preview, mp = None, None
@@ -184,7 +185,7 @@ def run_seed(job) -> Tuple[int, Dict]:
                             MapPreviewSettings(weighting=weighting))
             preview = map_preview_source(mp)
         run = simulate_vehicle(
-            params, controllers[key], road, cfg.duration_s, start_m=cfg.start_m,
+            model, controllers[key], road, cfg.duration_s, start_m=cfg.start_m,
             estimator=est, preview=preview, warmup_s=cfg.warmup_s,
             odometry=OdometryError.level(var.odometry_m, seed * 1000 + 900),
             sensor_seed=seed * 1000 + 77, delay_s=cfg.delay_s if var.delay else 0.0)

@@ -27,7 +27,7 @@ import numpy as np
 
 from erva_ros.core.hil.ecu_sim import SensorNoise
 from erva_ros.core.hil.hardware import GeneratorHardware
-from erva_ros.core.params import ERVAParams
+from erva_ros.core.model import QuarterCarModel
 from erva_ros.core.plant import PlantSimulator
 from erva_ros.core.road_estimator import QUANTA, RoadEKF
 from erva_ros.core.roadmap import MapError
@@ -176,14 +176,15 @@ class VehicleRun:
                            self.u_mean.copy(), source, route, speed_mps)
 
 
-def simulate_vehicle(params: ERVAParams, controller, road: Road, duration_s: float, *,
+def simulate_vehicle(model: QuarterCarModel, controller, road: Road, duration_s: float, *,
                      start_m: float = 0.0, estimator: Optional[RoadEKF] = None,
                      preview: Optional[PreviewSource] = None,
                      odometry: OdometryError = OdometryError(),
                      sensors: EcuSensors = EcuSensors(), sensor_seed: int = 0,
-                     delay_s: float = 0.0, warmup_s: float = 0.0, kind: str = 'erva'
-                     ) -> VehicleRun:
-    """Drive ``road`` (t = 0 at route distance ``start_m``) with ``controller``; see module doc.
+                     delay_s: float = 0.0, warmup_s: float = 0.0) -> VehicleRun:
+    """Drive ``road`` (t = 0 at route distance ``start_m``) with ``controller`` on ``model``.
+
+    See the module doc.
 
     ``estimator`` None: the controller gets the true state; ``preview`` None: the true road
     ahead (anchored on ŵ_k with an estimator).  The plant starts at rest on the road's
@@ -196,7 +197,7 @@ def simulate_vehicle(params: ERVAParams, controller, road: Road, duration_s: flo
         raise ValueError(f'delay must be in [0, Ts = {ts:g} s), got {delay_s:g} s')
     controller.reset()
     w0 = float(road.height(0.0))
-    plant = PlantSimulator(params, kind, ts)
+    plant = PlantSimulator(model, ts)
     x0 = plant.model.zero_state()
     x0[0] = x0[2] = w0
     plant.reset(x0)
