@@ -1,5 +1,7 @@
 """``erva report``: comfort, power, timing, deadline misses and fallbacks from a bag alone."""
 
+import sys
+
 from erva_ros.commands._common import (add_json_option, add_out_option, ensure_out_dir,
                                        print_json)
 
@@ -75,7 +77,13 @@ def main(args) -> int:
     from erva_ros.session.bag_report import compute_report, load_session, write_plots
     from erva_ros.session.report import jsonable
 
-    bag = open_bag(args.bag)
+    opened: list = []       # the bag's own warnings: said at once, before anything can fail
+
+    def warn(line):
+        opened.append(line)
+        print(f'erva report: warning: {line}', file=sys.stderr)
+
+    bag = open_bag(args.bag, warn=warn)
     out = ensure_out_dir(args.out)
     data = load_session(bag, args.namespace)
     report = compute_report(data)
@@ -90,7 +98,8 @@ def main(args) -> int:
           f'{report["duration_s"]:.3f} s at Ts = '
           f'{report["ts_s"] * 1e3:.1f} ms' if report['ts_s'] else f'session {bag.path}')
     for w in report['warnings']:
-        print(f'warning: {w}')
+        if w not in opened:
+            print(f'warning: {w}')
     c, p = report['comfort'], report['power']
     if not report['samples']['sprung_accel']:
         print('comfort:  no samples (the bag has no sprung_accel messages)')

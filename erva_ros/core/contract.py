@@ -236,8 +236,11 @@ def _state_encoder(joints: Tuple[str, ...]) -> JointStateEncoder:
 
 
 def decode_state(data: bytes, joints: Optional[Sequence[str]] = None) -> State:
-    """Return a state; with ``joints`` (a node acting on it: its model's ``joints``) the
-    joints and values are checked."""
+    """Return a state, as sent or (given ``joints``) checked.
+
+    A node acting on the state gives its model's ``joints``: the names, sizes and values
+    are checked.
+    """
     j = decode_joints(data)
     n = len(j.position)
     if joints is not None:

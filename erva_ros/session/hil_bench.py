@@ -169,12 +169,13 @@ def _ecu_core_bench(samples: int, codec):
     from erva_ros.core.hil.ecu_sim import EcuSimConfig, EcuSimCore, SensorNoise
     from erva_ros.core.hil.hardware import GeneratorHardware
     from erva_ros.core.hil.transport import free_udp_ports, open_bus
+    from erva_ros.core.model import make_model
     from erva_ros.core.params import paper_params
 
     hw = GeneratorHardware()
     a, b = free_udp_ports(2)
     bridge = open_bus(f'udp:{a}:{b}')
-    ecu = EcuSimCore(paper_params(), hw, codec, lambda: open_bus(f'udp:{b}:{a}'),
+    ecu = EcuSimCore(make_model(paper_params()), hw, codec, lambda: open_bus(f'udp:{b}:{a}'),
                      lambda t: 1e-3 * math.sin(t), EcuSimConfig(), SensorNoise())
     tx = codec.sender(Kind.COMMAND)
     prepare, sample = [], []
