@@ -27,13 +27,19 @@ def _domain_id() -> int:
 
 
 ROS_DOMAIN_ID = _domain_id()
+#: The domain of a test without the ``ros`` marker: erva refuses it, with one line, before
+#: it starts DDS (Fast DDS could not create a participant there: its ports would pass
+#: 65535).  So a test that starts an erva process or node without the marker fails, and
+#: ``-m "not ros"`` never starts DDS unseen.  An rclpy node the test creates itself is
+#: refused by _refuse_nodes_without_the_marker.
+NO_DDS_DOMAIN = 233
 
 
 def ros_env(extra=None):
     """Environment for child processes: local-only discovery, this run's domain."""
     env = dict(os.environ)
     env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    env['ROS_DOMAIN_ID'] = str(ROS_DOMAIN_ID)
+    env['ROS_DOMAIN_ID'] = os.environ['ROS_DOMAIN_ID']     # this test's: pytest_runtest_setup
     env['PYTHONUNBUFFERED'] = '1'
     env['MPLBACKEND'] = 'Agg'
     env.setdefault('AMENT_PREFIX_PATH', sys.prefix)
@@ -49,6 +55,38 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ['ROS_DOMAIN_ID'] = str(ROS_DOMAIN_ID)
 os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
 os.environ.setdefault('MPLBACKEND', 'Agg')
+
+
+def _refuse_nodes_without_the_marker():
+    """Make an rclpy node created in this process raise while a test without ``ros`` runs.
+
+    (Fast DDS would end the process in NO_DDS_DOMAIN, taking the worker with it.)
+    """
+    try:
+        from rclpy.node import Node
+    except ImportError:         # the runtime install without the ROS wheels: no nodes
+        return
+    init = Node.__init__
+
+    def guarded(self, *args, **kwargs):
+        if os.environ.get('ROS_DOMAIN_ID') == str(NO_DDS_DOMAIN):
+            raise RuntimeError('this test creates an rclpy node: mark it @pytest.mark.ros '
+                               '(docs/tests.md)')
+        init(self, *args, **kwargs)
+    Node.__init__ = guarded
+
+
+_refuse_nodes_without_the_marker()
+
+
+def pytest_runtest_setup(item):
+    """Give the test its domain: the run's with the ``ros`` marker, else NO_DDS_DOMAIN.
+
+    Set before the test's fixtures (a module's too), for this process and, by ros_env,
+    every process a test starts.
+    """
+    ros = item.get_closest_marker('ros') is not None
+    os.environ['ROS_DOMAIN_ID'] = str(ROS_DOMAIN_ID if ros else NO_DDS_DOMAIN)
 
 
 def pytest_collection_modifyitems(config, items):

@@ -19,7 +19,9 @@ and output file names never count):
   ``__init__.py``);
 * a test file ``test_*.py``, optionally with ``::name`` (a def or class in it), and in the
   docs a test named in backticks (`` `test_...` ``): defined in test/;
-* an upper-case Markdown name (``README.md``): in the repository's top folder.
+* an upper-case Markdown name (``README.md``): in the repository's top folder;
+* a bare module name in backticks (`` `warmup.py` ``, the docs' shorthand beside a path):
+  some file of that name in the repository (outside .venv/ and .git/).
 """
 
 import ast
@@ -45,6 +47,7 @@ MODULE = re.compile(r'(?<![\w./-])(erva_ros(?:\.\w+)+)')
 TEST_FILE = re.compile(_NOT_AFTER + r'(test_\w+\.py)(?:::(\w+))?\b')
 TEST_NAME = re.compile(r'`(?:[\w/]+\.py::)?(test_\w+)(?:\[[^\]`]*\])?`')
 UPPER_MD = re.compile(r'(?<![\w./-])([A-Z][A-Z_]*\.md)\b')
+BARE_PY = re.compile(r'`([\w-]+\.py)(?:::\w+)?`')
 #: bags/ holds sessions that commands write (ignored by git), except these.
 TRACKED_BAGS = ('sample', 'README.md')
 
@@ -167,9 +170,17 @@ def _all_tests():
     return tests
 
 
+def _py_basenames():
+    names = set()
+    for dirpath, dirs, files in os.walk(REPO):
+        dirs[:] = [d for d in dirs if d not in ('.venv', '.git', 'build', 'install')]
+        names.update(f for f in files if f.endswith('.py'))
+    return names
+
+
 def problems(items, known=frozenset()):
     """Return (missing names as 'file:line: why', known entries used) for the given texts."""
-    missing, used, tests = [], set(), None
+    missing, used, tests, basenames = [], set(), None, None
     for rel, line, text in items:
         found = []
         for m in ROOT_PATH.finditer(text):
@@ -183,6 +194,10 @@ def problems(items, known=frozenset()):
         for m in UPPER_MD.finditer(text):
             ok = os.path.isfile(os.path.join(REPO, m.group(1)))
             found.append((m, None if ok else f'{m.group(1)}: not in the repository'))
+        for m in BARE_PY.finditer(text):
+            basenames = _py_basenames() if basenames is None else basenames
+            if m.group(1) not in basenames and not m.group(1).startswith('test_'):
+                found.append((m, f'{m.group(1)}: no file of that name'))
         if rel.endswith('.md'):
             tests = _all_tests() if tests is None else tests
             for m in TEST_NAME.finditer(text):
@@ -210,12 +225,12 @@ def test_the_check_finds_what_is_missing():
             'session/recording.record_topics, test/test_model.py::test_plant_integrator_'
             'converges, erva_ros.core.controllers.make_controller, hil/settings.py, '
             'test_rings.py, README.md, bags/<session>, bags/20261122T101500Z_paper, '
-            '`test_flake8`, https://example.org/live/x.py, docs/model.md.')
+            '`test_flake8`, https://example.org/live/x.py, docs/model.md, `warmup.py`.')
     assert problems([('docs/x.md', 1, good)]) == ([], set())
     bad = ['erva_ros/core/modle.py', 'core/loops/', 'ros/runtimes', 'config/*.yml',
            'session/recording.record_topic', 'test/test_model.py::test_nothing',
            'erva_ros.core.controllers.make_controler', 'live/realtime.py', 'test_ring.py',
-           'NOTE.md', 'bags/sample/sampel_0.mcap', '`test_flake9`']
+           'NOTE.md', 'bags/sample/sampel_0.mcap', '`test_flake9`', '`cdr.py`']
     for name in bad:
         missing, _ = problems([('docs/x.md', 1, f'see {name} here')])
         assert len(missing) == 1, (name, missing)

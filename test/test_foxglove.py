@@ -206,6 +206,7 @@ def test_a_viewer_that_never_reads_loses_its_oldest_and_is_counted():
 
 
 # -- live --------------------------------------------------------------------------------------
+@pytest.mark.ros
 def test_viewer_gets_the_live_loop_as_the_bag_holds_it(tmp_path):
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import JointState
@@ -264,6 +265,7 @@ def test_viewer_gets_the_live_loop_as_the_bag_holds_it(tmp_path):
     assert summary['nodes']['foxglove_server']['stopped_cleanly']
 
 
+@pytest.mark.ros
 def test_a_stalled_viewer_slows_nothing_and_the_bag_loses_nothing(tmp_path):
     proc = _start('run', '--foxglove', '127.0.0.1:0', '--duration', 4, '--record', tmp_path,
                   '--json')
@@ -299,6 +301,7 @@ def test_a_stalled_viewer_slows_nothing_and_the_bag_loses_nothing(tmp_path):
 
 
 # -- replay ------------------------------------------------------------------------------------
+@pytest.mark.ros
 def test_replay_serves_the_bag_with_its_bytes_and_times():
     from mcap.reader import make_reader
     sample = os.path.join(REPO, 'bags', 'sample')

@@ -74,6 +74,7 @@ def _wait_for(cond, timeout=30.0):   # generous: only a failure waits this long
     return cond()
 
 
+@pytest.mark.ros
 def test_realtime_subscription_takes_messages_and_idles_between(ros_context):
     owner = Node('owner', context=ros_context)
     talker = Node('talker', context=ros_context, use_global_arguments=False)
@@ -110,6 +111,7 @@ def test_realtime_subscription_takes_messages_and_idles_between(ros_context):
     assert not sub.alive
 
 
+@pytest.mark.ros
 def test_a_failing_callback_stops_the_node_and_is_raised(ros_context):
     owner = Node('owner', context=ros_context)
     talker = Node('talker', context=ros_context, use_global_arguments=False)

@@ -14,12 +14,15 @@ import json
 import math
 
 import numpy as np
+import pytest
 from lifecycle_msgs.srv import GetState
 
 from erva_ros.ros.lifecycle import LifecycleDriver
 import ros_msgs as msgs
 from live_harness import cleaned_up, Harness, start_node, stop_node, TS_NS
 from run_helpers import SampleWatch, start_run, wait_connected
+
+pytestmark = pytest.mark.ros   # every test here starts DDS
 
 
 def _state(k):

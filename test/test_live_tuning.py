@@ -149,6 +149,8 @@ def test_erva_param_says_why_a_parameter_is_read_only(nodes):
 pytest.importorskip('foxglove')
 from test_foxglove import Viewer  # noqa: E402 (the project's Foxglove client)
 
+pytestmark = pytest.mark.ros   # every test here starts DDS
+
 
 class ParameterViewer(Viewer):
     """The Foxglove client, keeping the parameter, status and graph messages too."""

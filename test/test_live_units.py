@@ -168,6 +168,7 @@ def _node(ctx, *ros_args):
     return Node('nmpc_node', context=ctx)
 
 
+@pytest.mark.ros
 def test_parameters_get_descriptors_with_ranges(ros_context):
     node = _node(ros_context, '-p', 'alpha2:=1', '-p', 'seed:=7')
     values = declare_node_parameters(node, 'nmpc_node')
@@ -190,6 +191,7 @@ def test_parameters_get_descriptors_with_ranges(ros_context):
     ('mode:=fast', r"'mode' = 'fast' is not allowed; choose one of realtime, lockstep"),
     ('seed:=1.5', r"'seed' must be an integer"),
 ])
+@pytest.mark.ros
 def test_a_bad_parameter_is_one_line(ros_context, arg, match):
     node = _node(ros_context, '-p', arg)
     with pytest.raises(ParamError, match=match) as info:
@@ -219,6 +221,7 @@ def test_validate_live_and_live_file_errors(tmp_path):
         read_live_file(str(bad))
 
 
+@pytest.mark.ros
 def test_session_params_file_is_what_rclpy_gives_each_node(tmp_path, ros_context):
     cfg = RunConfig(controller='no_preview', alpha2=0.5, mode='lockstep', seed=3,
                     duration_s=1.0, session_dir=str(tmp_path),

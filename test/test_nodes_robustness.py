@@ -27,6 +27,8 @@ from erva_ros.core.levels import ERROR, OK, WARN
 
 from live_harness import cleaned_up, Harness, start_node, stop_node, TS_NS
 
+pytestmark = pytest.mark.ros   # every test here starts DDS
+
 C_E0 = 10000.0
 STEPS_AT_END = 79   # plant_sim_node's step counter after 80 road heights (k = 0..79)
 

@@ -39,6 +39,7 @@ def _exe(name):
     return [script] if script else [sys.executable, '-m', f'erva_ros.nodes.{name}']
 
 
+@pytest.mark.ros
 def test_bad_parameters_stop_each_node_with_one_line():
     procs = []
     for name, params, _ in CASES:

@@ -43,6 +43,7 @@ def session(tmp_path_factory):
     return json.loads(out)
 
 
+@pytest.mark.ros
 def test_one_prediction_per_command_stamped_as_the_command(session):
     msgs = _decoded(session['bag'], ['/erva/damping_cmd', '/erva/prediction'])
     cmds, preds = msgs['/erva/damping_cmd'], msgs['/erva/prediction']
@@ -57,6 +58,7 @@ def test_one_prediction_per_command_stamped_as_the_command(session):
             j * 20_000_000 for j in range(11)]
 
 
+@pytest.mark.ros
 def test_the_report_prints_the_errors_one_step_ahead_exact(session, erva, tmp_path):
     bag = session['bag']
     report = json.loads(erva('report', bag, '--json', '--out', tmp_path, check=True).stdout)
@@ -77,6 +79,7 @@ def test_the_report_prints_the_errors_one_step_ahead_exact(session, erva, tmp_pa
             if line.startswith('  h = ')] == ['h =  1', 'h =  5', 'h = 10']
 
 
+@pytest.mark.ros
 def test_without_prediction_the_session_records_the_rest(tmp_path):
     live = tmp_path / 'live.yaml'
     live.write_text('/**:\n  ros__parameters:\n    publish_prediction: false\n')
@@ -135,6 +138,7 @@ def _no_ros(python, *args):
                           cwd=REPO, timeout=300)
 
 
+@pytest.mark.ros
 def test_report_and_bag_info_work_without_the_ros_wheels(session, erva, no_ros_python):
     """`erva report` and `erva bag info` print the same without rclpy and messages."""
     probe = _no_ros(no_ros_python, '-c', 'import importlib.util as u; print([m for m in '

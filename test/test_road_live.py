@@ -31,6 +31,8 @@ import road_helpers as rh
 from run_helpers import start_run, wait_connected
 from test_lifecycle import _transition
 
+pytestmark = pytest.mark.ros   # every test here starts DDS
+
 SPEED = 20.0
 
 

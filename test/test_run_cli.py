@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from conftest import REPO, ros_env
+from conftest import REPO, ROS_DOMAIN_ID, ros_env
 
 LAUNCH = os.path.join(REPO, 'launch', 'erva.launch.py')
 
@@ -89,7 +89,9 @@ def test_bad_input_is_one_line_and_no_node_starts(erva, tmp_path, args, message)
         args.append('--no-record')
     tmp = tmp_path / 'tmp'      # where erva run keeps a session's params file and logs
     tmp.mkdir()
-    proc = erva('run', *args, env={'TMPDIR': str(tmp)})
+    # The run's own domain: erva checks the domain before some of these inputs (no node
+    # starts either way; the test asserts that).
+    proc = erva('run', *args, env={'TMPDIR': str(tmp), 'ROS_DOMAIN_ID': str(ROS_DOMAIN_ID)})
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and re.search(message, lines[0]), proc.stderr

@@ -24,6 +24,8 @@ from erva_ros.core.params import load_erva_params
 
 from conftest import REPO
 
+pytestmark = pytest.mark.ros   # every test here starts DDS
+
 # One scenario, spelled the way each command takes it: the real NMPC with preview, the
 # paper's twofold weights, a noisy preview and a non-default seed, so the road, the
 # preview error, the controller's warm start and the plant must all line up.

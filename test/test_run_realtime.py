@@ -15,6 +15,8 @@ from run_helpers import (bag_counts, bag_messages, run_with_node_killed, run_wit
                          SampleWatch, start_run as _start)
 from run_helpers import wait_connected as _wait_connected
 
+pytestmark = pytest.mark.ros   # every test here starts DDS
+
 
 def _gone(pid):
     try:

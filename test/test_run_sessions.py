@@ -20,6 +20,8 @@ import pytest
 from conftest import sim_delay_args
 from run_helpers import bag_counts, SampleWatch, start_run
 
+pytestmark = pytest.mark.ros   # every test here starts DDS
+
 
 def _finish(proc, timeout=240):
     out, err = proc.communicate(timeout=timeout)

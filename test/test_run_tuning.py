@@ -27,6 +27,8 @@ from erva_ros.session.orchestrator import run_session
 
 from test_run_lockstep import _settings_file
 
+pytestmark = pytest.mark.ros   # every test here starts DDS
+
 SCENARIO = ['--controller', 'preview', '--seed', '4', '--duration', '1', '--preview-snr', '15']
 SIM = ['sim', *SCENARIO, '--alpha', '1,0.01']
 RUN = ['run', *SCENARIO, '--alpha1', '1', '--alpha2', '0.01', '--mode', 'lockstep',
