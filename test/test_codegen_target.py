@@ -166,8 +166,11 @@ def test_compile_check_lists_the_targets_the_cache_holds(tmp_path, monkeypatch):
     assert proc.returncode == 1 and f'target {other}: missing' in proc.stdout
 
 
-def test_ctrl_c_stops_a_compile_in_one_line_and_keeps_what_finished(tmp_path):
-    # As a terminal does: SIGINT to the whole process group once compiling has started.
+@pytest.mark.parametrize('to', ['group', 'erva'])
+def test_ctrl_c_stops_a_compile_in_one_line_and_keeps_what_finished(tmp_path, to):
+    # As a terminal does: SIGINT to the whole process group once compiling has started;
+    # and to erva alone, as to a compiler started just after the terminal's SIGINT: erva
+    # must interrupt its compilers itself (else each runs to its end, a minute under load).
     env = ros_env({'ERVA_CACHE_DIR': str(tmp_path)})
     proc = subprocess.Popen([sys.executable, '-m', 'erva_ros.cli', 'compile'], cwd=REPO,
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -177,8 +180,15 @@ def test_ctrl_c_stops_a_compile_in_one_line_and_keeps_what_finished(tmp_path):
         lines.append(line)
         if 'compiling' in line:
             break
-    os.killpg(proc.pid, signal.SIGINT)
+    # The libraries finished before the signal (a compile takes seconds; this is the
+    # instant before it is sent): no other may be finished after it.
+    before = {f for f in os.listdir(tmp_path) if f.endswith('.so')}
+    if to == 'group':
+        os.killpg(proc.pid, signal.SIGINT)
+    else:
+        proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=120)
+    assert {f for f in os.listdir(tmp_path) if f.endswith('.so')} == before
     err = ''.join(lines) + err
     assert proc.returncode == 130, err
     assert 'Traceback' not in err and 'KeyboardInterrupt' not in err, err

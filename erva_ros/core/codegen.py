@@ -520,7 +520,7 @@ def run_jobs(jobs: Sequence[CompileJob], workers: Optional[int] = None) -> None:
             if err:
                 errors.append(err)
     except KeyboardInterrupt:
-        # The running compilers got the terminal's SIGINT too; start no other.
+        stop_compilers()
         pool.shutdown(wait=True, cancel_futures=True)
         raise
     pool.shutdown()
@@ -530,6 +530,41 @@ def run_jobs(jobs: Sequence[CompileJob], workers: Optional[int] = None) -> None:
 
 #: The cache's subdirectory of lock files, one per library (flock: freed when a holder dies).
 LOCKS = '.locks'
+#: The compilers running in this process, and whether Ctrl-C stopped compiling for good.
+_RUNNING: Set[subprocess.Popen] = set()
+_RUNNING_LOCK = threading.Lock()
+_STOPPED = threading.Event()
+
+
+def stop_compilers() -> None:
+    """Ctrl-C: start no compiler in this process again, and interrupt the running ones.
+
+    A terminal's SIGINT reaches the compilers of its process group, but not one that a
+    thread started just after it: that one would run to its end (a minute under load).
+    """
+    _STOPPED.set()
+    with _RUNNING_LOCK:
+        for proc in _RUNNING:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+
+
+def _run_compiler(argv: List[str]) -> Tuple[int, str]:
+    """Run one compiler (interruptible by :func:`stop_compilers`); return (status, stderr)."""
+    if _STOPPED.is_set():
+        return -signal.SIGINT, ''
+    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True, errors='replace')
+    with _RUNNING_LOCK:
+        _RUNNING.add(proc)
+    if _STOPPED.is_set():           # stopped between the check and the registration
+        proc.send_signal(signal.SIGINT)
+    try:
+        _, err = proc.communicate()
+    finally:
+        with _RUNNING_LOCK:
+            _RUNNING.discard(proc)
+    return proc.returncode, err
 
 
 def _cpus() -> int:
@@ -555,18 +590,15 @@ def _compile_job(job: CompileJob, cc: str, flags) -> str:
             with open(src, 'w', encoding='utf-8') as fh:
                 fh.write(job.source)
             for attempt in (1, 2):
-                proc = subprocess.run([cc, *flags, '-o', tmp, src, *library_flags(job.source),
-                                       '-lm'],
-                                      stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                                      text=True, errors='replace')
-                if proc.returncode == 0:
+                status, stderr = _run_compiler([cc, *flags, '-o', tmp, src,
+                                                *library_flags(job.source), '-lm'])
+                if status == 0:
                     os.replace(tmp, job.lib)   # atomic: no process sees half a library
                     return ''
-                why = _compiler_message(cc, proc.returncode, proc.stderr)
+                why = _compiler_message(cc, status, stderr)
                 # Killed, or silent (seen under load): once more.  A compiler's error
                 # message would only come again, and Ctrl-C means stop.
-                if (proc.returncode > 0 and proc.stderr.strip()) or \
-                        proc.returncode == -signal.SIGINT:
+                if (status > 0 and stderr.strip()) or status == -signal.SIGINT:
                     break
             return f'compiling {job.name} failed{" twice" if attempt == 2 else ""}: {why}'
         finally:
@@ -690,6 +722,7 @@ __all__ = ['CODEGEN_FLAGS', 'TARGET_ENV', 'NATIVE', 'codegen_cache_dir', 'c_comp
            'TargetRecord', 'native_tag_suffix', 'read_record', 'ensure_record', 'cached_records',
            'Toolchain', 'toolchain',
            'check_runs_here', 'code_fingerprint', 'load_or_build', 'library_flags',
+           'stop_compilers',
            'use_codegen', 'CompileJob', 'CompileError', 'Plan',
            'plan_functions', 'collecting',
            'compile_functions', 'run_jobs', 'compile_for', 'BufferedCall']

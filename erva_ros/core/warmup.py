@@ -442,8 +442,9 @@ def _plan_and_compile(targets: Sequence[Target], workers: int,
                 for job in new:
                     threads.submit(one, job)
     except KeyboardInterrupt:
-        # Ctrl-C: the planners are terminated, the compilers got the SIGINT, and no
+        # Ctrl-C: the planners are terminated, the compilers are interrupted, and no
         # other compile starts; what finished is in the cache.
+        codegen.stop_compilers()
         threads.shutdown(wait=True, cancel_futures=True)
         raise
     threads.shutdown()

@@ -41,6 +41,8 @@ from erva_ros.ros.runtime import run_node
 #: How the bag is split: stored in each file's session record.
 SPLIT_PARAMETERS = ('max_bag_duration_s', 'max_bag_size_bytes')
 DISCOVERY_PERIOD_S = 0.1   # rosbag2's default topic polling interval
+#: How long a channel's creation waits for the graph to list the writer of its first message.
+GRAPH_WAIT_S = 1.0
 #: Reader history of every recorded topic: a stall of the recorder (seconds of 50 Hz topics)
 #: must not overflow it.
 RECORDER_DEPTH = 1000
@@ -123,6 +125,13 @@ class RecorderNode(LoopNode):
 
     def _create_channel(self, topic: str, type_name: str) -> None:
         infos = self.get_publishers_info_by_topic(topic)
+        # A first message can come before the graph has heard of its writer (data and
+        # discovery are separate; seen under load): the graph, kept by rmw's own thread,
+        # is asked again for a while, so the channel gets the offered QoS.
+        deadline = time.monotonic() + GRAPH_WAIT_S
+        while not infos and time.monotonic() < deadline:
+            time.sleep(0.005)
+            infos = self.get_publishers_info_by_topic(topic)
         hashes = {str(i.topic_type_hash) for i in infos if i.topic_type_hash.version > 0}
         self.bag.add_topic(topic, type_name, [profile_to_dict(i.qos_profile) for i in infos],
                            hashes.pop() if len(hashes) == 1 else None)
