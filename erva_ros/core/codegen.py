@@ -537,28 +537,36 @@ _STOPPED = threading.Event()
 
 
 def stop_compilers() -> None:
-    """Ctrl-C: start no compiler in this process again, and interrupt the running ones.
+    """Ctrl-C: start no compiler in this process again, and end the running ones.
 
-    A terminal's SIGINT reaches the compilers of its process group, but not one that a
-    thread started just after it: that one would run to its end (a minute under load).
+    Each compiler runs in a process group of its own (:func:`_run_compiler`), ended here
+    as a whole: gcc's driver and the cc1 it started.  (A terminal's SIGINT ended the
+    driver but not a cc1 started just after it, which then compiled on, a minute and
+    more under load, holding the driver's stderr open.)
     """
     _STOPPED.set()
     with _RUNNING_LOCK:
         for proc in _RUNNING:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
+            _end_group(proc)
+
+
+def _end_group(proc: subprocess.Popen) -> None:
+    try:
+        os.killpg(proc.pid, signal.SIGTERM)
+    except (ProcessLookupError, PermissionError):
+        pass                        # already gone
 
 
 def _run_compiler(argv: List[str]) -> Tuple[int, str]:
-    """Run one compiler (interruptible by :func:`stop_compilers`); return (status, stderr)."""
+    """Run one compiler (ended by :func:`stop_compilers`); return (status, stderr)."""
     if _STOPPED.is_set():
         return -signal.SIGINT, ''
     proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            text=True, errors='replace')
+                            text=True, errors='replace', start_new_session=True)
     with _RUNNING_LOCK:
         _RUNNING.add(proc)
     if _STOPPED.is_set():           # stopped between the check and the registration
-        proc.send_signal(signal.SIGINT)
+        _end_group(proc)
     try:
         _, err = proc.communicate()
     finally:
@@ -598,7 +606,7 @@ def _compile_job(job: CompileJob, cc: str, flags) -> str:
                 why = _compiler_message(cc, status, stderr)
                 # Killed, or silent (seen under load): once more.  A compiler's error
                 # message would only come again, and Ctrl-C means stop.
-                if (status > 0 and stderr.strip()) or status == -signal.SIGINT:
+                if (status > 0 and stderr.strip()) or _STOPPED.is_set():
                     break
             return f'compiling {job.name} failed{" twice" if attempt == 2 else ""}: {why}'
         finally:
