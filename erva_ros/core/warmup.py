@@ -441,13 +441,14 @@ def _plan_and_compile(targets: Sequence[Target], workers: int,
                 submitted.update(j.lib for j in new)
                 for job in new:
                     threads.submit(one, job)
+        threads.shutdown()     # in the try: Ctrl-C comes here once every plan is in
     except KeyboardInterrupt:
-        # Ctrl-C: the planners are terminated, the compilers are interrupted, and no
-        # other compile starts; what finished is in the cache.
+        # Ctrl-C: the planners are terminated, the compilers are ended, and no other
+        # compile starts (a queued one would run at the interpreter's exit); what
+        # finished is in the cache.
         codegen.stop_compilers()
         threads.shutdown(wait=True, cancel_futures=True)
         raise
-    threads.shutdown()
     return plans, compiled, errors
 
 
