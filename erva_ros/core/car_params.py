@@ -1,4 +1,4 @@
-"""The whole car's parameters: a published body and four ERVA corners (docs/model.md).
+"""The whole car's parameters: a published body and four ERVA corners (docs/car.md).
 
 A ROS 2 parameter file (``config/car.yaml``) gives the body -- mass, pitch and roll inertia,
 where the axles and wheels are -- and the unsprung mass of each axle, as a published

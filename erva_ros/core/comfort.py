@@ -18,11 +18,11 @@ acceleration by the analog H(j2πf) at each bin and transforms back; :func:`weig
 is the RMS of that signal, sqrt(Σ|H·X|²)/N by Parseval.  At every DFT frequency the
 weighting is the standard's analog one to rounding, at any sampling rate -- the plant's
 z̈_s comes at the control rate (50 Hz), where a bilinear (Tustin) filter would be off by
-0.47 dB at 10 Hz and 8 dB at 20 Hz (W_k; docs/model.md), and the 100 Hz band limit lies
+0.47 dB at 10 Hz and 8 dB at 20 Hz (W_k; docs/comfort.md), and the 100 Hz band limit lies
 above Nyquist.
 The record is taken as one period of a stationary signal (no start transient, as a
 time-domain filter from rest would have); what that costs for a record whose ends do
-not match is leakage between bins, measured in docs/model.md.  A signal sampled at fs
+not match is leakage between bins, measured in docs/comfort.md.  A signal sampled at fs
 holds nothing above fs/2: the weighting there is not applied, because there is nothing
 to apply it to.
 

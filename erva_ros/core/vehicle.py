@@ -13,7 +13,7 @@ holds the body point z_s,i = z_c − x_i·θ + y_i·φ; below it is the paper's 
 (erva_ros/core/model.py ``erva_corner``: spring, damper, ball screw, rotor with its inertia
 nonlinearity, generator, tyre) with its own command and road.
 
-Equations (Lagrange, docs/model.md "The whole car"): the body rows are
+Equations (Lagrange, docs/car.md "The whole car"): the body rows are
 diag(M, I_θ, I_φ)·q̈ = Σ_i J_iᵀ F_i with q = (z_c, θ, φ), J_i = (1, −x_i, y_i) and F_i the
 force corner i's strut puts on its body point, whose inertial part is the quarter car's
 first row without M_s·z̈_s.  Each corner's other two rows give z̈_us,i and z̈_d,i as affine
@@ -263,7 +263,7 @@ def body_modes(p: CarParams) -> Tuple[np.ndarray, np.ndarray]:
 
     K_J·v = λ·diag(M, I_θ, I_φ)·v with K_J = Σ J_iᵀJ_i: on four equal corners the car
     linearised at rest moves in body mode k as the quarter car whose sprung mass is 1/λ_k
-    (docs/model.md, "The whole car").
+    (docs/car.md, "The whole car").
     """
     j = np.array([[1.0, -xi, yi] for xi, yi in p.positions()])
     lam, vec = np.linalg.eig(np.linalg.solve(np.diag([p.M, p.I_theta, p.I_phi]), j.T @ j))

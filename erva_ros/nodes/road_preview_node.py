@@ -55,7 +55,7 @@ class RoadPreviewNode(LoopNode):
         self.map = None
         if self.p['source'] == 'map':
             # Imported only here: the map preview brings the road EKF, the vehicle loop
-            # and the CAN codec, ~40 % of this node's start-up (docs/live.md, Bring-up).
+            # and the CAN codec, ~40 % of this node's start-up (docs/live_figures.md, Bring-up).
             from erva_ros.core.road_loop import MapPreviewLoop
             self.map = MapPreviewLoop(self.p, self.report)
         self.pub_preview = self.publisher(JointTrajectory, topics.ROAD_PREVIEW)

@@ -6,7 +6,7 @@ interpreter's start and the imports count too); :func:`node_stages` adds what ea
 process reports of its own bring-up (``NodeReport.startup``: imported, initialised,
 constructed, configuring, configured, activated, in seconds since *its* process started, which
 `erva run` started at a known instant).  A benchmark, never a test's assertion
-(docs/live.md, "Bring-up").
+(docs/live_figures.md, "Bring-up").
 """
 
 import time

@@ -316,7 +316,7 @@ class DriveItem:
 class RoadMap:
     """A map (a file or a server, :mod:`~erva_ros.core.roadmap.location`): read it, add drives.
 
-    Adding is safe with many writers at once (the fleet case, docs/road.md):
+    Adding is safe with many writers at once (the fleet case, docs/fleet.md):
     :meth:`add_drives` registers each drive against a consistent snapshot of its section
     without holding any lock, then takes the map's write lock, re-registers only if a
     drive that overlaps the section was added since the snapshot, and adds the sums.  So
