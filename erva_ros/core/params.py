@@ -14,11 +14,12 @@ the key, the value and the allowed range.
 """
 
 from dataclasses import dataclass, fields, replace
-import os
-from typing import Any, Collection, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Collection, Dict, Optional
 
-import yaml
-
+# The params-file readers live in config; named here too, where their callers find them.
+from erva_ros.core.config import (load_params_yaml, node_sections,  # noqa: F401
+                                  read_ros_params, read_sections, shipped_config,
+                                  WILDCARD_SECTIONS)
 from erva_ros.core.specs import Number, ParamError, unknown_parameters
 
 
@@ -94,90 +95,8 @@ def validate_erva(values: Dict[str, Any], source: str = '') -> ERVAParams:
     return ERVAParams(**out)
 
 
-def load_params_yaml(path: str) -> Dict[str, Any]:
-    """Parse a ROS params file into its top-level mapping, or raise a one-line ParamError."""
-    if not os.path.isfile(path):
-        raise ParamError(f'parameter file {path!r} does not exist')
-    try:
-        with open(path, encoding='utf-8') as fh:
-            doc = yaml.safe_load(fh)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, 'problem_mark', None)
-        at = f' at line {mark.line + 1}' if mark is not None else ''
-        raise ParamError(f'{path}: not valid YAML{at}') from None
-    except UnicodeDecodeError as exc:
-        raise ParamError(f'{path}: not a UTF-8 text file (byte {exc.start}: {exc.reason})'
-                         ) from None
-    except OSError as exc:
-        raise ParamError(f'{path}: cannot be read ({exc.strerror or exc})') from None
-    if not isinstance(doc, dict):
-        raise ParamError(f'{path}: expected a mapping of node names to ros__parameters')
-    return doc
-
-
-#: Section keys rcl applies to every node.
-WILDCARD_SECTIONS = ('/**', '**')
-
-
-def node_sections(node: str) -> Tuple[str, ...]:
-    """Return the section keys rcl applies to ``node`` in any namespace, in merge order.
-
-    ``/**/name`` (and ``**/name``) match the node in any namespace (e.g. /erva/nmpc_node);
-    a bare ``name`` or ``/name`` is the node in the root namespace, read here all the same
-    (the offline tools have no namespace).
-    """
-    node = node.lstrip('/')
-    return (node, '/' + node, '**/' + node, '/**/' + node)
-
-
-def read_sections(path: str, nodes: Sequence[str] = (), wildcard: bool = True
-                  ) -> List[Tuple[str, Dict[str, Any]]]:
-    """Return (key, ros__parameters) of each section of a params file that applies.
-
-    The one reader of params-file sections: the wildcard sections (``/**``, ``**``;
-    unless ``wildcard`` is False), then each of ``nodes``' sections
-    (:func:`node_sections`), in that order -- later ones override earlier ones when
-    merged, as ``--params-file`` does.  A section without a ros__parameters mapping is a
-    one-line :class:`ParamError`.
-    """
-    doc = load_params_yaml(path)
-    keys: List[str] = list(WILDCARD_SECTIONS) if wildcard else []
-    for node in nodes:
-        keys += [k for k in node_sections(node) if k not in keys]
-    out = []
-    for key in keys:
-        sec = doc.get(key)
-        if sec is None:
-            continue
-        if not isinstance(sec, dict) or not isinstance(sec.get('ros__parameters'), dict):
-            raise ParamError(f'{path}: section {key!r} must contain a ros__parameters mapping')
-        out.append((key, sec['ros__parameters']))
-    return out
-
-
-def read_ros_params(path: str, node_name: Optional[str] = None, wildcard: bool = True,
-                    required: bool = True) -> Dict[str, Any]:
-    """Merge the ``ros__parameters`` of ``/**`` and ``node_name`` sections of a params file.
-
-    Node-specific values override the wildcard section, as ``--params-file`` does.
-    ``wildcard=False`` reads the node's sections only; ``required=False`` returns {}
-    where the file has none (else a one-line ParamError).
-    """
-    sections = read_sections(path, [node_name] if node_name else [], wildcard)
-    if required and not sections:
-        doc = load_params_yaml(path)
-        raise ParamError(
-            f'{path}: no ros__parameters for {node_name or "/**"} '
-            f'(sections present: {", ".join(map(str, doc)) or "none"})')
-    merged: Dict[str, Any] = {}
-    for _, params in sections:
-        merged.update(params)
-    return merged
-
-
 def default_params_file() -> str:
     """Path of the shipped paper parameter file (source tree or installed share dir)."""
-    from erva_ros.core.config import shipped_config
     return shipped_config('erva_paper.yaml', 'pass --params FILE')
 
 

@@ -42,7 +42,9 @@ road/alignment geometry_msgs/PointStamped        the map preview's position corr
 /clock         rosgraph_msgs/Clock               lock-step mode only
 """
 
-NAMESPACE = '/erva'
+from erva_ros.core.hil.topics import TOPIC_TYPES as HIL_TYPES
+from erva_ros.core.namespace import NAMESPACE
+
 #: The node name of `erva run`'s monitor (the time master waits for its readers).
 MONITOR_NODE = 'erva_run_monitor'
 #: Where each `erva run` claims its namespace (hidden, transient local: a session that
@@ -105,7 +107,6 @@ MAP_TOPIC_TYPES = {
 
 def type_of(name: str, namespace: str = NAMESPACE):
     """Return the ROS type name of a contract topic (relative or absolute name), or None."""
-    from erva_ros.core.hil.topics import TOPIC_TYPES as HIL_TYPES
     full = name if name.startswith('/') else f'{NAMESPACE}/{name}'
     if full in ROS_TOPIC_TYPES:
         return ROS_TOPIC_TYPES[full]

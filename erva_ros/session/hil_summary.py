@@ -21,7 +21,7 @@ import numpy as np
 
 from erva_ros.core import topics
 from erva_ros.core.reports import NodeReport
-from erva_ros.session.monitor_stats import PairedError
+from erva_ros.session.monitor_stats import PairedError, stats
 
 ECU = 'ecu_sim'
 ESTIMATOR = 'state_estimator_node'
@@ -85,7 +85,6 @@ def plant_equivalents(report: Reports) -> Dict[str, Any]:
     a frame acts when it arrives); with d > 0 also where each cycle's damping came from
     (the cycle's command, an earlier plan, passive), decided at t_k + d as in the plant.
     """
-    from erva_ros.session.monitor_figures import stats
     ecu = report(ECU)
     out: Dict[str, Any] = {'steps': _get(ecu, 'cycles'),
                            'rejected_damping_cmd': _get(report(BRIDGE_COMMAND),
@@ -107,7 +106,6 @@ def hil_block(report: Reports, error: PairedError,
     ``timeouts_before_end`` counts the bridge's command status turning ERROR before the
     ECU's `finished` report arrived (None: it did not finish).
     """
-    from erva_ros.session.monitor_figures import stats
     cmd, bus, link = report(BRIDGE_COMMAND), report(BRIDGE_BUS), report(BRIDGE_ECU)
     ecu, est = report(ECU), report(ESTIMATOR)
     bridge: Dict[str, Any] = {f'dropped_{k}': _sum(bus, names) for k, names in DROPS.items()}
@@ -205,7 +203,6 @@ def from_sample_instant(summary: Dict[str, Any], error: PairedError,
     pair, or pairs at different offsets): those figures are not shown.
     ``summary['hil']['stamp_offset_ms']`` gives the offset.
     """
-    from erva_ros.session.monitor_figures import stats
     hil = summary['hil']
     if not road_estimated:
         offset_ms: Optional[float] = 0.0

@@ -13,8 +13,8 @@ from typing import Any, Dict, Optional
 
 from erva_ros.core.levels import LEVEL_NAMES
 from erva_ros.core.metrics import comfort_power
-from erva_ros.core.reports import Timing
 from erva_ros.session import hil_summary
+from erva_ros.session.monitor_stats import stats
 
 #: Status changes kept in the summary (the first ones; a flapping node could make many).
 MAX_EVENTS = 200
@@ -32,14 +32,6 @@ PLANT_COUNTERS = ('steps', 'u_from_command', 'u_from_plan', 'u_from_passive', 'l
                   'rejected_damping_cmd', 'command_delay_ms', 'arrival_p999_ms')
 PLANT_TIMINGS = ('loop_latency_ms', 'cmd_jitter_ms', 'road_latency_ms', 'step_ms',
                  'command_arrival_ms')
-
-
-def stats(timing: Optional[Timing]) -> Dict[str, Any]:
-    """Return p50/p99/max (ms, NaN if unknown) and samples (None if unknown) of a Timing."""
-    if timing is None:
-        return {'p50': float('nan'), 'p99': float('nan'), 'max': float('nan'),
-                'samples': None}
-    return timing.as_dict()
 
 
 def _fields(report, names) -> Dict[str, Optional[int]]:

@@ -26,6 +26,7 @@ from typing import Any, Dict, Optional
 import numpy as np
 
 from erva_ros.core.loop.timing import DurationStats, PeriodStats
+from erva_ros.core.reports import Timing
 
 #: Recent samples kept per topic to pair a sample's messages across topics: ~20 s at
 #: 50 Hz, far more than topics drift apart in the monitor's queues (depth 1000 each).
@@ -410,6 +411,14 @@ class SessionStreams:
                 'sprung_accel': tr.sprung_accel[:n].copy(), 'power': tr.power[:n].copy()}
 
 
-__all__ = ['WINDOW', 'MAX_PENDING', 'TRAJECTORY_CAP', 'Recent', 'Worst', 'Gaps', 'Span',
+def stats(timing: Optional[Timing]) -> Dict[str, Any]:
+    """Return p50/p99/max (ms, NaN if unknown) and samples (None if unknown) of a Timing."""
+    if timing is None:
+        return {'p50': float('nan'), 'p99': float('nan'), 'max': float('nan'),
+                'samples': None}
+    return timing.as_dict()
+
+
+__all__ = ['stats', 'WINDOW', 'MAX_PENDING', 'TRAJECTORY_CAP', 'Recent', 'Worst', 'Gaps', 'Span',
            'SumSquares', 'paired', 'PairedError', 'DERIVED', 'with_derived', 'Commands',
            'Trajectory', 'SessionStreams']

@@ -35,7 +35,7 @@ Published by ``erva ecu-sim`` (simulation only, ground truth): ``sprung_accel`` 
 ``state`` itself comes from ``state_estimator_node`` in HIL mode.
 """
 
-from erva_ros.core.topics import NAMESPACE
+from erva_ros.core.namespace import NAMESPACE
 
 ECU_SPRUNG_ACCEL = 'ecu/sprung_accel'
 ECU_SUSPENSION = 'ecu/suspension'
