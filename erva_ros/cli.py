@@ -23,7 +23,7 @@ from typing import List, Optional
 
 from erva_ros import __version__
 from erva_ros.core.errors import CLIError
-from erva_ros.core.params import ParamError
+from erva_ros.core.model.params import ParamError
 
 # Order in `erva --help`: the main job first, then analysis, then tools.
 ORDER = ['run', 'sim', 'fr', 'table', 'pareto', 'bench', 'replay', 'report', 'bag', 'ecu-sim']

@@ -22,9 +22,9 @@ Importing this file needs no ROS (only erva_ros's core): the launch imports are 
 
 import os
 
-from erva_ros.core.node_params import launch_arguments, LOOP_NODES
-from erva_ros.session.run_config import ACTIVATION_ORDER
-from erva_ros.core.params import read_ros_params
+from erva_ros.core.settings.schemas import launch_arguments, LOOP_NODES
+from erva_ros.session.run.run_config import ACTIVATION_ORDER
+from erva_ros.core.model.params import read_ros_params
 from erva_ros.core.topics import NAMESPACE
 
 #: Executables started (console scripts of setup.py), in start order.
@@ -32,7 +32,7 @@ NODES = LOOP_NODES
 #: Parameter files of the package's config/ directory.
 CONFIG_FILES = ('erva_paper.yaml', 'nmpc.yaml', 'live.yaml')
 #: Launch arguments: (name, default, python type, description), from the nodes' schemas
-#: (erva_ros/core/node_params.py; defaults: the shipped config files).
+#: (erva_ros/core/settings/schemas.py; defaults: the shipped config files).
 ARGUMENTS = (('namespace', NAMESPACE, str, 'namespace of the nodes and topics'),
              *launch_arguments())
 

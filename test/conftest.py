@@ -144,7 +144,7 @@ def compiled_functions():
 
 def shipped_delay_s() -> float:
     """Return the shipped command delay d (config/live.yaml), which `erva run` applies."""
-    from erva_ros.core.node_params import LIVE
+    from erva_ros.core.settings.schemas import LIVE
     return float(LIVE.defaults()['command_delay_s'])
 
 

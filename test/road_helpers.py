@@ -16,10 +16,10 @@ from erva_ros.core import topics as contract
 from erva_ros.core.bag.writer import BagWriter
 from erva_ros.core.controllers import ControllerSettings, make_controller
 from erva_ros.core.hil import topics as hil_topics
-from erva_ros.core.model import make_model
-from erva_ros.core.params import paper_params
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import paper_params
 from erva_ros.core.roadmap.vehicle import OdometryError, Route, simulate_vehicle
-from erva_ros.core.roads import make_road
+from erva_ros.core.road.profiles import make_road
 
 from conftest import REPO, ros_env
 

@@ -18,7 +18,7 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from erva_ros.core import contract, topics
-from erva_ros.core.model import STATE_NAMES
+from erva_ros.core.model.quarter_car import STATE_NAMES
 
 NS = 1_000_000_000
 #: Tolerance on time_from_start of trajectory points (ns): a point off the Ts grid is rejected.

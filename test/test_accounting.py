@@ -1,11 +1,11 @@
-"""Message accounting of a session (erva_ros/session/accounting.py): start gate and bag check."""
+"""Message accounting of a session (session/run/accounting.py): start gate and bag check."""
 
 import pytest
 
 from erva_ros.core import topics
 from erva_ros.core.reports import NMPCReport, NodeReport, PlantReport, RecorderReport
 from erva_ros.ros import qos as ros_qos
-from erva_ros.session import accounting
+from erva_ros.session.run import accounting
 from erva_ros.core.wire import header_stamp_ns
 from erva_ros.core.loop.validation import MessageRejected, StampWindow
 
@@ -45,9 +45,9 @@ def test_unmatched_names_what_the_start_waits_for():
 def test_extra_readers_count_on_the_time_masters_topics_only():
     # erva run --extra-readers N: the user's readers add to what the time master's
     # writers must match, so one of them cannot stand in for a loop reader.
-    from erva_ros.session.start_gate import StartGate
+    from erva_ros.session.run.start_gate import StartGate
 
-    from erva_ros.session.observations import Observations
+    from erva_ros.session.run.observations import Observations
 
     class Monitor:
         gate = (topics.STATE,)

@@ -269,10 +269,10 @@ def test_report_identify_and_map_read_a_split_bag_as_the_whole(tmp_path, repo_ro
 
     import road_helpers as rh
 
-    from erva_ros.core.identify_bag import load_recording
+    from erva_ros.core.identify.bag import load_recording
     from erva_ros.core.roadmap.bag_drive import read_bag_drive
-    from erva_ros.session.bag_report import compute_report, load_session
-    from erva_ros.session.report import jsonable
+    from erva_ros.session.bag.bag_report import compute_report, load_session
+    from erva_ros.session.run.report import jsonable
 
     sample = os.path.join(repo_root, 'bags', 'sample')        # a full-state session, 4 s
     split = _resplit(sample, str(tmp_path / 'sample'), 0.5)

@@ -144,7 +144,7 @@ def test_missing_by_sequence_tells_only_where_one_publisher_numbers_the_topic():
 
 def test_record_chooses_topics_as_ros2_bag_record():
     from erva_ros.core.errors import CLIError
-    from erva_ros.session.bag_record import choose_topics, RecordOptions
+    from erva_ros.session.bag.bag_record import choose_topics, RecordOptions
     graph = {'/erva/state': 'sensor_msgs/msg/JointState', '/rosout': 'rcl_interfaces/msg/Log',
              '/erva/_hidden': 'std_msgs/msg/String', '/other/road': 'std_msgs/msg/String'}
     default = ['/erva/state', '/erva/damping_cmd']

@@ -263,7 +263,7 @@ def test_the_recorded_command_has_no_machine_paths():
     # A bag travels: its session record names the command, not where this checkout lives.
     import erva_ros
     from erva_ros.core.bag.session import command_line
-    module = os.path.join(os.path.dirname(erva_ros.__file__), 'session', 'offline_bag.py')
+    module = os.path.join(os.path.dirname(erva_ros.__file__), 'session', 'bag', 'offline_bag.py')
     assert command_line([module, 'bags/x', '--seed', '1']) == \
-        'python -m erva_ros.session.offline_bag bags/x --seed 1'
+        'python -m erva_ros.session.bag.offline_bag bags/x --seed 1'
     assert command_line(['/opt/venv/bin/erva', 'run']) == 'erva run'

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from conftest import REPO, ros_env, run_erva
-from erva_ros.core import codegen
-from erva_ros.core.model import make_model
-from erva_ros.core.params import paper_params
+from erva_ros.core.model import codegen
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import paper_params
 
 MODEL = make_model(paper_params(), 'erva')
 #: -march names of which at least one is beyond any CPU: knl has AVX512ER/PF (only

@@ -19,8 +19,8 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E
 
 from erva_ros.core import contract as c  # noqa: E402
 from erva_ros.core.loop.validation import MessageRejected  # noqa: E402
-from erva_ros.core.model import make_model  # noqa: E402
-from erva_ros.core.params import paper_params  # noqa: E402
+from erva_ros.core.model.quarter_car import make_model  # noqa: E402
+from erva_ros.core.model.params import paper_params  # noqa: E402
 from erva_ros.core.topics import STATE_JOINTS  # noqa: E402
 from erva_ros.core.wire import CdrError, MAX_ELEMENTS  # noqa: E402
 from erva_ros.ros.bag_messages import encoded_size  # noqa: E402

@@ -9,8 +9,8 @@ import pytest
 from erva_ros.core.controllers import (CONTROLLER_NAMES, ControllerSettings,
                                        load_controller_settings, make_controller, STATUSES)
 from erva_ros.core.controllers import settings as settings_mod
-from erva_ros.core.model import make_model
-from erva_ros.core.params import paper_params, ParamError
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import paper_params, ParamError
 
 P = paper_params()
 M = make_model(P)

@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from erva_ros.core.closed_loop import evaluation_objective, simulate_closed_loop
+from erva_ros.core.studies.closed_loop import evaluation_objective, simulate_closed_loop
 from erva_ros.core.controllers import ControllerSettings, make_controller
 from erva_ros.core.controllers.clairvoyant import (clairvoyant_bound, plant_run, polish,
                                                    ReplayController)
-from erva_ros.core.model import make_model
-from erva_ros.core.params import paper_params
-from erva_ros.core.roads import make_road
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import paper_params
+from erva_ros.core.road.profiles import make_road
 
 P = paper_params()
 M = make_model(P)

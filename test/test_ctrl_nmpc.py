@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 
-from erva_ros.core.closed_loop import simulate_closed_loop
+from erva_ros.core.studies.closed_loop import simulate_closed_loop
 from erva_ros.core.controllers import ControllerSettings, make_controller
 from erva_ros.core.controllers.ocp import build_ocp, OCPSpec, stable_rollout_substep, U_SCALE
 from erva_ros.core.controllers.sqp import build_rti, plan_value_function
-from erva_ros.core.model import make_model
-from erva_ros.core.params import paper_params
-from erva_ros.core.plant import PlantSimulator
-from erva_ros.core.roads import make_road
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import paper_params
+from erva_ros.core.model.plant import PlantSimulator
+from erva_ros.core.road.profiles import make_road
 
 P = paper_params()
 # Quality tests: no real-time budget, so a loaded CI machine cannot change results.
@@ -189,7 +189,7 @@ def test_no_preview_holds_the_measured_road_height():
 def test_compiled_function_matches_and_is_cached(tmp_path, monkeypatch):
     import shutil
     import casadi as ca
-    from erva_ros.core.codegen import compile_functions
+    from erva_ros.core.model.codegen import compile_functions
     if not (shutil.which('cc') or shutil.which('gcc')):
         pytest.skip('no C compiler')
     monkeypatch.setenv('ERVA_CACHE_DIR', str(tmp_path))
@@ -208,7 +208,7 @@ def test_compiled_function_matches_and_is_cached(tmp_path, monkeypatch):
 
 
 def test_codegen_auto_follows_the_c_compiler(monkeypatch, tmp_path):
-    from erva_ros.core.codegen import use_codegen
+    from erva_ros.core.model.codegen import use_codegen
     monkeypatch.delenv('CC', raising=False)
     monkeypatch.setenv('PATH', '')
     monkeypatch.setenv('ERVA_CACHE_DIR', str(tmp_path))   # no libraries built elsewhere

@@ -8,13 +8,14 @@ and output file names never count):
   ``core/``, ``ros/``, ``nodes/``, ``session/``, ``commands/``, ``config/``, ``docs/``,
   ``test/``, ``launch/``, ``bags/``, ``.ci/`` -- found relative to the repository or to
   erva_ros/.  It may end in ``/`` (a folder), hold a ``*`` (a glob that must match), name
-  a module without its ``.py``, or a module's attribute (``session/recording.record_topics``:
+  a module without its ``.py``, or a module's attribute (``session/bag/recording.record_topics``:
   the module exists and names ``record_topics``).  Placeholders (``<...>``) are skipped, and
   so are sessions below bags/ other than the tracked ``bags/sample`` and ``bags/README.md``
   (the rest of bags/ is ignored by git: what ``erva run`` writes);
 * any other relative ``.py`` path (``hil/settings.py``), found relative to the
   repository, erva_ros/ or erva_ros/core/;
-* a dotted module (``erva_ros.core.model``, ``erva_ros.core.controllers.make_controller``):
+* a dotted module (``erva_ros.core.model.quarter_car``,
+  ``erva_ros.core.controllers.make_controller``):
   the modules exist, and a first attribute is named in its module (a package: in its
   ``__init__.py``);
 * a test file ``test_*.py``, optionally with ``::name`` (a def or class in it), and in the
@@ -221,14 +222,14 @@ def test_every_named_path_exists():
 
 def test_the_check_finds_what_is_missing():
     # Each kind of name, once present and once missing: the check must tell them apart.
-    good = ('`erva_ros/core/model.py`, core/loop/, ros/runtime, config/*.yaml, '
-            'session/recording.record_topics, test/test_model.py::test_plant_integrator_'
+    good = ('`erva_ros/core/model/quarter_car.py`, core/loop/, ros/runtime, config/*.yaml, '
+            'session/bag/recording.record_topics, test/test_model.py::test_plant_integrator_'
             'converges, erva_ros.core.controllers.make_controller, hil/settings.py, '
             'test_rings.py, README.md, bags/<session>, bags/20261122T101500Z_paper, '
             '`test_flake8`, https://example.org/live/x.py, docs/model.md, `warmup.py`.')
     assert problems([('docs/x.md', 1, good)]) == ([], set())
     bad = ['erva_ros/core/modle.py', 'core/loops/', 'ros/runtimes', 'config/*.yml',
-           'session/recording.record_topic', 'test/test_model.py::test_nothing',
+           'session/bag/recording.record_topic', 'test/test_model.py::test_nothing',
            'erva_ros.core.controllers.make_controler', 'live/realtime.py', 'test_ring.py',
            'NOTE.md', 'bags/sample/sampel_0.mcap', '`test_flake9`', '`cdr.py`']
     for name in bad:

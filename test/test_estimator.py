@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 
 from erva_ros.core.controllers import ControllerSettings, make_controller
-from erva_ros.core.estimator import EstimatorNoise, ExtendedKalmanFilter, validate_noise
+from erva_ros.core.model.estimator import EstimatorNoise, ExtendedKalmanFilter, validate_noise
 from erva_ros.core.hil.ecu_sim import SensorNoise
 from erva_ros.core.hil.evaluation import evaluate_estimator, QUANTUM
-from erva_ros.core.model import make_model
-from erva_ros.core.params import paper_params, ParamError
-from erva_ros.core.plant import PlantSimulator
-from erva_ros.core.roads import make_road
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import paper_params, ParamError
+from erva_ros.core.model.plant import PlantSimulator
+from erva_ros.core.road.profiles import make_road
 
 P = paper_params()
 M = make_model(P)

@@ -331,7 +331,7 @@ def test_replay_serves_the_bag_with_its_bytes_and_times():
     assert stats['foxglove']['forwarded_total'] == stats['total'] == total
 
 
-# -- the benchmark's headless viewer (erva_ros.session.foxglove_viewer) -------------------------
+# -- the benchmark's headless viewer (erva_ros.session.bench.foxglove_viewer) -----------------
 def test_headless_viewer_answers_binary_pings_and_counts_every_message():
     """The viewer of `erva bench --live --foxglove-ab`, run as the benchmark runs it.
 
@@ -363,7 +363,7 @@ def test_headless_viewer_answers_binary_pings_and_counts_every_message():
         port = server.socket.getsockname()[1]
         thread = threading.Thread(target=server.serve_forever, daemon=True)
         thread.start()
-        proc = subprocess.run([sys.executable, '-m', 'erva_ros.session.foxglove_viewer',
+        proc = subprocess.run([sys.executable, '-m', 'erva_ros.session.bench.foxglove_viewer',
                                '--port', str(port)], env=ros_env(), cwd=REPO,
                               capture_output=True, text=True, timeout=120)
         server.shutdown()
@@ -380,7 +380,7 @@ def test_headless_viewer_without_a_server_is_one_line_exit_2():
     with socket.socket() as free:
         free.bind(('127.0.0.1', 0))
         port = free.getsockname()[1]     # bound, not listening: refused
-    proc = subprocess.run([sys.executable, '-m', 'erva_ros.session.foxglove_viewer',
+    proc = subprocess.run([sys.executable, '-m', 'erva_ros.session.bench.foxglove_viewer',
                            '--port', str(port), '--connect-timeout', '0.5'],
                           env=ros_env(), cwd=REPO, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2, proc.stderr

@@ -6,9 +6,9 @@ import os
 import numpy as np
 import pytest
 
-from erva_ros.core import fr
-from erva_ros.core.model import make_model
-from erva_ros.core.params import paper_params
+from erva_ros.core.studies import fr
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import paper_params
 
 P = paper_params()
 M = make_model(P)

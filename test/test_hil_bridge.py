@@ -21,8 +21,8 @@ from erva_ros.core.hil.codec import (Chassis, Command, CommandMode, E2EReceiver,
 from erva_ros.core.hil.ecu_sim import EcuSimConfig, EcuSimCore, run_realtime, SensorNoise
 from erva_ros.core.hil.hardware import GeneratorHardware
 from erva_ros.core.hil.transport import free_udp_ports, open_bus
-from erva_ros.core.model import make_model
-from erva_ros.core.params import paper_params
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import paper_params
 
 _channels = itertools.count()
 HW = GeneratorHardware()
@@ -644,7 +644,7 @@ def test_ecu_integrated_ahead_equals_integrated_at_the_sample(codec):
 
 def test_known_road_is_the_road_node_grid_and_counts_mismatches():
     from erva_ros.core.hil.road_buffer import KnownRoad
-    from erva_ros.core.roads import make_road
+    from erva_ros.core.road.profiles import make_road
 
     road = make_road('paper', 4.0, ts=0.02, seed=3)
     known = KnownRoad(road.height, road.speed_mps, 0.02)

@@ -9,7 +9,7 @@ from erva_ros.core.hil.codec import (Chassis, Command, CommandMode, E2EReceiver,
 from erva_ros.core.hil.e2e import (COUNTER_MODULO, crc8_sae_j1850, E2EChecker, E2ESender,
                                    E2EStatus, e2e_crc)
 from erva_ros.core.hil.hardware import GeneratorHardware, validate_hardware
-from erva_ros.core.params import ParamError
+from erva_ros.core.model.params import ParamError
 
 
 @pytest.fixture(scope='module')

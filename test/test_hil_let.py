@@ -24,9 +24,9 @@ from erva_ros.core.hil.ecu_sim import EcuSimConfig, EcuSimCore, SensorNoise
 from erva_ros.core.hil.hardware import GeneratorHardware
 from erva_ros.core.hil.transport import open_bus
 from erva_ros.core.loop.command_hold import CommandHold
-from erva_ros.core.model import make_model
-from erva_ros.core.params import paper_params
-from erva_ros.core.plant import PlantSimulator
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import paper_params
+from erva_ros.core.model.plant import PlantSimulator
 
 HW = GeneratorHardware()
 C_E0 = paper_params().c_e0
@@ -276,7 +276,7 @@ def test_bridge_and_ecu_follow_the_plants_late_rule_cycle_by_cycle(codec):
 
 
 def test_the_hil_bench_prints_arrival_p999_late_commands_and_actuation_jitter():
-    from erva_ros.session.benchmark import bench_result, format_bench
+    from erva_ros.session.bench.benchmark import bench_result, format_bench
 
     def t(p50, p99, mx, n):
         return {'p50': p50, 'p99': p99, 'max': mx, 'samples': n}
@@ -301,7 +301,7 @@ def test_the_hil_bench_prints_arrival_p999_late_commands_and_actuation_jitter():
 
 
 def test_the_hil_bench_at_d_0_has_no_late_rule_and_no_actuation_target():
-    from erva_ros.session.benchmark import bench_result, format_bench
+    from erva_ros.session.bench.benchmark import bench_result, format_bench
 
     arrival = {'p50': 5.4, 'p99': 7.9, 'max': 12.8, 'samples': 2998}
     act = {'command_delay_ms': 0.0, 'late': 0, 'late_pct': 0.0, 'arrival_ms': arrival,

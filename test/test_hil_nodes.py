@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from conftest import REPO, ros_env
-from erva_ros.core.params import paper_params
+from erva_ros.core.model.params import paper_params
 from erva_ros.ros import qos as ros_qos
 
 pytestmark = pytest.mark.ros
@@ -44,7 +44,7 @@ class Driver:
 
         from erva_ros.core import topics
         from erva_ros.core.hil import topics as hil_topics
-        from erva_ros.core.roads import make_road
+        from erva_ros.core.road.profiles import make_road
         from erva_ros.ros.rt_subscription import RealtimeSubscription
 
         self.rclpy = rclpy
@@ -193,7 +193,7 @@ def _stop(procs):
 
 
 def test_hil_loop_estimates_the_state_and_goes_safe_when_the_nmpc_stops(tmp_path):
-    from erva_ros.session.hil_processes import hil_process_specs
+    from erva_ros.session.hil.hil_processes import hil_process_specs
 
     # The road comes from this process as it arrives (not a session road known ahead), on
     # its grid of sample instants; the ECU samples on that grid and the estimator stamps
@@ -308,7 +308,7 @@ def test_hil_loop_estimates_the_state_and_goes_safe_when_the_nmpc_stops(tmp_path
 
 def test_estimator_takes_one_message_per_cycle_and_rejects_bad_ones(tmp_path):
     from erva_ros.core.hil import topics as hil_topics
-    from erva_ros.session.hil_processes import hil_process_specs
+    from erva_ros.session.hil.hil_processes import hil_process_specs
     from ros_msgs import ns_to_time
     from sensor_msgs.msg import JointState
 
@@ -400,7 +400,7 @@ def test_on_the_road_grid_no_state_goes_out_before_the_first_road_sample(tmp_pat
     # Such a cycle waits Ts/4 for the road, then is counted (before_road) and not
     # published; once the road runs, states are on its grid.
     from erva_ros.core.hil import topics as hil_topics
-    from erva_ros.session.hil_processes import hil_process_specs
+    from erva_ros.session.hil.hil_processes import hil_process_specs
     from ros_msgs import ns_to_time
     from sensor_msgs.msg import JointState
 

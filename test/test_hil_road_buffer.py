@@ -5,7 +5,7 @@ import math
 import pytest
 
 from erva_ros.core.hil.road_buffer import KnownRoad, RoadBuffer
-from erva_ros.core.roads import make_road
+from erva_ros.core.road.profiles import make_road
 
 TS_NS = 20_000_000
 ORIGIN = 1_700_000_000_000_000_000          # epoch ns of sample 0

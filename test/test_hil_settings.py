@@ -2,11 +2,11 @@
 
 import pytest
 
-from erva_ros.core.estimator import EstimatorNoise, NOISE_SPECS
+from erva_ros.core.model.estimator import EstimatorNoise, NOISE_SPECS
 from erva_ros.core.hil import settings as hs
 from erva_ros.core.hil.hardware import GeneratorHardware, HARDWARE_SPECS
-from erva_ros.core.params import ParamError
-from erva_ros.core.specs import Integer, Text
+from erva_ros.core.model.params import ParamError
+from erva_ros.core.settings.specs import Integer, Text
 
 TABLES = {
     'bridge': (hs.BRIDGE_SPECS, hs.BRIDGE_DEFAULTS, hs.load_bridge_section),

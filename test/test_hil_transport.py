@@ -9,7 +9,7 @@ import time
 import can
 import pytest
 
-from erva_ros.session.hil_processes import hil_process_specs
+from erva_ros.session.hil.hil_processes import hil_process_specs
 from erva_ros.core.hil.transport import (free_udp_ports, LoopbackUdpBus, open_bus, parse_spec,
                                          reverse_udp_spec)
 

@@ -11,7 +11,7 @@ from rclpy.node import Node
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 
-from erva_ros.core.codegen import BufferedCall
+from erva_ros.core.model.codegen import BufferedCall
 from erva_ros.ros.rt_subscription import RealtimeSubscription
 from erva_ros.ros.qos import control_qos
 

@@ -1,6 +1,6 @@
 """Identification: the excite controller, `erva identify` on simulated HIL and full-state bags.
 
-The sessions are simulated (erva_ros/core/identify_study.py): a plant whose parameters are
+The sessions are simulated (erva_ros/core/studies/identify_study.py): a plant whose parameters are
 the paper's perturbed by up to ±20 %, the excite controller through a 6 ms actuator delay,
 the ECU's three sensors with the shipped noise and the DBC's quantisation, written as an
 HIL bag (ecu/measurements, road/height) and read back by `erva identify`.
@@ -17,11 +17,11 @@ from erva_ros.core.bag.writer import BagWriter
 from erva_ros.core.controllers import ControllerSettings, make_controller
 from erva_ros.core.controllers.excite import PRBS_PERIOD
 from erva_ros.core.hil.ecu_sim import SensorNoise
-from erva_ros.core.identify_study import perturbed_params, simulate_session
-from erva_ros.core.model import make_model
-from erva_ros.core.params import load_erva_params, paper_params, ParamError
-from erva_ros.core.roads import make_road
-from erva_ros.core.identify_bag import load_recording, write_recording
+from erva_ros.core.studies.identify_study import perturbed_params, simulate_session
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import load_erva_params, paper_params, ParamError
+from erva_ros.core.road.profiles import make_road
+from erva_ros.core.identify.bag import load_recording, write_recording
 
 #: The plant of these tests: study seed 4242, plant 0 (not a seed of the docs' study).
 TRUTH = perturbed_params(4242, 0)
@@ -159,7 +159,7 @@ def test_bad_input_is_one_line_and_exit_2(hil_bag, tmp_path, capsys, repo_root):
 
 
 def test_a_full_state_session_identifies_and_says_what_it_cannot(tmp_path, capsys):
-    from erva_ros.session.offline_bag import run_and_record
+    from erva_ros.session.bag.offline_bag import run_and_record
     bag = tmp_path / 'full_state'
     truth = make_model(TRUTH)
     run_and_record(str(bag), truth, make_controller('excite', truth, EXCITE),

@@ -9,14 +9,14 @@ rule, core/loop/command_hold.py) and is counted.
 import numpy as np
 import pytest
 
-from erva_ros.core.closed_loop import simulate_closed_loop
+from erva_ros.core.studies.closed_loop import simulate_closed_loop
 from erva_ros.core.controllers import make_controller
 from erva_ros.core.controllers.settings import ControllerSettings
 from erva_ros.core.loop.plant_loop import PlantLoop
-from erva_ros.core.model import make_model
-from erva_ros.core.params import ERVAParams
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import ERVAParams
 from erva_ros.core.reports import PlantReport
-from erva_ros.core.roads import make_road
+from erva_ros.core.road.profiles import make_road
 
 TS, D, DURATION = 0.02, 0.006, 1.6
 TS_NS, D_NS = 20_000_000, 6_000_000

@@ -15,16 +15,16 @@ from erva_ros.core.loop.command_hold import CommandHold
 from erva_ros.core.contract import decode_command, decode_diagnostics
 from erva_ros.core.levels import ERROR
 from erva_ros.core.loop.status import StatusReporter
-from erva_ros.core.node_params import LIVE, NodeSchema
+from erva_ros.core.settings.schemas import LIVE, NodeSchema
 from erva_ros.core.reports import NodeReport, report_from_status
-from erva_ros.session.run_config import RunConfig
-from erva_ros.session.session_file import prepare_session, read_live_file, validate_live
+from erva_ros.session.run.run_config import RunConfig
+from erva_ros.session.run.session_file import prepare_session, read_live_file, validate_live
 from erva_ros.ros.parameters import declare_node_parameters, declare_schema
-from erva_ros.session.report import format_summary, jsonable
+from erva_ros.session.run.report import format_summary, jsonable
 from erva_ros.core.loop.scenario import build_road, load_road_file
 from erva_ros.core.loop.timing import next_grid_delay_ns, PeriodStats, SampleGrid
 from erva_ros.core.loop.validation import MessageRejected, Rejections
-from erva_ros.core.params import ParamError, PAPER_VALUES
+from erva_ros.core.model.params import ParamError, PAPER_VALUES
 
 from conftest import REPO
 
@@ -363,7 +363,7 @@ def test_duration_stats_are_exact_then_binned_for_a_long_session():
 
 
 def test_stale_session_dirs_of_dead_runs_go_but_a_failed_runs_stay(tmp_path):
-    from erva_ros.session.session_dirs import FAILED_NOTE, remove_stale_session_dirs
+    from erva_ros.session.run.session_dirs import FAILED_NOTE, remove_stale_session_dirs
     import subprocess
     dead = subprocess.Popen(['true'])
     dead.wait()                                    # a pid that no longer runs

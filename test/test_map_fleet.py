@@ -441,8 +441,8 @@ def test_the_cache_serves_when_the_server_is_gone_and_drives_upload_later(
 
 def test_the_preview_node_reads_only_a_local_file():
     """road_preview_node's map mode refuses a server URI: it would put the network in the loop."""
-    from erva_ros.core.params import ParamError
+    from erva_ros.core.model.params import ParamError
     from erva_ros.core.reports import RoadReport
-    from erva_ros.core.road_loop import MapPreviewLoop
+    from erva_ros.core.loop.road_loop import MapPreviewLoop
     with pytest.raises(ParamError, match='map_file: a local map file; a server map is fetched'):
         MapPreviewLoop({'map_file': f'postgresql://car:{SECRET}@maps/paper'}, RoadReport())

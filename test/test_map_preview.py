@@ -8,7 +8,7 @@ from erva_ros.core.roadmap.preview import MapPreview, MapPreviewSettings
 from erva_ros.core.roadmap.profile import highpass
 from erva_ros.core.roadmap.store import MapProfile
 from erva_ros.core.roadmap.vehicle import Route
-from erva_ros.core.roads import make_road
+from erva_ros.core.road.profiles import make_road
 
 import road_helpers as rh
 

@@ -5,7 +5,7 @@ import json
 import pytest
 
 from erva_ros.cli import main as erva
-from erva_ros.core.roadmap.study import StudyConfig, Variant, variants
+from erva_ros.core.studies.map_study import StudyConfig, Variant, variants
 
 
 def test_variants_cover_the_grid_and_the_chain():

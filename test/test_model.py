@@ -4,8 +4,8 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from erva_ros.core.model import erva_terms, linearize, make_model, rk4_stable_substeps
-from erva_ros.core.params import paper_params
+from erva_ros.core.model.quarter_car import erva_terms, linearize, make_model, rk4_stable_substeps
+from erva_ros.core.model.params import paper_params
 
 P = paper_params()
 M = make_model(P)
@@ -164,7 +164,7 @@ def test_benchmark_matches_its_equations():
 
 
 def test_plant_simulator_matches_model_and_integrates_energy():
-    from erva_ros.core.plant import PlantSimulator
+    from erva_ros.core.model.plant import PlantSimulator
     plant = PlantSimulator(M, ts=0.02)
     assert plant.substeps == 40
     dt = 0.02
@@ -189,7 +189,7 @@ def test_compiled_plant_step_equals_the_casadi_vm_one():
     import shutil
     if not (shutil.which('cc') or shutil.which('gcc')):
         pytest.skip('no C compiler')
-    from erva_ros.core.plant import PlantSimulator
+    from erva_ros.core.model.plant import PlantSimulator
     compiled, vm = PlantSimulator(M, codegen='on'), PlantSimulator(M, codegen='off')
     assert compiled._step.fn.name() == vm._step.fn.name()
     assert compiled._step.fn.class_name() == 'External' != vm._step.fn.class_name()

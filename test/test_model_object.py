@@ -7,24 +7,24 @@ import re
 
 import pytest
 
-from erva_ros.core.closed_loop import simulate_closed_loop
+from erva_ros.core.studies.closed_loop import simulate_closed_loop
 from erva_ros.core.controllers import make_controller
 from erva_ros.core.controllers.clairvoyant import clairvoyant_bound, plant_run
 from erva_ros.core.controllers.nmpc import NMPCController
-from erva_ros.core.estimator import ExtendedKalmanFilter
+from erva_ros.core.model.estimator import ExtendedKalmanFilter
 from erva_ros.core.hil.ecu_sim import EcuSimCore
 from erva_ros.core.hil.evaluation import evaluate_estimator
-from erva_ros.core.identify import identify
+from erva_ros.core.identify.fit import identify
 from erva_ros.core.loop.plant_loop import PlantLoop
-from erva_ros.core.model import make_model, MODEL_KINDS, QuarterCarModel
-from erva_ros.core.params import paper_params
-from erva_ros.core.plant import PlantSimulator
-from erva_ros.core.road_estimator import RoadEKF
+from erva_ros.core.model.quarter_car import make_model, MODEL_KINDS, QuarterCarModel
+from erva_ros.core.model.params import paper_params
+from erva_ros.core.model.plant import PlantSimulator
+from erva_ros.core.model.road_estimator import RoadEKF
 from erva_ros.core.roadmap.drive import estimate_drive
 from erva_ros.core.roadmap.vehicle import simulate_vehicle
 
 ROOT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), 'erva_ros')
-FACTORY = os.path.join('core', 'model.py')
+FACTORY = os.path.join('core', 'model', 'quarter_car.py')
 #: The model's users: each takes the model object (named ``model``, or ``prior_model``),
 #: never parameters and a model name.
 USERS = (PlantSimulator, ExtendedKalmanFilter, RoadEKF, NMPCController, make_controller,

@@ -17,8 +17,8 @@ from erva_ros.core import topics
 from erva_ros.core.levels import OK, WARN
 from erva_ros.core.reports import NMPCReport, PlantReport, RoadReport, Timing
 import ros_msgs as msgs
-from erva_ros.session import monitor_figures
-from erva_ros.session.observations import Observations
+from erva_ros.session.run import monitor_figures
+from erva_ros.session.run.observations import Observations
 
 TS = 0.02
 TS_NS = 20_000_000

@@ -1,7 +1,7 @@
 """The session monitor's streaming figures: those of all the messages, in fixed memory.
 
-An Observations store (session/observations.py) folds each message into
-session/monitor_stats.py as it arrives.  A synthetic HIL session -- foreign, repeated and
+An Observations store (session/run/observations.py) folds each message into
+session/run/monitor_stats.py as it arrives.  A synthetic HIL session -- foreign, repeated and
 out-of-order stamps, a malformed message, commands before their state, an outage, a
 stalled road, the ECU's truth -- is fed to it (rclpy's serialisation), and every figure is
 compared with a small batch computation over the whole list of messages, here.  Then the
@@ -22,9 +22,9 @@ from erva_ros.core import topics
 from erva_ros.core.hil.topics import TRUE_STATE
 from erva_ros.core.metrics import percentiles_ms
 from erva_ros.core.wire import header_stamp_ns
-from erva_ros.session import verdict
-from erva_ros.session.monitor_stats import MAX_PENDING
-from erva_ros.session.observations import Observations
+from erva_ros.session.run import verdict
+from erva_ros.session.run.monitor_stats import MAX_PENDING
+from erva_ros.session.run.observations import Observations
 import ros_msgs as msgs
 
 TS = 0.02
@@ -298,7 +298,7 @@ def test_estimates_on_their_own_grid_pair_with_the_truth_of_their_cycle():
     # quiet machine, more on a busy one).  The error is still over every cycle, the same,
     # and the offset is measured: in the window the estimator places a cycle on its grid
     # with, [-Ts/4, 3Ts/4) (EstimatorLoop.stamp).
-    from erva_ros.session.monitor_stats import SessionStreams
+    from erva_ros.session.run.monitor_stats import SessionStreams
     rng = np.random.default_rng(3)
     truth = rng.normal(size=(60, 6))
     est = truth + rng.normal(scale=0.01, size=truth.shape)
@@ -334,8 +334,8 @@ def test_estimates_on_their_own_grid_pair_with_the_truth_of_their_cycle():
 def test_figures_timed_from_the_states_stamp_run_from_the_ecus_instant():
     # An ECU off the estimator's grid: its instants 3 ms before the stamps.  What was timed
     # from the stamp is shifted by the offset the pairs measure; the ECU's own figures not.
-    from erva_ros.session import hil_summary
-    from erva_ros.session.monitor_stats import PairedError
+    from erva_ros.session.hil import hil_summary
+    from erva_ros.session.run.monitor_stats import PairedError
 
     def summary():
         t = {'p50': 1.0, 'p99': 2.0, 'max': 3.0, 'samples': 10}

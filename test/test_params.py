@@ -3,7 +3,7 @@
 import pytest
 import yaml
 
-from erva_ros.core.params import load_erva_params, PAPER_VALUES, ParamError
+from erva_ros.core.model.params import load_erva_params, PAPER_VALUES, ParamError
 
 
 def write(tmp_path, body):

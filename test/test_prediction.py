@@ -12,9 +12,9 @@ import pytest
 from erva_ros.core import contract, topics
 from erva_ros.core.loop.prediction import (PlanPredictor, prediction_errors,
                                            prediction_joint_names, prediction_steps, Predictor)
-from erva_ros.core.model import make_model
-from erva_ros.core.params import load_erva_params
-from erva_ros.core.plant import PlantSimulator
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import load_erva_params
+from erva_ros.core.model.plant import PlantSimulator
 
 TS, N = 0.02, 10
 

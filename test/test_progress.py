@@ -144,7 +144,8 @@ def test_bench_progress_per_stage_and_the_solve_time_cdf(erva, tmp_path):
         'erva bench: error: --out writes the offline solve-time CDF; it cannot go with --live']
 
 
-@pytest.mark.parametrize('module', ['erva_ros.core.plots', 'erva_ros.core.plots_closed_loop',
+@pytest.mark.parametrize('module', ['erva_ros.core.plots.figures',
+                                    'erva_ros.core.plots.closed_loop',
                                     'erva_ros.core.bag.report_plots'])
 def test_figures_leave_the_users_matplotlib_backend_alone(module, tmp_path):
     """A notebook's backend stays; figures are still written, without pyplot."""
@@ -152,7 +153,7 @@ def test_figures_leave_the_users_matplotlib_backend_alone(module, tmp_path):
 import sys, matplotlib
 matplotlib.use('svg')
 import {module}
-from erva_ros.core.plots import solve_time_cdf_figure
+from erva_ros.core.plots.figures import solve_time_cdf_figure
 solve_time_cdf_figure({{'sqp': [1.0, 2.0, 30.0]}}, 10.0, {str(tmp_path / 'cdf.png')!r})
 print(matplotlib.get_backend(), 'matplotlib.pyplot' in sys.modules)
 """

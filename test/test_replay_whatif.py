@@ -6,15 +6,15 @@ import os
 import numpy as np
 import pytest
 
-from erva_ros.core.model import make_model
-from erva_ros.session.offline_bag import run_and_record
-from erva_ros.core.closed_loop import simulate_closed_loop
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.session.bag.offline_bag import run_and_record
+from erva_ros.core.studies.closed_loop import simulate_closed_loop
 from erva_ros.core.bag.reader import open_bag
-from erva_ros.session.reevaluate import reevaluate
-from erva_ros.session.bag_report import load_session
+from erva_ros.session.bag.reevaluate import reevaluate
+from erva_ros.session.bag.bag_report import load_session
 from erva_ros.core.controllers import load_controller_settings, make_controller
-from erva_ros.core.params import load_erva_params
-from erva_ros.core.roads import make_road
+from erva_ros.core.model.params import load_erva_params
+from erva_ros.core.road.profiles import make_road
 
 
 @pytest.fixture(scope='module')

@@ -10,14 +10,14 @@ import pytest
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from erva_ros.core.model import make_model
-from erva_ros.session.offline_bag import run_and_record
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.session.bag.offline_bag import run_and_record
 
 from erva_ros.ros.bag_messages import write_message
 from erva_ros.core.bag.writer import BagWriter
 from erva_ros.core.controllers import make_controller
-from erva_ros.core.params import load_erva_params
-from erva_ros.core.roads import make_road
+from erva_ros.core.model.params import load_erva_params
+from erva_ros.core.road.profiles import make_road
 
 T0 = 1_800_000_000 * 10 ** 9
 MS = 1_000_000
@@ -70,7 +70,7 @@ def test_road_preview_plot_compares_each_preview_with_the_road_that_came(offline
     """
     from erva_ros.core.bag.reader import open_bag
     from erva_ros.core.bag.report_plots import preview_errors
-    from erva_ros.session.bag_report import load_session
+    from erva_ros.session.bag.bag_report import load_session
     data = load_session(open_bag(offline_session[0]))
     n = len(data.previews[0]) - 1
     errors = preview_errors(data)

@@ -5,10 +5,10 @@ import math
 import numpy as np
 import pytest
 
-from erva_ros.core.model import make_model
-from erva_ros.core.params import paper_params, ParamError
-from erva_ros.core.road_estimator import (ROAD_MEASUREMENTS, RoadEKF, RoadModel, RoadSensors,
-                                          road_noise)
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import paper_params, ParamError
+from erva_ros.core.model.road_estimator import (ROAD_MEASUREMENTS, RoadEKF, RoadModel, RoadSensors,
+                                                road_noise)
 from erva_ros.core.roadmap.accuracy import accuracy
 
 P = paper_params()
@@ -118,8 +118,8 @@ def test_road_error_at_the_shipped_sensor_noise_is_bounded(road):
 
 def test_the_period_is_predicted_as_the_ecu_applied_it():
     """A command latched 6 ms after the sample: two pieces, not the period's mean."""
-    from erva_ros.core.plant import PlantSimulator
-    from erva_ros.core.road_estimator import damping_profile
+    from erva_ros.core.model.plant import PlantSimulator
+    from erva_ros.core.model.road_estimator import damping_profile
     ts, d = 0.02, 0.006
     u_prev, u_now = 20000.0, 0.0
     u_mean = (d * u_prev + (ts - d) * u_now) / ts

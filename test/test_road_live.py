@@ -187,7 +187,7 @@ def test_erva_run_previews_from_the_map_and_records_the_road(road_map, tmp_path)
 
 
 def _run_text(summary):
-    from erva_ros.session.report import format_summary
+    from erva_ros.session.run.report import format_summary
     return format_summary(summary)
 
 

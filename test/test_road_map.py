@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from erva_ros.cli import main as erva
-from erva_ros.core.model import make_model
+from erva_ros.core.model.quarter_car import make_model
 from erva_ros.core.roadmap import MapError
 from erva_ros.core.roadmap.bag_drive import read_bag_drive
 from erva_ros.core.roadmap.drive import estimate_drive, grid_profile

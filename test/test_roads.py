@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from erva_ros.core.preview import PreviewErrorModel
-from erva_ros.core.roads import butter2_lowpass, lfilter2, make_road, ROAD_KINDS, RoadError
+from erva_ros.core.road.preview import PreviewErrorModel
+from erva_ros.core.road.profiles import butter2_lowpass, lfilter2, make_road, ROAD_KINDS, RoadError
 
 
 def test_road_kinds_exported():
@@ -127,7 +127,7 @@ def test_preview_error_model_is_deterministic_noise_and_delay():
 
 # -- recorded roads from CSV files ---------------------------------------------------------
 def test_road_csv_dialects_give_the_same_rows(tmp_path):
-    from erva_ros.core.roads import read_road_csv
+    from erva_ros.core.road.profiles import read_road_csv
     want = np.array([[0.0, 0.0], [0.5, 0.001], [1.0, -0.002]])
     dialects = {
         'plain': '0,0\n0.5,0.001\n1.0,-0.002\n',
@@ -150,7 +150,7 @@ def test_road_csv_dialects_give_the_same_rows(tmp_path):
     ('only text\n', r'needs at least two "time_s, height_m" rows$'),
 ])
 def test_a_bad_road_csv_names_its_line(tmp_path, text, match):
-    from erva_ros.core.roads import read_road_csv
+    from erva_ros.core.road.profiles import read_road_csv
     path = tmp_path / 'bad.csv'
     path.write_text(text)
     with pytest.raises(RoadError, match=match):
@@ -172,7 +172,7 @@ def test_ten_million_rows_are_read_whole_in_bounded_memory(tmp_path):
             fh.write(''.join(f'{i / 1000},{(i % 7) * 1e-4}\n'
                              for i in range(start, start + 1_000_000)))
     code = ('import resource, sys\n'
-            'from erva_ros.core.roads import read_road_csv\n'
+            'from erva_ros.core.road.profiles import read_road_csv\n'
             'rows = read_road_csv(sys.argv[1])\n'
             'print(rows.shape[0], rows[-1, 0], rows[:, 1].sum(), '
             'resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n')

@@ -11,8 +11,8 @@ import os
 import numpy as np
 import pytest
 
-from erva_ros.core.model import make_model
-from erva_ros.core.params import load_erva_params
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import load_erva_params
 
 from conftest import REPO, shipped_delay_s
 

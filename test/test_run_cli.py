@@ -183,7 +183,7 @@ def test_launch_file_parses_and_references_what_exists():
     for cfg in mod.CONFIG_FILES:
         assert os.path.isfile(os.path.join(REPO, 'config', cfg)), cfg
     # Every launch argument is a parameter some node declares.
-    from erva_ros.core.node_params import SCHEMAS
+    from erva_ros.core.settings.schemas import SCHEMAS
     declared = {name for node in mod.NODES for name in SCHEMAS[node].specs()}
     for name, default, kind, _ in mod.ARGUMENTS:
         assert name == 'namespace' or name in declared, name

@@ -225,7 +225,7 @@ def test_signals_stop_every_process(sig, code):
         assert all(_gone(p) for p in pids.values()), pids
         if sig == signal.SIGKILL:
             # Nobody left to clean up: the next run removes the directory of a dead run.
-            from erva_ros.session.session_dirs import remove_stale_session_dirs
+            from erva_ros.session.run.session_dirs import remove_stale_session_dirs
             session_dir = os.path.dirname(params_file)
             assert os.path.isdir(session_dir)
             assert session_dir in remove_stale_session_dirs(os.path.dirname(session_dir))

@@ -18,12 +18,12 @@ from erva_ros.cli import build_parser
 from erva_ros.commands._closed_loop_options import (load_settings, make_road_from_args,
                                                     preview_model_from_args)
 from erva_ros.commands.run import run_config
-from erva_ros.core.closed_loop import simulate_closed_loop
+from erva_ros.core.studies.closed_loop import simulate_closed_loop
 from erva_ros.core.controllers import make_controller
 from erva_ros.core.controllers.tuning import parse_change, ScheduledTuning
-from erva_ros.core.model import make_model
-from erva_ros.core.params import load_erva_params
-from erva_ros.session.orchestrator import run_session
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import load_erva_params
+from erva_ros.session.run.orchestrator import run_session
 
 from test_run_lockstep import _settings_file
 

@@ -15,8 +15,8 @@ from erva_ros.core.bag.session_check import (
     begin_session_end, END_FILE, mark_session_end, session_end, session_warnings)
 from erva_ros.core.bag.writer import BagWriter
 from erva_ros.core.reports import NodeReport
-from erva_ros.session import verdict
-from erva_ros.session.observations import Observations
+from erva_ros.session.run import verdict
+from erva_ros.session.run.observations import Observations
 import ros_msgs as msgs
 
 T0 = 1_800_000_000 * 10 ** 9
@@ -172,7 +172,7 @@ def test_the_verdict_weighs_the_map_preview():
 
 
 def test_a_streak_is_the_longest_run_in_a_row_and_when():
-    from erva_ros.core.road_loop import Streak
+    from erva_ros.core.loop.road_loop import Streak
     s = Streak()
     for k, hit in enumerate([0, 1, 1, 0, 1, 1, 1, 0, 1]):
         s.mark(T0 + k * TS_NS, bool(hit))

@@ -1,4 +1,4 @@
-"""The typed spec family (core/specs.py), defaults only in config/, the model's outputs."""
+"""The typed spec family (core/settings/specs.py), defaults only in config/, model outputs."""
 
 import argparse
 import ast
@@ -9,14 +9,14 @@ import pytest
 import rclpy
 import yaml
 
-from erva_ros.core.config import shipped_defaults
+from erva_ros.core.settings.files import shipped_defaults
 from erva_ros.core.controllers.settings import ControllerSettings
 from erva_ros.core.hil import settings as hs
 from erva_ros.core.hil.ecu_sim import SensorNoise
-from erva_ros.core.model import make_model
-from erva_ros.core.params import ERVA_SPECS, ERVAParams, ParamError, Spec
-from erva_ros.core import node_params as np_
-from erva_ros.core.specs import check_all, Choice, Flag, Integer, Number, Text
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import ERVA_SPECS, ERVAParams, ParamError, Spec
+from erva_ros.core.settings import schemas as np_
+from erva_ros.core.settings.specs import check_all, Choice, Flag, Integer, Number, Text
 from erva_ros.ros.parameters import declare_node_parameters, descriptor
 
 from conftest import REPO
@@ -96,7 +96,7 @@ def test_check_all_fills_defaults_and_refuses_unknown_keys():
 
 
 def test_an_unknown_key_names_the_closest_known_one():
-    from erva_ros.core.specs import closest_key, unknown_parameters
+    from erva_ros.core.settings.specs import closest_key, unknown_parameters
     known = ['speed_mps', 'seed', 'road', 'M_s', 'M_us', 'horizon']
     assert closest_key('speeed_mps', known) == 'speed_mps'
     assert closest_key('m_s', known) == 'M_s'                   # another case

@@ -4,7 +4,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from erva_ros.core.closed_loop import simulate_closed_loop
+from erva_ros.core.studies.closed_loop import simulate_closed_loop
 from erva_ros.core.controllers import ControllerSettings, make_controller
 from erva_ros.core.controllers.linalg import (convexify, fill_reducing_order, JACOBI_SWEEPS,
                                               lu_factor, lu_solve)
@@ -12,10 +12,10 @@ from erva_ros.core.controllers.ocp import build_ocp, OCPSpec, stable_rollout_sub
 from erva_ros.core.controllers.sqp import (box_qp_function, plan_value_function,
                                            projection_function, qp_model_function,
                                            start_function, step_function)
-from erva_ros.core.model import make_model
-from erva_ros.core.params import paper_params
-from erva_ros.core.plant import PlantSimulator
-from erva_ros.core.roads import make_road
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import paper_params
+from erva_ros.core.model.plant import PlantSimulator
+from erva_ros.core.road.profiles import make_road
 
 P = paper_params()
 S = ControllerSettings(time_budget_s=10.0)
@@ -165,7 +165,7 @@ def test_the_compiled_box_qp_is_the_virtual_machines(tmp_path, monkeypatch):
     # Generated C calls DAQP: codegen compiles it against the casadi wheel's DAQP
     # (codegen.library_flags); the library gives the virtual machine's solutions.
     import shutil
-    from erva_ros.core.codegen import compile_functions
+    from erva_ros.core.model.codegen import compile_functions
     if not (shutil.which('cc') or shutil.which('gcc')):
         pytest.skip('no C compiler')
     monkeypatch.setenv('ERVA_CACHE_DIR', str(tmp_path))

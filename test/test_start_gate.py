@@ -5,9 +5,9 @@ The sessions themselves, over DDS: test_run_sessions.py.
 
 import time
 
-from erva_ros.session.bringup import node_stages, Timeline
-from erva_ros.session.session_file import new_session_id
-from erva_ros.session.start_gate import Contest, extra_nodes
+from erva_ros.session.run.bringup import node_stages, Timeline
+from erva_ros.session.run.session_file import new_session_id
+from erva_ros.session.run.start_gate import Contest, extra_nodes
 
 A, B = '0000000000a00001', '0000000000a00002'     # A started first
 

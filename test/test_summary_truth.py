@@ -93,7 +93,7 @@ def maps(tmp_path_factory):
     matching alone accepts some windows, docs/road.md §3.)
     """
     from erva_ros.core.roadmap.vehicle import Route
-    from erva_ros.core.roads import make_road
+    from erva_ros.core.road.profiles import make_road
     d = tmp_path_factory.mktemp('maps')
     routes = {'paper': rh.route(0, seconds=14.0),
               'other': Route.of(make_road('iso8608', 14.0, seed=5, road_class='C'))}
@@ -114,7 +114,7 @@ MODES = {'full state': (), 'lock-step': ('--mode', 'lockstep'),
 
 @pytest.mark.parametrize('mode', MODES)
 def test_no_field_of_a_passing_run_is_nan_negative_or_unexplained(maps, tmp_path, mode):
-    from erva_ros.session.report import format_summary
+    from erva_ros.session.run.report import format_summary
     args = [f'map:{maps["paper"]}' if a == 'MAP' else a for a in MODES[mode]]
     r = _run(*args, '--duration', 2, '--record', tmp_path, '--json')
     assert r.returncode == 0, r.stderr[-3000:]

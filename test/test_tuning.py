@@ -1,7 +1,7 @@
 """Live tuning without ROS: which settings change, the checks, the sample boundary, the hold.
 
 The cores the live node and `erva sim --set` share (core/controllers/tuning.py,
-core/loop/control_loop.py), the segments by parameter set (session/segments.py) and the
+core/loop/control_loop.py), the segments by parameter set (session/run/segments.py) and the
 /parameter_events decoder, checked against rclpy's own serialization.
 """
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from erva_ros.core import contract
-from erva_ros.core.closed_loop import simulate_closed_loop
+from erva_ros.core.studies.closed_loop import simulate_closed_loop
 from erva_ros.core.controllers import make_controller
 from erva_ros.core.controllers.settings import ControllerSettings
 from erva_ros.core.controllers.tuning import (Built, check_schedule, LIVE_KEYS, LiveSettings,
@@ -17,13 +17,13 @@ from erva_ros.core.controllers.tuning import (Built, check_schedule, LIVE_KEYS, 
                                               ScheduledTuning)
 from erva_ros.core.loop.control_loop import build_loop, NODE_LIVE_KEYS
 from erva_ros.core.loop.validation import StampWindow
-from erva_ros.core.model import make_model
-from erva_ros.core.node_params import SCHEMAS
-from erva_ros.core.params import paper_params, ParamError
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.settings.schemas import SCHEMAS
+from erva_ros.core.model.params import paper_params, ParamError
 from erva_ros.core.reports import NMPCReport
-from erva_ros.core.roads import make_road
+from erva_ros.core.road.profiles import make_road
 from erva_ros.core.topics import STATE_JOINTS
-from erva_ros.session import segments
+from erva_ros.session.run import segments
 
 P = paper_params()
 M = make_model(P)

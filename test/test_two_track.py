@@ -1,14 +1,14 @@
-"""The two-track road of a car: coherence, spectra, the rear delay, seeds (core/two_track.py)."""
+"""A car's two-track road: coherence, spectra, the rear delay, seeds (core/road/two_track.py)."""
 
 import math
 
 import numpy as np
 import pytest
 
-from erva_ros.core.model import make_model
-from erva_ros.core.roads import make_road, RoadError
-from erva_ros.core.two_track import (bessel_k1, CORNERS, delayed_road, isotropic_coherency,
-                                     make_two_track_road)
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.road.profiles import make_road, RoadError
+from erva_ros.core.road.two_track import (bessel_k1, CORNERS, delayed_road, isotropic_coherency,
+                                          make_two_track_road)
 
 TRACK, WHEELBASE = 1.5, 2.7
 
@@ -169,9 +169,9 @@ def test_same_seed_same_roads_and_other_seeds_differ():
 
 
 def test_a_corner_road_drives_the_closed_loop():
-    from erva_ros.core.closed_loop import simulate_closed_loop
+    from erva_ros.core.studies.closed_loop import simulate_closed_loop
     from erva_ros.core.controllers import ControllerSettings, make_controller
-    from erva_ros.core.params import paper_params
+    from erva_ros.core.model.params import paper_params
     params = paper_params()
     car = make_two_track_road(2.0, track_m=TRACK, wheelbase_m=WHEELBASE, seed=2)
     model = make_model(params)

@@ -1,4 +1,4 @@
-"""The whole car (core/vehicle.py, core/car_params.py): values that physics fixes.
+"""The whole car (core/model/full_car.py, core/model/car_params.py): values that physics fixes.
 
 Four quarter cars where symmetry says so, energy, the heave/pitch/roll modes, the body's
 geometry, the published parameters and their one-line errors.
@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 import yaml
 
-from erva_ros.core import fr
-from erva_ros.core.car_params import BODY_SPECS, CarParams, CORNERS, load_car_params
-from erva_ros.core.model import linearize, QuarterCarModel, rk4_stable_substeps
-from erva_ros.core.params import paper_params, PAPER_VALUES, ParamError
-from erva_ros.core.roads import make_road
-from erva_ros.core.vehicle import (body_modes as vehicle_body_modes, body_response,
-                                   corner_slice, FullCarModel, get_car_model, NX,
-                                   ROAD_PATTERNS, STATE_NAMES)
+from erva_ros.core.studies import fr
+from erva_ros.core.model.car_params import BODY_SPECS, CarParams, CORNERS, load_car_params
+from erva_ros.core.model.quarter_car import linearize, QuarterCarModel, rk4_stable_substeps
+from erva_ros.core.model.params import paper_params, PAPER_VALUES, ParamError
+from erva_ros.core.road.profiles import make_road
+from erva_ros.core.model.full_car import (body_modes as vehicle_body_modes, body_response,
+                                          corner_slice, FullCarModel, get_car_model, NX,
+                                          ROAD_PATTERNS, STATE_NAMES)
 
 from conftest import REPO
 

@@ -20,8 +20,8 @@ pytestmark = pytest.mark.skipif(CC is None, reason='no C compiler')
 #: Functions to compile (the model's own equations, a few kB of C each; B the larger).
 FUNCTIONS = textwrap.dedent('''
     import casadi as ca
-    from erva_ros.core.model import make_model
-    from erva_ros.core.params import paper_params
+    from erva_ros.core.model.quarter_car import make_model
+    from erva_ros.core.model.params import paper_params
     m = make_model(paper_params(), 'erva')
     x, u = ca.SX.sym('x', 6), ca.SX.sym('u')
     A = ca.Function('warmup_probe_a', [x, u], [m.power(x, u)])
@@ -43,8 +43,8 @@ def _wrapper(tmp_path, body: str) -> str:
 def _compile_in_child(cache, cc=None, wait=True, functions='A, B'):
     """Compile FUNCTIONS in a child process with ``cc``; return it (or its result)."""
     code = FUNCTIONS + textwrap.dedent(f'''
-        from erva_ros.core.codegen import compile_functions
-        from erva_ros.core.params import ParamError
+        from erva_ros.core.model.codegen import compile_functions
+        from erva_ros.core.model.params import ParamError
         try:
             fs = compile_functions([{functions}], 'the probes')
             print('value', [float(f([1e-3, 2e-2, 0, -1e-2, 3e-3, 5e-2], 15000.0)[0][0])
@@ -142,8 +142,9 @@ def test_a_failed_compile_says_what_the_compiler_said(tmp_path, body, message):
 
 
 def test_warm_compiles_once_then_only_loads(tmp_path, monkeypatch):
-    from erva_ros.core import codegen, warmup
-    from erva_ros.core.params import paper_params
+    from erva_ros.core.model import codegen
+    from erva_ros.core.loop import warmup
+    from erva_ros.core.model.params import paper_params
     monkeypatch.setenv('ERVA_CACHE_DIR', str(tmp_path))
     targets = [warmup.Target('plant', paper_params(), 'benchmark', 0.02),
                warmup.Target('ekf', paper_params(), 'benchmark', 0.02, u_max=22800.0)]
@@ -168,8 +169,8 @@ def test_warm_compiles_once_then_only_loads(tmp_path, monkeypatch):
 
 
 def test_a_missing_library_is_seen_despite_its_manifest(tmp_path, monkeypatch):
-    from erva_ros.core import warmup
-    from erva_ros.core.params import paper_params
+    from erva_ros.core.loop import warmup
+    from erva_ros.core.model.params import paper_params
     monkeypatch.setenv('ERVA_CACHE_DIR', str(tmp_path))
     target = [warmup.Target('plant', paper_params(), 'benchmark', 0.02)]
     assert warmup.warm(target).targets[0].status == 'compiled'
@@ -184,9 +185,9 @@ def test_a_missing_library_is_seen_despite_its_manifest(tmp_path, monkeypatch):
 def test_one_solver_for_no_preview_and_for_values_that_are_parameters(tmp_path, monkeypatch):
     # Why one manifest key serves them (warmup.NOT_COMPILED_IN): they load the same
     # libraries.  A structural change (the command delay modelled) does not.
-    from erva_ros.core import warmup
+    from erva_ros.core.loop import warmup
     from erva_ros.core.controllers.settings import ControllerSettings
-    from erva_ros.core.params import paper_params
+    from erva_ros.core.model.params import paper_params
     monkeypatch.setenv('ERVA_CACHE_DIR', str(tmp_path))
     s = ControllerSettings(controller='preview', horizon=4)
     variants = [s, s.with_(controller='no_preview'),
@@ -206,7 +207,7 @@ def test_erva_compile_check_and_json(tmp_path, erva):
     proc = erva('compile', '--check', '--json', env=env)
     assert proc.returncode == 1 and proc.stderr == '', proc.stderr
     import json
-    from erva_ros.core.codegen import codegen_target
+    from erva_ros.core.model.codegen import codegen_target
     res = json.loads(proc.stdout)['targets'][codegen_target()]
     labels = [t['target'] for t in res['targets']]
     assert labels[:3] == ['the NMPC (preview_long, erva model)', 'the NMPC (preview, erva model)',

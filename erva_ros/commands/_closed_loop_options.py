@@ -146,7 +146,7 @@ def load_settings(args, **extra):
 
 def make_road_from_args(args, duration_s: float, seed: int):
     """Return the road chosen on the command line (one-line CLIError on bad options)."""
-    from erva_ros.core.roads import make_road, RoadError
+    from erva_ros.core.road.profiles import make_road, RoadError
     opts = {}
     if args.road in ('iso8608', 'bump'):
         opts['speed_mps'] = args.speed
@@ -160,7 +160,7 @@ def make_road_from_args(args, duration_s: float, seed: int):
 
 def preview_model_from_args(args, seed: int, ts: float):
     """Return the PreviewErrorModel of --preview-snr/--preview-delay, or None."""
-    from erva_ros.core.preview import PreviewErrorModel
+    from erva_ros.core.road.preview import PreviewErrorModel
     if args.preview_snr is None and not args.preview_delay:
         return None
     if args.preview_delay < 0:
@@ -186,7 +186,7 @@ def can_log_path(args) -> str:
     """Return --can-log as an absolute path ('' if not given); CLIError if unusable."""
     import os
     from erva_ros.core.hil.can_trace import check_path
-    from erva_ros.core.params import ParamError
+    from erva_ros.core.model.params import ParamError
     path = getattr(args, 'can_log', None)
     if path is None:
         return ''

@@ -6,7 +6,7 @@ import sys
 from typing import Optional
 
 from erva_ros.core.errors import CLIError
-from erva_ros.session.report import print_json  # noqa: F401 (one home, for the commands)
+from erva_ros.session.run.report import print_json  # noqa: F401 (one home, for the commands)
 
 
 def bag_warner(prog: str, into: Optional[list] = None, path: str = ''):
@@ -62,11 +62,11 @@ def positive_int(text: str) -> int:
 def live_type(key: str):
     """Return an argparse type checked by the spec of live parameter ``key``.
 
-    The spec (:data:`erva_ros.core.node_params.LIVE`) is imported when the option is
+    The spec (:data:`erva_ros.core.settings.schemas.LIVE`) is imported when the option is
     given, so ``--help`` stays light.
     """
     def parse(text: str):
-        from erva_ros.core.node_params import LIVE
+        from erva_ros.core.settings.schemas import LIVE
         return LIVE.specs()[key].parse(text)
     return parse
 
@@ -109,9 +109,9 @@ def compile_first(command: str, params, settings, model: str = 'erva',
     """Compile the NMPC of ``settings`` and the plant before ``erva COMMAND`` times anything.
 
     One progress line per part on stderr (only when something is compiled, and none
-    unless ``enabled``: commands pass ``not args.json``); see :mod:`erva_ros.core.warmup`.
+    unless ``enabled``: commands pass ``not args.json``); see :mod:`erva_ros.core.loop.warmup`.
     """
-    from erva_ros.core.warmup import ensure_compiled, nmpc_target, Target
+    from erva_ros.core.loop.warmup import ensure_compiled, nmpc_target, Target
     log = (lambda line: print(f'erva {command}: {line}', file=sys.stderr, flush=True)) \
         if enabled else None
     ensure_compiled([nmpc_target(params, settings, model),

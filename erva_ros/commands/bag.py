@@ -148,7 +148,7 @@ def _add_rosbag2_verbs(sub) -> None:
 
 def _add_record(sub) -> None:
     from erva_ros.commands.run import add_bag_split_arguments
-    from erva_ros.session.bag_record import STORAGE_KEYS
+    from erva_ros.session.bag.bag_record import STORAGE_KEYS
     p = sub.add_parser('record', help='record a running graph, as ros2 bag record',
                        description='Record topics of the running ROS graph into a new bag '
                                    '(rosbag2 layout, MCAP) with erva\'s recorder '
@@ -223,8 +223,8 @@ def _record(args) -> int:
     from erva_ros.commands.run import bag_split_parameters
     from erva_ros.core import topics as contract
     from erva_ros.core.bag.session import new_bag_dir
-    from erva_ros.session import bag_record
-    from erva_ros.session.recording import record_topics
+    from erva_ros.session.bag import bag_record
+    from erva_ros.session.bag.recording import record_topics
 
     custom = {}
     for item in args.custom_data:
@@ -281,7 +281,7 @@ def _record(args) -> int:
 
 
 def _soak(args) -> int:
-    from erva_ros.session import soak
+    from erva_ros.session.bench import soak
     if args.busy < 0:
         raise CLIError(f'--busy {args.busy}: give 0 or more processes')
     import os
@@ -425,7 +425,7 @@ def _repair(args) -> int:
 def _bench(args) -> int:
     import sys
 
-    from erva_ros.session import recorder_bench as bench
+    from erva_ros.session.bench import recorder_bench as bench
 
     def rates(text, option, zero_ok):
         try:
@@ -446,7 +446,7 @@ def _bench(args) -> int:
                        progress=lambda s: print(f'erva bag bench: {s}', file=sys.stderr,
                                                 flush=True))
     if args.json:
-        from erva_ros.session.report import jsonable
+        from erva_ros.session.run.report import jsonable
         print_json(jsonable(result))
         return 0
 

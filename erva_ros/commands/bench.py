@@ -46,7 +46,7 @@ shows what the machine's load does to them (docs/nmpc.md's table is such a run).
 bridge, estimator), where the ECU also measures when each command really acts:
 its actuation instant − (t_k + d) next to the commands' arrival (--command-delay d).
 --live --foxglove-ab N compares N alternating pairs of live runs without and with
-`erva run --foxglove` and a connected viewer (erva_ros.session.foxglove_bench)."""
+`erva run --foxglove` and a connected viewer (erva_ros.session.bench.foxglove_bench)."""
 
 
 def add_arguments(parser):
@@ -101,7 +101,7 @@ def add_arguments(parser):
 
 
 def main(args) -> int:
-    from erva_ros.session.soak import start_busy, stop_busy
+    from erva_ros.session.bench.soak import start_busy, stop_busy
     if args.busy < 0:
         raise CLIError(f'--busy {args.busy}: give 0 or more processes')
     busy = start_busy(args.busy)
@@ -119,9 +119,9 @@ def _main(args) -> int:
         if not args.live or args.foxglove_ab is None:
             raise CLIError('--foxglove-ab N needs --live (and --foxglove-viewer needs '
                            '--foxglove-ab)')
-        from erva_ros.session.foxglove_process import check_address
+        from erva_ros.session.run.foxglove_process import check_address
         check_address('127.0.0.1:0')   # foxglove-sdk installed
-        from erva_ros.session.foxglove_bench import run_foxglove_ab
+        from erva_ros.session.bench.foxglove_bench import run_foxglove_ab
         return run_foxglove_ab(args)
     if args.ecu != 'none' and (not args.live or args.foxglove_ab is not None):
         raise CLIError('--ecu virtual benchmarks the live HIL loop: it needs --live (and '
@@ -132,9 +132,10 @@ def _main(args) -> int:
         raise CLIError('--repeat applies to the offline bench; --live measures one run')
     if args.live:
         try:
-            from erva_ros.session.benchmark import run_live_bench
+            from erva_ros.session.bench.benchmark import run_live_bench
         except ImportError as exc:
-            raise CLIError(f'--live needs erva_ros.session.benchmark, which is not available '
+            raise CLIError(f'--live needs erva_ros.session.bench.benchmark, which is not '
+                           'available '
                            f'({exc})') from None
         return run_live_bench(args)
     if args.duration is not None:
@@ -145,7 +146,7 @@ def _main(args) -> int:
         raise CLIError('--realtime-priority applies to --live only')
     out = ensure_out_dir(args.out)
 
-    from erva_ros.core.params import load_erva_params
+    from erva_ros.core.model.params import load_erva_params
 
     params = load_erva_params(args.params)
     settings = load_settings(args)
@@ -205,7 +206,7 @@ def _load_line(results) -> str:
 
 def _write_cdf(out, settings, seeds, samples, results) -> None:
     """Write the solve-time CDF of every seed's runs against the budget (``--out``)."""
-    from erva_ros.core.plots import solve_time_cdf_figure
+    from erva_ros.core.plots.figures import solve_time_cdf_figure
     runs = f' x {len(results) // len(seeds)} repetitions' if len(results) > len(seeds) else ''
     path = solve_time_cdf_figure(
         {label: np.concatenate(v) for label, v in samples.items()},
@@ -222,10 +223,10 @@ def bench_seed(args, params, settings, seed: int, samples=None) -> dict:
 
     ``samples`` (a dict) collects the solve times (ms) per solver for the CDF figure.
     """
-    from erva_ros.core.closed_loop import closed_loop_cost, simulate_closed_loop
+    from erva_ros.core.studies.closed_loop import closed_loop_cost, simulate_closed_loop
     from erva_ros.core.controllers import make_controller
-    from erva_ros.core.model import make_model
-    from erva_ros.core.roads import make_road
+    from erva_ros.core.model.quarter_car import make_model
+    from erva_ros.core.road.profiles import make_road
 
     name = settings.controller
     model = make_model(params)

@@ -121,9 +121,9 @@ def _evaluate(args):
     from erva_ros.core.hil.evaluation import evaluate_estimator
     from erva_ros.core.hil.settings import (load_ecu_sim_section, load_estimator_section,
                                             noise_of)
-    from erva_ros.core.model import make_model
-    from erva_ros.core.params import load_erva_params
-    from erva_ros.core.roads import make_road
+    from erva_ros.core.model.quarter_car import make_model
+    from erva_ros.core.model.params import load_erva_params
+    from erva_ros.core.road.profiles import make_road
 
     model = make_model(load_erva_params(args.params))
     est = load_estimator_section(args.hil_config)
@@ -208,7 +208,7 @@ def main(args) -> int:
     if args.estimator_eval:
         return _estimator_eval(args)
     if args.cores:
-        from erva_ros.session.hil_bench import run_core_bench
+        from erva_ros.session.bench.hil_bench import run_core_bench
         result = run_core_bench(args.samples)
         if args.json:
             print_json(result)
@@ -218,8 +218,8 @@ def main(args) -> int:
             print(f'  {key:<22} {s["p50"]:7.3f} {s["p99"]:7.3f} {s["max"]:7.3f} '
                   f'{int(s["samples"]):6d}')
         return 0
-    from erva_ros.session.hil_bench import run_live_bench
-    from erva_ros.core.params import default_params_file, load_erva_params
+    from erva_ros.session.bench.hil_bench import run_live_bench
+    from erva_ros.core.model.params import default_params_file, load_erva_params
 
     params_file = args.params or default_params_file()
     load_erva_params(params_file)      # a bad file fails here, in one line

@@ -4,7 +4,8 @@ import os
 import sys
 
 from erva_ros.commands._common import add_json_option, add_params_option, positive_int, print_json
-from erva_ros.core import codegen, warmup
+from erva_ros.core.model import codegen
+from erva_ros.core.loop import warmup
 
 COMMAND = 'compile'
 HELP = 'compile the solvers and models to C once per machine (what the first run would do)'

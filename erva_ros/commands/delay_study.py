@@ -51,10 +51,10 @@ def add_arguments(parser):
 
 def run_seed(job):
     """Run the four variants on one seed; return {variant: metrics}."""
-    from erva_ros.core.closed_loop import simulate_closed_loop
+    from erva_ros.core.studies.closed_loop import simulate_closed_loop
     from erva_ros.core.controllers import make_controller
-    from erva_ros.core.model import make_model
-    from erva_ros.core.roads import make_road
+    from erva_ros.core.model.quarter_car import make_model
+    from erva_ros.core.road.profiles import make_road
 
     params, settings, seed, duration, delay = job
     model = make_model(params)
@@ -77,7 +77,7 @@ def run_seed(job):
 
 def main(args) -> int:
     import numpy as np
-    from erva_ros.core.params import load_erva_params
+    from erva_ros.core.model.params import load_erva_params
 
     params = load_erva_params(args.params)
     # Offline study: no real-time budget, so results do not depend on machine load.

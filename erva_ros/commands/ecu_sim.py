@@ -8,7 +8,7 @@ from erva_ros.commands._common import (add_json_option, add_params_option, live_
                                        positive_float, print_json, realtime_priority)
 from erva_ros.core import topics
 from erva_ros.core.errors import CLIError
-from erva_ros.core.model import MODEL_KINDS
+from erva_ros.core.model.quarter_car import MODEL_KINDS
 
 COMMAND = 'ecu-sim'
 HELP = 'simulated generator ECU on a CAN bus: applies damping frames to the plant, sends sensors'
@@ -16,7 +16,7 @@ DESCRIPTION = """\
 Plays the vehicle side of the HIL loop (erva_ros/core/hil/ecu_sim.py) with a real ECU's
 timing: at every sample instant it samples the sensors and sends the chassis,
 generator and status frames of config/erva_ecu.dbc at once; the quarter car
-(erva_ros.core.plant.PlantSimulator) is integrated ahead, with the ERVA_CMD frames
+(erva_ros.core.model.plant.PlantSimulator) is integrated ahead, with the ERVA_CMD frames
 (E2E-checked, duty clamped to the hardware range) applied at their cycle's instant
 t_k + d (the loop's command delay d, --command-delay; a frame received after it is
 late: counted, never applied), or with d = 0 latched within latch_s of their arrival;
@@ -29,7 +29,7 @@ here).  Example, with the bridge on udp:47001:47002:
 
   erva ecu-sim --bus udp:47002:47001 --road paper --duration 10
 
-Roads: a road of erva_ros.core.roads started with the ECU (paper, sine, bump, iso8608,
+Roads: a road of erva_ros.core.road.profiles started with the ECU (paper, sine, bump, iso8608,
 --seed), flat, ros (the heights of /erva/road/height as they arrive: each cycle
 waits for its sample) or session (the road of the --params file, an `erva run`
 session file, placed on the sample grid of /erva/road/height and known ahead, so
@@ -61,7 +61,7 @@ def add_arguments(parser):
     parser.add_argument('--road', choices=ROADS, default='paper',
                         help='road at the tyre: session (the --params session file\'s road on '
                              'the grid of /erva/road/height), ros (/erva/road/height as it '
-                             'arrives), flat, or a road of erva_ros.core.roads started with the '
+                             'arrives), flat, or a road of core/road/profiles.py started with the '
                              'ECU (default paper)')
     parser.add_argument('--seed', type=live_type('seed'), default=0,
                         help='road seed (default 0)')
@@ -89,8 +89,8 @@ def add_arguments(parser):
 
 
 def _road_function(args):
-    """Return w(t) (m) at epoch time t for a road (erva_ros.core.roads) started at first call."""
-    from erva_ros.core.roads import make_road, RoadError
+    """Return w(t) (m) at epoch time t for a road (core/road/profiles.py) started at first call."""
+    from erva_ros.core.road.profiles import make_road, RoadError
     if args.road == 'flat':
         return lambda t: 0.0
     try:
@@ -113,10 +113,10 @@ def _session_road(path, ts):
     agree to the bit (checked against every received sample).
     """
     from erva_ros.core.hil.road_buffer import KnownRoad
-    from erva_ros.core.node_params import LIVE
+    from erva_ros.core.settings.schemas import LIVE
     from erva_ros.core.loop.scenario import build_road
-    from erva_ros.core.params import ParamError, read_ros_params
-    from erva_ros.core.specs import check_all
+    from erva_ros.core.model.params import ParamError, read_ros_params
+    from erva_ros.core.settings.specs import check_all
     if path is None:
         raise CLIError('--road session needs --params FILE (the session params file of '
                        '`erva run`)')
@@ -150,10 +150,10 @@ def _build_core(args, road, delay_s: float):
     from erva_ros.core.hil.ecu_sim import EcuSimConfig, EcuSimCore, SensorNoise
     from erva_ros.core.hil.settings import hardware_of, load_bridge_section, load_ecu_sim_section
     from erva_ros.core.hil.transport import open_bus
-    from erva_ros.core.model import make_model
-    from erva_ros.core.params import load_erva_params
+    from erva_ros.core.model.quarter_car import make_model
+    from erva_ros.core.model.params import load_erva_params
 
-    from erva_ros.core.node_params import SCHEMAS
+    from erva_ros.core.settings.schemas import SCHEMAS
     # --params may be an `erva run` session file: /** holds the nodes' shared parameters.
     params = load_erva_params(args.params,
                               others={k for s in SCHEMAS.values() for k in s.specs()})
@@ -271,8 +271,8 @@ def _ms(stats) -> str:
 
 def _session_value(path, key: str):
     """Return live parameter ``key`` of the session's params file, else its default."""
-    from erva_ros.core.node_params import LIVE
-    from erva_ros.core.params import ParamError, read_ros_params
+    from erva_ros.core.settings.schemas import LIVE
+    from erva_ros.core.model.params import ParamError, read_ros_params
     value = LIVE.defaults()[key]
     if path:
         try:

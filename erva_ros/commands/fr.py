@@ -47,9 +47,9 @@ def add_arguments(parser):
 def main(args) -> int:
     import numpy as np
 
-    from erva_ros.core import fr
-    from erva_ros.core.model import make_model, MODEL_KINDS
-    from erva_ros.core.params import load_erva_params
+    from erva_ros.core.studies import fr
+    from erva_ros.core.model.quarter_car import make_model, MODEL_KINDS
+    from erva_ros.core.model.params import load_erva_params
 
     if args.f_max < args.f_min:
         raise CLIError(f'--f-max {args.f_max} is below --f-min {args.f_min}')
@@ -80,7 +80,7 @@ def main(args) -> int:
     result['elapsed_s'] = round(elapsed, 2)
 
     if out:
-        from erva_ros.core.plots import fr_figure
+        from erva_ros.core.plots.figures import fr_figure
         csv_path = os.path.join(out, 'fr.csv')
         with open(csv_path, 'w', newline='', encoding='utf-8') as fh:
             wr = csv.writer(fh)

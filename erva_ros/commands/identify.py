@@ -34,7 +34,7 @@ asked for with --estimate that the data do not determine)."""
 
 
 def _keys(text: str):
-    from erva_ros.core.params import ERVA_SPECS
+    from erva_ros.core.model.params import ERVA_SPECS
     keys = [k.strip() for k in text.split(',') if k.strip()]
     for k in keys:
         if k not in ERVA_SPECS:
@@ -97,11 +97,11 @@ def _split(recs, fraction):
 
 
 def main(args) -> int:
-    from erva_ros.core.identify import identify, MAX_REL_STD
-    from erva_ros.core.identify_report import as_dict, params_yaml, table
-    from erva_ros.core.model import make_model
-    from erva_ros.core.params import load_erva_params
-    from erva_ros.core.identify_bag import load_recordings
+    from erva_ros.core.identify.fit import identify, MAX_REL_STD
+    from erva_ros.core.identify.report import as_dict, params_yaml, table
+    from erva_ros.core.model.quarter_car import make_model
+    from erva_ros.core.model.params import load_erva_params
+    from erva_ros.core.identify.bag import load_recordings
 
     prior = load_erva_params(args.prior)
     if args.out and os.path.isdir(args.out):

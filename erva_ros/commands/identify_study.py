@@ -95,7 +95,7 @@ def markdown(res) -> str:
 
 
 def main(args) -> int:
-    from erva_ros.core.identify_study import StudyConfig, study_plant, summarise
+    from erva_ros.core.studies.identify_study import StudyConfig, study_plant, summarise
     out = ensure_out_dir(args.out)
     settings = load_settings(args, time_budget_s=10.0,
                              **({} if args.codegen else {'codegen': 'off'}))

@@ -202,8 +202,8 @@ def _drive_items(args, bags, road_map, model):
 
 
 def _build(args) -> int:
-    from erva_ros.core.model import make_model
-    from erva_ros.core.params import load_erva_params
+    from erva_ros.core.model.quarter_car import make_model
+    from erva_ros.core.model.params import load_erva_params
     from erva_ros.core.roadmap.store import add_to_map, RoadMap
 
     params = load_erva_params(args.params)
@@ -253,8 +253,8 @@ def _bag_paths(args_bags):
 
 
 def _sync(args) -> int:
-    from erva_ros.core.model import make_model
-    from erva_ros.core.params import load_erva_params
+    from erva_ros.core.model.quarter_car import make_model
+    from erva_ros.core.model.params import load_erva_params
     from erva_ros.core.roadmap.bag_drive import read_bag_drive
     from erva_ros.core.roadmap.drive import estimate_drive, grid_profile
     from erva_ros.core.roadmap.store import DriveItem, RoadMap
@@ -408,7 +408,7 @@ def _compare(args) -> int:
     from dataclasses import asdict
     from erva_ros.core.roadmap.store import compare, RoadMap
     from erva_ros.core.roadmap.vehicle import Route
-    from erva_ros.core.roads import make_road, RoadError
+    from erva_ros.core.road.profiles import make_road, RoadError
 
     with RoadMap.open(args.map) as road_map:
         profile = road_map.profile()
@@ -439,7 +439,7 @@ def _compare(args) -> int:
 # -- accuracy -----------------------------------------------------------------------------
 def _accuracy(args) -> int:
     import numpy as np
-    from erva_ros.core.params import load_erva_params
+    from erva_ros.core.model.params import load_erva_params
     from erva_ros.core.roadmap.accuracy import accuracy, ROADS, VARIANTS
 
     roads = [r.strip() for r in args.roads.split(',') if r.strip()]

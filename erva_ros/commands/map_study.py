@@ -65,8 +65,8 @@ def add_arguments(parser):
 
 
 def main(args) -> int:
-    from erva_ros.core.params import load_erva_params
-    from erva_ros.core.roadmap.study import aggregate, default_config, run_seed
+    from erva_ros.core.model.params import load_erva_params
+    from erva_ros.core.studies.map_study import aggregate, default_config, run_seed
 
     drives = tuple(int(v) for v in _floats(args.drives))
     if any(d < 1 or d > 50 for d in drives):
@@ -105,7 +105,7 @@ def main(args) -> int:
 
 
 def _row(result, name, alpha, speed, n=0, e=0.0, delay=False):
-    from erva_ros.core.roadmap.study import Variant
+    from erva_ros.core.studies.map_study import Variant
     return result['rows'].get(Variant(name, alpha, speed, n, e, delay).key())
 
 

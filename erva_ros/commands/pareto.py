@@ -53,10 +53,10 @@ def add_arguments(parser):
 
 def run_point(job):
     """Return (acc RMS, power) of one controller, weighting and seed (a pure function)."""
-    from erva_ros.core.closed_loop import simulate_closed_loop
+    from erva_ros.core.studies.closed_loop import simulate_closed_loop
     from erva_ros.core.controllers import make_controller
-    from erva_ros.core.model import make_model
-    from erva_ros.core.roads import make_road
+    from erva_ros.core.model.quarter_car import make_model
+    from erva_ros.core.road.profiles import make_road
 
     params, settings, name, seed, duration = job
     model = make_model(params)
@@ -68,7 +68,7 @@ def run_point(job):
 def main(args) -> int:
     import numpy as np
 
-    from erva_ros.core.params import load_erva_params
+    from erva_ros.core.model.params import load_erva_params
 
     ratios = _ratios(args.ratios)
     out = ensure_out_dir(args.out)
@@ -104,7 +104,7 @@ def main(args) -> int:
               'duration_s': args.duration, 'curve': json_curve, 'baselines': baselines,
               'elapsed_s': round(elapsed, 1)}
     if out:
-        from erva_ros.core.plots_closed_loop import pareto_figure
+        from erva_ros.core.plots.closed_loop import pareto_figure
         csv_path = os.path.join(out, 'pareto.csv')
         with open(csv_path, 'w', newline='', encoding='utf-8') as fh:
             wr = csv.writer(fh)

@@ -182,13 +182,13 @@ def _native_stdout_to_stderr():
 
 
 def _drive_plant(args, bag) -> int:
-    from erva_ros.session.whatif import drive_plant
-    from erva_ros.session.bag_report import compute_report, load_session
-    from erva_ros.session.report import jsonable
+    from erva_ros.session.bag.whatif import drive_plant
+    from erva_ros.session.bag.bag_report import compute_report, load_session
+    from erva_ros.session.run.report import jsonable
     from erva_ros.core.bag.session import new_bag_dir
     from erva_ros.core.controllers import load_controller_settings
-    from erva_ros.core.model import make_model
-    from erva_ros.core.params import load_erva_params
+    from erva_ros.core.model.quarter_car import make_model
+    from erva_ros.core.model.params import load_erva_params
 
     params = load_erva_params(args.params)
     settings = load_controller_settings(args.settings, {'controller': args.controller,
@@ -233,11 +233,11 @@ def _drive_plant(args, bag) -> int:
 
 
 def _reevaluate(args, bag) -> int:
-    from erva_ros.session.reevaluate import controller_from_session, reevaluate, summarize
-    from erva_ros.session.bag_report import load_session
-    from erva_ros.session.report import jsonable
+    from erva_ros.session.bag.reevaluate import controller_from_session, reevaluate, summarize
+    from erva_ros.session.bag.bag_report import load_session
+    from erva_ros.session.run.report import jsonable
     from erva_ros.core.controllers import make_controller
-    from erva_ros.core.model import make_model
+    from erva_ros.core.model.quarter_car import make_model
 
     params, settings = controller_from_session(bag, args.controller)
     data = load_session(bag)
@@ -266,7 +266,7 @@ def _play(args, bag, warnings) -> int:
     from erva_ros.ros.context import RosContext
     from erva_ros.ros.replay import Player
 
-    from erva_ros.session.play_controls import PlayControls
+    from erva_ros.session.bag.play_controls import PlayControls
 
     prog = getattr(args, 'prog', 'erva replay')
     server = None
@@ -305,7 +305,7 @@ def _play(args, bag, warnings) -> int:
         print(f'{prog}: {late}', file=sys.stderr)
     stats['warnings'] = warnings + ([late] if late else [])
     if args.json:
-        from erva_ros.session.report import jsonable
+        from erva_ros.session.run.report import jsonable
         print_json(jsonable(stats))
     else:
         state = 'stopped' if stats['stopped'] else 'done'
@@ -328,7 +328,7 @@ def _serve(address, bag, player, should_stop):
     """Start the Foxglove server of a replay; wait until a viewer subscribes (or a stop)."""
     import time
 
-    from erva_ros.session.bag_report import guess_namespace
+    from erva_ros.session.bag.bag_report import guess_namespace
     from erva_ros.ros.foxglove_server import FoxgloveServer, parse_address, ReplaySink
 
     host, port = parse_address(address)
@@ -397,7 +397,7 @@ def play_main(args, prog: str) -> int:
         print(f'{prog}: note: --read-ahead-queue-size {args.read_ahead_queue_size} changes '
               'nothing: the bag is read chunk by chunk as it plays', file=sys.stderr)
     if args.foxglove is not None:
-        from erva_ros.session.foxglove_process import check_address
+        from erva_ros.session.run.foxglove_process import check_address
         check_address(args.foxglove)
     warnings = []
     bag = open_bag(args.bag, bag_warner(prog, warnings))

@@ -74,8 +74,8 @@ def prediction_lines(pred):
 
 def main(args) -> int:
     from erva_ros.core.bag.reader import open_bag
-    from erva_ros.session.bag_report import compute_report, load_session, write_plots
-    from erva_ros.session.report import jsonable
+    from erva_ros.session.bag.bag_report import compute_report, load_session, write_plots
+    from erva_ros.session.run.report import jsonable
 
     opened: list = []       # the bag's own warnings: said at once, before anything can fail
 
@@ -134,7 +134,7 @@ def main(args) -> int:
                                            sorted(f['reported'].items())) or 'not reported'))
     for line in prediction_lines(report['prediction']):
         print(line)
-    from erva_ros.session.segments import lines as segment_lines
+    from erva_ros.session.run.segments import lines as segment_lines
     for line in segment_lines(report.get('tuning')):      # live changes: the segments
         print(line.strip() if line.startswith('  params') else line)
     for e in report['diagnostics_errors']:

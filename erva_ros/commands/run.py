@@ -59,7 +59,7 @@ _command_delay = live_type('command_delay_s')
 
 def _option(parser, flag: str, name: str, help: str, **kw) -> None:
     """Add ``flag`` for parameter ``name``: choices, type and range from its spec."""
-    from erva_ros.core.node_params import argparse_kwargs
+    from erva_ros.core.settings.schemas import argparse_kwargs
     opts = argparse_kwargs(name, help)
     parser.add_argument(flag, default=None, **{**opts, **kw})
 
@@ -179,7 +179,7 @@ def add_bag_split_arguments(parser, short: bool = False) -> None:
         'bag splitting', 'as ros2 bag record: the bag becomes <bag>_0.mcap, <bag>_1.mcap, ... '
         '(each complete, all listed in metadata.yaml, read as one bag by every erva command); '
         'the recorder holds a file\'s index in memory until the file is finished')
-    from erva_ros.core.node_params import argparse_kwargs
+    from erva_ros.core.settings.schemas import argparse_kwargs
     split.add_argument(*(['-d'] if short else []), '--max-bag-duration', default=None,
                        metavar='S', **argparse_kwargs(
                            'max_bag_duration_s', 'start the next file once a message is S '
@@ -200,7 +200,7 @@ def bag_split_parameters(args) -> dict:
 
 def _bag_size(text: str) -> int:
     """Parse --max-bag-size: 0 or at least MIN_SPLIT_SIZE bytes (argparse type)."""
-    from erva_ros.core.node_params import spec_of
+    from erva_ros.core.settings.schemas import spec_of
     size = spec_of('max_bag_size_bytes', 'recorder').parse(text)
     if 0 < size < MIN_SPLIT_SIZE:
         raise argparse.ArgumentTypeError(f'{text!r}: 0 (no limit) or at least '
@@ -220,7 +220,7 @@ def _preview(text: str) -> str:
 
 def run_config(args, record_dir=None):
     """Return the RunConfig of parsed scenario options."""
-    from erva_ros.session.run_config import RunConfig
+    from erva_ros.session.run.run_config import RunConfig
     live = {}
     if args.preview_snr is not None:
         live.update(preview_noise=True, preview_snr_db=args.preview_snr)
@@ -274,17 +274,17 @@ def _check_namespace(namespace: str) -> str:
 
 def main(args) -> int:
     """Run the session, print its summary and end the process with its exit status."""
-    from erva_ros.session.bringup import Timeline
+    from erva_ros.session.run.bringup import Timeline
     timeline = Timeline()
     timeline.mark('options parsed')
-    from erva_ros.session.orchestrator import run_session
-    from erva_ros.session.run_config import ensure_ecu_available
-    from erva_ros.session.report import format_summary, jsonable
+    from erva_ros.session.run.orchestrator import run_session
+    from erva_ros.session.run.run_config import ensure_ecu_available
+    from erva_ros.session.run.report import format_summary, jsonable
 
     ensure_ecu_available(args.ecu)
     args.namespace = _check_namespace(args.namespace)
     if args.foxglove is not None:   # a port in use fails here, before anything starts
-        from erva_ros.session.foxglove_process import check_address
+        from erva_ros.session.run.foxglove_process import check_address
         check_address(args.foxglove)
     cfg = run_config(args, None if args.no_record else args.record)
     log = lambda line: print(f'erva run: {line}', file=sys.stderr, flush=True)  # noqa: E731

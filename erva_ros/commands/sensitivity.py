@@ -78,8 +78,9 @@ def add_arguments(parser):
 
 
 def main(args) -> int:
-    from erva_ros.core.params import load_erva_params
-    from erva_ros.core.sensitivity import FACTORS, INPUT_FACTORS, markdown, plan, run_one, table
+    from erva_ros.core.model.params import load_erva_params
+    from erva_ros.core.studies.sensitivity import (FACTORS, INPUT_FACTORS, markdown, plan,
+                                                   run_one, table)
 
     factors = list(FACTORS) if args.factors == 'all' else [
         f.strip() for f in args.factors.split(',') if f.strip()]
@@ -123,7 +124,7 @@ def main(args) -> int:
             json.dump(res, fh, indent=1)
         with open(files[1], 'w', encoding='utf-8') as fh:
             fh.write(markdown(rows, header))
-        from erva_ros.core.plots_closed_loop import tornado_figure
+        from erva_ros.core.plots.closed_loop import tornado_figure
         tornado_figure(rows, files[2], header)
         res['files'] = files
     if args.json:

@@ -10,7 +10,7 @@ from erva_ros.commands._common import (add_json_option, add_out_option, add_para
                                        add_set_option, compile_first, ensure_out_dir,
                                        print_json)
 from erva_ros.core.errors import CLIError
-from erva_ros.core.model import MODEL_KINDS
+from erva_ros.core.model.quarter_car import MODEL_KINDS
 
 COMMAND = 'sim'
 HELP = 'offline closed loop of a controller on a road (paper Figs. 5-7), no ROS'
@@ -54,10 +54,10 @@ def add_arguments(parser):
 
 
 def main(args) -> int:
-    from erva_ros.core.closed_loop import simulate_closed_loop
+    from erva_ros.core.studies.closed_loop import simulate_closed_loop
     from erva_ros.core.controllers import make_controller
-    from erva_ros.core.model import make_model
-    from erva_ros.core.params import load_erva_params
+    from erva_ros.core.model.quarter_car import make_model
+    from erva_ros.core.model.params import load_erva_params
 
     from erva_ros.core.controllers.tuning import (Built, check_schedule, parse_change,
                                                   ScheduledTuning)
@@ -94,12 +94,12 @@ def main(args) -> int:
         'fallbacks': m['fallbacks'], 'realtime_factor': m['realtime_factor'],
     }
     if tuner is not None:
-        from erva_ros.session import segments
+        from erva_ros.session.run import segments
         result['tuning'] = segments.block(segments.segments(
             [(k * run.ts, values) for k, values in tuner.sets], run.t, run.sprung_accel,
             run.power, run.ts))
     if out:
-        from erva_ros.core.plots_closed_loop import timeseries_figure
+        from erva_ros.core.plots.closed_loop import timeseries_figure
         csv_path = os.path.join(out, 'timeseries.csv')
         with open(csv_path, 'w', newline='', encoding='utf-8') as fh:
             wr = csv.writer(fh)
@@ -133,7 +133,7 @@ def main(args) -> int:
         print(f'  fallbacks:            {fb or "none"}')
         print(f'  real-time factor:     {m["realtime_factor"]:.1f}x')
         if tuner is not None:
-            from erva_ros.session.segments import lines
+            from erva_ros.session.run.segments import lines
             print('\n'.join(lines(result['tuning'])))
         for f in result.get('files', []):
             print(f'wrote {f}')

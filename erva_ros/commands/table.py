@@ -99,11 +99,11 @@ def run_seed(job):
     causal plans, then the bounds of the weightings solved before), so the result does
     not depend on which worker ran which seed before.
     """
-    from erva_ros.core.closed_loop import simulate_closed_loop
+    from erva_ros.core.studies.closed_loop import simulate_closed_loop
     from erva_ros.core.controllers import make_controller
     from erva_ros.core.controllers.clairvoyant import BoundSettings, clairvoyant_bound
-    from erva_ros.core.model import make_model
-    from erva_ros.core.roads import make_road
+    from erva_ros.core.model.quarter_car import make_model
+    from erva_ros.core.road.profiles import make_road
 
     params, settings, seed, duration, weights, controllers, bound = job
     model = make_model(params)
@@ -260,7 +260,7 @@ def markdown(result) -> str:
 
 def main(args) -> int:
     from erva_ros.core.controllers.settings import CONTROLLER_NAMES
-    from erva_ros.core.params import load_erva_params
+    from erva_ros.core.model.params import load_erva_params
 
     names = [n.strip() for n in args.controllers.split(',') if n.strip()]
     for n in names:
@@ -313,7 +313,7 @@ def main(args) -> int:
                                      f'{v["acc_rms"]:.6g}', f'{v["acc_rms_continuous"]:.6g}',
                                      f'{v["power_w"]:.6g}', f'{v["J"]:.6g}',
                                      f'{v["time_s"]:.3f}'])
-        from erva_ros.core.plots_closed_loop import table_figure
+        from erva_ros.core.plots.closed_loop import table_figure
         png_path = table_figure(rows, os.path.join(out, 'table.png'),
                                 f'paper road, {args.duration:g} s, {args.seeds} seed(s), mean ± '
                                 f'std; NMPC cost {settings.cost}')

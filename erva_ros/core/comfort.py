@@ -140,7 +140,7 @@ def point_vertical_acceleration(heave_acc, pitch_acc, roll_acc, x_m: float,
     """Return z̈ = z̈_c − x·θ̈ + y·φ̈ (m/s²) at the body point (x_m forward, y_m left, m).
 
     ``heave_acc`` z̈_c (m/s²), ``pitch_acc`` θ̈ and ``roll_acc`` φ̈ (rad/s²) of the body at
-    its centre of gravity, sampled alike; the axes of the car model (core/vehicle.py,
+    its centre of gravity, sampled alike; the axes of the car model (core/model/full_car.py,
     ISO 8855): θ positive nose down, φ positive left side up.
     """
     arrays = [np.asarray(v, dtype=float) for v in (heave_acc, pitch_acc, roll_acc)]

@@ -523,7 +523,7 @@ class SessionClaim(NodeReport):
 
     Of two sessions that claim one namespace, the one that claimed first runs
     (``claimed_ns``, then the id); one that brings its nodes up (``committed``) or runs
-    with ``--force`` never yields (erva_ros/session/start_gate.py).
+    with ``--force`` never yields (erva_ros/session/run/start_gate.py).
     """
 
     KIND: ClassVar[str] = 'session_claim'

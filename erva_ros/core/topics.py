@@ -48,7 +48,7 @@ from erva_ros.core.namespace import NAMESPACE
 #: The node name of `erva run`'s monitor (the time master waits for its readers).
 MONITOR_NODE = 'erva_run_monitor'
 #: Where each `erva run` claims its namespace (hidden, transient local: a session that
-#: joins later gets the claims of those already there; erva_ros/session/start_gate.py).
+#: joins later gets the claims of those already there; erva_ros/session/run/start_gate.py).
 SESSION_CLAIM = '_session_claim'
 
 STATE = 'state'

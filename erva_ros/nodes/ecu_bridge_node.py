@@ -1,6 +1,6 @@
 """ecu_bridge_node: the NMPC's damping command onto the vehicle CAN bus, the ECU's sensors back.
 
-A managed node around :class:`erva_ros.core.hil.bridge_loop.BridgeLoop`: ``damping_cmd``
+A managed node around :class:`erva_ros.core.loop.bridge_loop.BridgeLoop`: ``damping_cmd``
 → clamped, converted to a PWM duty and sent at once in an E2E-protected frame naming its
 cycle (with the loop's ``command_delay_s`` d > 0 the ECU applies it at t_k + d, and the
 plan goes out with it; a command made for another d is refused and counted); a Ts/4
@@ -26,8 +26,8 @@ from trajectory_msgs.msg import JointTrajectory
 from erva_ros.core import topics
 from erva_ros.core.hil import topics as hil_topics
 from erva_ros.core.hil.bridge import BridgeCore
-from erva_ros.core.hil.bridge_loop import BridgeLoop
-from erva_ros.core.params import ERVA_SPECS, validate_erva
+from erva_ros.core.loop.bridge_loop import BridgeLoop
+from erva_ros.core.model.params import ERVA_SPECS, validate_erva
 from erva_ros.core.reports import BridgeBusReport, BridgeCommandReport, BridgeEcuReport
 from erva_ros.ros.loop_node import LoopNode
 from erva_ros.ros.rt_subscription import RealtimeSubscription

@@ -38,7 +38,7 @@ from typing import Dict, List, Optional
 from erva_ros.core import topics as contract
 from erva_ros.core.contract import decode_clock
 from erva_ros.core.levels import OK, WARN
-from erva_ros.core.params import ParamError
+from erva_ros.core.model.params import ParamError
 from erva_ros.core.reports import FoxgloveReport
 from erva_ros.ros import foxglove_server as fg
 from erva_ros.ros import qos as ros_qos

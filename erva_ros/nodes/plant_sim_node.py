@@ -21,8 +21,8 @@ from erva_ros.core import contract, topics
 from erva_ros.core.levels import OK, WARN
 from erva_ros.core.loop.plant_loop import PlantLoop
 from erva_ros.core.loop.validation import MessageRejected
-from erva_ros.core.model import make_model
-from erva_ros.core.params import ERVA_SPECS, validate_erva
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import ERVA_SPECS, validate_erva
 from erva_ros.core.reports import PlantReport
 from erva_ros.ros.loop_node import LoopNode
 from erva_ros.ros.runtime import run_node

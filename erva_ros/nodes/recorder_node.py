@@ -31,7 +31,7 @@ from erva_ros.core.bag.qos import profile_to_dict
 from erva_ros.core.bag.recording import Recording
 from erva_ros.core.bag.session import recorder_session
 from erva_ros.core.levels import ERROR, OK
-from erva_ros.core.params import ParamError
+from erva_ros.core.model.params import ParamError
 from erva_ros.core.reports import RecorderReport
 from erva_ros.ros import qos as ros_qos
 from erva_ros.ros.bag_messages import message_class

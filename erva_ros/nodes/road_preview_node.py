@@ -15,7 +15,7 @@ base of the live run (deactivated, it skips the samples meanwhile, counted).
 
 ``source`` ``map`` (docs/road.md): ``road/height`` stays the simulated world's road (for
 the ECU simulator only), and the preview comes from ``map_file`` instead
-(:class:`erva_ros.core.road_loop.MapPreviewLoop`): one per ``road/estimate``, stamped as
+(:class:`erva_ros.core.loop.road_loop.MapPreviewLoop`): one per ``road/estimate``, stamped as
 it, at the odometry position corrected by profile matching; ``road/alignment`` carries
 the correction.  Fallbacks (off the map, gaps, no match) are counted in the report.
 """
@@ -56,7 +56,7 @@ class RoadPreviewNode(LoopNode):
         if self.p['source'] == 'map':
             # Imported only here: the map preview brings the road EKF, the vehicle loop
             # and the CAN codec, ~40 % of this node's start-up (docs/live_figures.md, Bring-up).
-            from erva_ros.core.road_loop import MapPreviewLoop
+            from erva_ros.core.loop.road_loop import MapPreviewLoop
             self.map = MapPreviewLoop(self.p, self.report)
         self.pub_preview = self.publisher(JointTrajectory, topics.ROAD_PREVIEW)
         self.pub_height = self.publisher(PointStamped, topics.ROAD_HEIGHT)

@@ -5,7 +5,7 @@ the shared model, paper eq. (11)): one ``ecu/measurements`` message per ECU cycl
 ecu_bridge_node and, with ``road_at_tyre`` ``truth``, ``road/height`` (buffered,
 interpolated) give one estimate on ``state`` stamped with the cycle's instant (on the
 road's grid with ``stamp_on_road_grid``).  With ``estimated`` (docs/road.md) no road is
-read: the RoadEKF estimates it (:mod:`erva_ros.core.road_loop`), each cycle stamped with
+read: the RoadEKF estimates it (:mod:`erva_ros.core.loop.road_loop`), each cycle stamped with
 its instant k·Ts (the real-ECU contract, docs/hil.md §8), and ``road/estimate`` carries
 ŵ(t_k) and the odometry distance.
 A malformed or absurd message is rejected and counted, never reaching the filter.
@@ -24,15 +24,15 @@ from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from sensor_msgs.msg import JointState
 
 from erva_ros.core import contract, topics
-from erva_ros.core.estimator import ExtendedKalmanFilter
+from erva_ros.core.model.estimator import ExtendedKalmanFilter
 from erva_ros.core.hil import topics as hil_topics
 from erva_ros.core.hil.settings import noise_of
 from erva_ros.core.levels import OK, WARN
 from erva_ros.core.loop.estimator_loop import EstimatorLoop, ROAD_WAIT_PERIODS
-from erva_ros.core.model import make_model
-from erva_ros.core.params import ERVA_SPECS, validate_erva
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.params import ERVA_SPECS, validate_erva
 from erva_ros.core.reports import EstimatorReport
-from erva_ros.core.road_loop import road_estimator_loop
+from erva_ros.core.loop.road_loop import road_estimator_loop
 from erva_ros.ros import qos as ros_qos
 from erva_ros.ros.loop_node import LoopNode
 from erva_ros.ros.rt_subscription import RealtimeSubscription

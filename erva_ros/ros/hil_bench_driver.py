@@ -1,4 +1,4 @@
-"""The driver node of `erva bench-hil` (erva_ros/session/hil_bench.py): road and law stand-in.
+"""The driver node of `erva bench-hil` (session/bench/hil_bench.py): road and law stand-in.
 
 It publishes the road height at 50 Hz once the HIL loop is discovered, answers every
 ``state`` with a ``damping_cmd`` at once (skyhook or passive), and observes the loop from
@@ -45,7 +45,7 @@ class HilBenchDriver:
         self.node = Node('bench_hil_driver', namespace=namespace, context=context)
         self.road, self.law, self.params = road, law, params
         # The loop's command delay, as the bridge's params give it: commands say when they act.
-        from erva_ros.core.node_params import LIVE
+        from erva_ros.core.settings.schemas import LIVE
         self.delay_ns = int(round(LIVE.defaults()['command_delay_s'] * 1e9))
         qos = ros_qos.control_qos()
         self.pub_road = self.node.create_publisher(PointStamped, topics.ROAD_HEIGHT, qos)

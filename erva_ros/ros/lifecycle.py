@@ -3,7 +3,7 @@
 :class:`LifecycleDriver` calls each node's ``<node>/change_state`` service
 (lifecycle_msgs/srv/ChangeState) from a node of the caller's, without blocking: the
 caller spins its executor and polls.  `erva run` uses it to configure every loop node,
-then activate them one by one in a fixed order (:mod:`erva_ros.session.supervisor`).
+then activate them one by one in a fixed order (:mod:`erva_ros.session.run.supervisor`).
 """
 
 from typing import Dict, Optional, Sequence, Tuple

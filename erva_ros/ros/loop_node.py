@@ -3,7 +3,7 @@
 :class:`LoopNode` is a ROS 2 managed (lifecycle) node that owns what each node needs
 besides its own core:
 
-* its parameters, declared from its schema (:data:`erva_ros.core.node_params.SCHEMAS`,
+* its parameters, declared from its schema (:data:`erva_ros.core.settings.schemas.SCHEMAS`,
   the node's name is the key) with descriptors: ``self.p`` (a bad value stops the node
   at start-up with one line); the live ones (dynamic, docs/live.md) are checked by
   :meth:`on_parameters` when set, and ``self.p`` follows them;
@@ -46,9 +46,9 @@ from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from erva_ros.core import topics
 from erva_ros.core.levels import ERROR
 from erva_ros.core.loop.status import StatusReporter
-from erva_ros.core.params import ParamError
+from erva_ros.core.model.params import ParamError
 from erva_ros.core.loop.validation import Rejections, StampWindow
-from erva_ros.core.node_params import SCHEMAS
+from erva_ros.core.settings.schemas import SCHEMAS
 from erva_ros.core.reports import NodeReport
 from erva_ros.core.startup import process_age_s
 from erva_ros.ros import qos as ros_qos

@@ -2,7 +2,7 @@
 
 It subscribes to the live topics and ``/diagnostics`` exactly as any other subscriber
 would (same QoS), takes every message raw (CDR bytes, with the middleware's reception
-time) and hands it to a store -- :class:`erva_ros.session.observations.Observations`,
+time) and hands it to a store -- :class:`erva_ros.session.run.observations.Observations`,
 which decodes and judges it.  The node costs the loop as little CPU as possible while it
 runs: nothing is decoded here.
 """

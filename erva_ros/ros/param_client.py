@@ -219,7 +219,7 @@ class ParameterTool:
         Raises CLIError for a parameter the node does not have or a text not of its type.
         """
         from erva_ros.core.errors import CLIError
-        from erva_ros.core.specs import closest_key
+        from erva_ros.core.settings.specs import closest_key
         declared = self.list(node)
         unknown = [n for n in values if n not in declared]
         if unknown:

@@ -1,19 +1,19 @@
 """Declare a node's parameters from its schema, with descriptors, through rclpy's public API.
 
-Each node's parameters are :data:`erva_ros.core.node_params.SCHEMAS` ``[node]``: their
-specs (:mod:`erva_ros.core.specs`) and their defaults (the shipped ``config/*.yaml``).
+Each node's parameters are :data:`erva_ros.core.settings.schemas.SCHEMAS` ``[node]``: their
+specs (:mod:`erva_ros.core.settings.specs`) and their defaults (the shipped ``config/*.yaml``).
 :func:`declare_schema` declares every one with a ParameterDescriptor (description,
 FloatingPointRange or IntegerRange, allowed values as additional_constraints), so
 ``ros2 param describe`` shows the range.  A parameter whose spec is ``live`` is dynamic
 (``read_only`` false: ``ros2 param set`` changes it while the node runs, checked by the
 node's callback, :func:`on_set_callback`); every other one is read-only, and its
-description says why (:func:`erva_ros.core.node_params.read_only_reason`).
+description says why (:func:`erva_ros.core.settings.schemas.read_only_reason`).
 
 Values come from rclpy's own ``--ros-args --params-file F -p name:=value`` handling.
 A parameter is first declared with dynamic typing, so rclpy applies any override; the
 value is then checked by the spec -- the same check the offline tools and the session
 file use -- so a bad value stops the node with one
-:class:`~erva_ros.core.params.ParamError` line naming the key, the value and the range;
+:class:`~erva_ros.core.model.params.ParamError` line naming the key, the value and the range;
 only then does the parameter get its typed, read-only descriptor
 (``Node.set_descriptor``).  A whole number given for a floating-point parameter
 (``alpha2: 1``) is accepted.
@@ -25,9 +25,9 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
                                 ParameterType, SetParametersResult)
 from rclpy.parameter import Parameter
 
-from erva_ros.core.node_params import NodeSchema, read_only_reason, SCHEMAS
-from erva_ros.core.params import ParamError
-from erva_ros.core.specs import Choice, Flag, Integer, Number, Texts
+from erva_ros.core.settings.schemas import NodeSchema, read_only_reason, SCHEMAS
+from erva_ros.core.model.params import ParamError
+from erva_ros.core.settings.specs import Choice, Flag, Integer, Number, Texts
 
 #: What a live parameter's description ends with.
 LIVE_NOTE = 'live: may change while the node runs, takes effect at its next sample'

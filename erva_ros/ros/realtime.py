@@ -25,8 +25,8 @@ import os
 import struct
 from typing import Callable, Optional
 
-from erva_ros.core.config import shipped_defaults
-from erva_ros.core.node_params import MAX_PRIORITY
+from erva_ros.core.settings.files import shipped_defaults
+from erva_ros.core.settings.schemas import MAX_PRIORITY
 
 #: Default of the ``realtime_priority`` parameter, as config/live.yaml ships it (20: below
 #: the threaded IRQ handlers of a PREEMPT_RT kernel (50), so network and timer interrupts

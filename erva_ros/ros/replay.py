@@ -22,7 +22,7 @@ asked how many subscribers it has matched as it publishes (:class:`Reach`): ``on
 is told the counts when playing starts, and the stats count what went out before a
 topic's last subscriber matched.
 
-The what-if mode (erva_ros/session/whatif.py) does not publish: the road recorded at the
+The what-if mode (erva_ros/session/bag/whatif.py) does not publish: the road recorded at the
 tyre drives a fresh offline closed loop with another controller, written as a new session.
 """
 
@@ -54,7 +54,7 @@ class Player:
                  remap: Optional[Mapping[str, str]] = None):
         from erva_ros.ros.qos import playback_qos
         from erva_ros.ros.bag_messages import message_class
-        from erva_ros.core.node_params import LIVE
+        from erva_ros.core.settings.schemas import LIVE
 
         if not rate > 0:
             raise BagError(f'rate {rate} must be positive')

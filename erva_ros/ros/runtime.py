@@ -29,7 +29,7 @@ import sys
 import time
 from typing import List, Optional, Type
 
-from erva_ros.core.params import ParamError
+from erva_ros.core.model.params import ParamError
 from erva_ros.core.startup import process_age_s
 from erva_ros.ros.context import check_domain_id
 

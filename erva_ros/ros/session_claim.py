@@ -5,7 +5,7 @@ One reliable, transient-local, keep-last-1 topic per namespace
 the newest claim of every session already there as soon as discovery matches it, with
 no period to wait for.  The claims are DiagnosticArrays of one
 :class:`~erva_ros.core.reports.SessionClaim` each; who wins is decided by the session
-(:class:`erva_ros.session.start_gate.Contest`).
+(:class:`erva_ros.session.run.start_gate.Contest`).
 """
 
 from typing import Callable

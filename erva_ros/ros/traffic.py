@@ -38,7 +38,7 @@ from rclpy.signals import SignalHandlerOptions
 from erva_ros.core import topics as contract
 from erva_ros.core import contract as wire
 from erva_ros.core.levels import OK
-from erva_ros.core.node_params import LIVE
+from erva_ros.core.settings.schemas import LIVE
 from erva_ros.ros import qos as ros_qos
 
 HORIZON = 10

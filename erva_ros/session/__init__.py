@@ -3,17 +3,17 @@
 No rclpy or message import here (test_rings): ROS work goes through erva_ros.ros
 (:class:`~erva_ros.ros.context.RosContext`, :mod:`~erva_ros.ros.monitor`, ...).
 
-* :mod:`~erva_ros.session.orchestrator` -- `erva run`: one session, start to summary;
-* :mod:`~erva_ros.session.run_config` -- its options;
-* :mod:`~erva_ros.session.session_file` -- the options validated, the session id, the
-  session params file; :mod:`~erva_ros.session.session_dirs` -- where it is kept;
+* :mod:`~erva_ros.session.run.orchestrator` -- `erva run`: one session, start to summary;
+* :mod:`~erva_ros.session.run.run_config` -- its options;
+* :mod:`~erva_ros.session.run.session_file` -- the options validated, the session id, the
+  session params file; :mod:`~erva_ros.session.run.session_dirs` -- where it is kept;
 * :mod:`~erva_ros.session.processes` -- child processes: start, stop (every session tool);
-* :mod:`~erva_ros.session.supervisor` -- the session's processes and phases;
-* :mod:`~erva_ros.session.start_gate` -- another session here? when the loop may start;
-* :mod:`~erva_ros.session.recording` -- the recorder process and its drain;
-* :mod:`~erva_ros.session.accounting` -- who must be matched, was anything lost (the bag);
-* :mod:`~erva_ros.session.observations` -- what the monitor observed, as the run's figures
-  (:mod:`~erva_ros.session.monitor_figures`, :mod:`~erva_ros.session.hil_summary`,
-  :mod:`~erva_ros.session.verdict`);
-* :mod:`~erva_ros.session.benchmark` -- `erva bench --live`.
+* :mod:`~erva_ros.session.run.supervisor` -- the session's processes and phases;
+* :mod:`~erva_ros.session.run.start_gate` -- another session here? when the loop may start;
+* :mod:`~erva_ros.session.bag.recording` -- the recorder process and its drain;
+* :mod:`~erva_ros.session.run.accounting` -- who must be matched, was anything lost (the bag);
+* :mod:`~erva_ros.session.run.observations` -- what the monitor observed, as the run's figures
+  (:mod:`~erva_ros.session.run.monitor_figures`, :mod:`~erva_ros.session.hil.hil_summary`,
+  :mod:`~erva_ros.session.run.verdict`);
+* :mod:`~erva_ros.session.bench.benchmark` -- `erva bench --live`.
 """

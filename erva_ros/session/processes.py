@@ -83,7 +83,7 @@ PROFILE_VARIABLES = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES
 
 def session_profile() -> str:
     """Return config/fastdds_session.xml: faster announcements (the file says which, why)."""
-    from erva_ros.core.config import shipped_config
+    from erva_ros.core.settings.files import shipped_config
     return shipped_config('fastdds_session.xml')
 
 

@@ -10,14 +10,14 @@ Layout (do-mpc-like separation; no ROS needed except where noted):
 * :mod:`~erva_ros.core.bag.reader`   -- reading, ``erva bag info``;
 * :mod:`~erva_ros.core.bag.repair`   -- recovering a bag whose recorder was killed;
 * :mod:`~erva_ros.core.bag.session`  -- bag directory names and session metadata for ``erva run``;
-* :mod:`~erva_ros.session.bag_report`   -- comfort, power and timing figures from a bag alone
+* :mod:`~erva_ros.session.bag.bag_report`   -- comfort, power and timing figures from a bag alone
   (figures in :mod:`~erva_ros.core.bag.report_plots`);
 * :mod:`~erva_ros.ros.replay`   -- publishing a bag with its original timing (rclpy), and
   what-if runs of another controller on a recorded road;
-* :mod:`~erva_ros.session.reevaluate` -- feeding recorded states and previews to a fresh
+* :mod:`~erva_ros.session.bag.reevaluate` -- feeding recorded states and previews to a fresh
   controller (determinism check);
-* :mod:`~erva_ros.session.offline_bag`  -- writing an offline closed-loop run as a session bag;
-* :mod:`~erva_ros.ros.traffic`, :mod:`~erva_ros.session.recorder_bench` -- synthetic traffic
+* :mod:`~erva_ros.session.bag.offline_bag`  -- writing an offline closed-loop run as a session bag;
+* :mod:`~erva_ros.ros.traffic`, :mod:`~erva_ros.session.bench.recorder_bench` -- synthetic traffic
   and the recorder benchmark (``erva bag bench``).
 
 The recorder node itself is :mod:`erva_ros.nodes.recorder_node`.

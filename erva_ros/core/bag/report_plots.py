@@ -5,7 +5,7 @@ from typing import List, Mapping, Optional
 
 import numpy as np
 
-from erva_ros.core.plots import save, subplots
+from erva_ros.core.plots.figures import save, subplots
 
 
 def _t(series, t0_ns: int) -> np.ndarray:
@@ -33,7 +33,7 @@ def write_all(data, out_dir: str, timing: bool = True, actual=None,
     """Write acceleration, damping command, power, road/preview, prediction (and timing) PNGs.
 
     ``actual``: what happened by prediction joint name, (stamps ns, values)
-    (session/bag_report.py actual_signals).  ``deadlines``: the session's sample period
+    (session/bag/bag_report.py actual_signals).  ``deadlines``: the session's sample period
     ``ts`` and command delay ``d`` (s), marked on timing.png.
     """
     t0 = data.t0_ns

@@ -52,8 +52,8 @@ def split_type(type_name: str) -> Tuple[str, str, str]:
 
 def share_directory(package: str) -> str:
     """Return the share directory of ``package`` (its .msg files); BagError if not found."""
-    from erva_ros.core.config import share_directory as find
-    from erva_ros.core.params import ParamError
+    from erva_ros.core.settings.files import share_directory as find
+    from erva_ros.core.model.params import ParamError
     try:
         return find(package)
     except ParamError as exc:

@@ -116,7 +116,7 @@ def recorder_session(text: str, recorder: str, bag_dir: str,
     keys only it knows.  ParamError (one line) if ``text`` is not a JSON object.
     """
     import json
-    from erva_ros.core.params import ParamError
+    from erva_ros.core.model.params import ParamError
     try:
         given = json.loads(text) if text.strip() else {}
     except ValueError as exc:

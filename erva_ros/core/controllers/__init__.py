@@ -20,8 +20,8 @@ from typing import Optional
 from erva_ros.core.controllers.base import ControlResult, Controller, SolveFailure, STATUSES
 from erva_ros.core.controllers.settings import (CONTROLLER_NAMES, ControllerSettings,
                                                 EXCITATION_NAMES, load_controller_settings)
-from erva_ros.core.model import QuarterCarModel
-from erva_ros.core.params import ParamError
+from erva_ros.core.model.quarter_car import QuarterCarModel
+from erva_ros.core.model.params import ParamError
 
 
 def make_controller(name: Optional[str], model: QuarterCarModel,

@@ -44,14 +44,14 @@ from typing import Dict, Mapping, Optional, Tuple
 import casadi as ca
 import numpy as np
 
-from erva_ros.core.codegen import BufferedCall, compile_for
+from erva_ros.core.model.codegen import BufferedCall, compile_for
 from erva_ros.core.controllers.base import Controller
 from erva_ros.core.controllers.ocp import build_ocp, OCPSpec, stable_rollout_substep, U_SCALE
 from erva_ros.core.controllers.reference import build_ipopt
 from erva_ros.core.metrics import comfort_power, evaluation_objective
-from erva_ros.core.model import PLANT_SUBSTEP_S, QuarterCarModel
-from erva_ros.core.plant import PlantSimulator
-from erva_ros.core.roads import Road
+from erva_ros.core.model.quarter_car import PLANT_SUBSTEP_S, QuarterCarModel
+from erva_ros.core.model.plant import PlantSimulator
+from erva_ros.core.road.profiles import Road
 
 #: IPOPT iteration limit per solve of the bound.
 BOUND_MAX_ITER = 500
@@ -65,7 +65,7 @@ class BoundSettings:
     window_s: float = 0.3         # s, length of a forced window
     polish_iter: int = 60         # projected L-BFGS iterations on the plant
     max_iter: int = BOUND_MAX_ITER
-    codegen: str = 'auto'         # compile the plant objective (erva_ros/core/codegen.py)
+    codegen: str = 'auto'         # compile the plant objective (erva_ros/core/model/codegen.py)
 
     def describe(self) -> str:
         """Return a one-line description of the method, for tables."""

@@ -20,7 +20,7 @@ applied too late throughout.  A known d (setting ``command_delay_s``, checked by
 3. plans from there, so u_k is optimised for [t_k + d, t_{k+1} + d), when it acts.
 
 The offline closed loop reproduces such a delay with ``actuation_delay_s``
-(erva_ros/core/closed_loop.py; `erva sim --actuation-delay`), so the compensation is
+(erva_ros/core/studies/closed_loop.py; `erva sim --actuation-delay`), so the compensation is
 measured there too.
 """
 
@@ -29,8 +29,8 @@ from typing import Tuple
 
 import numpy as np
 
-from erva_ros.core.codegen import BufferedCall
-from erva_ros.core.model import PLANT_SUBSTEP_S, QuarterCarModel
+from erva_ros.core.model.codegen import BufferedCall
+from erva_ros.core.model.quarter_car import PLANT_SUBSTEP_S, QuarterCarModel
 
 
 def check_delay(delay_s: float, ts: float, positive: bool = False) -> float:

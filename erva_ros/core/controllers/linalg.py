@@ -1,7 +1,7 @@
 """Symbolic linear-algebra kernels of the real-time SQP: straight-line SX code.
 
 Each returns CasADi SX expressions (no loops at run time): compiled with the solver
-(erva_ros/core/codegen.py), they cost only the arithmetic of the matrices at hand.
+(erva_ros/core/model/codegen.py), they cost only the arithmetic of the matrices at hand.
 
 * :func:`lu_factor` / :func:`lu_solve`: LU without numerical pivoting that skips
   structural zeros, its pivots in a fill-reducing order chosen from the sparsity

@@ -36,7 +36,7 @@ from typing import Tuple
 
 import numpy as np
 
-from erva_ros.core.codegen import BufferedCall
+from erva_ros.core.model.codegen import BufferedCall
 from erva_ros.core.controllers.base import Controller, SolveFailure
 from erva_ros.core.controllers.delay import check_delay
 from erva_ros.core.controllers.ocp import (build_ocp, OCPSpec, passive_tail,
@@ -44,8 +44,8 @@ from erva_ros.core.controllers.ocp import (build_ocp, OCPSpec, passive_tail,
 from erva_ros.core.controllers.reference import IpoptReference, RecordedProblem, reference_gap
 from erva_ros.core.controllers.settings import ControllerSettings
 from erva_ros.core.controllers.sqp import build_rti
-from erva_ros.core.model import QuarterCarModel
-from erva_ros.core.params import ParamError
+from erva_ros.core.model.quarter_car import QuarterCarModel
+from erva_ros.core.model.params import ParamError
 
 #: Other starts the real-time SQP compares with the warm start (NMPCController._alternatives).
 N_ALTERNATIVES = 3
@@ -91,7 +91,7 @@ class NMPCController(Controller):
         if s.solver == 'ipopt':
             self._solver = IpoptReference(self.ocp, s.ipopt_max_iter, s.ipopt_starts)
         else:
-            # Called through fixed buffers (erva_ros/core/codegen.py): no DM conversions.
+            # Called through fixed buffers (erva_ros/core/model/codegen.py): no DM conversions.
             self._solver = BufferedCall(build_rti(self.ocp, s.iteration_cap(name), s.sqp_tol,
                                                   s.codegen, N_ALTERNATIVES, s.hessian))
         budget = math.inf if s.solver == 'ipopt' else s.time_budget_s

@@ -7,7 +7,7 @@ Solved at every sample t_k (paper eq. (14)):
 
 Prediction -- direct collocation, multiple shooting.  Each interval (``blocks``: its
 length in samples, the command held over it) is one Radau IIA collocation step
-(degree 3, order 5) of the shared model's ``ode`` (:mod:`erva_ros.core.model`; no
+(degree 3, order 5) of the shared model's ``ode`` (:mod:`erva_ros.core.model.quarter_car`; no
 second copy of the equations).  Radau IIA is L-stable, so the prediction is stable
 for every damping in the box, and an optimizer cannot "harvest" the integration
 error of a too coarse explicit step: ``test_ctrl_nmpc.py`` checks it against the
@@ -49,8 +49,8 @@ from typing import NamedTuple, Optional, Tuple
 import casadi as ca
 import numpy as np
 
-from erva_ros.core.model import linearize, QuarterCarModel
-from erva_ros.core.params import ParamError
+from erva_ros.core.model.quarter_car import linearize, QuarterCarModel
+from erva_ros.core.model.params import ParamError
 
 #: Scale of the input in the decision variables (Ns/m; the states': the model's x_scale).
 U_SCALE = 1e4

@@ -14,9 +14,9 @@ stable over the whole box: it is Radau IIA collocation (L-stable), see ocp.py.
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, Dict, Mapping, Optional, Tuple
 
-from erva_ros.core.params import ERVA_SPECS, ParamError, read_ros_params, ROS_BUILTINS
-from erva_ros.core.node_params import COMMAND_DELAY_SPEC, TS_SPEC
-from erva_ros.core.specs import Choice, Flag, Integer, Number, unknown_parameters
+from erva_ros.core.model.params import ERVA_SPECS, ParamError, read_ros_params, ROS_BUILTINS
+from erva_ros.core.settings.schemas import COMMAND_DELAY_SPEC, TS_SPEC
+from erva_ros.core.settings.specs import Choice, Flag, Integer, Number, unknown_parameters
 
 #: Control laws understood by make_controller (and `erva sim --controller`).
 CONTROLLER_NAMES = ('passive', 'skyhook', 'no_preview', 'preview', 'preview_long')
@@ -113,7 +113,7 @@ FLAG_SPECS: Dict[str, Flag] = {
                         'road predicted as road_prediction says, as no_preview does)',
                         live=True),
 }
-#: Every setting's spec (erva_ros.core.specs): the one table of allowed values.
+#: Every setting's spec (erva_ros.core.settings.specs): the one table of allowed values.
 SPECS: Dict[str, Any] = {**NUMERIC_SPECS, **CHOICE_SPECS, **FLAG_SPECS}
 
 
@@ -122,7 +122,7 @@ def _shipped_settings() -> Dict[str, Any]:
 
     ``ts`` is the loop's sample time, one value for every node (config/live.yaml ``/**``).
     """
-    from erva_ros.core.config import shipped_defaults
+    from erva_ros.core.settings.files import shipped_defaults
     values = dict(shipped_defaults('nmpc.yaml', NODE_NAME))
     values['ts'] = shipped_defaults('live.yaml')['ts']
     return {k: SPECS[k].check(k, v, 'config/nmpc.yaml') for k, v in values.items()}
@@ -242,7 +242,7 @@ def validate_settings(values: Mapping[str, Any], source: str = '') -> Controller
 
 def default_settings_file() -> str:
     """Return the path of the shipped config/nmpc.yaml (source tree or installed share)."""
-    from erva_ros.core.config import shipped_config
+    from erva_ros.core.settings.files import shipped_config
     return shipped_config('nmpc.yaml', 'pass a settings file')
 
 
@@ -261,7 +261,7 @@ def load_controller_settings(path: Optional[str] = None,
     """Load ``nmpc_node`` settings from ``path`` (default config/nmpc.yaml), then overrides.
 
     ``overrides`` (e.g. from command-line options) win over the file; ``None`` values in
-    it are ignored.  Raises :class:`~erva_ros.core.params.ParamError` with one line.
+    it are ignored.  Raises :class:`~erva_ros.core.model.params.ParamError` with one line.
     """
     path = path or default_settings_file()
     values = dict(read_ros_params(path, NODE_NAME))

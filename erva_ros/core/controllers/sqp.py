@@ -59,7 +59,7 @@ from functools import lru_cache
 import casadi as ca
 import numpy as np
 
-from erva_ros.core.codegen import compile_for, load_or_build
+from erva_ros.core.model.codegen import compile_for, load_or_build
 from erva_ros.core.controllers.linalg import (convexify, lu_factor, lu_solve, SparseLU,
                                               symmetric)
 from erva_ros.core.controllers.settings import HESSIANS

@@ -113,7 +113,7 @@ class BridgeCore:
         from erva_ros.core.hil.can_trace import check_path
         from erva_ros.core.hil.settings import hardware_of
         from erva_ros.core.hil.transport import open_bus, parse_spec
-        from erva_ros.core.params import ParamError
+        from erva_ros.core.model.params import ParamError
         if p.get('can_log'):
             check_path(p['can_log'])
         try:

@@ -23,7 +23,7 @@ from typing import Optional
 
 import can
 
-from erva_ros.core.params import ParamError
+from erva_ros.core.model.params import ParamError
 
 #: File suffixes of the formats written.
 SUFFIXES = ('.blf', '.asc')

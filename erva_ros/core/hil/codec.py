@@ -113,7 +113,7 @@ class Status:
 
 def default_dbc_path() -> str:
     """Return the path of the shipped ``config/erva_ecu.dbc`` (source tree or share dir)."""
-    from erva_ros.core.config import shipped_config
+    from erva_ros.core.settings.files import shipped_config
     return shipped_config('erva_ecu.dbc', 'pass the DBC path explicitly')
 
 

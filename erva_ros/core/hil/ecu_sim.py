@@ -1,7 +1,7 @@
 """Simulated generator ECU (no ROS): CAN damping commands to the plant, sensor frames back.
 
 It plays the vehicle side of the CAN link for the HIL loop: the quarter car is
-:class:`erva_ros.core.plant.PlantSimulator` (the shared model, never a copy), with the
+:class:`erva_ros.core.model.plant.PlantSimulator` (the shared model, never a copy), with the
 damping latched in steps of ``latch_s`` (default 1 ms, the ECU's PWM update
 granularity).  It keeps a real ECU's timing: at each sample instant t_k it samples the
 sensors and sends ERVA_ECU_STATUS, ERVA_SENS_CHASSIS and ERVA_SENS_GENERATOR at once;
@@ -47,14 +47,14 @@ from typing import Callable, Dict, List, NamedTuple, Optional, Tuple
 import can
 import numpy as np
 
-from erva_ros.core.codegen import BufferedCall
+from erva_ros.core.model.codegen import BufferedCall
 from erva_ros.core.hil.codec import (Chassis, CommandMode, cycle_of, E2EReceiver, EcuCodec,
                                      EcuMode, Generator, Kind, Status, unwrap_cycle)
 from erva_ros.core.hil.hardware import GeneratorHardware
 from erva_ros.core.hil.settings import ECU_SIM_DEFAULTS as _SIM
 from erva_ros.core.loop.timing import DurationStats, PeriodStats
-from erva_ros.core.model import QuarterCarModel
-from erva_ros.core.plant import PlantSimulator, ProfileStep
+from erva_ros.core.model.quarter_car import QuarterCarModel
+from erva_ros.core.model.plant import PlantSimulator, ProfileStep
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,7 @@
 Two runs on the same road, same controller, same plant (``PlantSimulator``), same
 metrics (:func:`erva_ros.core.metrics.comfort_power`):
 
-* **full state** — the offline closed loop's semantics (``erva_ros.core.closed_loop``): the
+* **full state** — the offline closed loop's semantics (``erva_ros.core.studies.closed_loop``): the
   controller sees x(t_k);
 * **estimated** — the controller sees the EKF's x̂(t_k) built from the ECU's sensors
   only.  Per sample: the sensors are read at t_k while the previous command still
@@ -29,11 +29,11 @@ from typing import Dict, Optional
 
 import numpy as np
 
-from erva_ros.core.estimator import EstimatorNoise, ExtendedKalmanFilter
+from erva_ros.core.model.estimator import EstimatorNoise, ExtendedKalmanFilter
 from erva_ros.core.hil.ecu_sim import SensorNoise
 from erva_ros.core.metrics import comfort_power
-from erva_ros.core.model import QuarterCarModel
-from erva_ros.core.plant import PlantSimulator
+from erva_ros.core.model.quarter_car import QuarterCarModel
+from erva_ros.core.model.plant import PlantSimulator
 
 #: DBC resolution of the measured signals (config/erva_ecu.dbc): accel, deflection, speed.
 QUANTUM = np.array([1e-3, 1e-5, 1e-3])

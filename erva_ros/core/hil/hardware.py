@@ -33,8 +33,8 @@ from dataclasses import asdict, dataclass
 import math
 from typing import Any, Dict, Mapping, Tuple
 
-from erva_ros.core.config import shipped_defaults
-from erva_ros.core.specs import Number, ParamError
+from erva_ros.core.settings.files import shipped_defaults
+from erva_ros.core.settings.specs import Number, ParamError
 
 #: Hardware parameters of the generator and its PWM load switch (ROS parameter names).
 HARDWARE_SPECS: Dict[str, Number] = {

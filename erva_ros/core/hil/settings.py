@@ -6,7 +6,7 @@ One table per user, the single source of allowed values for the ROS descriptors
 * ``ecu_bridge_node``: the bus, the DBC, timeouts, E2E tolerance and the generator
   hardware (:data:`erva_ros.core.hil.hardware.HARDWARE_SPECS`).  The simulated ECU reads
   the hardware keys from this section too, so bridge and ECU share one calibration.
-* ``state_estimator_node``: the EKF's noise (:data:`erva_ros.core.estimator.NOISE_SPECS`)
+* ``state_estimator_node``: the EKF's noise (:data:`erva_ros.core.model.estimator.NOISE_SPECS`)
   and its discretisation bound.
 * ``ecu_sim``: the simulated ECU's latch step and sensor noise.
 
@@ -19,11 +19,11 @@ The sample time ``ts`` and the model kind come from the ``/**`` section (as in a
 
 from typing import Any, Dict, Optional
 
-from erva_ros.core.config import shipped_defaults
-from erva_ros.core.estimator import EstimatorNoise, NOISE_SPECS, validate_noise
+from erva_ros.core.settings.files import shipped_defaults
+from erva_ros.core.model.estimator import EstimatorNoise, NOISE_SPECS, validate_noise
 from erva_ros.core.hil.hardware import GeneratorHardware, HARDWARE_SPECS, validate_hardware
-from erva_ros.core.params import read_ros_params, ROS_BUILTINS
-from erva_ros.core.specs import check_all, Flag, Integer, Number, Text, unknown_parameters
+from erva_ros.core.model.params import read_ros_params, ROS_BUILTINS
+from erva_ros.core.settings.specs import check_all, Flag, Integer, Number, Text, unknown_parameters
 
 BRIDGE_NODE = 'ecu_bridge_node'
 ESTIMATOR_NODE = 'state_estimator_node'
@@ -92,7 +92,7 @@ ECU_SIM_DEFAULTS: Dict[str, Any] = _shipped(ECU_SIM_SECTION, ECU_SIM_SPECS)
 
 def default_hil_file() -> str:
     """Return the path of the shipped ``config/hil.yaml`` (source tree or installed share)."""
-    from erva_ros.core.config import shipped_config
+    from erva_ros.core.settings.files import shipped_config
     return shipped_config('hil.yaml', 'pass --hil-config FILE')
 
 
@@ -114,7 +114,7 @@ def _validated(values: Dict[str, Any], specs: Dict[str, Any], defaults: Dict[str
     and ROS's own may be there; anything else is a typo, which was ignored before (the
     value kept its default): the error names the closest known key.
     """
-    from erva_ros.core.node_params import SCHEMAS
+    from erva_ros.core.settings.schemas import SCHEMAS
     schema = SCHEMAS.get(node)
     known = {*specs, *ROS_BUILTINS, *(schema.specs() if schema else ())}
     unknown = set(values) - known

@@ -33,7 +33,7 @@ from erva_ros.core.loop.validation import MessageRejected  # noqa: F401 (raised 
 from erva_ros.core.loop.sample_schedule import Job, SampleScheduler
 from erva_ros.core.loop.timing import DurationStats, PeriodStats
 from erva_ros.core.loop.validation import StampWindow
-from erva_ros.core.node_params import spec_of
+from erva_ros.core.settings.schemas import spec_of
 from erva_ros.core.reports import format_value, NMPCReport, Timing
 from erva_ros.core.wire import NS
 
@@ -65,8 +65,8 @@ def build_loop(p: Mapping[str, Any], window: StampWindow, report: NMPCReport) ->
     """Return nmpc_node's loop from its parameters ``p`` (controller, model, predictor)."""
     from erva_ros.core.controllers import make_controller
     from erva_ros.core.controllers.settings import NUMERIC_SPECS, SPECS, validate_settings
-    from erva_ros.core.model import make_model
-    from erva_ros.core.params import ERVA_SPECS, validate_erva
+    from erva_ros.core.model.quarter_car import make_model
+    from erva_ros.core.model.params import ERVA_SPECS, validate_erva
     settings = validate_settings({k: p[k] for k in SPECS})
     if p['mode'] == 'lockstep':    # simulated time: no wall-clock budget
         settings = settings.with_(time_budget_s=NUMERIC_SPECS['time_budget_s'].hi)

@@ -7,7 +7,7 @@ speed) and the road height at the tyre (``road/height``, buffered).  For each cy
 w(t_{k-1}) → w(t_k), corrects with the measurements present (a lost frame's values are
 NaN: that channel is left out, the cycle counted ``incomplete``; a lost status frame
 holds the last applied c_e) in one compiled call
-(:meth:`erva_ros.core.estimator.ExtendedKalmanFilter.cycle`), and counts gaps, restarts
+(:meth:`erva_ros.core.model.estimator.ExtendedKalmanFilter.cycle`), and counts gaps, restarts
 and repeats in the node's report.
 
 On the road grid (``stamp_on_road_grid``, what `erva run --ecu virtual` sets), a cycle's
@@ -23,7 +23,7 @@ from typing import Optional, Tuple
 import numpy as np
 
 from erva_ros.core.contract import Measurements
-from erva_ros.core.estimator import ExtendedKalmanFilter
+from erva_ros.core.model.estimator import ExtendedKalmanFilter
 from erva_ros.core.hil.latency import LatencyStats
 from erva_ros.core.hil.road_buffer import RoadBuffer
 from erva_ros.core.reports import EstimatorReport, Timing

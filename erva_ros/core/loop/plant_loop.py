@@ -28,8 +28,8 @@ from erva_ros.core.levels import ERROR, OK, WARN
 from erva_ros.core.loop.command_hold import CommandHold
 from erva_ros.core.loop.timing import DurationStats, PeriodStats
 from erva_ros.core.loop.validation import MessageRejected
-from erva_ros.core.model import QuarterCarModel
-from erva_ros.core.plant import PlantSimulator
+from erva_ros.core.model.quarter_car import QuarterCarModel
+from erva_ros.core.model.plant import PlantSimulator
 from erva_ros.core.reports import PlantReport, Timing
 from erva_ros.core.wire import NS
 

@@ -1,14 +1,14 @@
 """What the controller's plan predicts: the states and outputs over the horizon.
 
 For the command of sample t_k the NMPC publishes, beside it, the trajectory its plan
-implies on the shared model (core/model.py): from x(t_k), with the damping acting
+implies on the shared model (core/model/quarter_car.py): from x(t_k), with the damping acting
 before t_k + d (``acting``: what the earlier commands left in force), then plan[j] on
 [t_{k+j} + d, t_{k+j+1} + d), and the road the preview gave, linear between its
 samples w(t_k + j·Ts).  :class:`Predictor` returns the states x(t_{k+j}) and the chassis
 acceleration and harvested power at t_{k+j}, j = 0..N, with the damping acting at that
 instant (as the plant publishes them; at t_{k+N} the plan's last value, held).
 
-It integrates exactly as :class:`~erva_ros.core.plant.PlantSimulator` does (RK4 with
+It integrates exactly as :class:`~erva_ros.core.model.plant.PlantSimulator` does (RK4 with
 sub-steps of at most ``PLANT_SUBSTEP_S``, the period split at d), so with the plan
 applied and the same road it reproduces the plant to rounding; for a converged solve
 it is the OCP's own trajectory to the integrators' accuracy, for a fallback what the
@@ -28,8 +28,8 @@ from typing import Dict, Mapping, Optional, Sequence, Tuple
 import casadi as ca
 import numpy as np
 
-from erva_ros.core.codegen import BufferedCall, compile_for
-from erva_ros.core.model import PLANT_SUBSTEP_S
+from erva_ros.core.model.codegen import BufferedCall, compile_for
+from erva_ros.core.model.quarter_car import PLANT_SUBSTEP_S
 
 #: The outputs after the states in each point of a ``prediction`` message.
 OUTPUT_NAMES = ('sprung_accel', 'power')

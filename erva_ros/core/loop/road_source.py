@@ -2,7 +2,7 @@
 
 For every sample t_k = k·Ts of the scenario (k = 0..duration/Ts) the road node publishes
 the true height w(t_k) at the tyre and the preview w(t_k + j·Ts), j = 0..N, degraded by
-the configured error model (:class:`erva_ros.core.preview.PreviewErrorModel`).  In real
+the configured error model (:class:`erva_ros.core.road.preview.PreviewErrorModel`).  In real
 time a wall-clock timer takes the newest due instant of a :class:`SampleGrid` (a timer
 that fell behind skips samples, counted); in lock-step each ``/clock`` tick of the plant
 asks for one sample (:meth:`RoadSource.on_clock`).

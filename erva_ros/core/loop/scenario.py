@@ -11,9 +11,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from erva_ros.core.params import ParamError
-from erva_ros.core.preview import PreviewErrorModel
-from erva_ros.core.roads import make_road, read_road_csv, Road, RoadError
+from erva_ros.core.model.params import ParamError
+from erva_ros.core.road.preview import PreviewErrorModel
+from erva_ros.core.road.profiles import make_road, read_road_csv, Road, RoadError
 
 
 def load_road_file(path: str) -> np.ndarray:

@@ -16,7 +16,7 @@
   estimator, preview source, NMPC, plant;
 * :mod:`~erva_ros.core.roadmap.bag_drive` -- drives from
   recorded HIL bags (decoded by erva_ros.core.contract);
-* :mod:`~erva_ros.core.roadmap.study`   -- ``erva map-study``'s jobs.
+* :mod:`~erva_ros.core.studies.map_study`   -- ``erva map-study``'s jobs.
 """
 
 from erva_ros.core.errors import CLIError

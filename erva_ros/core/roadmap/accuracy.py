@@ -19,13 +19,13 @@ from typing import Dict, Optional
 
 import numpy as np
 
-from erva_ros.core.estimator import EstimatorNoise
-from erva_ros.core.model import make_model, QuarterCarModel
-from erva_ros.core.params import ERVAParams
-from erva_ros.core.road_estimator import RoadEKF, RoadModel, RoadSensors, road_noise
+from erva_ros.core.model.estimator import EstimatorNoise
+from erva_ros.core.model.quarter_car import make_model, QuarterCarModel
+from erva_ros.core.model.params import ERVAParams
+from erva_ros.core.model.road_estimator import RoadEKF, RoadModel, RoadSensors, road_noise
 from erva_ros.core.roadmap import MapError
 from erva_ros.core.roadmap.profile import HIGHPASS_M, highpass
-from erva_ros.core.roads import make_road
+from erva_ros.core.road.profiles import make_road
 
 #: Roads of the table: (kind, ISO class).
 ROADS = {'paper': ('paper', None), 'A': ('iso8608', 'A'), 'B': ('iso8608', 'B'),

@@ -61,7 +61,7 @@ def truth(fleet: Fleet) -> Tuple[np.ndarray, np.ndarray]:
     """Return the route's true detail on a fine grid (x, h), cached per process."""
     key = (fleet.route_km, fleet.seed, fleet.highpass_m)
     if key not in _TRUTH:
-        from erva_ros.core.roads import make_road
+        from erva_ros.core.road.profiles import make_road
         road = make_road('paper', fleet.route_km * 1e3 / SPEED_MPS + 2.0, seed=fleet.seed,
                          speed_mps=SPEED_MPS)
         x = road.times * SPEED_MPS
@@ -79,11 +79,11 @@ def calibrate(seed: int = 0, seconds: float = 8.0) -> Tuple[float, float]:
     18 m (3 high-pass σ) from either end.
     """
     from erva_ros.core.controllers import ControllerSettings, make_controller
-    from erva_ros.core.model import make_model
-    from erva_ros.core.params import paper_params
+    from erva_ros.core.model.quarter_car import make_model
+    from erva_ros.core.model.params import paper_params
     from erva_ros.core.roadmap.drive import estimate_drive, grid_profile
     from erva_ros.core.roadmap.vehicle import Route, simulate_vehicle
-    from erva_ros.core.roads import make_road
+    from erva_ros.core.road.profiles import make_road
 
     model = make_model(paper_params())
     route = Route.of(make_road('paper', seconds + 5, seed=seed, speed_mps=SPEED_MPS))

@@ -2,7 +2,7 @@
 
 :class:`DriveRecord` is what a drive leaves behind (a HIL bag, or the offline vehicle loop):
 per ECU cycle its stamp, the odometry distance, the measured rows
-(:data:`~erva_ros.core.road_estimator.ROAD_MEASUREMENTS`) and the damping the ECU reported.
+(:data:`~erva_ros.core.model.road_estimator.ROAD_MEASUREMENTS`) and the damping the ECU reported.
 :func:`estimate_drive` runs the road estimator over it and smooths (RTS);
 :func:`grid_profile` puts the smoothed road on the map's grid: the detail
 (:func:`~erva_ros.core.roadmap.profile.highpass`) and its variance per node.
@@ -15,8 +15,8 @@ from typing import Optional
 
 import numpy as np
 
-from erva_ros.core.model import QuarterCarModel
-from erva_ros.core.road_estimator import ROAD_MEASUREMENTS, RoadEKF
+from erva_ros.core.model.quarter_car import QuarterCarModel
+from erva_ros.core.model.road_estimator import ROAD_MEASUREMENTS, RoadEKF
 from erva_ros.core.roadmap import MapError
 from erva_ros.core.roadmap.profile import highpass
 

@@ -1,7 +1,7 @@
 """Road profiles on a distance grid: the observable detail, and profile matching.
 
 A road estimate's absolute height and its slow drift are not observable
-(erva_ros/core/road_estimator.py), and every drive has its own.  What drives share is the
+(erva_ros/core/model/road_estimator.py), and every drive has its own.  What drives share is the
 *detail*: :func:`highpass` removes a Gaussian-weighted local mean of standard deviation
 ``highpass_m`` (zero phase; NaN marks samples without data, which do not count).  With the
 default 6 m, a 1.7 Hz wave at 15-20 m/s (λ ≥ 8.8 m) keeps ≥ 99.9 % of its amplitude, and

@@ -30,7 +30,7 @@ matches nowhere (another route) is refused.  Registration reads only the drive's
 of the map (:meth:`DriveItem.span`).
 
 Variance scale.  The estimator's variances are those of the road relative to the car body
-(erva_ros/core/road_estimator.py): right in ratio between drives, not in size.  When a
+(erva_ros/core/model/road_estimator.py): right in ratio between drives, not in size.  When a
 drive is added where the map has data, Σ (h_d − h_map)² / (v_d + v_map) over the overlap
 is stored with the drive (``residual_sum``, and the node count ``residual_count``; a
 version-1 file kept the totals in meta);

@@ -4,14 +4,14 @@ What a vehicle has, simulated without ROS or CAN, for the map study (docs/road.m
 
 * a route (:class:`Route`): the road as a function of distance, driven at any speed;
 * the ECU's sensors (:class:`EcuSensors`): the rows of
-  :data:`erva_ros.core.road_estimator.ROAD_MEASUREMENTS` with the simulated ECU's noise
+  :data:`erva_ros.core.model.road_estimator.ROAD_MEASUREMENTS` with the simulated ECU's noise
   (config/hil.yaml) and the DBC's resolution, sampled at t_k while the previous command
   still acts (the ECU samples before the new duty latches);
 * odometry (:class:`Odometry`): distance = ∫ measured speed, with an error model;
 * the loop (:func:`simulate_vehicle`): per sample t_k the sensors, the estimator
-  (:class:`~erva_ros.core.road_estimator.RoadEKF`, or the true state), the preview source
+  (:class:`~erva_ros.core.model.road_estimator.RoadEKF`, or the true state), the preview source
   (the true road, or :class:`~erva_ros.core.roadmap.preview.MapPreview`), the controller,
-  and the plant (:class:`~erva_ros.core.plant.PlantSimulator`), with the command acting
+  and the plant (:class:`~erva_ros.core.model.plant.PlantSimulator`), with the command acting
   ``delay_s`` after its sample as in the HIL loop.
 
 Comfort and power are measured after ``warmup_s`` (the plant starts at rest on the route):
@@ -27,12 +27,12 @@ import numpy as np
 
 from erva_ros.core.hil.ecu_sim import SensorNoise
 from erva_ros.core.hil.hardware import GeneratorHardware
-from erva_ros.core.model import QuarterCarModel
-from erva_ros.core.plant import PlantSimulator
-from erva_ros.core.road_estimator import QUANTA, RoadEKF
+from erva_ros.core.model.quarter_car import QuarterCarModel
+from erva_ros.core.model.plant import PlantSimulator
+from erva_ros.core.model.road_estimator import QUANTA, RoadEKF
 from erva_ros.core.roadmap import MapError
 from erva_ros.core.roadmap.drive import DriveRecord
-from erva_ros.core.roads import Road
+from erva_ros.core.road.profiles import Road
 
 #: DBC resolution of an unsprung-mass accelerometer, were one fitted (m/s²).
 UNSPRUNG_QUANTUM = 1e-2

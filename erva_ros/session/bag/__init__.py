@@ -1,0 +1,1 @@
+"""Bags: `erva bag record`, reports, offline bags, replay's re-evaluation, controls."""

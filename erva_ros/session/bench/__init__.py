@@ -1,0 +1,1 @@
+"""Benchmarks: `erva bench --live`, the recorder, Foxglove and HIL benches, soak."""
