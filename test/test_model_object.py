@@ -16,7 +16,8 @@ from erva_ros.core.hil.ecu_sim import EcuSimCore
 from erva_ros.core.hil.evaluation import evaluate_estimator
 from erva_ros.core.identify.fit import identify
 from erva_ros.core.loop.plant_loop import PlantLoop
-from erva_ros.core.model.quarter_car import make_model, MODEL_KINDS, QuarterCarModel
+from erva_ros.core.model.quarter_car import make_model, QuarterCarModel
+from erva_ros.core.settings.loop import MODEL_KINDS
 from erva_ros.core.model.params import paper_params
 from erva_ros.core.model.plant import PlantSimulator
 from erva_ros.core.model.road_estimator import RoadEKF

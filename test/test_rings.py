@@ -114,3 +114,60 @@ def test_the_check_finds_a_violation(tmp_path, monkeypatch, source, found):
     monkeypatch.setattr(__import__(__name__), 'PKG', str(pkg))
     monkeypatch.setattr(__import__(__name__), 'REPO', str(tmp_path))
     assert any(found in v for v in violations()), violations()
+
+
+def import_graph():
+    """Return {module: {erva_ros modules it imports}}, imports inside functions included."""
+    known = {module: path for path, module in modules()}
+    graph = {}
+    for module, path in known.items():
+        out = set()
+        for name, _ in imports_of(path, module):
+            while name and name not in known:       # a name from a module: that module
+                name = name.rpartition('.')[0]
+            if name and name != module and not module.startswith(name + '.'):
+                out.add(name)                       # (a package's own __init__: its face)
+        graph[module] = out
+    return graph
+
+
+def circles(graph):
+    """Return the import circles of ``graph``: its strongly connected parts of two or more."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            part = []
+            while not part or part[-1] != v:
+                part.append(stack.pop())
+                on.discard(part[-1])
+            if len(part) > 1:
+                out.append(sorted(part))
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_module_imports_itself_through_others():
+    # Counting the imports inside functions, which would otherwise hide a circle.
+    assert circles(import_graph()) == []
+
+
+def test_the_circle_check_finds_a_circle_behind_an_import_in_a_function(tmp_path, monkeypatch):
+    pkg = tmp_path / 'erva_ros' / 'core'
+    pkg.mkdir(parents=True)
+    (pkg / 'a.py').write_text('from erva_ros.core.b import x\n')
+    (pkg / 'b.py').write_text('x = 1\n\n\ndef f():\n    from erva_ros.core.a import y\n')
+    monkeypatch.setattr(__import__(__name__), 'PKG', str(tmp_path / 'erva_ros'))
+    monkeypatch.setattr(__import__(__name__), 'REPO', str(tmp_path))
+    assert circles(import_graph()) == [['erva_ros.core.a', 'erva_ros.core.b']]

@@ -14,7 +14,8 @@ from erva_ros.core.controllers.settings import ControllerSettings
 from erva_ros.core.hil import settings as hs
 from erva_ros.core.hil.ecu_sim import SensorNoise
 from erva_ros.core.model.quarter_car import make_model
-from erva_ros.core.model.params import ERVA_SPECS, ERVAParams, ParamError, Spec
+from erva_ros.core.model.params import ERVAParams, ParamError, Spec
+from erva_ros.core.settings.erva import ERVA_SPECS
 from erva_ros.core.settings import schemas as np_
 from erva_ros.core.settings.specs import check_all, Choice, Flag, Integer, Number, Text
 from erva_ros.ros.parameters import declare_node_parameters, descriptor

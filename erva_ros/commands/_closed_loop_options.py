@@ -63,7 +63,7 @@ def add_settings_options(parser: argparse.ArgumentParser, controller: bool = Tru
 
     ``alpha`` adds --alpha A1,A2 (one weighting; `erva table`/`pareto` take lists instead).
     """
-    from erva_ros.core.controllers.settings import NUMERIC_SPECS, SPECS
+    from erva_ros.core.settings.controller import NUMERIC_SPECS, SPECS
 
     def option(flag, key, text, **kw):
         # Numbers are checked by load_settings (the spec's check: one line naming the key).

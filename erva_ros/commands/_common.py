@@ -74,7 +74,7 @@ def live_type(key: str):
 def settings_type(key: str):
     """Return an argparse type checked by the spec of controller setting ``key``."""
     def parse(text: str):
-        from erva_ros.core.controllers.settings import SPECS
+        from erva_ros.core.settings.controller import SPECS
         return SPECS[key].parse(text)
     return parse
 

@@ -116,7 +116,7 @@ def _evaluate(args):
     import numpy as np
 
     from erva_ros.core.controllers import ControllerSettings, make_controller
-    from erva_ros.core.controllers.settings import CONTROLLER_NAMES
+    from erva_ros.core.settings.controller import CONTROLLER_NAMES
     from erva_ros.core.hil.ecu_sim import SensorNoise
     from erva_ros.core.hil.evaluation import evaluate_estimator
     from erva_ros.core.hil.settings import (load_ecu_sim_section, load_estimator_section,

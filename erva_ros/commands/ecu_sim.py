@@ -8,7 +8,7 @@ from erva_ros.commands._common import (add_json_option, add_params_option, live_
                                        positive_float, print_json, realtime_priority)
 from erva_ros.core import topics
 from erva_ros.core.errors import CLIError
-from erva_ros.core.model.quarter_car import MODEL_KINDS
+from erva_ros.core.settings.loop import MODEL_KINDS
 
 COMMAND = 'ecu-sim'
 HELP = 'simulated generator ECU on a CAN bus: applies damping frames to the plant, sends sensors'

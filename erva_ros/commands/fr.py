@@ -48,7 +48,8 @@ def main(args) -> int:
     import numpy as np
 
     from erva_ros.core.studies import fr
-    from erva_ros.core.model.quarter_car import make_model, MODEL_KINDS
+    from erva_ros.core.model.quarter_car import make_model
+    from erva_ros.core.settings.loop import MODEL_KINDS
     from erva_ros.core.model.params import load_erva_params
 
     if args.f_max < args.f_min:

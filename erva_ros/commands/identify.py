@@ -34,7 +34,7 @@ asked for with --estimate that the data do not determine)."""
 
 
 def _keys(text: str):
-    from erva_ros.core.model.params import ERVA_SPECS
+    from erva_ros.core.settings.erva import ERVA_SPECS
     keys = [k.strip() for k in text.split(',') if k.strip()]
     for k in keys:
         if k not in ERVA_SPECS:

@@ -10,7 +10,7 @@ from erva_ros.commands._common import (add_json_option, add_out_option, add_para
                                        add_set_option, compile_first, ensure_out_dir,
                                        print_json)
 from erva_ros.core.errors import CLIError
-from erva_ros.core.model.quarter_car import MODEL_KINDS
+from erva_ros.core.settings.loop import MODEL_KINDS
 
 COMMAND = 'sim'
 HELP = 'offline closed loop of a controller on a road (paper Figs. 5-7), no ROS'

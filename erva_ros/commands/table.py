@@ -259,7 +259,7 @@ def markdown(result) -> str:
 
 
 def main(args) -> int:
-    from erva_ros.core.controllers.settings import CONTROLLER_NAMES
+    from erva_ros.core.settings.controller import CONTROLLER_NAMES
     from erva_ros.core.model.params import load_erva_params
 
     names = [n.strip() for n in args.controllers.split(',') if n.strip()]

@@ -27,7 +27,8 @@ from erva_ros.core import topics
 from erva_ros.core.hil import topics as hil_topics
 from erva_ros.core.hil.bridge import BridgeCore
 from erva_ros.core.loop.bridge_loop import BridgeLoop
-from erva_ros.core.model.params import ERVA_SPECS, validate_erva
+from erva_ros.core.model.params import validate_erva
+from erva_ros.core.settings.erva import ERVA_SPECS
 from erva_ros.core.reports import BridgeBusReport, BridgeCommandReport, BridgeEcuReport
 from erva_ros.ros.loop_node import LoopNode
 from erva_ros.ros.rt_subscription import RealtimeSubscription

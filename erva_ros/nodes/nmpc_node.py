@@ -24,7 +24,8 @@ from trajectory_msgs.msg import JointTrajectory
 
 from erva_ros.core import topics
 from erva_ros.core.levels import ERROR, OK, WARN
-from erva_ros.core.controllers.settings import SPECS, validate_settings
+from erva_ros.core.controllers.settings import validate_settings
+from erva_ros.core.settings.controller import SPECS
 from erva_ros.core.loop.control_loop import build_loop, HOLD_TIMEOUT_S, MessageRejected, Output
 from erva_ros.core.loop.sample_schedule import Job
 from erva_ros.core.loop.timing import next_grid_delay_ns

@@ -22,7 +22,8 @@ from erva_ros.core.levels import OK, WARN
 from erva_ros.core.loop.plant_loop import PlantLoop
 from erva_ros.core.loop.validation import MessageRejected
 from erva_ros.core.model.quarter_car import make_model
-from erva_ros.core.model.params import ERVA_SPECS, validate_erva
+from erva_ros.core.model.params import validate_erva
+from erva_ros.core.settings.erva import ERVA_SPECS
 from erva_ros.core.reports import PlantReport
 from erva_ros.ros.loop_node import LoopNode
 from erva_ros.ros.runtime import run_node

@@ -30,7 +30,8 @@ from erva_ros.core.hil.settings import noise_of
 from erva_ros.core.levels import OK, WARN
 from erva_ros.core.loop.estimator_loop import EstimatorLoop, ROAD_WAIT_PERIODS
 from erva_ros.core.model.quarter_car import make_model
-from erva_ros.core.model.params import ERVA_SPECS, validate_erva
+from erva_ros.core.model.params import validate_erva
+from erva_ros.core.settings.erva import ERVA_SPECS
 from erva_ros.core.reports import EstimatorReport
 from erva_ros.core.loop.road_loop import road_estimator_loop
 from erva_ros.ros import qos as ros_qos

@@ -18,8 +18,8 @@ The clairvoyant bound (one OCP over the whole run) is not a causal controller; s
 from typing import Optional
 
 from erva_ros.core.controllers.base import ControlResult, Controller, SolveFailure, STATUSES
-from erva_ros.core.controllers.settings import (CONTROLLER_NAMES, ControllerSettings,
-                                                EXCITATION_NAMES, load_controller_settings)
+from erva_ros.core.controllers.settings import ControllerSettings, load_controller_settings
+from erva_ros.core.settings.controller import CONTROLLER_NAMES, EXCITATION_NAMES
 from erva_ros.core.model.quarter_car import QuarterCarModel
 from erva_ros.core.model.params import ParamError
 

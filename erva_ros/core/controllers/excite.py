@@ -25,7 +25,7 @@ import math
 import numpy as np
 
 from erva_ros.core.controllers.base import Controller
-from erva_ros.core.controllers.settings import EXCITE_SIGNALS as SIGNALS
+from erva_ros.core.settings.controller import EXCITE_SIGNALS as SIGNALS
 #: LFSR of the PRBS: 11 bits, feedback from bits 11 and 9 (x^11 + x^9 + 1, maximal).
 PRBS_BITS = 11
 PRBS_PERIOD = 2 ** PRBS_BITS - 1

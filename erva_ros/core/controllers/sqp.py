@@ -62,7 +62,7 @@ import numpy as np
 from erva_ros.core.model.codegen import compile_for, load_or_build
 from erva_ros.core.controllers.linalg import (convexify, lu_factor, lu_solve, SparseLU,
                                               symmetric)
-from erva_ros.core.controllers.settings import HESSIANS
+from erva_ros.core.settings.controller import HESSIANS
 
 #: Backtracking steps of the line search (a step is tried only if the longer one failed).
 LINE_SEARCH_STEPS = (1.0, 0.5, 0.25, 0.125)

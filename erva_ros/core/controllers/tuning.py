@@ -29,8 +29,8 @@ changes at their sample in the offline loop.
 from dataclasses import asdict, dataclass
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
-from erva_ros.core.controllers.settings import (ControllerSettings, NUMERIC_SPECS, SPECS,
-                                                validate_settings)
+from erva_ros.core.controllers.settings import ControllerSettings, validate_settings
+from erva_ros.core.settings.controller import NUMERIC_SPECS, SPECS
 from erva_ros.core.model.params import ParamError
 from erva_ros.core.settings.specs import Flag, Integer
 

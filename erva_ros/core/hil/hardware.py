@@ -34,17 +34,8 @@ import math
 from typing import Any, Dict, Mapping, Tuple
 
 from erva_ros.core.settings.files import shipped_defaults
-from erva_ros.core.settings.specs import Number, ParamError
-
-#: Hardware parameters of the generator and its PWM load switch (ROS parameter names).
-HARDWARE_SPECS: Dict[str, Number] = {
-    'kappa_n_per_a': Number(0.0, 1e5, 'N/A', 'generator force constant kappa = kappabar / l '
-                            '(paper eq. (10)); c_e = kappa^2 / R', lo_open=True),
-    'r_internal_ohm': Number(0.0, 1e3, 'Ohm', 'generator winding resistance R_int'),
-    'r_switch_ohm': Number(0.0, 1e3, 'Ohm', 'load resistance while the PWM switch is on R_sw'),
-    'duty_min': Number(0.0, 1.0, '-', 'lowest PWM duty the ECU accepts (0 = open circuit)'),
-    'duty_max': Number(0.0, 1.0, '-', 'highest PWM duty the ECU accepts', lo_open=True),
-}
+from erva_ros.core.settings.hil import HARDWARE_SPECS
+from erva_ros.core.settings.specs import ParamError
 
 #: Defaults: the ecu_bridge_node section of the shipped config/hil.yaml (their one home).
 DEFAULTS: Dict[str, float] = {

@@ -1,12 +1,12 @@
-"""Parameters of the HIL nodes and the simulated ECU: ranges, defaults, ``config/hil.yaml``.
+"""Parameters of the HIL nodes and the simulated ECU: defaults and sections of ``config/hil.yaml``.
 
-One table per user, the single source of allowed values for the ROS descriptors
-(nodes) and for the offline loaders (``erva ecu-sim``, ``erva bench-hil``):
+The tables of allowed values are core/settings/hil.py's, one per user, for the ROS
+descriptors (nodes) and for the offline loaders here (``erva ecu-sim``, ``erva bench-hil``):
 
 * ``ecu_bridge_node``: the bus, the DBC, timeouts, E2E tolerance and the generator
-  hardware (:data:`erva_ros.core.hil.hardware.HARDWARE_SPECS`).  The simulated ECU reads
+  hardware (:data:`erva_ros.core.settings.hil.HARDWARE_SPECS`).  The simulated ECU reads
   the hardware keys from this section too, so bridge and ECU share one calibration.
-* ``state_estimator_node``: the EKF's noise (:data:`erva_ros.core.model.estimator.NOISE_SPECS`)
+* ``state_estimator_node``: the EKF's noise (:data:`erva_ros.core.settings.hil.NOISE_SPECS`)
   and its discretisation bound.
 * ``ecu_sim``: the simulated ECU's latch step and sensor noise.
 
@@ -19,50 +19,14 @@ The sample time ``ts`` and the model kind come from the ``/**`` section (as in a
 
 from typing import Any, Dict, Optional
 
-from erva_ros.core.settings.files import shipped_defaults
-from erva_ros.core.model.estimator import EstimatorNoise, NOISE_SPECS, validate_noise
-from erva_ros.core.hil.hardware import GeneratorHardware, HARDWARE_SPECS, validate_hardware
+from erva_ros.core.hil.hardware import GeneratorHardware, validate_hardware
+from erva_ros.core.model.estimator import EstimatorNoise, validate_noise
 from erva_ros.core.model.params import read_ros_params, ROS_BUILTINS
-from erva_ros.core.settings.specs import check_all, Flag, Integer, Number, Text, unknown_parameters
-
-BRIDGE_NODE = 'ecu_bridge_node'
-ESTIMATOR_NODE = 'state_estimator_node'
-ECU_SIM_SECTION = 'ecu_sim'
-
-
-BRIDGE_SPECS: Dict[str, Any] = {
-    'bus': Text('CAN bus: socketcan:IFACE (vehicle), udp:LOCAL_PORT:PEER_PORT (loopback to '
-                '`erva ecu-sim`) or virtual:NAME (in-process)'),
-    'dbc_file': Text('DBC file of the ECU messages (empty: the shipped config/erva_ecu.dbc)'),
-    'can_log': Text('CAN trace of the bridge\'s bus, both directions: FILE.blf or FILE.asc '
-                    '(python-can writers, epoch-second timestamps); empty: none'),
-    'command_timeout_periods': Integer(1, 1000, 'periods', 'no fresh damping command for '
-                                       'this many periods -> safe passive command + ERROR'),
-    'sensor_timeout_periods': Integer(1, 1000, 'periods', 'no valid ECU frame for this many '
-                                      'periods -> ECU silent ERROR'),
-    'bus_retry_s': Number(0.01, 60.0, 's', 'time between attempts to re-open a lost CAN bus'),
-    'max_delta_counter': Integer(1, 14, '-', 'largest alive-counter step accepted '
-                                 '(1: a frame after a lost frame is dropped)'),
-    'diagnostics_period_s': Number(0.05, 3600.0, 's', 'period of the /diagnostics status'),
-    **HARDWARE_SPECS,
-}
-ESTIMATOR_SPECS: Dict[str, Any] = {
-    **NOISE_SPECS,
-    'u_max': Number(1.0, 1e6, 'Ns/m', 'largest c_e the discrete model must stay stable at '
-                    '(sets the RK4 sub-steps)'),
-    'max_gap_periods': Integer(1, 10000, 'periods', 'a gap in the measurements longer than '
-                               'this restarts the filter'),
-    'diagnostics_period_s': Number(0.05, 3600.0, 's', 'period of the /diagnostics status'),
-}
-ECU_SIM_SPECS: Dict[str, Any] = {
-    'latch_s': Number(1e-4, 0.02, 's', 'command latch and plant step of the simulated ECU'),
-    'noise_sprung_accel': Number(0.0, 100.0, 'm/s^2', 'accelerometer noise std'),
-    'noise_deflection': Number(0.0, 1.0, 'm', 'deflection sensor noise std'),
-    'noise_speed': Number(0.0, 100.0, 'rad/s', 'generator speed noise std'),
-    'noise_current': Number(0.0, 100.0, 'A', 'generator current noise std'),
-    'noise_voltage': Number(0.0, 1000.0, 'V', 'back-emf noise std'),
-    'seed': Integer(0, 2 ** 31 - 1, '-', 'seed of the sensor noise'),
-}
+from erva_ros.core.settings.files import shipped_defaults
+from erva_ros.core.settings.hil import (BRIDGE_NODE, BRIDGE_SPECS, COMMAND_LINE_DEFAULTS,
+                                        ECU_SIM_SECTION, ECU_SIM_SPECS, ESTIMATOR_NODE,
+                                        ESTIMATOR_SPECS, HARDWARE_SPECS, NOISE_SPECS)
+from erva_ros.core.settings.specs import check_all, unknown_parameters
 
 
 def _shipped(node: str, specs: Dict[str, Any]) -> Dict[str, Any]:
@@ -72,16 +36,6 @@ def _shipped(node: str, specs: Dict[str, Any]) -> Dict[str, Any]:
                      'config/hil.yaml')
 
 
-#: Parameters set on the command line only: rcl lets a /**/<node> key of a params file win
-#: over ``-p name:=value``, so they have no key in config/hil.yaml and their defaults are here.
-COMMAND_LINE_DEFAULTS: Dict[str, Any] = {'bus': 'socketcan:can0', 'can_log': '',
-                                         'stamp_on_road_grid': False}
-#: estimator node: stamp each cycle on the road grid (`erva run --ecu virtual` sets it).
-ROAD_GRID_SPEC = Flag('stamp each ECU cycle with the road sample instant in [-Ts/4, 3Ts/4) '
-                      'around its CAN receive time (an ECU sampling on the road grid and '
-                      'sending at once)')
-#: The parameters of COMMAND_LINE_DEFAULTS that are in no other table.
-COMMAND_LINE_SPECS: Dict[str, Any] = {'stamp_on_road_grid': ROAD_GRID_SPEC}
 #: Defaults: the shipped config/hil.yaml (and the bus and CAN trace, above).
 BRIDGE_DEFAULTS: Dict[str, Any] = {'bus': COMMAND_LINE_DEFAULTS['bus'],
                                    'can_log': COMMAND_LINE_DEFAULTS['can_log'],

@@ -50,7 +50,8 @@ import numpy as np
 
 from erva_ros.core.errors import CLIError
 from erva_ros.core.model.quarter_car import QuarterCarModel, rk4
-from erva_ros.core.model.params import ERVA_SPECS, ERVAParams, validate_erva
+from erva_ros.core.model.params import ERVAParams, validate_erva
+from erva_ros.core.settings.erva import ERVA_SPECS
 
 #: Parameters in the equations of motion, in the order of the symbolic vector p.
 PARAMETERS = tuple(k for k in ERVA_SPECS if k != 'c_e0')

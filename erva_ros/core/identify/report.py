@@ -9,7 +9,7 @@ the 95 % interval or why it kept its prior value.
 from typing import Dict, List, Sequence
 
 from erva_ros.core.identify.fit import FitResult, UNITS
-from erva_ros.core.model.params import ERVA_SPECS
+from erva_ros.core.settings.erva import ERVA_SPECS
 
 
 def _num(v: float) -> str:

@@ -64,9 +64,11 @@ class Output:
 def build_loop(p: Mapping[str, Any], window: StampWindow, report: NMPCReport) -> 'ControlLoop':
     """Return nmpc_node's loop from its parameters ``p`` (controller, model, predictor)."""
     from erva_ros.core.controllers import make_controller
-    from erva_ros.core.controllers.settings import NUMERIC_SPECS, SPECS, validate_settings
+    from erva_ros.core.controllers.settings import validate_settings
+    from erva_ros.core.settings.controller import NUMERIC_SPECS, SPECS
     from erva_ros.core.model.quarter_car import make_model
-    from erva_ros.core.model.params import ERVA_SPECS, validate_erva
+    from erva_ros.core.model.params import validate_erva
+    from erva_ros.core.settings.erva import ERVA_SPECS
     settings = validate_settings({k: p[k] for k in SPECS})
     if p['mode'] == 'lockstep':    # simulated time: no wall-clock budget
         settings = settings.with_(time_budget_s=NUMERIC_SPECS['time_budget_s'].hi)

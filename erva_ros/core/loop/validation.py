@@ -14,7 +14,7 @@ not operating limits (the controller's input box [u_min, u_max] is).
 import math
 from typing import Callable, Dict, Iterable, Optional
 
-from erva_ros.core.model.params import ERVA_SPECS
+from erva_ros.core.settings.erva import ERVA_SPECS
 from erva_ros.core.settings.specs import Number
 
 #: Absurdity bounds of incoming values (SI units).

@@ -32,7 +32,8 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Set, 
 
 from erva_ros.core.model import codegen
 from erva_ros.core.controllers.settings import ControllerSettings, load_controller_settings
-from erva_ros.core.model.quarter_car import make_model, MODEL_KINDS
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.settings.loop import MODEL_KINDS
 from erva_ros.core.model.params import ERVAParams, load_erva_params, ParamError, validate_erva
 
 #: Controllers built on the real-time SQP: the only controllers with compiled functions.

@@ -22,8 +22,8 @@ from dataclasses import dataclass, replace
 from typing import Any, Dict, Optional, Tuple
 
 from erva_ros.core.settings.files import shipped_config
-from erva_ros.core.model.params import (ERVA_SPECS, ERVAParams, load_erva_params, read_ros_params,
-                                        ROS_BUILTINS)
+from erva_ros.core.model.params import ERVAParams, load_erva_params, read_ros_params, ROS_BUILTINS
+from erva_ros.core.settings.erva import ERVA_SPECS
 from erva_ros.core.settings.specs import check_all, Number, ParamError, unknown_parameters
 
 #: The corners in the order of every per-corner vector (u, w, outputs): front left, front

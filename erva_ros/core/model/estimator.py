@@ -50,24 +50,10 @@ import numpy as np
 from erva_ros.core.model.codegen import BufferedCall, compile_for
 from erva_ros.core.model.quarter_car import QuarterCarModel, rk4_stable_substeps
 from erva_ros.core.settings.files import shipped_defaults
-from erva_ros.core.settings.specs import Number
+from erva_ros.core.settings.hil import NOISE_SPECS
 
 #: Measurement names, in the order of y.
 MEASUREMENTS = ('sprung_accel', 'deflection', 'generator_speed')
-
-#: Noise parameters: allowed range, unit, meaning (ROS descriptors reuse this table).
-NOISE_SPECS: Dict[str, Number] = {
-    'q_accel_s': Number(0.0, 1e3, 'm/s^2', 'process noise: unmodelled sprung-mass acceleration'),
-    'q_accel_us': Number(0.0, 1e4, 'm/s^2',
-                         'process noise: unmodelled unsprung acceleration (incl. road error)'),
-    'q_accel_d': Number(0.0, 1e3, 'm/s^2', 'process noise: unmodelled rotor (z_d) acceleration'),
-    'r_sprung_accel': Number(0.0, 1e2, 'm/s^2', 'accelerometer noise std', lo_open=True),
-    'r_deflection': Number(0.0, 1.0, 'm', 'deflection sensor noise std', lo_open=True),
-    'r_speed': Number(0.0, 1e2, 'rad/s', 'generator speed noise std', lo_open=True),
-    'p0_position': Number(0.0, 1.0, 'm', 'initial position uncertainty (std)', lo_open=True),
-    'p0_velocity': Number(0.0, 10.0, 'm/s', 'initial velocity uncertainty (std)', lo_open=True),
-}
-
 
 #: Default noise: the state_estimator_node section of the shipped config/hil.yaml.
 _DEFAULT_NOISE = {key: spec.check(key, shipped_defaults('hil.yaml', 'state_estimator_node')[key],

@@ -31,9 +31,7 @@ import casadi as ca
 import numpy as np
 
 from erva_ros.core.model.params import ERVAParams
-
-#: Models understood everywhere a ``--model`` or ``model`` parameter is accepted.
-MODEL_KINDS = ('erva', 'benchmark')
+from erva_ros.core.settings.loop import MODEL_KINDS
 
 #: Default plant integration sub-step (s): 0.5 ms keeps RK4 accurate up to c_e ≈ 100 kNs/m.
 PLANT_SUBSTEP_S = 5e-4

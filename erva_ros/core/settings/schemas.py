@@ -16,27 +16,20 @@ from dataclasses import dataclass
 import functools
 from typing import Any, Dict, Mapping, Optional, Sequence, Tuple
 
+from erva_ros.core.road.profiles import ISO_CLASSES, ROAD_KINDS
+from erva_ros.core.settings import hil
+from erva_ros.core.settings.controller import SPECS as CONTROLLER_SPECS
+from erva_ros.core.settings.erva import ERVA_SPECS
+from erva_ros.core.settings.files import shipped_defaults
+from erva_ros.core.settings.hil import COMMAND_LINE_DEFAULTS
+from erva_ros.core.settings.loop import (COMMAND_DELAY_SPEC, MAX_PRIORITY, MODEL_KINDS, MODES,
+                                         TS_SPEC)
 from erva_ros.core.settings.specs import Choice, Flag, Integer, Number, Text, Texts
-
-#: Highest SCHED_FIFO priority a node may ask for (99 is the kernel's watchdogs').
-MAX_PRIORITY = 98
-#: Time bases of the live loop.
-MODES = ('realtime', 'lockstep')
-
-#: The sample time Ts of plant, road, controller and ECU: the one spec of ``ts``.
-TS_SPEC = Number(1e-3, 1.0, 's', 'sample time Ts of the loop: plant, road, controller, ECU '
-                 '(paper: 0.02)')
-#: The loop's command delay d: the one spec of ``command_delay_s`` (logical execution time).
-COMMAND_DELAY_SPEC = Number(0.0, 1.0, 's', 'command delay d: each command acts at its sample '
-                            't_k + d (plant, ECU) and the OCP plans from x(t_k + d); < ts, '
-                            '0 = the paper\'s ideal loop', lo_open=False)
 
 
 @functools.lru_cache(maxsize=None)
 def live_specs() -> Dict[str, Any]:
     """Return the live nodes' parameter specs (defaults: config/live.yaml ``/**``)."""
-    from erva_ros.core.model.quarter_car import MODEL_KINDS
-    from erva_ros.core.road.profiles import ISO_CLASSES, ROAD_KINDS
     return {
         'mode': Choice(MODES, 'time base: realtime (wall clock) or lockstep (the plant '
                        'publishes /clock)'),
@@ -211,10 +204,8 @@ class Group:
 
 @functools.lru_cache(maxsize=None)
 def _defaults(group: Group) -> Dict[str, Any]:
-    from erva_ros.core.settings.files import shipped_defaults
     specs = group.specs()
     if group is COMMAND_LINE:
-        from erva_ros.core.hil.settings import COMMAND_LINE_DEFAULTS
         return {k: v for k, v in COMMAND_LINE_DEFAULTS.items() if k in specs}
     values = shipped_defaults(group.config, group.section)
     return {k: specs[k].check(k, v, f'config/{group.config}')
@@ -222,19 +213,16 @@ def _defaults(group: Group) -> Dict[str, Any]:
 
 
 def _controller_specs(_) -> Dict[str, Any]:
-    from erva_ros.core.controllers.settings import SPECS
-    return {k: v for k, v in SPECS.items() if k not in ('ts', 'command_delay_s')}
+    return {k: v for k, v in CONTROLLER_SPECS.items() if k not in ('ts', 'command_delay_s')}
 
 
 def _hil(name):
     def specs(_):
-        from erva_ros.core.hil import settings
-        return getattr(settings, name)
+        return getattr(hil, name)
     return specs
 
 
 def _erva_specs(_) -> Dict[str, Any]:
-    from erva_ros.core.model.params import ERVA_SPECS
     return ERVA_SPECS
 
 
@@ -281,7 +269,6 @@ class NodeSchema:
 
     def defaults(self) -> Dict[str, Any]:
         """Return {name: default} of every parameter."""
-        from erva_ros.core.hil.settings import COMMAND_LINE_DEFAULTS
         out = {}
         for name, _, group in self.items():
             defaults = group.defaults()

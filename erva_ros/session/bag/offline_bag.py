@@ -206,7 +206,7 @@ def main(argv=None) -> int:
     from erva_ros.core.bag import BagError
     from erva_ros.core.bag.session import session_metadata
     from erva_ros.core.controllers import load_controller_settings, make_controller
-    from erva_ros.core.controllers.settings import NUMERIC_SPECS
+    from erva_ros.core.settings.controller import NUMERIC_SPECS
     from erva_ros.core.model.quarter_car import make_model
     from erva_ros.core.model.params import load_erva_params, ParamError
     from erva_ros.core.road.profiles import make_road, RoadError

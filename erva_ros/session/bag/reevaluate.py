@@ -86,7 +86,8 @@ def controller_from_session(bag, controller: Optional[str] = None):
     """
     import json
 
-    from erva_ros.core.controllers.settings import NUMERIC_SPECS, validate_settings
+    from erva_ros.core.controllers.settings import validate_settings
+    from erva_ros.core.settings.controller import NUMERIC_SPECS
     from erva_ros.core.model.params import ParamError, validate_erva
 
     text = bag.session.get('parameters')
