@@ -204,9 +204,12 @@ def test_ctrl_c_stops_a_compile_in_one_line_and_keeps_what_finished(tmp_path, to
     cc.write_text(SLOW_CC)
     cc.chmod(0o755)
     env = ros_env({'ERVA_CACHE_DIR': str(cache), 'CC': str(cc), 'MARKS': str(marks)})
+    # Ctrl-C as in a terminal: a shell that started the suite in the background (`&`) had
+    # SIGINT ignored, and Python keeps an inherited SIG_IGN (erva then compiled on).
     proc = subprocess.Popen([sys.executable, '-m', 'erva_ros.cli', 'compile'], cwd=REPO,
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True)
+                            text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
     def libraries():
         return {f for f in os.listdir(cache) if f.endswith('.so')} if cache.is_dir() else set()

@@ -171,3 +171,101 @@ def test_the_circle_check_finds_a_circle_behind_an_import_in_a_function(tmp_path
     monkeypatch.setattr(__import__(__name__), 'PKG', str(tmp_path / 'erva_ros'))
     monkeypatch.setattr(__import__(__name__), 'REPO', str(tmp_path))
     assert circles(import_graph()) == [['erva_ros.core.a', 'erva_ros.core.b']]
+
+
+#: Optional dependencies (extras of setup.py, and ROS): a module may import one of them, or
+#: a module of ours that needs one, inside the function that uses it.
+OPTIONAL = ('rclpy', 'rosidl_runtime_py', 'launch', 'launch_ros', 'ament_index_python',
+            'foxglove', 'dask', 'distributed', 'psycopg', 'matplotlib', 'can', 'cantools',
+            'argcomplete')
+
+
+def _optional(name: str) -> bool:
+    top = name.split('.')[0]
+    return top in OPTIONAL or is_ros_package(name)
+
+
+def _parents(tree):
+    out = {}
+    for node in ast.walk(tree):
+        for child in ast.iter_child_nodes(node):
+            out[child] = node
+    return out
+
+
+def _names(node):
+    if isinstance(node, ast.ImportFrom):
+        return [node.module or ''] + [f'{node.module}.{a.name}' for a in node.names]
+    return [a.name for a in node.names]
+
+
+def late_imports():
+    """Return the imports made inside a function that no rule allows (docs/design.md).
+
+    Allowed: in the CLI (commands/, cli.py: a command imports what it runs when it runs,
+    so `erva --help` and the option tables stay light); an optional dependency, or a
+    module of ours that needs one at its top (found here); and an import inside a ``try``
+    that handles ImportError (an availability check).
+    """
+    known = {module: path for path, module in modules()}
+    trees = {m: ast.parse(open(p, encoding='utf-8').read(), p) for m, p in known.items()}
+
+    def ours(name):
+        while name and name not in known:
+            name = name.rpartition('.')[0]
+        return name
+    needs = set()                   # our modules that import an optional one at their top
+    grew = True
+    while grew:
+        grew = False
+        for m, tree in trees.items():
+            if m in needs:
+                continue
+            for node in tree.body:
+                if isinstance(node, (ast.Import, ast.ImportFrom)) and any(
+                        _optional(n) or ours(n) in needs - {m} for n in _names(node)
+                        if not n.startswith('erva_ros') or ours(n)):
+                    needs.add(m)
+                    grew = True
+                    break
+    out = []
+    for m, tree in trees.items():
+        if ring_of(m) == 'cli':
+            continue
+        parent = _parents(tree)
+        for node in ast.walk(tree):
+            if not isinstance(node, (ast.Import, ast.ImportFrom)) or node in tree.body:
+                continue
+            chain, up = [], parent.get(node)
+            while up is not None:
+                chain.append(up)
+                up = parent.get(up)
+            if not any(isinstance(u, (ast.FunctionDef, ast.AsyncFunctionDef)) for u in chain):
+                continue
+            names = _names(node)
+            if any(_optional(n) or (n.startswith('erva_ros') and ours(n) in needs)
+                   for n in names):
+                continue
+            if any(isinstance(u, ast.Try) and any(
+                    'ImportError' in ast.dump(h.type or ast.Name('')) for h in u.handlers)
+                    for u in chain):
+                continue
+            out.append(f'{os.path.relpath(known[m], REPO)}:{node.lineno}: {names[0]}')
+    return sorted(out)
+
+
+def test_imports_are_at_the_top_but_optional_ones():
+    assert late_imports() == []
+
+
+def test_the_late_import_check_finds_one(tmp_path, monkeypatch):
+    pkg = tmp_path / 'erva_ros' / 'core'
+    pkg.mkdir(parents=True)
+    (pkg / 'a.py').write_text('def f():\n    import json\n    import matplotlib\n')
+    (pkg / 'b.py').write_text('import cantools\n')
+    (pkg / 'c.py').write_text('def f():\n    from erva_ros.core import b\n'
+                              '    from erva_ros.core.a import f\n')
+    monkeypatch.setattr(__import__(__name__), 'PKG', str(tmp_path / 'erva_ros'))
+    monkeypatch.setattr(__import__(__name__), 'REPO', str(tmp_path))
+    assert late_imports() == ['erva_ros/core/a.py:2: json',
+                              'erva_ros/core/c.py:3: erva_ros.core.a']

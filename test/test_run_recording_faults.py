@@ -84,7 +84,8 @@ def test_a_full_disk_is_one_error_line_and_the_bag_keeps_what_was_written(
     assert proc.returncode == 1 and len(s['errors']) == 1, (s['errors'], err[-2000:])
     assert s['errors'][0].startswith('recording failed: cannot write ')
     assert 'No space left on device' in s['errors'][0]
-    assert s['commands']['received'] == 201            # the loop ran on, to its end
+    # The loop ran on, to the scenario's end.
+    assert s['plant']['steps'] == 200 and s['commands']['for_samples'] > 0, s['plant']
     rec = s['recording']
     kept = {t: c['recorded'] for t, c in rec['topics'].items()}
     assert 0 < sum(kept.values()) < sum(c['published'] for c in rec['topics'].values())
@@ -120,7 +121,10 @@ def test_a_killed_recorder_is_named_as_the_bags_end_and_no_log_line_is_its_cause
     # as its cut-short cause (not "erva run was killed"), and so does the repaired bag.
     code, s, err, _ = run_with_node_killed('recorder_node', 50, '--duration', 3, '--record',
                                            tmp_path / 'bags')
-    assert code == 1 and s['commands']['received'] == 151, err[-2000:]
+    assert code == 1, err[-2000:]
+    # The loop went on to the scenario's end (how many samples a stalled controller
+    # missed meanwhile depends on the load: counted, not checked here).
+    assert s['plant']['steps'] == 150 and s['commands']['for_samples'] > 0, s['plant']
     died = [e for e in s['errors'] if 'recorder_node died' in e]
     assert len(died) == 1 and re.fullmatch(r'recorder_node died \(exit status -9\) at t = '
                                            r'\d+\.\d\d s: killed by SIGKILL', died[0]), died

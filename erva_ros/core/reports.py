@@ -27,6 +27,7 @@ from typing import Any, ClassVar, Dict, Mapping, Optional, Type
 
 import numpy as np
 
+from erva_ros.core.contract import Status
 from erva_ros.core.levels import OK
 
 #: The key naming a report's type on the wire.
@@ -565,7 +566,6 @@ def report_from_status(status) -> NodeReport:
 
 def report_status(report: NodeReport):
     """Return the :class:`~erva_ros.core.contract.Status` that carries ``report``."""
-    from erva_ros.core.contract import Status
     return Status(report.node, report.level, report.message, report.hardware_id,
                   report.values())
 

@@ -7,6 +7,8 @@ generated message classes or rclpy's (de)serialiser lives here, in the ros ring.
 import importlib
 from typing import Optional
 
+from rosidl_parser import definition as d
+
 from erva_ros.core.bag import BagError
 from erva_ros.core.bag.schemas import split_type
 from erva_ros.core.bag.writer import BagWriter
@@ -36,7 +38,6 @@ def _fields_end(msg, pos: int) -> int:
 
 def _value_end(value, typ, pos: int) -> int:
     """Return the offset after ``value`` of rosidl type ``typ`` encoded at ``pos``."""
-    from rosidl_parser import definition as d
     if isinstance(typ, d.BasicType):
         size = _PRIMITIVE_SIZE[typ.typename]
         return _aligned(pos, size) + size

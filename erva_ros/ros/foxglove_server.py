@@ -33,6 +33,8 @@ import threading
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 from erva_ros.core import topics
+from erva_ros.core.bag.schemas import message_definition
+from erva_ros.core.contract import CdrError, decode_parameter_event
 
 DEFAULT_HOST = '127.0.0.1'
 DEFAULT_PORT = 8765
@@ -200,7 +202,6 @@ class FoxgloveServer:
     # -- channels ----------------------------------------------------------------------------
     def add_topic(self, topic: str, type_name: str) -> None:
         """Advertise ``topic`` (a ROS type 'pkg/msg/Type') with its ros2msg schema."""
-        from erva_ros.core.bag.schemas import message_definition
         if topic in self.channels:
             return
         encoding, text = message_definition(type_name)
@@ -263,7 +264,6 @@ class FoxgloveServer:
 
     def parameter_event(self, data: bytes) -> None:
         """Take a /parameter_events message (CDR): its values to the clients following them."""
-        from erva_ros.core.contract import CdrError, decode_parameter_event
         try:
             event = decode_parameter_event(data)
         except CdrError:

@@ -12,8 +12,11 @@ from typing import Dict, List
 import numpy as np
 
 from erva_ros.core import contract, topics
+from erva_ros.core.hil import topics as hil_topics
 from erva_ros.core.metrics import percentiles_ms
 from erva_ros.core.reports import NodeReport, report_from_status
+from erva_ros.core.settings.loop import command_delay_ns
+from erva_ros.core.settings.schemas import LIVE
 from erva_ros.core.wire import header_stamp_ns
 from erva_ros.ros import qos as ros_qos
 
@@ -40,13 +43,10 @@ class HilBenchDriver:
         from sensor_msgs.msg import JointState
         from trajectory_msgs.msg import JointTrajectory
 
-        from erva_ros.core.hil import topics as hil_topics
-
         self.node = Node('bench_hil_driver', namespace=namespace, context=context)
         self.road, self.law, self.params = road, law, params
         # The loop's command delay, as the bridge's params give it: commands say when they act.
-        from erva_ros.core.settings.schemas import LIVE
-        self.delay_ns = int(round(LIVE.defaults()['command_delay_s'] * 1e9))
+        self.delay_ns = command_delay_ns(LIVE.defaults()['command_delay_s'])
         qos = ros_qos.control_qos()
         self.pub_road = self.node.create_publisher(PointStamped, topics.ROAD_HEIGHT, qos)
         self.pub_cmd = self.node.create_publisher(JointTrajectory, topics.DAMPING_CMD, qos)

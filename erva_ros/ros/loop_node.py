@@ -53,6 +53,7 @@ from erva_ros.core.reports import NodeReport
 from erva_ros.core.startup import process_age_s
 from erva_ros.ros import qos as ros_qos
 from erva_ros.ros.parameters import declare_node_parameters, on_set_callback
+from erva_ros.ros.realtime import set_fifo_priority
 
 #: The spin loop and the acknowledgement wait wake at least this often (s).
 SLICE_S = 0.1
@@ -298,7 +299,6 @@ class LoopNode(LifecycleNode):
 
     def prioritise(self) -> None:
         """Give the node's threads ``realtime_priority`` (SCHED_FIFO), then :meth:`started`."""
-        from erva_ros.ros.realtime import set_fifo_priority
         self.scheduling = set_fifo_priority(self.realtime_priority, self.get_logger().warning)
         if self.realtime_priority > 0 and self.scheduling.startswith('SCHED_FIFO'):
             self.get_logger().info(f'running at {self.scheduling}')

@@ -14,6 +14,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 
 from erva_ros.core import topics
+from erva_ros.core.hil.topics import TOPIC_TYPES
 from erva_ros.ros import qos as ros_qos
 from erva_ros.ros.bag_messages import message_class
 
@@ -64,7 +65,6 @@ class Monitor(Node):
             self.sink.add(topic, info.get('received_timestamp') or time.time_ns(), data)
         type_name = topics.TOPIC_TYPES.get(f'{topics.NAMESPACE}/{topic}')
         if type_name is None:
-            from erva_ros.core.hil.topics import TOPIC_TYPES
             type_name = TOPIC_TYPES[f'{topics.NAMESPACE}/{topic}']
         return self.create_subscription(message_class(type_name), topic, on_message,
                                         self._qos, raw=True)

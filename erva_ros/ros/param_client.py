@@ -14,12 +14,19 @@ back with the node's reason; a read-only one also with the reason its descriptor
 """
 
 from dataclasses import dataclass
+import os
+import threading
+import time
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
+import yaml
 
+from erva_ros.core.errors import CLIError
+from erva_ros.core.settings.specs import closest_key
+from erva_ros.ros.context import RosContext
 from erva_ros.ros.foxglove_server import NODE_PARAMETER_SEP
 from erva_ros.ros.parameters import READ_ONLY_NOTE
 
@@ -53,7 +60,6 @@ def value_of_text(text: str, type_: int) -> Any:
         if type_ == ParameterType.PARAMETER_DOUBLE:
             return float(t)
         if type_ == ParameterType.PARAMETER_STRING_ARRAY:
-            import yaml
             value = yaml.safe_load(t)
             if not isinstance(value, list):
                 raise ValueError
@@ -167,8 +173,6 @@ class ParameterTool:
     """
 
     def __init__(self, timeout_s: float):
-        import os
-        from erva_ros.ros.context import RosContext
         self.timeout_s = timeout_s
         self.ros = RosContext()
         # Hidden (leading underscore), as ros2cli's own nodes: graph tools leave it out.
@@ -176,8 +180,6 @@ class ParameterTool:
         self._remotes: Dict[str, RemoteParameters] = {}
 
     def _spin_until(self, done, what: str) -> None:
-        import time
-        from erva_ros.core.errors import CLIError
         deadline = time.monotonic() + self.timeout_s
         while not done():
             left = deadline - time.monotonic()
@@ -218,8 +220,6 @@ class ParameterTool:
 
         Raises CLIError for a parameter the node does not have or a text not of its type.
         """
-        from erva_ros.core.errors import CLIError
-        from erva_ros.core.settings.specs import closest_key
         declared = self.list(node)
         unknown = [n for n in values if n not in declared]
         if unknown:
@@ -251,7 +251,6 @@ class ParameterTool:
         The graph is discovered, not known: it is taken as complete once it did not
         change for ``settle_s`` (bounded by the timeout).
         """
-        import time
         found, since = None, time.monotonic()
         end = since + self.timeout_s
         while time.monotonic() < end:
@@ -293,7 +292,6 @@ class GraphParameters:
     """
 
     def __init__(self, node, namespace: str, timeout_s: float = 2.0):
-        import threading
         self.node = node
         self.namespace = namespace
         self.timeout_s = timeout_s
@@ -309,7 +307,6 @@ class GraphParameters:
                     self._remotes[name] = remote
 
     def _wait(self, future):
-        import threading
         done = threading.Event()
         future.add_done_callback(lambda _: done.set())
         if not done.wait(self.timeout_s):

@@ -33,11 +33,14 @@ from typing import Callable, Dict, Iterable, List, Mapping, Optional, Sequence
 
 from erva_ros.core import topics as contract
 
+from erva_ros.core.contract import encode_clock
+from erva_ros.core.settings.schemas import LIVE
 from erva_ros.ros import qos as ros_qos
 from erva_ros.core.bag import BagError
 from erva_ros.core.bag.playback import PlaybackClock, Reach, select_topics
 from erva_ros.core.bag.reader import Bag
 from erva_ros.core.metrics import percentiles_ms
+from erva_ros.ros.bag_messages import message_class
 
 SLEEP_SLICE_S = 0.05   # longest sleep between checks of the stop flag
 
@@ -53,8 +56,6 @@ class Player:
                  exclude_topics: Sequence[str] = (), exclude_regex: str = '',
                  remap: Optional[Mapping[str, str]] = None):
         from erva_ros.ros.qos import playback_qos
-        from erva_ros.ros.bag_messages import message_class
-        from erva_ros.core.settings.schemas import LIVE
 
         if not rate > 0:
             raise BagError(f'rate {rate} must be positive')
@@ -158,7 +159,6 @@ class Player:
         return False
 
     def _publish_clock(self, bag_ns: int) -> None:
-        from erva_ros.core.contract import encode_clock
         self.clock_pub.publish(encode_clock(bag_ns))
         self.clock_ticks += 1
 

@@ -26,6 +26,8 @@ import sys
 import time
 from typing import Dict, Iterable, List, Mapping, Optional, Sequence
 
+from erva_ros.core.settings.files import shipped_config
+
 #: A log line that says something failed: an ERROR/FATAL log line (rclpy's format), an
 #: exception's last line, or a command's one-line ``prog: error: ...``.
 _ERROR_LINE = re.compile(r'^\s*\[(ERROR|FATAL)\]|^\s*[\w.]*(Error|Exception|Interrupt)\b: |'
@@ -83,7 +85,6 @@ PROFILE_VARIABLES = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES
 
 def session_profile() -> str:
     """Return config/fastdds_session.xml: faster announcements (the file says which, why)."""
-    from erva_ros.core.settings.files import shipped_config
     return shipped_config('fastdds_session.xml')
 
 

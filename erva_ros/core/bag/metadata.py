@@ -25,11 +25,14 @@ mapping, without the root key, is stored in the MCAP file as the ``rosbag2`` met
 record (``serialized_metadata``), as the rosbag2 MCAP storage plugin does on close.
 """
 
+import datetime
 import functools
 import json
 import os
 import re
 from typing import Dict, List, Mapping, Optional, Sequence
+
+import yaml
 
 from erva_ros.core.bag import BagError
 
@@ -53,7 +56,6 @@ def format_time_point(ns: Optional[int], utc: bool = False) -> str:
     %H:%M:%S``) with nine decimals, then the seconds since the epoch, e.g.
     ``Dec  7 2026 15:46:41.473955228 (1796658401.473955228)``.  ``utc``: in UTC instead.
     """
-    import datetime
     if ns is None:
         return 'unknown'
     sec = int(ns) // 10**9
@@ -131,7 +133,6 @@ def _scalar(value) -> str:
 @functools.lru_cache(maxsize=256)   # the same names and QoS texts at every split
 def _looks_typed(text: str) -> bool:
     """Return True if YAML would read the plain ``text`` as something other than a string."""
-    import yaml
     try:
         return yaml.safe_load(text) != text
     except yaml.YAMLError:
@@ -192,7 +193,6 @@ def write_metadata(bag_dir: str, metadata: Mapping) -> str:
 
 def read_metadata(bag_dir: str) -> Dict:
     """Read and check ``bag_dir/metadata.yaml``; return the BagMetadata mapping."""
-    import yaml
     path = os.path.join(bag_dir, METADATA_FILE)
     try:
         with open(path, encoding='utf-8') as fh:

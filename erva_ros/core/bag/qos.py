@@ -14,6 +14,8 @@ policies that matter for compatibility, with history reset to keep-last 10
 
 from typing import Dict, List, Sequence
 
+import yaml
+
 #: rmw's "infinite" duration, as rosbag2 writes it.
 INFINITE = {'sec': 9223372036, 'nsec': 854775807}
 #: Key order of one profile, as rosbag2 writes it.
@@ -81,7 +83,6 @@ def dump_profiles(profiles: Sequence[Dict], indent: int = 0) -> str:
 
 def load_profiles(text) -> List[Dict]:
     """Parse an offered-QoS YAML string (or an already parsed list) into profile dicts."""
-    import yaml
     data = yaml.safe_load(text) if isinstance(text, str) else text
     if data is None:
         return []

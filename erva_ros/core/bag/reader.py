@@ -17,9 +17,16 @@ import os
 import re
 from typing import Callable, Dict, Iterable, Iterator, List, Optional, Tuple
 
+from mcap.reader import make_reader
+
+from mcap.records import Channel, Footer, Header, Message, Metadata, Schema
+
+from mcap.stream_reader import StreamReader
+
 from erva_ros.core.bag import BagError
 from erva_ros.core.bag.metadata import METADATA_FILE, read_metadata
 from erva_ros.core.bag.qos import load_profiles
+from erva_ros.core.bag.session_check import loop_offset_s, loop_start_ns, session_warnings
 from erva_ros.core.bag.writer import ROSBAG2_RECORD, SESSION_RECORD
 
 MCAP_MAGIC = b'\x89MCAP0\r\n'
@@ -66,9 +73,6 @@ class ScanResult:
 
 def scan_mcap(path: str) -> ScanResult:
     """Read ``path`` record by record until its end or the first torn/damaged record."""
-    from mcap.records import Channel, Footer, Header, Message, Metadata, Schema
-    from mcap.stream_reader import StreamReader
-
     out = ScanResult()
     size = os.path.getsize(path)
     with open(path, 'rb') as fh:
@@ -195,7 +199,6 @@ class BagFile:
         return self
 
     def _open_indexed(self) -> None:
-        from mcap.reader import make_reader
         with open(self.path, 'rb') as fh:
             fh.seek(-len(MCAP_MAGIC), os.SEEK_END)
             if fh.read() != MCAP_MAGIC:  # torn: the footer cannot be trusted
@@ -242,7 +245,6 @@ class BagFile:
                     yield BagMessage(ch.topic, schema.name if schema else '', m.log_time,
                                      m.publish_time, m.sequence, bytes(m.data))
             return
-        from mcap.reader import make_reader
         try:
             with open(self.path, 'rb') as fh:
                 reader = make_reader(fh)
@@ -407,8 +409,6 @@ class Bag:
 
     def info(self) -> Dict:
         """Return what ``erva bag info`` shows, as plain data."""
-        from erva_ros.core.bag.session_check import (loop_offset_s, loop_start_ns,
-                                                     session_warnings)
 
         def iso(ns):
             if ns is None:

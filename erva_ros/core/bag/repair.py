@@ -18,6 +18,8 @@ import os
 import shutil
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 
+from mcap.writer import CompressionType, Writer
+
 from erva_ros import __version__
 from erva_ros.core.bag import BagError
 from erva_ros.core.bag import metadata as bag_meta
@@ -153,8 +155,6 @@ def _action(n_files: int, repaired: List[str], elsewhere: bool) -> str:
 def _rewrite(part: BagFile, target_file: str, meta: Dict, keep_original: bool,
              result: Dict) -> None:
     """Copy every readable record of the scanned ``part`` into a finished ``target_file``."""
-    from mcap.writer import CompressionType, Writer
-
     scan = part.scan
     tmp = target_file + '.repair'
     with open(tmp, 'wb') as fh:

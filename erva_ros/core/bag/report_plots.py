@@ -5,6 +5,7 @@ from typing import List, Mapping, Optional
 
 import numpy as np
 
+from erva_ros.core.loop.prediction import prediction_steps
 from erva_ros.core.plots.figures import save, subplots
 
 
@@ -206,7 +207,6 @@ def _timing(data, deadlines: Mapping[str, float], title: str, path: str) -> str:
 
 def _prediction(data, actual, t0: int, title: str, path: str) -> str:
     """Predicted vs actual z̈_s and power: each plan's value h steps ahead at t_k + h·Ts."""
-    from erva_ros.core.loop.prediction import prediction_steps
     fig, axes = subplots(2, 1, figsize=(8, 5.6), sharex=True)
     n = len(data.predictions)
     steps = prediction_steps(min((len(t) for t in data.predictions), default=1) - 1)

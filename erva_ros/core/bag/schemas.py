@@ -27,6 +27,8 @@ import re
 from typing import Dict, List, Set, Tuple
 
 from erva_ros.core.bag import BagError
+from erva_ros.core.model.params import ParamError
+from erva_ros.core.settings.files import share_directory as find
 
 #: Field types in a .msg ("foo_msgs/Bar" in "foo_msgs/Bar[] bar"); rosbag2's regex.
 MSG_FIELD_TYPE_RE = re.compile(r'(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+')
@@ -52,8 +54,6 @@ def split_type(type_name: str) -> Tuple[str, str, str]:
 
 def share_directory(package: str) -> str:
     """Return the share directory of ``package`` (its .msg files); BagError if not found."""
-    from erva_ros.core.settings.files import share_directory as find
-    from erva_ros.core.model.params import ParamError
     try:
         return find(package)
     except ParamError as exc:

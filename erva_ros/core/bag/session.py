@@ -23,6 +23,7 @@ import sys
 from typing import Any, Dict, List, Mapping, Optional, Sequence
 
 from erva_ros import __version__
+from erva_ros.core.model.params import ParamError
 from erva_ros.core.roadmap.location import redact_text
 
 _UNSAFE = re.compile(r'[^A-Za-z0-9_.-]+')
@@ -115,8 +116,6 @@ def recorder_session(text: str, recorder: str, bag_dir: str,
     bag and ``extra``, e.g. how it splits the bag); the caller's JSON object wins for the
     keys only it knows.  ParamError (one line) if ``text`` is not a JSON object.
     """
-    import json
-    from erva_ros.core.model.params import ParamError
     try:
         given = json.loads(text) if text.strip() else {}
     except ValueError as exc:

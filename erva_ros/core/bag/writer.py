@@ -35,6 +35,8 @@ import os
 import time
 from typing import Callable, Dict, List, Mapping, Optional, Sequence
 
+from mcap.writer import CompressionType, LIBRARY_IDENTIFIER, Writer
+
 from erva_ros import __version__
 from erva_ros.core.bag import BagError
 from erva_ros.core.bag import metadata as bag_meta
@@ -132,8 +134,6 @@ class BagWriter:
     # -- files -------------------------------------------------------------------------------
     def _open_file(self) -> None:
         """Start file ``<bag>_<i>.mcap``: header, session record, every known channel."""
-        from mcap.writer import CompressionType, LIBRARY_IDENTIFIER, Writer
-
         self.file_name = f'{self.bag_name}_{len(self._finished) // 3}.mcap'
         self.file_path = os.path.join(self.bag_dir, self.file_name)
         self._file_start_ns: Optional[int] = None

@@ -18,7 +18,11 @@ The clairvoyant bound (one OCP over the whole run) is not a causal controller; s
 from typing import Optional
 
 from erva_ros.core.controllers.base import ControlResult, Controller, SolveFailure, STATUSES
+from erva_ros.core.controllers.excite import ExciteController
+from erva_ros.core.controllers.nmpc import NMPCController
+from erva_ros.core.controllers.passive import PassiveController
 from erva_ros.core.controllers.settings import ControllerSettings, load_controller_settings
+from erva_ros.core.controllers.skyhook import SkyhookController
 from erva_ros.core.settings.controller import CONTROLLER_NAMES, EXCITATION_NAMES
 from erva_ros.core.model.quarter_car import QuarterCarModel
 from erva_ros.core.model.params import ParamError
@@ -46,19 +50,15 @@ def _build(name: Optional[str], model: QuarterCarModel, settings: ControllerSett
                   u_max=settings.u_max, c_e0=model.params.c_e0)
     # The command delay (settings.command_delay_s) is applied here, once per law.
     if name == 'passive':
-        from erva_ros.core.controllers.passive import PassiveController
         return PassiveController(**common)   # constant: nothing to compensate
     if name == 'excite':
-        from erva_ros.core.controllers.excite import ExciteController
         return ExciteController(**common, signal=settings.excite_signal,   # open loop
                                 bit_s=settings.excite_bit_s, seed=settings.excite_seed,
                                 f0_hz=settings.excite_f0_hz, f1_hz=settings.excite_f1_hz,
                                 sweep_s=settings.excite_sweep_s)
     if name != 'skyhook':
-        from erva_ros.core.controllers.nmpc import NMPCController
         # models the delay in its OCP
         return NMPCController(model, settings.with_(controller=name))
-    from erva_ros.core.controllers.skyhook import SkyhookController
     ctrl = SkyhookController(**common)
     if settings.command_delay_s > 0:         # predicted outside the law
         ctrl.predict_delay(model, settings.command_delay_s)

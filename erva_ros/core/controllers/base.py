@@ -30,6 +30,8 @@ from typing import Dict, Optional
 
 import numpy as np
 
+from erva_ros.core.controllers.delay import DelayCompensation
+
 #: Values of :attr:`ControlResult.status`.
 STATUSES = ('ok', 'late', 'fallback_plan', 'fallback_passive')
 
@@ -88,7 +90,6 @@ class Controller(ABC):
 
     def predict_delay(self, model, delay_s: float) -> None:
         """Plan from x(t_k + ``delay_s``) predicted with ``model``: the command acts that late."""
-        from erva_ros.core.controllers.delay import DelayCompensation
         self.delay = DelayCompensation(model, self.ts, delay_s)
 
     # -- the interface -----------------------------------------------------------------

@@ -20,6 +20,7 @@ from erva_ros.core.settings.controller import (CHOICE_SPECS, CONTROLLER_NAMES, C
                                                EXCITATION_NAMES, EXCITE_SIGNALS, FALLBACKS,
                                                FLAG_SPECS, INTEGER_KEYS, NODE_NAME, NUMERIC_SPECS,
                                                ROAD_PREDICTIONS, SOLVER_KINDS, SPECS)
+from erva_ros.core.settings.files import shipped_config, shipped_defaults
 from erva_ros.core.settings.specs import unknown_parameters
 
 
@@ -28,7 +29,6 @@ def _shipped_settings() -> Dict[str, Any]:
 
     ``ts`` is the loop's sample time, one value for every node (config/live.yaml ``/**``).
     """
-    from erva_ros.core.settings.files import shipped_defaults
     values = dict(shipped_defaults('nmpc.yaml', NODE_NAME))
     values['ts'] = shipped_defaults('live.yaml')['ts']
     return {k: SPECS[k].check(k, v, 'config/nmpc.yaml') for k, v in values.items()}
@@ -148,7 +148,6 @@ def validate_settings(values: Mapping[str, Any], source: str = '') -> Controller
 
 def default_settings_file() -> str:
     """Return the path of the shipped config/nmpc.yaml (source tree or installed share)."""
-    from erva_ros.core.settings.files import shipped_config
     return shipped_config('nmpc.yaml', 'pass a settings file')
 
 

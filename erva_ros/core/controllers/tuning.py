@@ -32,7 +32,8 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 from erva_ros.core.controllers.settings import ControllerSettings, validate_settings
 from erva_ros.core.settings.controller import NUMERIC_SPECS, SPECS
 from erva_ros.core.model.params import ParamError
-from erva_ros.core.settings.specs import Flag, Integer
+from erva_ros.core.settings.schemas import read_only_reason, SCHEMAS
+from erva_ros.core.settings.specs import Flag, Integer, unknown_parameters
 
 #: The controller settings that may change while it runs (module doc): their specs say so.
 LIVE_KEYS = tuple(key for key, spec in SPECS.items() if spec.live)
@@ -57,8 +58,6 @@ class Built:
 
 def not_live(key: str, live: Sequence[str]) -> ParamError:
     """Return the error of a change of ``key``, which is not one of ``live``: why not."""
-    from erva_ros.core.settings.schemas import read_only_reason, SCHEMAS
-    from erva_ros.core.settings.specs import unknown_parameters
     known = {k for schema in SCHEMAS.values() for k in schema.specs()}
     if key not in known:
         return unknown_parameters([key], known)

@@ -32,6 +32,8 @@ import can
 
 from erva_ros.core.hil.bridge_diagnostics import (bus_status, command_status, diag_dict,
                                                   ecu_status)
+from erva_ros.core.hil.settings import hardware_of
+from erva_ros.core.model.params import ParamError
 from erva_ros.core.reports import BridgeBusReport, BridgeCommandReport, BridgeEcuReport
 from erva_ros.core.hil.bus_link import BUS_ERRORS, BusLink, is_transient, TRANSIENT_ERRNOS
 from erva_ros.core.hil.codec import Command, E2EReceiver, EcuCodec
@@ -111,9 +113,7 @@ class BridgeCore:
         (``can_log``) that cannot be used.
         """
         from erva_ros.core.hil.can_trace import check_path
-        from erva_ros.core.hil.settings import hardware_of
         from erva_ros.core.hil.transport import open_bus, parse_spec
-        from erva_ros.core.model.params import ParamError
         if p.get('can_log'):
             check_path(p['can_log'])
         try:

@@ -29,6 +29,7 @@ import can
 import cantools
 
 from erva_ros.core.hil.e2e import E2EChecker, E2ESender, E2EStatus, FRAME_LENGTH
+from erva_ros.core.settings.files import shipped_config
 
 
 class Kind(enum.Enum):
@@ -113,7 +114,6 @@ class Status:
 
 def default_dbc_path() -> str:
     """Return the path of the shipped ``config/erva_ecu.dbc`` (source tree or share dir)."""
-    from erva_ros.core.settings.files import shipped_config
     return shipped_config('erva_ecu.dbc', 'pass the DBC path explicitly')
 
 

@@ -22,10 +22,11 @@ from typing import Any, Dict, Optional
 from erva_ros.core.hil.hardware import GeneratorHardware, validate_hardware
 from erva_ros.core.model.estimator import EstimatorNoise, validate_noise
 from erva_ros.core.model.params import read_ros_params, ROS_BUILTINS
-from erva_ros.core.settings.files import shipped_defaults
+from erva_ros.core.settings.files import shipped_config, shipped_defaults
 from erva_ros.core.settings.hil import (BRIDGE_NODE, BRIDGE_SPECS, COMMAND_LINE_DEFAULTS,
                                         ECU_SIM_SECTION, ECU_SIM_SPECS, ESTIMATOR_NODE,
                                         ESTIMATOR_SPECS, HARDWARE_SPECS, NOISE_SPECS)
+from erva_ros.core.settings.schemas import SCHEMAS
 from erva_ros.core.settings.specs import check_all, unknown_parameters
 
 
@@ -46,7 +47,6 @@ ECU_SIM_DEFAULTS: Dict[str, Any] = _shipped(ECU_SIM_SECTION, ECU_SIM_SPECS)
 
 def default_hil_file() -> str:
     """Return the path of the shipped ``config/hil.yaml`` (source tree or installed share)."""
-    from erva_ros.core.settings.files import shipped_config
     return shipped_config('hil.yaml', 'pass --hil-config FILE')
 
 
@@ -68,7 +68,6 @@ def _validated(values: Dict[str, Any], specs: Dict[str, Any], defaults: Dict[str
     and ROS's own may be there; anything else is a typo, which was ignored before (the
     value kept its default): the error names the closest known key.
     """
-    from erva_ros.core.settings.schemas import SCHEMAS
     schema = SCHEMAS.get(node)
     known = {*specs, *ROS_BUILTINS, *(schema.specs() if schema else ())}
     unknown = set(values) - known

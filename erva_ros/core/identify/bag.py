@@ -24,7 +24,9 @@ import numpy as np
 
 from erva_ros.core import contract as wire, topics as contract
 from erva_ros.core.bag import BagError
+from erva_ros.core.bag.qos import control_profile
 from erva_ros.core.bag.reader import open_bag
+from erva_ros.core.bag.writer import BagWriter
 from erva_ros.core.hil import topics as hil
 from erva_ros.core.identify.fit import ECU_CHANNELS, IdentifyError, Recording, STATE_CHANNELS
 from erva_ros.core.loop.validation import MessageRejected
@@ -174,8 +176,6 @@ def write_recording(bag_dir: str, rec: Recording, session: Optional[Dict[str, st
     For simulated sessions (the tests, a study's sessions): each measurement is stamped
     ``lag_s`` after its sample, as the bridge stamps the CAN receive time.
     """
-    from erva_ros.core.bag.qos import control_profile
-    from erva_ros.core.bag.writer import BagWriter
     if rec.channels != ECU_CHANNELS:
         raise ValueError('write_recording writes ECU recordings only')
     road = _topic(namespace, contract.ROAD_HEIGHT)

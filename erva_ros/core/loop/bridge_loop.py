@@ -27,6 +27,7 @@ from erva_ros.core.hil.messages import EcuMessages
 from erva_ros.core.levels import ERROR
 from erva_ros.core.model.params import ERVAParams
 from erva_ros.core.reports import Timing
+from erva_ros.core.settings.loop import command_delay_ns
 
 #: Commands beyond this magnitude (Ns/m) are absurd (a unit error), not just out of range:
 #: refused; those in it are clamped to the generator's range (counted).
@@ -48,7 +49,7 @@ class BridgeLoop:
         if p.get('can_log'):                # every raw frame, both directions
             self.core.trace = CanTrace(p['can_log'])
         self.hw = self.core.hw
-        self.delay_ns = int(round(p['command_delay_s'] * 1e9))
+        self.delay_ns = command_delay_ns(p['command_delay_s'])
         self.messages = EcuMessages(self.hw, params.l)
         self.lat = {k: LatencyStats() for k in LATENCIES}
         self.malformed = 0                # damping_cmd messages that did not decode

@@ -26,6 +26,8 @@ from typing import Any, Dict, Mapping, Optional, Tuple
 import numpy as np
 
 from erva_ros.core import contract
+from erva_ros.core.controllers import make_controller
+from erva_ros.core.controllers.settings import validate_settings
 from erva_ros.core.controllers.tuning import LIVE_KEYS, LiveSettings, not_live, sample_of
 from erva_ros.core.levels import ERROR, OK, WARN
 from erva_ros.core.loop.prediction import PlanPredictor
@@ -33,6 +35,11 @@ from erva_ros.core.loop.validation import MessageRejected  # noqa: F401 (raised 
 from erva_ros.core.loop.sample_schedule import Job, SampleScheduler
 from erva_ros.core.loop.timing import DurationStats, PeriodStats
 from erva_ros.core.loop.validation import StampWindow
+from erva_ros.core.model.params import validate_erva
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.settings.controller import NUMERIC_SPECS, SPECS
+from erva_ros.core.settings.erva import ERVA_SPECS
+from erva_ros.core.settings.loop import command_delay_ns
 from erva_ros.core.settings.schemas import spec_of
 from erva_ros.core.reports import format_value, NMPCReport, Timing
 from erva_ros.core.wire import NS
@@ -63,12 +70,6 @@ class Output:
 
 def build_loop(p: Mapping[str, Any], window: StampWindow, report: NMPCReport) -> 'ControlLoop':
     """Return nmpc_node's loop from its parameters ``p`` (controller, model, predictor)."""
-    from erva_ros.core.controllers import make_controller
-    from erva_ros.core.controllers.settings import validate_settings
-    from erva_ros.core.settings.controller import NUMERIC_SPECS, SPECS
-    from erva_ros.core.model.quarter_car import make_model
-    from erva_ros.core.model.params import validate_erva
-    from erva_ros.core.settings.erva import ERVA_SPECS
     settings = validate_settings({k: p[k] for k in SPECS})
     if p['mode'] == 'lockstep':    # simulated time: no wall-clock budget
         settings = settings.with_(time_budget_s=NUMERIC_SPECS['time_budget_s'].hi)
@@ -94,7 +95,7 @@ class ControlLoop:
         self.controller = controller
         self.ts = settings.ts
         self.ts_ns = int(round(settings.ts * NS))
-        self.delay_ns = int(round(settings.command_delay_s * NS))   # commands act at t_k + d
+        self.delay_ns = command_delay_ns(settings.command_delay_s)   # commands act at t_k + d
         #: The plan's trajectory on ``model`` after each command (None: not published).
         self.predictor = None if not predict else PlanPredictor(
             model, settings.ts, controller.horizon, settings.command_delay_s,

@@ -31,6 +31,7 @@ from erva_ros.core.loop.validation import MessageRejected
 from erva_ros.core.model.quarter_car import QuarterCarModel
 from erva_ros.core.model.plant import PlantSimulator
 from erva_ros.core.reports import PlantReport, Timing
+from erva_ros.core.settings.loop import command_delay_ns
 from erva_ros.core.wire import NS
 
 
@@ -57,7 +58,7 @@ class PlantLoop:
         self.ts_ns = int(round(self.ts * NS))
         self.lockstep = cfg['mode'] == 'lockstep'
         self.delay_s = float(cfg['command_delay_s'])
-        self.delay_ns = int(round(self.delay_s * NS))
+        self.delay_ns = command_delay_ns(self.delay_s)
         if not self.delay_ns < self.ts_ns:
             raise ValueError(f'command_delay_s = {self.delay_s:g} s must be below ts = '
                              f'{self.ts:g} s')

@@ -25,9 +25,12 @@ from erva_ros.core.loop.estimator_loop import EstimatorLoop
 from erva_ros.core.loop.validation import MessageRejected
 from erva_ros.core.model.params import ParamError
 from erva_ros.core.reports import EstimatorReport, RoadReport
-from erva_ros.core.model.road_estimator import RoadEKF, RoadEstimate
+from erva_ros.core.model.road_estimator import (road_noise, RoadEKF, RoadEstimate, RoadModel,
+                                                RoadSensors)
 from erva_ros.core.roadmap import MapError
+from erva_ros.core.roadmap.location import parse_location
 from erva_ros.core.roadmap.preview import MapPreview, MapPreviewSettings, PreviewResult
+from erva_ros.core.roadmap.store import RoadMap
 from erva_ros.core.roadmap.vehicle import Odometry, OdometryError
 from erva_ros.core.wire import NS
 
@@ -149,7 +152,6 @@ class _Std:
 def road_estimator_loop(model, p: Mapping[str, Any], noise, report: EstimatorReport
                         ) -> RoadEstimatorLoop:
     """Return the RoadEstimatorLoop on ``model`` of state_estimator_node's parameters ``p``."""
-    from erva_ros.core.model.road_estimator import RoadModel, RoadSensors, road_noise
     sensors = RoadSensors.of(noise)
     ekf = RoadEKF(model, p['ts'], road_noise(), RoadModel('random_walk', p['road_sigma_m']),
                   sensors, u_max=p['u_max'])
@@ -163,8 +165,6 @@ class MapPreviewLoop:
     """The preview from the map for each road estimate, and the report's counts (module doc)."""
 
     def __init__(self, p: Mapping[str, Any], report: RoadReport):
-        from erva_ros.core.roadmap.store import RoadMap
-        from erva_ros.core.roadmap.location import parse_location
         if not p['map_file']:
             raise ParamError('source map needs map_file (a map of erva map build)')
         if parse_location(p['map_file']).server:    # never the network in the loop
@@ -259,39 +259,5 @@ class Streak:
             self.longest, self.from_ns, self.to_ns = self._run, self._start, stamp_ns
 
 
-def session_span(live: Mapping[str, Any]) -> Tuple[float, float]:
-    """Return the part of the route a session drives and previews: (0, end) in m."""
-    drive_m = live['speed_mps'] * live['duration_s']
-    return 0.0, drive_m + live['speed_mps'] * live['preview_steps'] * live['ts']
-
-
-def check_session_map(path: str, live: Mapping[str, Any], margin_m: float = 3.0) -> str:
-    """Return ``path`` made absolute once the map serves this session; MapError (one line).
-
-    The map must open, be of the session's route (its road, seed and speed), reach
-    ``margin_m`` beyond the drive's end plus the preview horizon, and have no gap from its
-    start on.  The metres before its start (a map from drives starts after their filters
-    settled) get the no-preview prediction, counted; a map that starts only after the
-    drive's end is refused.
-    """
-    import os
-    from erva_ros.core.roadmap.bag_drive import route_of_live
-    from erva_ros.core.roadmap.store import RoadMap
-    path = os.path.abspath(path)
-    with RoadMap.open(path) as road_map:
-        profile = road_map.profile()
-    drive_m = live['speed_mps'] * live['duration_s']
-    end_m = session_span(live)[1]
-    try:
-        if profile.valid.any() and profile.start_m >= drive_m:
-            raise MapError(f'the map starts at {profile.start_m:.1f} m, after the session\'s '
-                           f'drive (0..{drive_m:.1f} m)')
-        profile.check_covers(route_of_live(live), max(profile.start_m, 0.0) + margin_m, end_m,
-                             margin_m)
-    except MapError as exc:
-        raise MapError(f'{path}: {exc}') from None
-    return path
-
-
 __all__ = ['RoadEstimatorLoop', 'road_estimator_loop', 'MapPreviewLoop', 'STREAKS', 'Streak',
-           'check_session_map', 'session_span']
+           ]

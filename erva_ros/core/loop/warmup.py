@@ -22,7 +22,7 @@ its params file gives the nodes.
 """
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import hashlib
 import multiprocessing
 import os
@@ -30,9 +30,16 @@ import signal
 import time
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Set, Tuple, Union
 
+import casadi as ca
+
+from erva_ros.core.controllers import make_controller
+from erva_ros.core.hil.settings import load_ecu_sim_section, load_estimator_section
 from erva_ros.core.model import codegen
 from erva_ros.core.controllers.settings import ControllerSettings, load_controller_settings
+from erva_ros.core.model.estimator import ExtendedKalmanFilter
+from erva_ros.core.model.plant import PlantSimulator
 from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.model.road_estimator import RoadEKF
 from erva_ros.core.settings.loop import MODEL_KINDS
 from erva_ros.core.model.params import ERVAParams, load_erva_params, ParamError, validate_erva
 
@@ -99,17 +106,13 @@ class Target:
         """Build the core as its process does (compiling or loading its functions)."""
         model = make_model(self.params, self.model)
         if self.role == 'nmpc':
-            from erva_ros.core.controllers import make_controller
             return make_controller(self.settings.controller, model, self.settings)
         if self.role == 'ekf':
-            from erva_ros.core.model.estimator import ExtendedKalmanFilter
             return ExtendedKalmanFilter(model, self.ts, u_max=self.u_max)
         if self.role == 'road_ekf':
             # Its functions depend on the road model's kind, not on its noise levels: the
             # node's random walk (core/loop/road_loop.py) is RoadEKF's default.
-            from erva_ros.core.model.road_estimator import RoadEKF
             return RoadEKF(model, self.ts, u_max=self.u_max)
-        from erva_ros.core.model.plant import PlantSimulator
         plant = PlantSimulator(model, self.ts)
         if self.role == 'ecu_plant':    # as EcuSimCore: one period of latch_s pieces
             n = int(round(self.ts / self.latch_s))
@@ -140,7 +143,6 @@ def session_targets(erva: Union[ERVAParams, Mapping[str, float]], settings: Cont
     if ecu == 'none':
         out.append(Target('plant', params, model, ts))
     else:
-        from erva_ros.core.hil.settings import load_ecu_sim_section, load_estimator_section
         out.append(Target('road_ekf' if road_estimated else 'ekf', params, model, ts,
                           u_max=load_estimator_section(hil_file)['u_max']))
         out.append(Target('ecu_plant', params, model, ts,
@@ -227,8 +229,6 @@ NOT_COMPILED_IN = ('alpha1', 'alpha2', 'max_iter', 'long_max_iter', 'sqp_tol', '
 
 def _target_key(target: Target, salt: str) -> str:
     """Return the key of a target's manifest (see the module doc)."""
-    import casadi as ca
-    from dataclasses import replace
     if target.settings is not None:
         defaults = ControllerSettings()
         # no_preview is the preview's OCP with a held road as its parameter: one solver.

@@ -4,7 +4,9 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from erva_ros.core.identify.fit import PARAMETERS
 from erva_ros.core.plots.figures import save, subplots
+from erva_ros.core.studies.sensitivity import unit
 
 
 def timeseries_figure(runs: Mapping[str, object], path: str, title: str = '') -> str:
@@ -104,14 +106,12 @@ def table_figure(rows: Sequence[dict], path: str, title: str = '') -> str:
 
 
 def _label(row: Mapping) -> str:
-    from erva_ros.core.studies.sensitivity import unit
     levels = ', '.join(f'{v["level"]:g}' for v in row['levels'])
     return f'{row["factor"]} ({levels} {unit(row["factor"])})'
 
 
 def tornado_figure(rows: Sequence[Mapping], path: str, title: str = '') -> str:
     """Write the tornado plot: per weighting, each factor's ΔJ % at its levels, largest on top."""
-    from erva_ros.core.identify.fit import PARAMETERS
     weights = []
     for r in rows:
         if r['weights'] not in weights:

@@ -19,6 +19,7 @@ from typing import Dict, Optional
 
 import numpy as np
 
+from erva_ros.core.controllers.base import Controller
 from erva_ros.core.model.estimator import EstimatorNoise
 from erva_ros.core.model.quarter_car import make_model, QuarterCarModel
 from erva_ros.core.model.params import ERVAParams
@@ -72,7 +73,6 @@ def _estimator(quarter_car: QuarterCarModel, variant: EstimatorVariant,
 def accuracy(params: ERVAParams, road: str, seed: int, variant: str = 'shipped',
              duration_s: float = 8.0, speed_mps: float = 20.0, ts: float = 0.02) -> Dict:
     """Return the estimation errors (m) of one drive on ``road`` (a key of :data:`ROADS`)."""
-    from erva_ros.core.controllers.base import Controller
     from erva_ros.core.roadmap.vehicle import EcuSensors, simulate_vehicle
 
     if road not in ROADS:

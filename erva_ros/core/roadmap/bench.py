@@ -22,14 +22,22 @@ before a drive).
 
 from dataclasses import dataclass
 import math
+import multiprocessing
 import os
+import threading
 import time
 from typing import Dict, Sequence, Tuple
 
 import numpy as np
 
-from erva_ros.core.roadmap.drive import GridProfile
+from erva_ros.core.controllers import ControllerSettings, make_controller
+from erva_ros.core.model.params import paper_params
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.road.profiles import make_road
+from erva_ros.core.roadmap import MapError
+from erva_ros.core.roadmap.drive import estimate_drive, grid_profile, GridProfile
 from erva_ros.core.roadmap.profile import gaussian_lowpass, highpass
+from erva_ros.core.roadmap.store import DriveItem, RoadMap
 
 SPEED_MPS = 20.0
 
@@ -61,7 +69,6 @@ def truth(fleet: Fleet) -> Tuple[np.ndarray, np.ndarray]:
     """Return the route's true detail on a fine grid (x, h), cached per process."""
     key = (fleet.route_km, fleet.seed, fleet.highpass_m)
     if key not in _TRUTH:
-        from erva_ros.core.road.profiles import make_road
         road = make_road('paper', fleet.route_km * 1e3 / SPEED_MPS + 2.0, seed=fleet.seed,
                          speed_mps=SPEED_MPS)
         x = road.times * SPEED_MPS
@@ -78,12 +85,7 @@ def calibrate(seed: int = 0, seconds: float = 8.0) -> Tuple[float, float]:
     the RoadEKF and its RTS smoother (core/roadmap/drive.py), against the true detail,
     18 m (3 high-pass σ) from either end.
     """
-    from erva_ros.core.controllers import ControllerSettings, make_controller
-    from erva_ros.core.model.quarter_car import make_model
-    from erva_ros.core.model.params import paper_params
-    from erva_ros.core.roadmap.drive import estimate_drive, grid_profile
     from erva_ros.core.roadmap.vehicle import Route, simulate_vehicle
-    from erva_ros.core.road.profiles import make_road
 
     model = make_model(paper_params())
     route = Route.of(make_road('paper', seconds + 5, seed=seed, speed_mps=SPEED_MPS))
@@ -134,7 +136,6 @@ def digest(fleet: Fleet, k: int) -> str:
 # -- writers ------------------------------------------------------------------------------
 def _writer(fleet: Fleet, location, ks: Sequence[int], barrier, results) -> None:
     """Add drives ``ks`` to the map, one transaction each, after the barrier; their times."""
-    from erva_ros.core.roadmap.store import DriveItem, RoadMap
     try:
         items = [DriveItem(drive(fleet, k), digest(fleet, k), f'drive {k}',
                            f'writer {os.getpid()}', search_m=3.0) for k in ks]
@@ -155,9 +156,6 @@ def _writer(fleet: Fleet, location, ks: Sequence[int], barrier, results) -> None
 
 def run_writers(fleet: Fleet, location, writers: int) -> Dict:
     """Add the fleet's N drives with ``writers`` processes at once; return the figures."""
-    import multiprocessing
-    import threading
-    from erva_ros.core.roadmap import MapError
     ctx = multiprocessing.get_context('fork')
     barrier, results = ctx.Barrier(writers + 1), ctx.Queue()
     procs = [ctx.Process(target=_writer, args=(

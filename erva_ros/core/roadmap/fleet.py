@@ -17,10 +17,11 @@ from dataclasses import dataclass
 import os
 import tempfile
 import time
-from typing import Callable, Dict, List, Optional, Sequence
+from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 from erva_ros.core.roadmap import MapError, MapUnreachable
 from erva_ros.core.roadmap.backends import DRIVE_COLUMNS, PostgresDb
+from erva_ros.core.roadmap.bag_drive import route_of_live
 from erva_ros.core.roadmap.location import cache_path, MapLocation, parse_location
 from erva_ros.core.roadmap.store import _utc, RoadMap
 
@@ -129,6 +130,48 @@ def session_map(text: str, start_m: float, end_m: float,
     say(f'map: fetched {lo:.0f}..{hi:.0f} m of {loc.display} ({f.nodes} nodes, '
         f'{f.seconds * 1e3:.0f} ms) into {f.cache}; the preview reads only that')
     return f.cache, loc.display
+
+
+def session_span(live: Mapping[str, Any]) -> Tuple[float, float]:
+    """Return the part of the route a session drives and previews: (0, end) in m."""
+    drive_m = live['speed_mps'] * live['duration_s']
+    return 0.0, drive_m + live['speed_mps'] * live['preview_steps'] * live['ts']
+
+
+def check_session_map(path: str, live: Mapping[str, Any], margin_m: float = 3.0) -> str:
+    """Return ``path`` made absolute once the map serves this session; MapError (one line).
+
+    The map must open, be of the session's route (its road, seed and speed), reach
+    ``margin_m`` beyond the drive's end plus the preview horizon, and have no gap from its
+    start on.  The metres before its start (a map from drives starts after their filters
+    settled) get the no-preview prediction, counted; a map that starts only after the
+    drive's end is refused.
+    """
+    path = os.path.abspath(path)
+    with RoadMap.open(path) as road_map:
+        profile = road_map.profile()
+    drive_m = live['speed_mps'] * live['duration_s']
+    end_m = session_span(live)[1]
+    try:
+        if profile.valid.any() and profile.start_m >= drive_m:
+            raise MapError(f'the map starts at {profile.start_m:.1f} m, after the session\'s '
+                           f'drive (0..{drive_m:.1f} m)')
+        profile.check_covers(route_of_live(live), max(profile.start_m, 0.0) + margin_m, end_m,
+                             margin_m)
+    except MapError as exc:
+        raise MapError(f'{path}: {exc}') from None
+    return path
+
+
+def map_for_session(text: str, live: Mapping[str, Any], say: Callable[[str], None]) -> tuple:
+    """Return (the checked local map file of a session's preview, the map as shown).
+
+    The session's span of the route (:func:`session_span`) from a file or a server's
+    section (:func:`session_map`), then checked against the session
+    (:func:`check_session_map`); MapError (one line) if it cannot serve.
+    """
+    path, shown = session_map(text, *session_span(live), say)
+    return check_session_map(path, live), shown
 
 
 # -- migration ----------------------------------------------------------------------------

@@ -19,3 +19,8 @@ COMMAND_DELAY_SPEC = Number(0.0, 1.0, 's', 'command delay d: each command acts a
                             '0 = the paper\'s ideal loop', lo_open=False)
 #: Models understood everywhere a ``--model`` or ``model`` parameter is accepted.
 MODEL_KINDS = ('erva', 'benchmark')
+
+
+def command_delay_ns(command_delay_s: float) -> int:
+    """Return the command delay d in integer ns (stamps are ns): its one conversion."""
+    return int(round(command_delay_s * 1e9))

@@ -28,8 +28,14 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from erva_ros.core.controllers import make_controller
 from erva_ros.core.identify.fit import ECU_CHANNELS, PARAMETERS, Recording, identify
+from erva_ros.core.identify.report import as_dict
+from erva_ros.core.metrics import evaluation_objective
 from erva_ros.core.model.params import ERVAParams, paper_params
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.road.profiles import make_road
+from erva_ros.core.studies.closed_loop import simulate_closed_loop
 
 #: Default actuation delay of simulated sessions: the HIL loop's (config/hil.yaml).
 HIL_DELAY_S = 0.006
@@ -77,10 +83,7 @@ def simulate_session(params: ERVAParams, road, duration_s: float, settings, *,
 
     ``noise`` is a :class:`~erva_ros.core.hil.ecu_sim.SensorNoise` (default: shipped).
     """
-    from erva_ros.core.studies.closed_loop import simulate_closed_loop
-    from erva_ros.core.controllers import make_controller
     from erva_ros.core.hil.ecu_sim import SensorNoise
-    from erva_ros.core.model.quarter_car import make_model
     noise = noise or SensorNoise()
     model = make_model(params)
     ctrl = make_controller(settings.controller, model, settings)
@@ -127,7 +130,6 @@ class StudyConfig:
 
 
 def _road(kind: str, duration_s: float, seed: int, road_class: str):
-    from erva_ros.core.road.profiles import make_road
     opts = {'road_class': road_class} if kind == 'iso8608' else {}
     return make_road(kind, duration_s, seed=seed, **opts)
 
@@ -141,12 +143,7 @@ def study_plant(job) -> Dict:
     two comfort measures and the power, of the NMPC on the identified, true and nominal
     model.
     """
-    from erva_ros.core.studies.closed_loop import simulate_closed_loop
-    from erva_ros.core.controllers import make_controller
     from erva_ros.core.hil.ecu_sim import SensorNoise
-    from erva_ros.core.identify.report import as_dict
-    from erva_ros.core.model.quarter_car import make_model
-    from erva_ros.core.metrics import evaluation_objective
 
     cfg, settings, index = job
     truth = perturbed_params(cfg.seed, index, cfg.spread)

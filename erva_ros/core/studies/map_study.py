@@ -35,8 +35,15 @@ from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
+from erva_ros.core.controllers import ControllerSettings, make_controller
 from erva_ros.core.model.quarter_car import make_model, QuarterCarModel
+from erva_ros.core.model.road_estimator import RoadEKF
+from erva_ros.core.road.profiles import make_road
 from erva_ros.core.roadmap import MapError
+from erva_ros.core.roadmap.drive import estimate_drive, grid_profile
+from erva_ros.core.roadmap.preview import map_preview_source, MapPreview, MapPreviewSettings
+from erva_ros.core.roadmap.profile import highpass
+from erva_ros.core.roadmap.store import compare, RoadMap
 
 #: Road seeds of the study: nothing was tuned on them (development used 0-2).
 FIRST_SEED = 100
@@ -106,11 +113,6 @@ def variants(cfg: StudyConfig) -> List[Variant]:
 def _maps(model: QuarterCarModel, cfg: StudyConfig, seed: int, route, ts: float,
           codegen: str = 'auto'):
     """Return {(drives, e): MapProfile} and the map drives' own estimation errors."""
-    from erva_ros.core.controllers import ControllerSettings, make_controller
-    from erva_ros.core.model.road_estimator import RoadEKF
-    from erva_ros.core.roadmap.drive import estimate_drive, grid_profile
-    from erva_ros.core.roadmap.profile import highpass
-    from erva_ros.core.roadmap.store import RoadMap
     from erva_ros.core.roadmap.vehicle import Odometry, OdometryError, simulate_vehicle
 
     passive = make_controller('passive', model, ControllerSettings())
@@ -148,15 +150,8 @@ def _maps(model: QuarterCarModel, cfg: StudyConfig, seed: int, route, ts: float,
 
 def run_seed(job) -> Tuple[int, Dict]:
     """Run one seed's map drives and test drives; return (seed, results)."""
-    from erva_ros.core.controllers import make_controller
-    from erva_ros.core.model.road_estimator import RoadEKF
-    from erva_ros.core.roadmap.preview import (map_preview_source, MapPreview,
-                                               MapPreviewSettings)
-    from erva_ros.core.roadmap.profile import highpass
-    from erva_ros.core.roadmap.store import compare
     from erva_ros.core.roadmap.vehicle import (OdometryError, oracle_preview, Route,
                                                simulate_vehicle)
-    from erva_ros.core.road.profiles import make_road
 
     params, settings, seed, cfg = job
     ts = settings.ts

@@ -23,7 +23,13 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from erva_ros.core.controllers import make_controller
 from erva_ros.core.identify.fit import PARAMETERS
+from erva_ros.core.metrics import evaluation_objective
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.road.preview import PreviewErrorModel
+from erva_ros.core.road.profiles import make_road
+from erva_ros.core.studies.closed_loop import simulate_closed_loop
 
 #: Factors besides the parameters, with their default levels and units.
 INPUT_FACTORS = {
@@ -48,13 +54,6 @@ class Run:
 
 def run_one(job) -> Dict:
     """Run the NMPC with ``run``'s error on the nominal plant; return J and its terms."""
-    from erva_ros.core.studies.closed_loop import simulate_closed_loop
-    from erva_ros.core.controllers import make_controller
-    from erva_ros.core.metrics import evaluation_objective
-    from erva_ros.core.model.quarter_car import make_model
-    from erva_ros.core.road.preview import PreviewErrorModel
-    from erva_ros.core.road.profiles import make_road
-
     params, settings, run, duration, road_kind = job
     s = settings.with_(alpha1=run.alpha[0], alpha2=run.alpha[1])
     believed, preview, delay = params, None, 0.0

@@ -33,9 +33,14 @@ import tempfile
 import time
 from typing import Callable, Dict, List, Mapping, Optional
 
+import yaml
+
 from erva_ros.core.bag import BagError
+from erva_ros.core.bag.reader import open_bag
 from erva_ros.core.bag.sequences import missing_by_sequence
+from erva_ros.core.bag.session import recorder_ros_args
 from erva_ros.core.errors import CLIError
+from erva_ros.ros.context import RosContext
 from erva_ros.session.processes import ChildProcess, child_env, module_argv
 
 #: Keys of rosbag2_storage_mcap's writer configuration that recorder_node implements.
@@ -116,7 +121,6 @@ def storage_parameters(path: Optional[str]) -> Dict[str, object]:
     """Return recorder parameters from a rosbag2_storage_mcap configuration file."""
     if not path:
         return {}
-    import yaml
     try:
         with open(path, encoding='utf-8') as fh:
             config = yaml.safe_load(fh) or {}
@@ -156,7 +160,6 @@ def check_output(path: str) -> None:
 
 def graph_topics(discovery_s: float) -> Dict[str, str]:
     """Return {topic: type} as the ROS graph shows them after ``discovery_s``."""
-    from erva_ros.ros.context import RosContext
     ros = RosContext()
     try:
         node = ros.create_node('erva_bag_record_discovery')
@@ -172,9 +175,6 @@ def graph_topics(discovery_s: float) -> Dict[str, str]:
 def record(opts: RecordOptions, topics: List[str], should_stop: Callable[[], bool],
            log: Callable[[str], None]) -> Dict:
     """Record ``topics`` into ``opts.output`` until stopped; return what the bag holds."""
-    from erva_ros.core.bag.reader import open_bag
-    from erva_ros.core.bag.session import recorder_ros_args
-
     metadata = {'scenario': 'record', 'source': 'erva bag record', **opts.custom_data}
     if opts.command:
         metadata['command'] = opts.command

@@ -35,13 +35,17 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 
 from erva_ros.core import contract as wire, topics as contract
-from erva_ros.core.bag import BagError
+from erva_ros.core.bag import BagError, report_plots
 from erva_ros.core.bag.reader import Bag
+from erva_ros.core.bag.session import stored_parameters
+from erva_ros.core.bag.session_check import session_warnings
 from erva_ros.core.levels import ERROR
+from erva_ros.core.loop.prediction import OUTPUT_NAMES, prediction_errors
 from erva_ros.core.metrics import comfort_power, percentiles_ms
 from erva_ros.core.model.quarter_car import kind_of_joints, STATE_NAMES
 from erva_ros.core.reports import (EcuSimReport, NMPCReport, NodeReport, PlantReport,
                                    report_from_status, Timing)
+from erva_ros.session.run.segments import bag_block
 
 
 def _topic(name: str, namespace: str) -> str:
@@ -291,7 +295,6 @@ def compute_report(data: SessionData) -> Dict:
     inside, outside = errors_by_span(data, ts)
     report['diagnostics_errors'] = inside
     report['diagnostics_errors_outside'] = outside
-    from erva_ros.session.run.segments import bag_block
     report['tuning'] = bag_block(data)      # the segments by parameter set (live changes)
     return report
 
@@ -325,7 +328,6 @@ def errors_by_span(data: SessionData, ts: Optional[float]
 
 def _warnings(bag) -> List[str]:
     """Return what is wrong with the bag's files (its one home) and with its session."""
-    from erva_ros.core.bag.session_check import session_warnings
     return bag.warnings() + session_warnings(bag)
 
 
@@ -369,8 +371,6 @@ def timing_report(data: SessionData, ts: Optional[float]) -> Dict:
 
 def actual_signals(data: SessionData) -> Dict[str, Tuple[np.ndarray, np.ndarray]]:
     """Return what happened, by prediction joint name: (stamps ns, values)."""
-    from erva_ros.core.loop.prediction import OUTPUT_NAMES
-    from erva_ros.core.model.quarter_car import STATE_NAMES
     out = {}
     if data.accel.n:
         out[OUTPUT_NAMES[0]] = (data.accel.stamp_ns, data.accel.values[:, 0])
@@ -386,7 +386,6 @@ def actual_signals(data: SessionData) -> Dict[str, Tuple[np.ndarray, np.ndarray]
 
 def prediction_report(data: SessionData, ts: Optional[float]) -> Optional[Dict]:
     """Return the prediction errors at 1, 5 and N steps ahead (None: no prediction)."""
-    from erva_ros.core.loop.prediction import prediction_errors
     if not data.predictions or not ts:
         return None
     ts_ns = int(round(ts * 1e9))
@@ -400,8 +399,6 @@ def prediction_report(data: SessionData, ts: Optional[float]) -> Optional[Dict]:
 
 def write_plots(data: SessionData, out_dir: str, timing: bool = True) -> List[str]:
     """Write the report's PNG figures into ``out_dir`` (timing.png if ``timing``)."""
-    from erva_ros.core.bag import report_plots
-    from erva_ros.core.bag.session import stored_parameters
     live = stored_parameters(data.bag.session).get('live') or {}
     deadlines = {'ts': _sample_time(data.state.stamp_ns) or _sample_time(data.cmd.stamp_ns)
                  or 0.0, 'd': float(live.get('command_delay_s') or 0.0)}

@@ -22,17 +22,29 @@ cumulative energy per step comes from re-running the plant with the recorded com
 (deterministic: same CasADi function, same inputs), which also checks the states.
 """
 
+import argparse
 from dataclasses import dataclass
 import dataclasses
+import sys
 import time
 from typing import Dict, List, Mapping, Optional, Sequence
 
 import numpy as np
 
 from erva_ros.core import contract as wire, topics as contract
+from erva_ros.core.bag import BagError
+from erva_ros.core.bag.qos import control_profile
+from erva_ros.core.bag.session import session_metadata
 from erva_ros.core.bag.writer import BagWriter
+from erva_ros.core.controllers import load_controller_settings, make_controller
 from erva_ros.core.metrics import percentiles_ms
+from erva_ros.core.model.params import load_erva_params, ParamError
+from erva_ros.core.model.plant import PlantSimulator
+from erva_ros.core.model.quarter_car import make_model
 from erva_ros.core.reports import NMPCReport, PlantReport, report_status, Timing
+from erva_ros.core.road.profiles import make_road, RoadError
+from erva_ros.core.settings.controller import NUMERIC_SPECS
+from erva_ros.core.studies.closed_loop import simulate_closed_loop
 from erva_ros.core.topics import STATE_JOINTS
 
 TOPIC = {name: f'{contract.NAMESPACE}/{name}' for name in (
@@ -127,7 +139,6 @@ def write_session(bag_dir: str, steps: List[StepLog], ts: float, controller: str
     The controller counters on /diagnostics count step statuses as they go; the last
     message carries ``final_counters`` (the controller's own, e.g. late) too.
     """
-    from erva_ros.core.bag.qos import control_profile
     t0_ns = time.time_ns() if t0_ns is None else int(t0_ns)
     session = {'source': OFFLINE_SOURCE, **(session or {})}
     offered = [control_profile()]
@@ -167,9 +178,6 @@ def run_and_record(bag_dir: str, model, controller, road, duration_s: float,
 
     Returns (result, metadata).
     """
-    from erva_ros.core.studies.closed_loop import simulate_closed_loop
-    from erva_ros.core.model.plant import PlantSimulator
-
     session = {'model': model.kind, **(session or {})}
     capture = _CapturingController(controller)
     result = simulate_closed_loop(model, capture, road, duration_s,
@@ -200,17 +208,6 @@ __all__ = ['StepLog', 'step_messages', 'diagnostics_message', 'write_session',
 
 def main(argv=None) -> int:
     """Write an offline session bag (``python -m erva_ros.session.bag.offline_bag DIR``)."""
-    import argparse
-    import sys
-
-    from erva_ros.core.bag import BagError
-    from erva_ros.core.bag.session import session_metadata
-    from erva_ros.core.controllers import load_controller_settings, make_controller
-    from erva_ros.core.settings.controller import NUMERIC_SPECS
-    from erva_ros.core.model.quarter_car import make_model
-    from erva_ros.core.model.params import load_erva_params, ParamError
-    from erva_ros.core.road.profiles import make_road, RoadError
-
     parser = argparse.ArgumentParser(
         prog='python -m erva_ros.session.bag.offline_bag',
         description='Run the offline closed loop and write it as a session bag with the '

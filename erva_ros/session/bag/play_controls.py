@@ -15,6 +15,7 @@ import os
 import select
 import signal
 import sys
+import termios
 import threading
 from typing import Callable, Optional, TextIO
 
@@ -71,7 +72,6 @@ class KeyboardControls:
         if self._thread is not None:
             self._thread.join(timeout=1.0)
         if self._saved is not None:
-            import termios
             termios.tcsetattr(self.stream.fileno(), termios.TCSADRAIN, self._saved)
             self._saved = None
 

@@ -6,14 +6,18 @@
   (the nodes stay up until then, as long as it makes progress);
 """
 
+import importlib.util
 import os
 import tempfile
 import time
 from typing import Callable, Dict, List, Mapping, Optional
 
 from erva_ros.core import topics
+from erva_ros.core.bag import session as bag_session
 from erva_ros.core.errors import CLIError
+from erva_ros.core.hil.topics import RECORD_TOPICS
 from erva_ros.core.reports import NodeReport
+from erva_ros.core.settings.schemas import SCHEMAS
 from erva_ros.session.run import accounting
 from erva_ros.session.processes import ChildProcess, module_argv
 from erva_ros.session.run.session_file import Session, session_description
@@ -39,12 +43,10 @@ def record_topics(hil: bool, road_estimated: bool = False, prediction: bool = Tr
     Without ``prediction`` (``publish_prediction`` false) nobody writes ``prediction``,
     and the start would wait for its writer.
     """
-    from erva_ros.core.settings.schemas import SCHEMAS
     out = list(SCHEMAS['recorder'].defaults()['topics'])
     if not prediction:
         out.remove(topics.PREDICTION)
     if hil:
-        from erva_ros.core.hil.topics import RECORD_TOPICS
         out += RECORD_TOPICS
     if road_estimated:
         out += [topics.ROAD_ESTIMATE, topics.ROAD_ALIGNMENT]
@@ -59,7 +61,6 @@ def session_topics(session: Session) -> List[str]:
 
 def recorder_available() -> bool:
     """Return True when the recorder (erva_ros.core.bag, recorder_node) is installed."""
-    import importlib.util
     return all(importlib.util.find_spec(m) is not None
                for m in ('erva_ros.core.bag.session', 'erva_ros.nodes.recorder_node'))
 
@@ -88,7 +89,6 @@ def start_recorder(session: Session, namespace: str, bag_parent: str, env: Dict[
 
     ``parameters``: recorder parameters of the command line (how the bag is split).
     """
-    from erva_ros.core.bag import session as bag_session
     bag_dir = bag_session.new_bag_dir(bag_parent, session.scenario)
     record = session_topics(session)
     loop_priority = session.live['realtime_priority'] if session.realtime else 0

@@ -12,11 +12,15 @@ the bag lacks).
 
 import bisect
 from dataclasses import dataclass
+import json
 from typing import Callable, List, Optional
 
 import numpy as np
 
 from erva_ros.core.bag import BagError
+from erva_ros.core.controllers.settings import validate_settings
+from erva_ros.core.model.params import ParamError, validate_erva
+from erva_ros.core.settings.controller import NUMERIC_SPECS
 from erva_ros.session.bag.bag_report import SessionData
 
 
@@ -84,12 +88,6 @@ def controller_from_session(bag, controller: Optional[str] = None):
     (the nmpc_node settings).  The wall-clock budget is lifted to its maximum, as the
     lock-step nmpc_node does: re-evaluation checks the solver's answers, not timing.
     """
-    import json
-
-    from erva_ros.core.controllers.settings import validate_settings
-    from erva_ros.core.settings.controller import NUMERIC_SPECS
-    from erva_ros.core.model.params import ParamError, validate_erva
-
     text = bag.session.get('parameters')
     if not text:
         raise BagError(f'{bag.path}: the session metadata has no parameters to rebuild the '

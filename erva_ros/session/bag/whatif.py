@@ -8,16 +8,20 @@ closed loop on it, and the run is written as a new session bag.
 import dataclasses
 from typing import Dict, Optional
 
+import numpy as np
+
 from erva_ros.core import contract as wire, topics as contract
 from erva_ros.core.bag import BagError
 from erva_ros.core.bag.reader import Bag
+from erva_ros.core.bag.session import session_metadata
+from erva_ros.core.controllers import make_controller
+from erva_ros.core.road.profiles import make_road
+from erva_ros.session.bag.bag_report import guess_namespace
+from erva_ros.session.bag.offline_bag import run_and_record
 
 
 def recorded_road(bag: Bag, namespace: Optional[str] = None):
     """Return (times s, heights m) of the road recorded at the tyre in ``bag``."""
-    import numpy as np
-
-    from erva_ros.session.bag.bag_report import guess_namespace
     ns = namespace or guess_namespace(bag)
     topic = f'{ns}/{contract.ROAD_HEIGHT}'
     if topic not in bag.topics:
@@ -45,11 +49,6 @@ def drive_plant(bag: Bag, out_bag_dir: str, controller_name: str, model, setting
     The run ends at the last recorded road sample (one control period before the end
     of the recorded session), since each step needs the road at both of its ends.
     """
-    from erva_ros.session.bag.offline_bag import run_and_record
-    from erva_ros.core.bag.session import session_metadata
-    from erva_ros.core.controllers import make_controller
-    from erva_ros.core.road.profiles import make_road
-
     times, heights = recorded_road(bag)
     # A step from t_k needs w(t_k + Ts): the last recorded sample ends the run.
     length = float(times[-1])

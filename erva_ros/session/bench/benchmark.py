@@ -27,7 +27,10 @@ import platform
 import sys
 from typing import Any, Dict, List, Optional
 
-from erva_ros.session.run.report import jsonable, TARGETS
+from erva_ros.core.controllers.settings import with_linked_iteration_cap
+from erva_ros.session.run.orchestrator import run_session
+from erva_ros.session.run.report import jsonable, print_json, TARGETS
+from erva_ros.session.run.run_config import ensure_ecu_available, RunConfig
 
 DEFAULT_DURATION_S = 60.0
 #: The HIL loop's own target: the ECU acts at t_k + d within this (p99, issue 25).
@@ -35,8 +38,6 @@ HIL_TARGETS = {'actuation_jitter_p99_ms': 0.2}
 
 
 def _run_config(args):
-    from erva_ros.core.controllers.settings import with_linked_iteration_cap
-    from erva_ros.session.run.run_config import RunConfig
     overrides = {k: getattr(args, k, None)
                  for k in ('cost', 'solver', 'horizon', 'max_iter', 'u_min', 'u_max')}
     overrides = with_linked_iteration_cap({k: v for k, v in overrides.items() if v is not None})
@@ -47,7 +48,6 @@ def _run_config(args):
         live['command_delay_s'] = args.command_delay
     ecu = getattr(args, 'ecu', 'none') or 'none'
     if ecu != 'none':
-        from erva_ros.session.run.run_config import ensure_ecu_available
         ensure_ecu_available(ecu)
     return RunConfig(ecu=ecu, controller=getattr(args, 'controller', None),
                      alpha1=alpha[0] if alpha else None, alpha2=alpha[1] if alpha else None,
@@ -213,9 +213,6 @@ def format_bench(r: Dict[str, Any]) -> str:
 
 def run_live_bench(args) -> int:
     """Run the live benchmark for `erva bench --live`; return the exit status."""
-    from erva_ros.session.run.report import print_json
-    from erva_ros.session.run.orchestrator import run_session
-
     result = run_session(_run_config(args),
                          log=lambda line: print(f'erva bench: {line}', file=sys.stderr,
                                                 flush=True))

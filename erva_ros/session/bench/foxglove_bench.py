@@ -20,6 +20,8 @@ from typing import Any, Dict, List
 
 from erva_ros.session.bench.benchmark import _run_config, bench_result
 from erva_ros.session.processes import ChildProcess, module_argv
+from erva_ros.session.run.orchestrator import run_session
+from erva_ros.session.run.report import jsonable, print_json
 
 #: Default length of each run of the A/B (s).
 DEFAULT_AB_DURATION_S = 20.0
@@ -40,7 +42,6 @@ def _viewer(port: int, stall: bool) -> ChildProcess:
 
 
 def _one_run(cfg, arm: str, stall: bool, log) -> Dict[str, Any]:
-    from erva_ros.session.run.orchestrator import run_session
     viewer: List[ChildProcess] = []
 
     def on_line(line: str) -> None:
@@ -84,8 +85,6 @@ def _fmt(stats: Dict[str, Any]) -> str:
 
 def run_foxglove_ab(args) -> int:
     """Run the A/B for `erva bench --live --foxglove-ab N`; return the exit status."""
-    from erva_ros.session.run.report import print_json
-    from erva_ros.session.run.report import jsonable
 
     def log(line):
         print(f'erva bench: {line}', file=sys.stderr, flush=True)

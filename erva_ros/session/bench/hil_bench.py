@@ -24,13 +24,22 @@ runs at the ECU's 50 Hz.  Measured:
 :func:`run_core_bench` times the same stages' plain-Python cores without ROS.
 """
 
+import math
 import os
 import tempfile
 import time
 from typing import Dict, List, Optional
 
 from erva_ros.core import topics
+from erva_ros.core.contract import (decode_measurements, encode_state,
+                                    MEASUREMENTS_ENCODER as measurements)
+from erva_ros.core.hil.hardware import GeneratorHardware
 from erva_ros.core.metrics import percentiles_ms
+from erva_ros.core.model.estimator import ExtendedKalmanFilter
+from erva_ros.core.model.params import load_erva_params, paper_params
+from erva_ros.core.model.quarter_car import make_model
+from erva_ros.core.road.profiles import make_road
+from erva_ros.ros.context import RosContext
 from erva_ros.session.hil.hil_processes import hil_process_specs
 from erva_ros.session.processes import ChildProcess, stop_processes
 from erva_ros.session.run.report import jsonable
@@ -42,9 +51,6 @@ def run_live_bench(params_file: str, hil_file: Optional[str], duration_s: float,
                    log=lambda s: None, startup_timeout_s: float = STARTUP_TIMEOUT_S,
                    realtime_priority: int = 0) -> Dict:
     """Run the HIL loop for ``duration_s`` and return the measured figures (see module doc)."""
-    from erva_ros.core.model.params import load_erva_params
-    from erva_ros.core.road.profiles import make_road
-    from erva_ros.ros.context import RosContext
     from erva_ros.ros.hil_bench_driver import HilBenchDriver
 
     params = load_erva_params(params_file)
@@ -109,17 +115,9 @@ def run_core_bench(samples: int = 2000) -> Dict:
       call) and, at the sample instant, ``run_cycle`` (read, take the prepared step,
       sample, encode and send the three sensor frames): its own share of the loop.
     """
-    import math
-
-    from erva_ros.core.model.estimator import ExtendedKalmanFilter
     from erva_ros.core.hil.bridge import BridgeConfig, BridgeCore
     from erva_ros.core.hil.codec import Chassis, EcuCodec, Kind
-    from erva_ros.core.hil.hardware import GeneratorHardware
-    from erva_ros.core.contract import (decode_measurements, encode_state,
-                                        MEASUREMENTS_ENCODER as measurements)
     from erva_ros.core.hil.transport import free_udp_ports, open_bus
-    from erva_ros.core.model.quarter_car import make_model
-    from erva_ros.core.model.params import paper_params
 
     codec = EcuCodec()
     a, b = free_udp_ports(2)
@@ -163,14 +161,9 @@ def run_core_bench(samples: int = 2000) -> Dict:
 
 def _ecu_core_bench(samples: int, codec):
     """Time the simulated ECU's ``prepare`` and ``run_cycle`` (a command every cycle)."""
-    import math
-
     from erva_ros.core.hil.codec import Command, CommandMode, Kind
     from erva_ros.core.hil.ecu_sim import EcuSimConfig, EcuSimCore, SensorNoise
-    from erva_ros.core.hil.hardware import GeneratorHardware
     from erva_ros.core.hil.transport import free_udp_ports, open_bus
-    from erva_ros.core.model.quarter_car import make_model
-    from erva_ros.core.model.params import paper_params
 
     hw = GeneratorHardware()
     a, b = free_udp_ports(2)

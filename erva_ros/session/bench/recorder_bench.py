@@ -27,6 +27,8 @@ import time
 from typing import Callable, Dict, List, Optional, Sequence
 
 from erva_ros.core.bag import BagError
+from erva_ros.core.bag.reader import open_bag
+from erva_ros.core.bag.session import recorder_ros_args
 from erva_ros.core.metrics import percentiles_ms
 from erva_ros.session.processes import ChildProcess, child_env, module_argv
 from erva_ros.session.run.run_config import STARTUP_TIMEOUT_S
@@ -64,7 +66,6 @@ RECORDER_PARAMS: List[str] = []
 
 def start_recorder(bag_dir: str, topics: Optional[List[str]] = None) -> ChildProcess:
     """Start recorder_node on ``bag_dir``; return its process once it is recording."""
-    from erva_ros.core.bag.session import recorder_ros_args
     extra = [arg for p in RECORDER_PARAMS for arg in ('-p', p)]
     proc = _spawn(['erva_ros.nodes.recorder_node',
                    *recorder_ros_args(bag_dir, {'scenario': 'bench'}, topics=topics), *extra])
@@ -147,7 +148,6 @@ def _traffic_into_recorder(bag_dir: str, role: List[str], topics: Optional[List[
 
 def flood(rate_hz: float, duration_s: float, bag_dir: str) -> Dict:
     """Flood the recorder with states; return published/recorded counts and rates."""
-    from erva_ros.core.bag.reader import open_bag
     result = _traffic_into_recorder(bag_dir, ['flood', '--duration', str(duration_s),
                                               '--rate', str(rate_hz)], topics=['state'])
     published = sum(result['published'].values())
@@ -160,7 +160,6 @@ def flood(rate_hz: float, duration_s: float, bag_dir: str) -> Dict:
 
 def contract_rate(rate_hz: float, duration_s: float, bag_dir: str) -> Dict:
     """Publish the contract at ``rate_hz`` to the recorder; return published/recorded."""
-    from erva_ros.core.bag.reader import open_bag
     result = _traffic_into_recorder(bag_dir, ['contract', '--rate', str(rate_hz),
                                               '--duration', str(duration_s)])
     bag = open_bag(bag_dir)

@@ -20,6 +20,8 @@ import tempfile
 import time
 from typing import Callable, Dict, List, Optional
 
+from mcap.reader import make_reader
+
 from erva_ros.session.processes import ChildProcess, stop_processes
 from erva_ros.session.bench.rss import RssTrace
 
@@ -32,7 +34,6 @@ def bag_counts(bag_dir: str) -> Dict[str, int]:
     Every ``.mcap`` file of the directory counts: a split bag's, whether metadata.yaml
     lists them or not.
     """
-    from mcap.reader import make_reader
     counts: Dict[str, int] = {}
     for name in sorted(f for f in os.listdir(bag_dir) if f.endswith('.mcap')):
         with open(os.path.join(bag_dir, name), 'rb') as fh:

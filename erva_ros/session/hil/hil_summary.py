@@ -20,8 +20,10 @@ from typing import Any, Callable, Dict, Optional
 import numpy as np
 
 from erva_ros.core import topics
+from erva_ros.core.hil import topics as hil_topics
+from erva_ros.core.model.quarter_car import state_names_of
 from erva_ros.core.reports import NodeReport
-from erva_ros.session.run.monitor_stats import PairedError, stats
+from erva_ros.session.run.monitor_stats import DERIVED, PairedError, stats
 
 ECU = 'ecu_sim'
 ESTIMATOR = 'state_estimator_node'
@@ -58,7 +60,6 @@ def _get(report: Optional[NodeReport], name: str):
 
 def published(report: Reports, final_only: bool = False) -> Dict[str, Optional[int]]:
     """Return the loop-side messages published per topic (None: not reported)."""
-    from erva_ros.core.hil import topics as hil_topics
 
     def counted(r):
         return None if r is None or (final_only and not r.final) else r
@@ -170,8 +171,6 @@ def estimation_error(error: PairedError, road_estimated: bool = False) -> Dict[s
     coordinates are :func:`road_estimated_coordinates`, and ``not_observable`` names the
     state's coordinates left out.
     """
-    from erva_ros.core.model.quarter_car import state_names_of
-    from erva_ros.session.run.monitor_stats import DERIVED
     n = error.matched
     if not n:
         return {'matched': 0}

@@ -21,7 +21,11 @@ file holds -- read back from disk, not the recorder's word for it -- and, for
 from typing import Any, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 from erva_ros.core import topics
-from erva_ros.core.reports import NMPCReport, NodeReport, RecorderReport
+from erva_ros.core.bag.reader import open_bag
+from erva_ros.core.contract import decode_diagnostics
+from erva_ros.core.hil import topics as hil
+from erva_ros.core.reports import NMPCReport, NodeReport, RecorderReport, report_from_status
+from erva_ros.core.wire import header_stamp_ns
 
 #: Subscribers of each loop topic among the loop's own nodes (observers come on top).
 LOOP_SUBSCRIBERS = {
@@ -40,7 +44,6 @@ def hil_loop_subscribers(road_estimated: bool = False) -> Dict[str, int]:
 
     ``road_estimated``: the estimator reads no road; the map preview its road/estimate.
     """
-    from erva_ros.core.hil import topics as hil
     road = {topics.ROAD_ESTIMATE: 1, topics.ROAD_ALIGNMENT: 0} if road_estimated else {}
     return {
         **road,
@@ -172,10 +175,6 @@ def check_bag(bag_path: str, published: Mapping[str, Optional[int]],
     {messages, topics, other_topics: {topic: messages}}}`` (``in_bag``: the whole bag, as
     `erva bag info` counts; ``other_topics``: those not checked against a publisher).
     """
-    from erva_ros.core.bag.reader import open_bag
-    from erva_ros.core.contract import decode_diagnostics
-    from erva_ros.core.reports import report_from_status
-    from erva_ros.core.wire import header_stamp_ns
     bag = open_bag(bag_path)
     recorded = {t: 0 for t in published}
     foreign = {t: 0 for t in published}

@@ -8,10 +8,12 @@ subscribes before the time master starts (it counts as one more subscriber, like
 recorder).  It is stopped with the recorder, after the loop's nodes.
 """
 
+import json
 import os
 import time
 from typing import Any, Callable, Dict, List, Tuple
 
+from erva_ros.core.reports import FoxgloveReport
 from erva_ros.core.topics import clock_remap
 from erva_ros.core.errors import CLIError
 from erva_ros.ros import foxglove_server as fg
@@ -49,7 +51,6 @@ def check_address(text: str) -> Tuple[str, int]:
 def server_argv(host: str, port: int, namespace: str, topics: List[str],
                 session: Dict[str, str], use_sim_time: bool, session_id: str = '') -> List[str]:
     """Return the command line of foxglove_node for one session."""
-    import json
     return node_argv(PROCESS_NODE, namespace, parameters={
         'host': json.dumps(host), 'port': int(port), 'topics': json.dumps(list(topics)),
         'session_id': json.dumps(session_id),
@@ -90,7 +91,6 @@ def start_process(cfg, session, env: Dict[str, str], log: Callable[[str], None],
 
 def summary(reports: Dict[str, Any]) -> Dict[str, Any]:
     """Return the server's counters for `erva run`'s summary from the session's reports."""
-    from erva_ros.core.reports import FoxgloveReport
     r = next((r for r in reports.values() if isinstance(r, FoxgloveReport)), None)
     if r is None:
         return {'status': 'no status received'}

@@ -26,12 +26,16 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from erva_ros.core import contract, topics
+from erva_ros.core.hil.topics import TRUE_STATE
 from erva_ros.core.levels import ERROR
 from erva_ros.core.reports import NMPCReport, NodeReport, report_from_status
+from erva_ros.core.settings.schemas import LIVE
 from erva_ros.session.hil import hil_summary
+from erva_ros.session.run import monitor_figures
 from erva_ros.session.run.monitor_figures import MAX_EVENTS
 from erva_ros.session.run.monitor_stats import SessionStreams, TRAJECTORY_CAP
 from erva_ros.session.run.segments import ParameterSetLog
+from erva_ros.session.run.verdict import quality_limits
 
 
 class Observations:
@@ -57,7 +61,6 @@ class Observations:
         self.session = session
         self.topics = [topics.STATE, topics.SPRUNG_ACCEL, topics.GENERATOR,
                        topics.ROAD_HEIGHT, topics.ROAD_PREVIEW, topics.DAMPING_CMD]
-        from erva_ros.core.hil.topics import TRUE_STATE
         if hil:
             self.topics.append(TRUE_STATE)
         #: Every topic observed (relative names, as in topics.py).
@@ -79,14 +82,12 @@ class Observations:
         #: HIL: the bridge's command timeouts that began before the ECU finished.
         self.bridge_timeouts = 0
         self._bridge_error = False
-        from erva_ros.core.settings.schemas import LIVE
         live = LIVE.defaults()
         ts = live['ts'] if ts is None else ts
         # A realtime sample is stamped at its instant, before it is sent; the loop's
         # nodes accept a lead this small (clocks of several hosts), and so does this.
         self._lead_ns = int(live['max_stamp_lead_s'] * 1e9)
         if command_gap_s is None:
-            from erva_ros.session.run.verdict import quality_limits
             command_gap_s = quality_limits()['max_command_gap_s']
         #: The session's data, folded as it arrives.
         self.streams = SessionStreams(ts, n_steps, command_gap_s, trajectory_cap,
@@ -237,7 +238,6 @@ class Observations:
 
         Commands still waiting for their sample's state count as not for a sample.
         """
-        from erva_ros.session.run import monitor_figures
         if ts != self.streams.ts:
             raise ValueError(f'the summary is for ts = {ts} s, the observations were '
                              f'folded with ts = {self.streams.ts} s')

@@ -5,6 +5,8 @@ import math
 import sys
 from typing import Any, Dict, List
 
+from erva_ros.session.run.segments import lines as segment_lines
+
 #: Targets of the live system (issue 4), checked by `erva bench --live`.
 TARGETS = {
     'command_rate_hz': 50.0,          # = 1 / Ts, within 1 %
@@ -119,7 +121,6 @@ def format_summary(s: Dict[str, Any]) -> str:
                  f'{nm.get("controller_fallback_plan")}, passive '
                  f'{nm.get("controller_fallback_passive")}; state timeouts '
                  f'{nm.get("state_timeouts")}')
-    from erva_ros.session.run.segments import lines as segment_lines
     lines.extend(segment_lines(s.get('tuning')))     # the segments by parameter set, if any
     if 'hil' in s:
         lines.extend(_hil_lines(s['hil']))

@@ -23,6 +23,12 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
+from erva_ros.core import topics
+
+from erva_ros.core.contract import CdrError, decode_parameter_event
+
+from erva_ros.core.reports import NMPCReport
+
 
 @dataclass(frozen=True)
 class ParameterSet:
@@ -154,7 +160,6 @@ def bag_block(data) -> Dict[str, Any]:
     /parameter_events recorded them (the session's namespace, from its first sample on;
     rclpy also announces every parameter as its node declares it at start-up).
     """
-    from erva_ros.core.reports import NMPCReport
     log = ParameterSetLog()
     for _, report in data.reports:
         if isinstance(report, NMPCReport) and report.node.startswith(data.namespace + '/'):
@@ -179,8 +184,6 @@ def _period(stamps_ns: np.ndarray) -> float:
 
 def parameter_events(bag, namespace: str, t0_ns: int) -> List[Dict[str, Any]]:
     """Return the changes on the bag's /parameter_events of the session's nodes, from t_0 on."""
-    from erva_ros.core import topics
-    from erva_ros.core.contract import CdrError, decode_parameter_event
     if topics.PARAMETER_EVENTS not in bag.topics:
         return []
     out = []

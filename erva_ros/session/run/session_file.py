@@ -18,6 +18,9 @@ from typing import Any, Dict, Optional, Tuple
 import yaml
 
 from erva_ros.core import topics
+from erva_ros.core.bag import session as bag_session
+from erva_ros.core.roadmap import MapError
+from erva_ros.core.roadmap.fleet import map_for_session
 from erva_ros.core.settings.files import shipped_config
 from erva_ros.core.controllers.settings import load_controller_settings
 from erva_ros.core.errors import CLIError
@@ -27,6 +30,7 @@ from erva_ros.core.model.params import load_erva_params, ParamError, read_sectio
 from erva_ros.core.settings.specs import check_all
 from erva_ros.session.run.run_config import NODES, OPTION_OF, RunConfig
 from erva_ros.session.run.session_dirs import remove_stale_session_dirs, SESSION_DIR_PREFIX
+from erva_ros.session.run.tuning_schedule import first_hold_s, plan
 
 #: Least settling time before sample 0 in HIL mode (live start_delay_s, default 0.5 s).
 #: Seven processes discover each other on a loaded machine: with 0.5 s the recorder's
@@ -187,7 +191,6 @@ def prepare_session(cfg: RunConfig, recording: bool) -> Session:
     overrides.update(cfg.settings_overrides)
     settings = load_controller_settings(cfg.nmpc_file, overrides)
     live = live_values(cfg, settings, recording)
-    from erva_ros.session.run.tuning_schedule import first_hold_s, plan
     steps = plan(cfg.changes, settings, erva.c_e0, live)
     live['lockstep_hold_s'] = first_hold_s(steps, live)
     preview_map, preview_source = _preview_map(cfg, live)
@@ -234,20 +237,16 @@ def _preview_map(cfg: RunConfig, live: Dict[str, Any]) -> Tuple[str, str]:
     """Return (the checked map file of ``--preview map:MAP``, MAP as shown); CLIError.
 
     A server map's section is fetched into its local cache first, and the preview reads
-    only that file (core/roadmap/fleet.session_map); ('', '') without the option.
+    only that file (core/roadmap/fleet.map_for_session); ('', '') without the option.
     """
     if not cfg.preview_map:
         return '', ''
     if cfg.ecu == 'none':
         raise CLIError('--preview map:FILE needs --ecu virtual (the road is estimated from '
                        'the ECU\'s sensors)')
-    from erva_ros.core.loop.road_loop import check_session_map, session_span
-    from erva_ros.core.roadmap import MapError
-    from erva_ros.core.roadmap.fleet import session_map
     try:
-        path, shown = session_map(cfg.preview_map, *session_span(live),
-                                  lambda line: print(line, file=sys.stderr, flush=True))
-        return check_session_map(path, live), shown
+        return map_for_session(cfg.preview_map, live,
+                               lambda line: print(line, file=sys.stderr, flush=True))
     except MapError as exc:
         raise CLIError(f'--preview map: {exc}') from None
 
@@ -258,7 +257,6 @@ def session_description(session: Session) -> Dict[str, str]:
     ``params_yaml`` is the session params file itself, as every node read it: the bag
     keeps it, the file goes with the session directory.
     """
-    from erva_ros.core.bag import session as bag_session
     params = {'erva': session.erva, 'controller': session.settings.as_dict(),
               'live': session.live}
     with open(session.params_file, encoding='utf-8') as fh:

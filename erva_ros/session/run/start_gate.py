@@ -18,6 +18,7 @@ from typing import Callable, Dict, List, Mapping, Sequence, Tuple
 
 from erva_ros.core import topics
 from erva_ros.core.contract import decode_diagnostics, encode_diagnostics, MessageRejected
+from erva_ros.core.hil import topics as hil_topics
 from erva_ros.core.reports import report_from_status, report_status, SessionClaim
 from erva_ros.session.run import accounting
 from erva_ros.session.hil import hil_summary
@@ -86,7 +87,6 @@ class StartGate:
         """
         if not self.hil:
             return True
-        from erva_ros.core.hil import topics as hil_topics
         ns = self.namespace.rstrip('/')
         m, rec = self.monitor, int(self.recording)
         ecu = (hil_topics.ECU_DAMPING_APPLIED, hil_topics.ECU_SPRUNG_ACCEL,

@@ -17,8 +17,11 @@ import time
 from typing import Any, Dict, List, Optional
 
 from erva_ros.core import topics
+from erva_ros.core.bag.session_check import begin_session_end, mark_session_end
 from erva_ros.core.errors import CLIError
-from erva_ros.session.run import accounting
+from erva_ros.ros.context import RosContext
+from erva_ros.ros.realtime import set_fifo_priority
+from erva_ros.session.run import accounting, foxglove_process, segments
 from erva_ros.session.hil import hil_summary
 from erva_ros.core.reports import FoxgloveReport, RecorderReport
 from erva_ros.session.run.accounting import check_recording
@@ -27,9 +30,13 @@ from erva_ros.session.bag.recording import (PROCESS as RECORDER, RECORDER_PRIORI
                                             RecorderDrain, start_recorder)
 from erva_ros.session.processes import (ChildProcess, child_env, node_argv, ros_params,
                                         STOP_GRACE_S, stop_processes, use_session_profile)
+from erva_ros.session.run.observations import Observations
 from erva_ros.session.run.run_config import (ACTIVATION_ORDER, HIL_NODES, HIL_PROCESSES, NODES,
                                              RunConfig)
 from erva_ros.session.run.session_file import Session, session_description
+from erva_ros.session.run.start_gate import Contest, extra_nodes, StartGate
+from erva_ros.session.run.tuning_schedule import ScheduledChanges
+from erva_ros.session.run.verdict import quality_limits, warnings
 
 #: Once the ECU finished (no state comes any more), how long the others may take.
 HIL_FINISH_WAIT_S = 2.0
@@ -92,7 +99,6 @@ class Supervisor:
         """
         env = child_env()
         if self.cfg.foxglove:   # first: it listens before the loop runs
-            from erva_ros.session.run import foxglove_process
             self._spawned(foxglove_process.PROCESS, foxglove_process.start_process(
                 self.cfg, self.session, env, self.log, session_description(self.session)))
         if self.recording:
@@ -140,12 +146,9 @@ class Supervisor:
 
     def connect(self) -> None:
         """Join the domain while the nodes start: the monitor, the claim, the lifecycle client."""
-        from erva_ros.ros.context import RosContext
         from erva_ros.ros.lifecycle import LifecycleDriver
         from erva_ros.ros.monitor import Monitor
         from erva_ros.ros.session_claim import ClaimChannel
-        from erva_ros.session.run.observations import Observations
-        from erva_ros.session.run.start_gate import Contest, StartGate
 
         cfg, session = self.cfg, self.session
         self.t_start = time.monotonic()     # the start-up timeout: from here (compiled)
@@ -173,7 +176,6 @@ class Supervisor:
         self.lifecycle = LifecycleDriver(self.monitor, self.managed, cfg.namespace)
         if session.steps:
             from erva_ros.ros.param_client import RemoteParameters
-            from erva_ros.session.run.tuning_schedule import ScheduledChanges
             self.scheduled = ScheduledChanges(
                 session.steps, RemoteParameters(self.monitor, f'{cfg.namespace}/nmpc_node'),
                 not session.realtime, session.live['ts'])
@@ -192,7 +194,6 @@ class Supervisor:
         monitor at normal priority receives late: its timing figures would be the
         machine's, not the loop's.  Without the right it stays at normal priority.
         """
-        from erva_ros.ros.realtime import set_fifo_priority
         live = self.session.live
         loop = live['realtime_priority'] if self.session.realtime else 0
         if loop > 1:
@@ -287,7 +288,6 @@ class Supervisor:
         """
         if self.cfg.force:
             return []
-        from erva_ros.session.run.start_gate import extra_nodes
         extra = extra_nodes(self.monitor.get_node_names_and_namespaces(), self.cfg.namespace,
                             self.own_node_names())
         claims = self.claims.others()
@@ -492,7 +492,6 @@ class Supervisor:
             summary['recording'] = self._check_recording()
             self.timeline.mark('bag read back and checked')
         if 'foxglove_server' in self.procs:
-            from erva_ros.session.run import foxglove_process
             summary['foxglove'] = foxglove_process.summary(self.obs.reports)
         summary['tuning'] = self._tuning()
         if summary['commands']['received'] == 0 and not self.caught:
@@ -500,7 +499,6 @@ class Supervisor:
         self._check_rejections(summary)
         summary['warnings'] = []
         if s.realtime:
-            from erva_ros.session.run.verdict import quality_limits, warnings
             summary['warnings'] = warnings(self.obs, summary, quality_limits())
             if self.cfg.strict:     # --strict: a run that was not real time fails
                 self.errors += [f'{w} (--strict)' for w in summary['warnings']]
@@ -523,7 +521,6 @@ class Supervisor:
 
     def _begin_bag_end(self) -> None:
         """Reserve the bag's end record as the loop starts (session_check.begin_session_end)."""
-        from erva_ros.core.bag.session_check import begin_session_end
         if RECORDER in self.procs and RECORDER not in self.dead:
             try:
                 begin_session_end(self.procs[RECORDER].bag_dir)
@@ -532,7 +529,6 @@ class Supervisor:
 
     def _tuning(self) -> Dict[str, Any]:
         """Return the run's segments by parameter set (and the --set requests' outcome)."""
-        from erva_ros.session.run import segments
         st = self.obs.streams
         tr, n = st.trajectory, st.trajectory.rows
         segs = segments.from_sets(self.obs.parameter_sets.sets, st.state_stamp.first or 0,
@@ -563,7 +559,6 @@ class Supervisor:
 
     def _mark_bag_end(self, bag_dir: str) -> None:
         """Record in the bag whether the session ran to its end (else why not)."""
-        from erva_ros.core.bag.session_check import mark_session_end
         why = self.errors[0] if self.errors else (
             '' if self.scenario_done else f'stopped while {self.phase}')
         for line in mark_session_end(bag_dir, completed=self.scenario_done and not self.errors,

@@ -13,6 +13,8 @@ applies to them.
 
 from typing import Any, Dict, List, Mapping, Optional
 
+from erva_ros.core.settings.schemas import QUALITY
+from erva_ros.core.settings.specs import check_all
 from erva_ros.session.run.monitor_stats import Worst
 
 
@@ -106,8 +108,6 @@ def warnings(obs, summary: Mapping[str, Any], limits: Mapping[str, Any]) -> List
 
 def quality_limits(overrides: Optional[Mapping[str, Any]] = None) -> Dict[str, Any]:
     """Return the thresholds: config/session.yaml's ``erva_run``, then ``overrides``."""
-    from erva_ros.core.settings.schemas import QUALITY
-    from erva_ros.core.settings.specs import check_all
     return check_all(QUALITY.specs(), dict(overrides or {}), 'erva run', QUALITY.defaults())
 
 
