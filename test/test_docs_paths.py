@@ -8,7 +8,7 @@ and output file names never count):
   ``core/``, ``ros/``, ``nodes/``, ``session/``, ``commands/``, ``config/``, ``docs/``,
   ``test/``, ``launch/``, ``bags/``, ``.ci/`` -- found relative to the repository or to
   erva_ros/.  It may end in ``/`` (a folder), hold a ``*`` (a glob that must match), name
-  a module without its ``.py``, or a module's attribute (``session/bag/recording.record_topics``:
+  a module without its ``.py``, or a module's attribute (``session/run/recording.record_topics``:
   the module exists and names ``record_topics``).  Placeholders (``<...>``) are skipped, and
   so are sessions below bags/ other than the tracked ``bags/sample`` and ``bags/README.md``
   (the rest of bags/ is ignored by git: what ``erva run`` writes);
@@ -223,13 +223,13 @@ def test_every_named_path_exists():
 def test_the_check_finds_what_is_missing():
     # Each kind of name, once present and once missing: the check must tell them apart.
     good = ('`erva_ros/core/model/quarter_car.py`, core/loop/, ros/runtime, config/*.yaml, '
-            'session/bag/recording.record_topics, test/test_model.py::test_plant_integrator_'
+            'session/run/recording.record_topics, test/test_model.py::test_plant_integrator_'
             'converges, erva_ros.core.controllers.make_controller, hil/settings.py, '
             'test_rings.py, README.md, bags/<session>, bags/20261122T101500Z_paper, '
             '`test_flake8`, https://example.org/live/x.py, docs/model.md, `warmup.py`.')
     assert problems([('docs/x.md', 1, good)]) == ([], set())
     bad = ['erva_ros/core/modle.py', 'core/loops/', 'ros/runtimes', 'config/*.yml',
-           'session/bag/recording.record_topic', 'test/test_model.py::test_nothing',
+           'session/run/recording.record_topic', 'test/test_model.py::test_nothing',
            'erva_ros.core.controllers.make_controler', 'live/realtime.py', 'test_ring.py',
            'NOTE.md', 'bags/sample/sampel_0.mcap', '`test_flake9`', '`cdr.py`']
     for name in bad:

@@ -19,7 +19,7 @@ from erva_ros.core.hil.bridge import BridgeConfig, BridgeCore, ERROR, OK, WARN
 from erva_ros.core.hil.codec import (Chassis, Command, CommandMode, E2EReceiver, EcuCodec, EcuMode,
                                      Generator, Kind, Status)
 from erva_ros.core.hil.ecu_sim import EcuSimConfig, EcuSimCore, run_realtime, SensorNoise
-from erva_ros.core.hil.hardware import GeneratorHardware
+from erva_ros.core.model.hardware import GeneratorHardware
 from erva_ros.core.hil.transport import free_udp_ports, open_bus
 from erva_ros.core.model.quarter_car import make_model
 from erva_ros.core.model.params import paper_params

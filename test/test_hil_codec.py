@@ -8,7 +8,7 @@ from erva_ros.core.hil.codec import (Chassis, Command, CommandMode, E2EReceiver,
                                      Generator, Kind, Status)
 from erva_ros.core.hil.e2e import (COUNTER_MODULO, crc8_sae_j1850, E2EChecker, E2ESender,
                                    E2EStatus, e2e_crc)
-from erva_ros.core.hil.hardware import GeneratorHardware, validate_hardware
+from erva_ros.core.model.hardware import GeneratorHardware, validate_hardware
 from erva_ros.core.model.params import ParamError
 
 

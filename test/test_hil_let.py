@@ -21,7 +21,7 @@ from erva_ros.core.hil.codec import (Command, CommandMode, cycle_of, CYCLE_MODUL
                                      EcuCodec, EcuMode, Kind, unwrap_cycle)
 from erva_ros.core.hil.e2e import E2EStatus
 from erva_ros.core.hil.ecu_sim import EcuSimConfig, EcuSimCore, SensorNoise
-from erva_ros.core.hil.hardware import GeneratorHardware
+from erva_ros.core.model.hardware import GeneratorHardware
 from erva_ros.core.hil.transport import open_bus
 from erva_ros.core.loop.command_hold import CommandHold
 from erva_ros.core.model.quarter_car import make_model

@@ -5,7 +5,7 @@ import pytest
 from erva_ros.core.model.estimator import EstimatorNoise
 from erva_ros.core.settings.hil import NOISE_SPECS
 from erva_ros.core.hil import settings as hs
-from erva_ros.core.hil.hardware import GeneratorHardware
+from erva_ros.core.model.hardware import GeneratorHardware
 from erva_ros.core.settings.hil import HARDWARE_SPECS
 from erva_ros.core.model.params import ParamError
 from erva_ros.core.settings.specs import Integer, Text

@@ -22,7 +22,7 @@ from erva_ros.session.run.session_file import prepare_session, read_live_file, v
 from erva_ros.ros.parameters import declare_node_parameters, declare_schema
 from erva_ros.session.run.report import format_summary, jsonable
 from erva_ros.core.loop.scenario import build_road, load_road_file
-from erva_ros.core.loop.timing import next_grid_delay_ns, PeriodStats, SampleGrid
+from erva_ros.core.timing import next_grid_delay_ns, PeriodStats, SampleGrid
 from erva_ros.core.loop.validation import MessageRejected, Rejections
 from erva_ros.core.model.params import ParamError, PAPER_VALUES
 
@@ -320,7 +320,7 @@ def test_duration_stats_take_no_memory_per_sample():
     # construction: a long session's stats grow nothing (they kept every sample, ~32
     # bytes each, before).  Traced, so the Python floats a deque kept would show.
     import tracemalloc
-    from erva_ros.core.loop.timing import DurationStats, PeriodStats, EXACT_SAMPLES
+    from erva_ros.core.timing import DurationStats, PeriodStats, EXACT_SAMPLES
     stats, period = DurationStats(), PeriodStats(0.02)
     samples = np.random.default_rng(3).lognormal(np.log(1e-3), 0.5, 20 * EXACT_SAMPLES)
     for s in samples[:2 * EXACT_SAMPLES]:
@@ -341,7 +341,7 @@ def test_duration_stats_take_no_memory_per_sample():
 
 
 def test_duration_stats_are_exact_then_binned_for_a_long_session():
-    from erva_ros.core.loop.timing import DurationStats, EXACT_SAMPLES
+    from erva_ros.core.timing import DurationStats, EXACT_SAMPLES
     from erva_ros.core.metrics import percentiles_ms
     rng = np.random.default_rng(5)
     samples = rng.lognormal(np.log(1e-3), 0.5, 3 * EXACT_SAMPLES)   # ~1 ms, long tail

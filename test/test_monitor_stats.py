@@ -334,7 +334,7 @@ def test_estimates_on_their_own_grid_pair_with_the_truth_of_their_cycle():
 def test_figures_timed_from_the_states_stamp_run_from_the_ecus_instant():
     # An ECU off the estimator's grid: its instants 3 ms before the stamps.  What was timed
     # from the stamp is shifted by the offset the pairs measure; the ECU's own figures not.
-    from erva_ros.session.hil import hil_summary
+    from erva_ros.session.run import hil_summary
     from erva_ros.session.run.monitor_stats import PairedError
 
     def summary():

@@ -146,7 +146,7 @@ def test_bench_progress_per_stage_and_the_solve_time_cdf(erva, tmp_path):
 
 @pytest.mark.parametrize('module', ['erva_ros.core.plots.figures',
                                     'erva_ros.core.plots.closed_loop',
-                                    'erva_ros.core.bag.report_plots'])
+                                    'erva_ros.core.plots.bag_report'])
 def test_figures_leave_the_users_matplotlib_backend_alone(module, tmp_path):
     """A notebook's backend stays; figures are still written, without pyplot."""
     code = f"""

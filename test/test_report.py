@@ -69,7 +69,7 @@ def test_road_preview_plot_compares_each_preview_with_the_road_that_came(offline
     would be ~0.1 mm out.
     """
     from erva_ros.core.bag.reader import open_bag
-    from erva_ros.core.bag.report_plots import preview_errors
+    from erva_ros.core.plots.bag_report import preview_errors
     from erva_ros.session.bag.bag_report import load_session
     data = load_session(open_bag(offline_session[0]))
     n = len(data.previews[0]) - 1

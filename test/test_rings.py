@@ -269,3 +269,35 @@ def test_the_late_import_check_finds_one(tmp_path, monkeypatch):
     monkeypatch.setattr(__import__(__name__), 'REPO', str(tmp_path))
     assert late_imports() == ['erva_ros/core/a.py:2: json',
                               'erva_ros/core/c.py:3: erva_ros.core.a']
+
+
+def folder_graph(graph):
+    """Return {folder: {folders its modules import}} of a module graph.
+
+    A folder and its subfolders contain each other: no edge between them.
+    """
+    folder = {m: os.path.dirname(os.path.relpath(p, REPO)) for p, m in modules()}
+    out = {}
+    for module, imported in graph.items():
+        here = folder[module]
+        for other in imported:
+            there = folder[other]
+            if not (here == there or here.startswith(there + '/')
+                    or there.startswith(here + '/')):
+                out.setdefault(here, set()).add(there)
+    return out
+
+
+def test_no_folder_imports_itself_through_others():
+    assert circles(folder_graph(import_graph())) == []
+
+
+def test_the_folder_check_finds_a_circle(tmp_path, monkeypatch):
+    for folder, source in (('a', 'from erva_ros.core.b.y import x\n'),
+                           ('b', 'x = 1\n\n\ndef f():\n    from erva_ros.core.a.z import w\n')):
+        pkg = tmp_path / 'erva_ros' / 'core' / folder
+        pkg.mkdir(parents=True)
+        (pkg / ('z.py' if folder == 'a' else 'y.py')).write_text(source)
+    monkeypatch.setattr(__import__(__name__), 'PKG', str(tmp_path / 'erva_ros'))
+    monkeypatch.setattr(__import__(__name__), 'REPO', str(tmp_path))
+    assert circles(folder_graph(import_graph())) == [['erva_ros/core/a', 'erva_ros/core/b']]

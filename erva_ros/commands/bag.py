@@ -224,7 +224,7 @@ def _record(args) -> int:
     from erva_ros.core import topics as contract
     from erva_ros.core.bag.session import new_bag_dir
     from erva_ros.session.bag import bag_record
-    from erva_ros.session.bag.recording import record_topics
+    from erva_ros.session.run.recording import record_topics
 
     custom = {}
     for item in args.custom_data:

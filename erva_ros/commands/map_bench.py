@@ -77,7 +77,7 @@ class _Server:
         try:
             self.admin = self.psycopg.connect(uri, autocommit=True, connect_timeout=5)
         except self.psycopg.Error as exc:
-            from erva_ros.core.roadmap.location import redact
+            from erva_ros.core.redact import redact
             raise CLIError(f'--server {redact(uri)}: cannot connect ({exc})'.splitlines()[0]
                            ) from None
 
@@ -98,7 +98,7 @@ def bench(args) -> int:
     import numpy as np
     from erva_ros.core.roadmap import bench as B
     from erva_ros.core.roadmap.fleet import fetch_section
-    from erva_ros.core.roadmap.location import redact
+    from erva_ros.core.redact import redact
     from erva_ros.core.roadmap.store import RoadMap
 
     writers = _writers(args.writers)

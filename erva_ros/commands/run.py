@@ -210,7 +210,7 @@ def _bag_size(text: str) -> int:
 
 def _preview(text: str) -> str:
     """Parse ``map:FILE`` (or ``map:URI``) into FILE (argparse type)."""
-    from erva_ros.core.roadmap.location import redact_text
+    from erva_ros.core.redact import redact_text
     kind, _, path = text.partition(':')
     if kind != 'map' or not path:
         raise argparse.ArgumentTypeError(f'{redact_text(text)!r}: expected map:FILE or '

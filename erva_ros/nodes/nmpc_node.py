@@ -28,7 +28,7 @@ from erva_ros.core.controllers.settings import validate_settings
 from erva_ros.core.settings.controller import SPECS
 from erva_ros.core.loop.control_loop import build_loop, HOLD_TIMEOUT_S, MessageRejected, Output
 from erva_ros.core.loop.sample_schedule import Job
-from erva_ros.core.loop.timing import next_grid_delay_ns
+from erva_ros.core.timing import next_grid_delay_ns
 from erva_ros.core.reports import NMPCReport
 from erva_ros.ros.loop_node import LoopNode
 from erva_ros.ros.runtime import run_node

@@ -29,7 +29,7 @@ from trajectory_msgs.msg import JointTrajectory
 from erva_ros.core import contract, topics
 from erva_ros.core.levels import OK
 from erva_ros.core.loop.road_source import RoadSample, RoadSource
-from erva_ros.core.loop.timing import next_grid_delay_ns
+from erva_ros.core.timing import next_grid_delay_ns
 from erva_ros.core.loop.validation import MessageRejected
 from erva_ros.core.reports import RoadReport
 from erva_ros.ros.loop_node import LoopNode

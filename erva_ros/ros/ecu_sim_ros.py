@@ -33,7 +33,7 @@ from erva_ros.core.wire import NS
 from erva_ros.ros import qos as ros_qos
 from erva_ros.core.hil import topics as hil_topics
 from erva_ros.core.hil.ecu_sim import EcuSample, EcuSimCore
-from erva_ros.core.hil.hardware import GeneratorHardware
+from erva_ros.core.model.hardware import GeneratorHardware
 from erva_ros.core.hil.latency import LatencyStats
 from erva_ros.core.hil.road_buffer import KnownRoad, RoadBuffer
 

@@ -10,10 +10,10 @@ No rclpy or message import here (test_rings): ROS work goes through erva_ros.ros
 * :mod:`~erva_ros.session.processes` -- child processes: start, stop (every session tool);
 * :mod:`~erva_ros.session.run.supervisor` -- the session's processes and phases;
 * :mod:`~erva_ros.session.run.start_gate` -- another session here? when the loop may start;
-* :mod:`~erva_ros.session.bag.recording` -- the recorder process and its drain;
+* :mod:`~erva_ros.session.run.recording` -- the recorder process and its drain;
 * :mod:`~erva_ros.session.run.accounting` -- who must be matched, was anything lost (the bag);
 * :mod:`~erva_ros.session.run.observations` -- what the monitor observed, as the run's figures
-  (:mod:`~erva_ros.session.run.monitor_figures`, :mod:`~erva_ros.session.hil.hil_summary`,
+  (:mod:`~erva_ros.session.run.monitor_figures`, :mod:`~erva_ros.session.run.hil_summary`,
   :mod:`~erva_ros.session.run.verdict`);
 * :mod:`~erva_ros.session.bench.benchmark` -- `erva bench --live`.
 """

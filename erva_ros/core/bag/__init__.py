@@ -11,7 +11,7 @@ Layout (do-mpc-like separation; no ROS needed except where noted):
 * :mod:`~erva_ros.core.bag.repair`   -- recovering a bag whose recorder was killed;
 * :mod:`~erva_ros.core.bag.session`  -- bag directory names and session metadata for ``erva run``;
 * :mod:`~erva_ros.session.bag.bag_report`   -- comfort, power and timing figures from a bag alone
-  (figures in :mod:`~erva_ros.core.bag.report_plots`);
+  (figures in :mod:`~erva_ros.core.plots.bag_report`);
 * :mod:`~erva_ros.ros.replay`   -- publishing a bag with its original timing (rclpy), and
   what-if runs of another controller on a recorded road;
 * :mod:`~erva_ros.session.bag.reevaluate` -- feeding recorded states and previews to a fresh

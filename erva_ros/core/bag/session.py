@@ -24,7 +24,7 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence
 
 from erva_ros import __version__
 from erva_ros.core.model.params import ParamError
-from erva_ros.core.roadmap.location import redact_text
+from erva_ros.core.redact import redact_text
 
 _UNSAFE = re.compile(r'[^A-Za-z0-9_.-]+')
 

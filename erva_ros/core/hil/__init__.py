@@ -3,7 +3,6 @@
 =====================  ============================================================
 module                 role
 =====================  ============================================================
-``hardware``           c_e ↔ load resistance ↔ PWM duty (c_e = κ²/R), hardware limits
 ``e2e``                AUTOSAR E2E profile 1 style CRC-8 + alive counter, checks
 ``codec``              the DBC (config/erva_ecu.dbc) with cantools: frames ↔ values
 ``transport``          bus selection: SocketCAN, python-can virtual, loopback UDP

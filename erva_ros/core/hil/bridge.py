@@ -40,7 +40,7 @@ from erva_ros.core.hil.codec import Command, E2EReceiver, EcuCodec
 from erva_ros.core.hil.command_watchdog import CommandWatchdog
 from erva_ros.core.hil.ecu_cycles import (CycleAssembler, ECU_KINDS, EcuCycle, EcuHeartbeat,
                                           SensorFrame)
-from erva_ros.core.hil.hardware import GeneratorHardware
+from erva_ros.core.model.hardware import GeneratorHardware
 from erva_ros.core.levels import ERROR, OK, STALE, WARN
 
 

@@ -2,7 +2,7 @@
 
 :meth:`CommandWatchdog.submit` takes the NMPC's plan (``damping_cmd`` points: c_e for
 its sample t_c, then for t_c + j·Ts, Ns/m), rejects non-finite or empty plans, clamps
-every value to the hardware range (:class:`~erva_ros.core.hil.hardware.GeneratorHardware`)
+every value to the hardware range (:class:`~erva_ros.core.model.hardware.GeneratorHardware`)
 and sends points[0] at once as duty D = c_e / c_e,full, CONTROLLED, with the cycle it is
 for (CMD_CYCLE = c mod 256, :func:`~erva_ros.core.hil.codec.cycle_of` of the stamp).
 
@@ -38,7 +38,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 import can
 
 from erva_ros.core.hil.codec import Command, CommandMode, CYCLE_MODULO, cycle_of, EcuCodec, Kind
-from erva_ros.core.hil.hardware import GeneratorHardware
+from erva_ros.core.model.hardware import GeneratorHardware
 
 COUNTER_NAMES = ('commands_received', 'commands_rejected', 'commands_stale',
                  'commands_clamped', 'commands_wrong_delay', 'frames_sent', 'safe_frames_sent',

@@ -50,9 +50,9 @@ import numpy as np
 from erva_ros.core.model.codegen import BufferedCall
 from erva_ros.core.hil.codec import (Chassis, CommandMode, cycle_of, E2EReceiver, EcuCodec,
                                      EcuMode, Generator, Kind, Status, unwrap_cycle)
-from erva_ros.core.hil.hardware import GeneratorHardware
+from erva_ros.core.model.hardware import GeneratorHardware
 from erva_ros.core.hil.settings import ECU_SIM_DEFAULTS as _SIM
-from erva_ros.core.loop.timing import DurationStats, PeriodStats
+from erva_ros.core.timing import DurationStats, PeriodStats
 from erva_ros.core.model.quarter_car import QuarterCarModel
 from erva_ros.core.model.plant import PlantSimulator, ProfileStep
 

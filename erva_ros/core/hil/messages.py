@@ -13,7 +13,7 @@ from erva_ros.core import contract, topics
 from erva_ros.core.hil import topics as hil_topics
 from erva_ros.core.hil.bridge import EcuCycle, SensorFrame
 from erva_ros.core.hil.codec import Kind
-from erva_ros.core.hil.hardware import GeneratorHardware
+from erva_ros.core.model.hardware import GeneratorHardware
 
 NAN = math.nan
 

@@ -19,10 +19,10 @@ The sample time ``ts`` and the model kind come from the ``/**`` section (as in a
 
 from typing import Any, Dict, Optional
 
-from erva_ros.core.hil.hardware import GeneratorHardware, validate_hardware
+from erva_ros.core.model.hardware import GeneratorHardware, validate_hardware
 from erva_ros.core.model.estimator import EstimatorNoise, validate_noise
 from erva_ros.core.model.params import read_ros_params, ROS_BUILTINS
-from erva_ros.core.settings.files import shipped_config, shipped_defaults
+from erva_ros.core.settings.files import shipped_checked, shipped_config
 from erva_ros.core.settings.hil import (BRIDGE_NODE, BRIDGE_SPECS, COMMAND_LINE_DEFAULTS,
                                         ECU_SIM_SECTION, ECU_SIM_SPECS, ESTIMATOR_NODE,
                                         ESTIMATOR_SPECS, HARDWARE_SPECS, NOISE_SPECS)
@@ -32,9 +32,7 @@ from erva_ros.core.settings.specs import check_all, unknown_parameters
 
 def _shipped(node: str, specs: Dict[str, Any]) -> Dict[str, Any]:
     """Return the defaults of ``node``: its section of the shipped config/hil.yaml."""
-    values = shipped_defaults('hil.yaml', node)
-    return check_all(specs, {k: v for k, v in values.items() if k in specs},
-                     'config/hil.yaml')
+    return shipped_checked(specs, 'hil.yaml', node)
 
 
 #: Defaults: the shipped config/hil.yaml (and the bus and CAN trace, above).

@@ -33,7 +33,7 @@ from erva_ros.core.levels import ERROR, OK, WARN
 from erva_ros.core.loop.prediction import PlanPredictor
 from erva_ros.core.loop.validation import MessageRejected  # noqa: F401 (raised by on_*)
 from erva_ros.core.loop.sample_schedule import Job, SampleScheduler
-from erva_ros.core.loop.timing import DurationStats, PeriodStats
+from erva_ros.core.timing import DurationStats, PeriodStats
 from erva_ros.core.loop.validation import StampWindow
 from erva_ros.core.model.params import validate_erva
 from erva_ros.core.model.quarter_car import make_model

@@ -26,7 +26,7 @@ import numpy as np
 
 from erva_ros.core.levels import ERROR, OK, WARN
 from erva_ros.core.loop.command_hold import CommandHold
-from erva_ros.core.loop.timing import DurationStats, PeriodStats
+from erva_ros.core.timing import DurationStats, PeriodStats
 from erva_ros.core.loop.validation import MessageRejected
 from erva_ros.core.model.quarter_car import QuarterCarModel
 from erva_ros.core.model.plant import PlantSimulator

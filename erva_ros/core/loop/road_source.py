@@ -14,7 +14,7 @@ from typing import Any, Mapping, Optional
 import numpy as np
 
 from erva_ros.core.loop.scenario import build_preview_model, build_road
-from erva_ros.core.loop.timing import SampleGrid
+from erva_ros.core.timing import SampleGrid
 from erva_ros.core.loop.validation import MessageRejected
 from erva_ros.core.reports import RoadReport
 from erva_ros.core.wire import NS

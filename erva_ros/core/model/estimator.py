@@ -49,16 +49,14 @@ import numpy as np
 
 from erva_ros.core.model.codegen import BufferedCall, compile_for
 from erva_ros.core.model.quarter_car import QuarterCarModel, rk4_stable_substeps
-from erva_ros.core.settings.files import shipped_defaults
+from erva_ros.core.settings.files import shipped_checked
 from erva_ros.core.settings.hil import NOISE_SPECS
 
 #: Measurement names, in the order of y.
 MEASUREMENTS = ('sprung_accel', 'deflection', 'generator_speed')
 
 #: Default noise: the state_estimator_node section of the shipped config/hil.yaml.
-_DEFAULT_NOISE = {key: spec.check(key, shipped_defaults('hil.yaml', 'state_estimator_node')[key],
-                                  'config/hil.yaml')
-                  for key, spec in NOISE_SPECS.items()}
+_DEFAULT_NOISE = shipped_checked(NOISE_SPECS, 'hil.yaml', 'state_estimator_node')
 
 
 @dataclass(frozen=True)

@@ -54,7 +54,7 @@ import numpy as np
 
 from erva_ros.core.model.codegen import BufferedCall, compile_for
 from erva_ros.core.model.estimator import acceleration_noise, EstimatorNoise, sequential_update
-from erva_ros.core.hil.hardware import GeneratorHardware
+from erva_ros.core.model.hardware import GeneratorHardware
 from erva_ros.core.model.quarter_car import QuarterCarModel, rk4_stable_substeps
 from erva_ros.core.model.params import ParamError
 from erva_ros.core.road.profiles import DEFAULT_SPEED_MPS, ISO_CLASSES

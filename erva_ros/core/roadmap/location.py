@@ -15,11 +15,11 @@ from dataclasses import dataclass
 import hashlib
 import os
 import re
-from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
+from urllib.parse import urlsplit
+
+from erva_ros.core.redact import redact
 
 SCHEMES = ('postgresql://', 'postgres://')
-#: Query keys of a libpq URI that carry a secret: never shown.
-SECRET_KEYS = frozenset({'password', 'sslpassword'})
 
 
 @dataclass(frozen=True)
@@ -54,26 +54,6 @@ def parse_location(text: str) -> MapLocation:
     return MapLocation('sqlite', text)
 
 
-def redact(uri: str) -> str:
-    """Return the URI ``uri`` without its password and secret query keys."""
-    try:
-        parts = urlsplit(uri)
-    except ValueError:
-        return uri.split('://', 1)[0] + '://(unparsable URI)'
-    netloc = parts.netloc
-    if '@' in netloc:
-        user, host = netloc.rsplit('@', 1)
-        netloc = f'{user.split(":", 1)[0]}@{host}'
-    query = [(k, v) for k, v in parse_qsl(parts.query, keep_blank_values=True)
-             if k.lower() not in SECRET_KEYS]
-    return urlunsplit((parts.scheme, netloc, parts.path, urlencode(query, safe='/'), ''))
-
-
-def redact_text(text: str) -> str:
-    """Return ``text`` with every PostgreSQL URI in it redacted (a command line, a message)."""
-    return re.sub(r'postgres(?:ql)?://\S+', lambda m: redact(m.group(0)), text)
-
-
 def cache_dir() -> str:
     """Return the directory of the local map caches ($ERVA_MAP_CACHE_DIR, ~/.cache/erva/maps)."""
     base = os.environ.get('ERVA_MAP_CACHE_DIR') or os.path.join(
@@ -92,5 +72,4 @@ def cache_path(location: MapLocation) -> str:
     return os.path.join(cache_dir(), f'{name[:40]}_{key}.db')
 
 
-__all__ = ['MapLocation', 'parse_location', 'redact', 'redact_text', 'cache_dir', 'cache_path',
-           'SCHEMES']
+__all__ = ['MapLocation', 'parse_location', 'cache_dir', 'cache_path', 'SCHEMES']

@@ -26,7 +26,7 @@ from typing import Callable, Dict, Optional, Tuple
 import numpy as np
 
 from erva_ros.core.hil.ecu_sim import SensorNoise
-from erva_ros.core.hil.hardware import GeneratorHardware
+from erva_ros.core.model.hardware import GeneratorHardware
 from erva_ros.core.model.quarter_car import QuarterCarModel
 from erva_ros.core.model.plant import PlantSimulator
 from erva_ros.core.model.road_estimator import QUANTA, RoadEKF

@@ -10,7 +10,7 @@ core ring stays free of ROS imports, and a PyPI install (no ament index) works t
 import functools
 import os
 import sys
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import yaml
 
@@ -146,6 +146,13 @@ def shipped_defaults(name: str, node: Optional[str] = None) -> Dict[str, Any]:
     return dict(_shipped_section(name, node))
 
 
+def shipped_checked(specs: Mapping[str, Any], name: str, node: Optional[str] = None
+                    ) -> Dict[str, Any]:
+    """Return the values of ``specs`` in the shipped ``config/<name>`` section, each checked."""
+    values = shipped_defaults(name, node)
+    return {k: specs[k].check(k, v, f'config/{name}') for k, v in values.items() if k in specs}
+
+
 @functools.lru_cache(maxsize=None)
 def share_directory(package: str) -> str:
     """Return ``<prefix>/share/<package>`` of the first prefix that indexes ``package``.
@@ -168,4 +175,4 @@ def share_directory(package: str) -> str:
 
 __all__ = ['load_params_yaml', 'WILDCARD_SECTIONS', 'node_sections', 'read_sections',
            'read_ros_params', 'PACKAGE', 'SOURCE_CONFIG', 'prefixes', 'shipped_config',
-           'shipped_defaults', 'share_directory']
+           'shipped_defaults', 'shipped_checked', 'share_directory']

@@ -7,7 +7,7 @@
   bound.
 * ``ecu_sim``: the simulated ECU's latch step and sensor noise.
 
-Their users: core/hil/settings.py (the sections loaded and checked), core/hil/hardware.py
+Their users: core/hil/settings.py (the sections loaded and checked), core/model/hardware.py
 (``GeneratorHardware``), core/model/estimator.py (``EstimatorNoise``), schemas.py.
 """
 
@@ -15,7 +15,7 @@ from typing import Any, Dict
 
 from erva_ros.core.settings.specs import Flag, Integer, Number, Text
 
-#: The generator and its PWM load switch (core/hil/hardware.py).
+#: The generator and its PWM load switch (core/model/hardware.py).
 HARDWARE_SPECS: Dict[str, Number] = {
     'kappa_n_per_a': Number(0.0, 1e5, 'N/A', 'generator force constant kappa = kappabar / l '
                             '(paper eq. (10)); c_e = kappa^2 / R', lo_open=True),

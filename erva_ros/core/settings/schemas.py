@@ -20,7 +20,7 @@ from erva_ros.core.road.profiles import ISO_CLASSES, ROAD_KINDS
 from erva_ros.core.settings import hil
 from erva_ros.core.settings.controller import SPECS as CONTROLLER_SPECS
 from erva_ros.core.settings.erva import ERVA_SPECS
-from erva_ros.core.settings.files import shipped_defaults
+from erva_ros.core.settings.files import shipped_checked
 from erva_ros.core.settings.hil import COMMAND_LINE_DEFAULTS
 from erva_ros.core.settings.loop import (COMMAND_DELAY_SPEC, MAX_PRIORITY, MODEL_KINDS, MODES,
                                          TS_SPEC)
@@ -207,9 +207,7 @@ def _defaults(group: Group) -> Dict[str, Any]:
     specs = group.specs()
     if group is COMMAND_LINE:
         return {k: v for k, v in COMMAND_LINE_DEFAULTS.items() if k in specs}
-    values = shipped_defaults(group.config, group.section)
-    return {k: specs[k].check(k, v, f'config/{group.config}')
-            for k, v in values.items() if k in specs}
+    return shipped_checked(specs, group.config, group.section)
 
 
 def _controller_specs(_) -> Dict[str, Any]:

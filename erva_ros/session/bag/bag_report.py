@@ -35,7 +35,8 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 
 from erva_ros.core import contract as wire, topics as contract
-from erva_ros.core.bag import BagError, report_plots
+from erva_ros.core.bag import BagError
+from erva_ros.core.plots import bag_report as report_plots
 from erva_ros.core.bag.reader import Bag
 from erva_ros.core.bag.session import stored_parameters
 from erva_ros.core.bag.session_check import session_warnings

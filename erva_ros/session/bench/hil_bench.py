@@ -33,7 +33,7 @@ from typing import Dict, List, Optional
 from erva_ros.core import topics
 from erva_ros.core.contract import (decode_measurements, encode_state,
                                     MEASUREMENTS_ENCODER as measurements)
-from erva_ros.core.hil.hardware import GeneratorHardware
+from erva_ros.core.model.hardware import GeneratorHardware
 from erva_ros.core.metrics import percentiles_ms
 from erva_ros.core.model.estimator import ExtendedKalmanFilter
 from erva_ros.core.model.params import load_erva_params, paper_params

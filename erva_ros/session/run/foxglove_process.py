@@ -18,7 +18,7 @@ from erva_ros.core.topics import clock_remap
 from erva_ros.core.errors import CLIError
 from erva_ros.ros import foxglove_server as fg
 from erva_ros.session.processes import ChildProcess, node_argv, stop_processes
-from erva_ros.session.bag.recording import session_topics
+from erva_ros.session.run.recording import session_topics
 
 #: The process name in `erva run`'s summary and logs.
 PROCESS = 'foxglove_server'

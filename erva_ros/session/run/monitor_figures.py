@@ -13,7 +13,7 @@ from typing import Any, Dict, Optional
 
 from erva_ros.core.levels import LEVEL_NAMES
 from erva_ros.core.metrics import comfort_power
-from erva_ros.session.hil import hil_summary
+from erva_ros.session.run import hil_summary
 from erva_ros.session.run.monitor_stats import stats
 
 #: Status changes kept in the summary (the first ones; a flapping node could make many).

@@ -9,7 +9,7 @@ session's length:
 * sums, counts and extremes: comfort of the first ``n_steps`` accelerations, the span of
   the state arrivals, commands received and for samples, the verdict's worst instances
   (:class:`Worst`, :class:`Gaps`);
-* latencies and the monitor's period jitter as :class:`~erva_ros.core.loop.timing.DurationStats`
+* latencies and the monitor's period jitter as :class:`~erva_ros.core.timing.DurationStats`
   (exact to 2,000 samples, within 0.1 % beyond);
 * what belongs to one sample across topics is paired by stamp in a bounded window of the
   recent samples (:data:`WINDOW`): a command with the state of its stamp (also when the
@@ -25,7 +25,7 @@ from typing import Any, Dict, Optional
 
 import numpy as np
 
-from erva_ros.core.loop.timing import DurationStats, PeriodStats
+from erva_ros.core.timing import DurationStats, PeriodStats
 from erva_ros.core.reports import Timing
 
 #: Recent samples kept per topic to pair a sample's messages across topics: ~20 s at

@@ -30,7 +30,7 @@ from erva_ros.core.hil.topics import TRUE_STATE
 from erva_ros.core.levels import ERROR
 from erva_ros.core.reports import NMPCReport, NodeReport, report_from_status
 from erva_ros.core.settings.schemas import LIVE
-from erva_ros.session.hil import hil_summary
+from erva_ros.session.run import hil_summary
 from erva_ros.session.run import monitor_figures
 from erva_ros.session.run.monitor_figures import MAX_EVENTS
 from erva_ros.session.run.monitor_stats import SessionStreams, TRAJECTORY_CAP

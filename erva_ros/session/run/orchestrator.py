@@ -9,7 +9,7 @@
    will load and the cache lacks, one line per part (:mod:`erva_ros.session.run.warmup`):
    no node is configured before, so no node's start-up timeout is spent compiling;
 3. starts an in-process monitor node (:class:`~erva_ros.ros.monitor.Monitor`), the
-   recorder (when recording, :mod:`erva_ros.session.bag.recording`), nmpc_node,
+   recorder (when recording, :mod:`erva_ros.session.run.recording`), nmpc_node,
    plant_sim_node and road_preview_node, each as ``python -m erva_ros.nodes.<name>
    --ros-args -r __ns:=<ns> --params-file F`` in its own process group (and with a
    parent-death signal, so no node outlives `erva run`; :mod:`erva_ros.session.processes`);
@@ -29,7 +29,7 @@ With ``ecu='virtual'`` (hardware-in-the-loop, real time only) the processes of
 ``erva ecu-sim`` (plant + simulated ECU on a loopback-UDP CAN bus; it ends by itself
 after the scenario), ecu_bridge_node and state_estimator_node, so the loop is NMPC →
 bridge → CAN → ECU → CAN → bridge → estimator → NMPC.  The recorder also records the
-HIL topics, and the summary gets a ``hil`` block (:mod:`erva_ros.session.hil.hil_summary`).
+HIL topics, and the summary gets a ``hil`` block (:mod:`erva_ros.session.run.hil_summary`).
 """
 
 from dataclasses import dataclass
@@ -42,7 +42,7 @@ from erva_ros.core.errors import CLIError
 from erva_ros.core.model.params import ParamError
 from erva_ros.ros.context import check_domain_id
 from erva_ros.session.run.bringup import Timeline
-from erva_ros.session.bag.recording import check_record_dir, recorder_available
+from erva_ros.session.run.recording import check_record_dir, recorder_available
 from erva_ros.session.run.run_config import RunConfig
 from erva_ros.session.run.session_file import prepare_session, Session
 from erva_ros.session.run.session_dirs import FAILED_NOTE

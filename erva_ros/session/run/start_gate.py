@@ -21,9 +21,9 @@ from erva_ros.core.contract import decode_diagnostics, encode_diagnostics, Messa
 from erva_ros.core.hil import topics as hil_topics
 from erva_ros.core.reports import report_from_status, report_status, SessionClaim
 from erva_ros.session.run import accounting
-from erva_ros.session.hil import hil_summary
+from erva_ros.session.run import hil_summary
 from erva_ros.session.run.accounting import recorder_report
-from erva_ros.session.bag.recording import record_topics, record_writers
+from erva_ros.session.run.recording import record_topics, record_writers
 
 
 class StartGate:

@@ -22,11 +22,11 @@ from erva_ros.core.errors import CLIError
 from erva_ros.ros.context import RosContext
 from erva_ros.ros.realtime import set_fifo_priority
 from erva_ros.session.run import accounting, foxglove_process, segments
-from erva_ros.session.hil import hil_summary
+from erva_ros.session.run import hil_summary
 from erva_ros.core.reports import FoxgloveReport, RecorderReport
 from erva_ros.session.run.accounting import check_recording
 from erva_ros.session.run.bringup import Timeline
-from erva_ros.session.bag.recording import (PROCESS as RECORDER, RECORDER_PRIORITY_BELOW,
+from erva_ros.session.run.recording import (PROCESS as RECORDER, RECORDER_PRIORITY_BELOW,
                                             RecorderDrain, start_recorder)
 from erva_ros.session.processes import (ChildProcess, child_env, node_argv, ros_params,
                                         STOP_GRACE_S, stop_processes, use_session_profile)

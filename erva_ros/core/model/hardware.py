@@ -33,14 +33,12 @@ from dataclasses import asdict, dataclass
 import math
 from typing import Any, Dict, Mapping, Tuple
 
-from erva_ros.core.settings.files import shipped_defaults
+from erva_ros.core.settings.files import shipped_checked
 from erva_ros.core.settings.hil import HARDWARE_SPECS
 from erva_ros.core.settings.specs import ParamError
 
 #: Defaults: the ecu_bridge_node section of the shipped config/hil.yaml (their one home).
-DEFAULTS: Dict[str, float] = {
-    key: spec.check(key, shipped_defaults('hil.yaml', 'ecu_bridge_node')[key], 'config/hil.yaml')
-    for key, spec in HARDWARE_SPECS.items()}
+DEFAULTS: Dict[str, float] = shipped_checked(HARDWARE_SPECS, 'hil.yaml', 'ecu_bridge_node')
 
 
 @dataclass(frozen=True)
