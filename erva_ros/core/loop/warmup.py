@@ -21,17 +21,19 @@ to a minute, while the other nodes' start-up timeouts run out.  Here each such c
 its params file gives the nodes.
 """
 
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import as_completed, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 import hashlib
-import multiprocessing
 import os
-import signal
+import pickle
+import sys
+import tempfile
 import time
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Set, Tuple, Union
 
 import casadi as ca
 
+import erva_ros
 from erva_ros.core.controllers import make_controller
 from erva_ros.core.hil.settings import load_ecu_sim_section, load_estimator_section
 from erva_ros.core.model import codegen
@@ -265,7 +267,7 @@ def _write_manifest(cache: str, key: str, libs: Sequence[str]) -> None:
     os.replace(tmp, path)
 
 
-def _plan(target: Target) -> codegen.Plan:
+def plan_target(target: Target) -> codegen.Plan:
     """Build ``target`` without compiling (in a fresh process): what it loads and misses."""
     with codegen.collecting() as plan:
         target.build()
@@ -403,8 +405,25 @@ def ensure_compiled(targets: Sequence[Target], log: Optional[Callable[[str], Non
     return result
 
 
-def _plan_indexed(item: Tuple[int, Target]) -> Tuple[int, codegen.Plan]:
-    return item[0], _plan(item[1])
+def _plan_in_process(target: Target) -> codegen.Plan:
+    """Return the plan of ``target`` from a fresh planning process (core/loop/plan_worker.py)."""
+    with tempfile.TemporaryDirectory(prefix='erva_plan_') as tmp:
+        source, destination = os.path.join(tmp, 'target'), os.path.join(tmp, 'plan')
+        with open(source, 'wb') as fh:
+            pickle.dump(target, fh, protocol=pickle.HIGHEST_PROTOCOL)
+        package = os.path.dirname(os.path.dirname(os.path.abspath(erva_ros.__file__)))
+        env = dict(os.environ)
+        env['PYTHONPATH'] = os.pathsep.join(p for p in (package, env.get('PYTHONPATH')) if p)
+        status, stderr = codegen.run_stoppable(
+            [sys.executable, '-m', 'erva_ros.core.loop.plan_worker', source, destination], env)
+        if status < 0 and codegen.stopped():
+            raise KeyboardInterrupt
+        if status != 0:
+            lines = [ln for ln in stderr.splitlines() if ln.strip()]
+            raise ParamError(f'planning {target.label} failed (status {status}): '
+                             f'{lines[-1] if lines else "no message"}')
+        with open(destination, 'rb') as fh:
+            return pickle.load(fh)
 
 
 def _plan_and_compile(targets: Sequence[Target], workers: int,
@@ -427,35 +446,34 @@ def _plan_and_compile(targets: Sequence[Target], workers: int,
         except ParamError as exc:
             errors[job.lib] = str(exc)
 
-    ctx = multiprocessing.get_context('spawn')   # no inherited threads, no warm caches
     threads = ThreadPoolExecutor(workers)
+    planners = ThreadPoolExecutor(min(workers, len(targets)) or 1)
     try:
-        with ctx.Pool(min(workers, len(targets)), _ignore_sigint, maxtasksperchild=1) as pool:
-            for i, plan in pool.imap_unordered(_plan_indexed, list(enumerate(targets))):
-                plans[i] = plan
-                new = sorted({j.lib: j for j in plan.jobs if j.lib not in submitted}.values(),
-                             key=lambda j: -len(j.source))
-                if say is None or not new:
-                    continue
-                say(f'compiling {targets[i].label} (first run on this machine'
-                    f'{_expected(targets[i])})')
-                submitted.update(j.lib for j in new)
-                for job in new:
-                    threads.submit(one, job)
+        futures = {planners.submit(_plan_in_process, t): i for i, t in enumerate(targets)}
+        for done in as_completed(futures):
+            i, plan = futures[done], done.result()
+            plans[i] = plan
+            new = sorted({j.lib: j for j in plan.jobs if j.lib not in submitted}.values(),
+                         key=lambda j: -len(j.source))
+            if say is None or not new:
+                continue
+            say(f'compiling {targets[i].label} (first run on this machine'
+                f'{_expected(targets[i])})')
+            submitted.update(j.lib for j in new)
+            for job in new:
+                threads.submit(one, job)
         threads.shutdown()     # in the try: Ctrl-C comes here once every plan is in
     except KeyboardInterrupt:
-        # Ctrl-C: the planners are terminated, the compilers are ended, and no other
-        # compile starts (a queued one would run at the interpreter's exit); what
-        # finished is in the cache.
+        # Ctrl-C: the planners and the compilers are ended (sessions of their own: the
+        # terminal's SIGINT reaches only this process), no other starts (a queued one
+        # would run at the interpreter's exit); what finished is in the cache.
         codegen.stop_compilers()
+        planners.shutdown(wait=True, cancel_futures=True)
         threads.shutdown(wait=True, cancel_futures=True)
         raise
+    finally:
+        planners.shutdown(wait=False, cancel_futures=True)
     return plans, compiled, errors
-
-
-def _ignore_sigint() -> None:
-    """In a planning process: leave Ctrl-C to the parent (no traceback per process)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 #: Compiler time (CPU s, one core) of each NMPC's functions without a command delay (with

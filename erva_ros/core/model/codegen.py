@@ -539,7 +539,7 @@ _STOPPED = threading.Event()
 def stop_compilers() -> None:
     """Ctrl-C: start no compiler in this process again, and end the running ones.
 
-    Each compiler runs in a process group of its own (:func:`_run_compiler`), ended here
+    Each compiler runs in a process group of its own (:func:`run_stoppable`), ended here
     as a whole: gcc's driver and the cc1 it started.  (A terminal's SIGINT ended the
     driver but not a cc1 started just after it, which then compiled on, a minute and
     more under load, holding the driver's stderr open.)
@@ -550,6 +550,11 @@ def stop_compilers() -> None:
             _end_group(proc)
 
 
+def stopped() -> bool:
+    """Return True once Ctrl-C stopped compiling in this process (:func:`stop_compilers`)."""
+    return _STOPPED.is_set()
+
+
 def _end_group(proc: subprocess.Popen) -> None:
     try:
         os.killpg(proc.pid, signal.SIGTERM)
@@ -557,12 +562,16 @@ def _end_group(proc: subprocess.Popen) -> None:
         pass                        # already gone
 
 
-def _run_compiler(argv: List[str]) -> Tuple[int, str]:
-    """Run one compiler (ended by :func:`stop_compilers`); return (status, stderr)."""
+def run_stoppable(argv: List[str], env: Optional[Dict[str, str]] = None) -> Tuple[int, str]:
+    """Run a compiler or a planner in a session of its own; return (status, stderr).
+
+    Ended as a whole by :func:`stop_compilers`, never by the terminal's Ctrl-C (a child
+    that got it while still starting printed a traceback).
+    """
     if _STOPPED.is_set():
         return -signal.SIGINT, ''
     proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            text=True, errors='replace', start_new_session=True)
+                            text=True, errors='replace', start_new_session=True, env=env)
     with _RUNNING_LOCK:
         _RUNNING.add(proc)
     if _STOPPED.is_set():           # stopped between the check and the registration
@@ -598,7 +607,7 @@ def _compile_job(job: CompileJob, cc: str, flags) -> str:
             with open(src, 'w', encoding='utf-8') as fh:
                 fh.write(job.source)
             for attempt in (1, 2):
-                status, stderr = _run_compiler([cc, *flags, '-o', tmp, src,
+                status, stderr = run_stoppable([cc, *flags, '-o', tmp, src,
                                                 *library_flags(job.source), '-lm'])
                 if status == 0:
                     os.replace(tmp, job.lib)   # atomic: no process sees half a library
