@@ -259,5 +259,4 @@ class Streak:
             self.longest, self.from_ns, self.to_ns = self._run, self._start, stamp_ns
 
 
-__all__ = ['RoadEstimatorLoop', 'road_estimator_loop', 'MapPreviewLoop', 'STREAKS', 'Streak',
-           ]
+__all__ = ['RoadEstimatorLoop', 'road_estimator_loop', 'MapPreviewLoop', 'STREAKS', 'Streak']
